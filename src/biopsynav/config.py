@@ -1,0 +1,376 @@
+"""``case.toml``: every parameter of a case, with its documented default and validation.
+
+Units everywhere: millimetres (mm), newtons (N), megapascals (MPa; 1 kPa = 1e-3 MPa), seconds.
+Each section is a dataclass; each field carries its documentation and its allowed range in the
+field metadata, so that validation, defaults and the reference in ``docs/case_toml.md`` come from
+one place (:func:`reference_markdown`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from .errors import InputError
+from .fileio import write_text_atomic
+
+CASE_FILE = "case.toml"
+
+
+def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
+        choices: tuple | None = None, factory: Any = None) -> Any:
+    """A documented case.toml field with optional numeric range or choices."""
+    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass
+class CaseSection:
+    name: str = opt("case", "Free-text name of the case (patient or phantom).")
+    description: str = opt("", "Free-text description.")
+
+
+@dataclass
+class AnatomySection:
+    source: str = opt("surface", "Kind of anatomy input.",
+                      choices=("phantom", "surface", "volume", "labelmap"))
+    path: str = opt("", "Anatomy file relative to the case folder (STL/OBJ/PLY/VTK/VTU surface, "
+                        "tetrahedral VTK/VTU volume, or NRRD/NIfTI/MHA label map).")
+    lesions: str = opt("", "Lesions: a CSV (id,x,y,z,radius_mm) or a folder of lesion surface "
+                           "meshes, relative to the case folder; empty when lesions come from "
+                           "label values or the phantom.")
+    breast_labels: list = opt(None, "Label-map values that are breast tissue.", factory=list)
+    lesion_labels: list = opt(None, "Label-map values that are lesions (one lesion per "
+                                    "connected component).", factory=list)
+    tissue_labels: dict = opt(None, "Map from a per-cell label value of a volume mesh or label "
+                                    "map (as a string key) to a tissue name of [material].",
+                              factory=dict)
+    label_field: str = opt("", "Name of the cell-data array that holds tissue labels in a volume "
+                               "mesh; empty picks the first integer cell array.")
+    chest_wall: str = opt("auto", "Chest wall (fixed, Dirichlet) definition: 'auto' (the flat "
+                                  "posterior face), 'z-min', 'x-min', ... or "
+                                  "'plane:px,py,pz,nx,ny,nz' (point and outward normal; nodes "
+                                  "on or behind the plane are fixed).")
+    chest_wall_tolerance_mm: float = opt(1.0, "Distance from the chest-wall plane within which "
+                                              "surface vertices and grid nodes count as on it.",
+                                         lo=0.0, hi=50.0)
+    lesion_points: int = opt(42, "Surface points kept per spherical lesion.", lo=6, hi=2000)
+
+
+@dataclass
+class GridSection:
+    cell_size_mm: float = opt(6.8, "Edge of the cubic hexahedral cells. The default gives the "
+                                   "built-in phantom about 2,200 active cells (the paper: 2,174).",
+                              lo=0.5, hi=100.0)
+    margin_cells: int = opt(1, "Empty cells kept around the anatomy before padding.", lo=0, hi=8)
+    samples_per_axis: int = opt(5, "Sub-cell sample points per axis for the tissue volume "
+                                   "fraction (n^3 per cell).", lo=1, hi=16)
+    fraction_threshold: float = opt(0.01, "Cells with a tissue volume fraction above this are "
+                                          "active; cells holding a surface vertex or lesion "
+                                          "point are active too.", lo=0.0, hi=1.0)
+    min_fraction: float = opt(0.05, "Lower bound of the fraction used to scale the integration "
+                                    "weights of an active cell (keeps nearly empty cells from "
+                                    "making the stiffness singular).", lo=0.0, hi=1.0)
+
+
+@dataclass
+class MaterialSection:
+    model: str = opt("neo-hookean", "Hyperelastic law: 'neo-hookean' (compressible, default: "
+                                    "stable under large pushes) or 'svk' (Saint Venant-Kirchhoff, "
+                                    "the paper's; collapses under large pushes on soft tissue).",
+                     choices=("neo-hookean", "svk"))
+    default_tissue: str = opt("phantom", "Tissue of cells without a label.")
+    tissues: dict = opt(None, "Per-tissue Young's modulus E_mpa (MPa) and Poisson ratio nu. "
+                              "Defaults: fat 4.46 kPa, gland 15.1 kPa, skin 20 kPa (UC Davis / "
+                              "Awwad et al. 2024, after Wellman 1999 and Samani 2007), lesion "
+                              "30 kPa (Samani 2007, IDC), phantom 5 kPa; nu 0.45.",
+                    factory=lambda: {
+                        "fat": {"E_mpa": 4.46e-3, "nu": 0.45},
+                        "gland": {"E_mpa": 15.1e-3, "nu": 0.45},
+                        "skin": {"E_mpa": 20.0e-3, "nu": 0.45},
+                        "lesion": {"E_mpa": 30.0e-3, "nu": 0.45},
+                        "phantom": {"E_mpa": 5.0e-3, "nu": 0.45},
+                    })
+
+
+@dataclass
+class SolverSection:
+    tol_residual: float = opt(1e-8, "Newton stops when |R| <= tol_residual * |R0| (R0: the "
+                                    "residual of the undeformed state under the full load) ...",
+                              lo=1e-14, hi=1e-1)
+    tol_displacement: float = opt(1e-8, "... and |du| <= tol_displacement * |u|.",
+                                  lo=1e-14, hi=1e-1)
+    max_iterations: int = opt(30, "Newton iterations per load increment.", lo=1, hi=500)
+    initial_load_step: float = opt(1.0, "First load increment as a fraction of the full load.",
+                                   lo=1e-4, hi=1.0)
+    min_load_step: float = opt(1.0 / 256, "Smallest load increment before the solve fails.",
+                               lo=1e-8, hi=1.0)
+    line_search: bool = opt(True, "Backtracking line search on the residual norm.")
+    backend: str = opt("auto", "Sparse direct solver: auto (fastest installed), pardiso, "
+                               "cholmod, superlu.",
+                       choices=("auto", "pardiso", "cholmod", "superlu"))
+
+
+@dataclass
+class ProbeSection:
+    footprint_mm: list = opt(None, "Probe face, long side x short side.", factory=lambda: [50.0, 10.0])
+    depth_tolerance_mm: float = opt(5.0, "Half-depth of the oriented selection box along the "
+                                         "surface normal.", lo=0.1, hi=100.0)
+    max_tilt_deg: float = opt(45.0, "Largest angle between the force and the inward normal.",
+                              lo=0.0, hi=89.0)
+    f_max_n: float = opt(1.0, "Largest total probe force (N), shared equally by the contact "
+                              "points; drawn uniformly in [0, f_max_n].", lo=0.0, hi=1e4)
+    contact_tolerance_mm: float = opt(2.0, "Tracker rest pose: skin points within this distance "
+                                           "of the probe face plane (and under the footprint) "
+                                           "are in contact.", lo=0.0, hi=50.0)
+
+
+@dataclass
+class DatasetSection:
+    n_train: int = opt(800, "Training samples.", lo=1, hi=10**7)
+    n_test: int = opt(200, "Held-out test samples.", lo=1, hi=10**7)
+    seed: int = opt(0, "Seed: the same seed gives the same samples whatever the worker count.",
+                    lo=0, hi=2**63 - 1)
+    max_failure_share: float = opt(0.25, "Stop the job when more than this share of the draws "
+                                         "fails to converge.", lo=0.0, hi=1.0)
+    chunk_samples: int = opt(1, "Samples per storage chunk.", lo=1, hi=4096)
+
+
+@dataclass
+class NetworkSection:
+    preset: str = opt("default", "Architecture preset: 'default' (sized for real-time CPU "
+                                 "inference) or 'paper' (128 first-level channels, ~90 M "
+                                 "parameters).", choices=("default", "paper", "custom"))
+    levels: int = opt(3, "U-Net levels k; grid node counts are padded to multiples of 2^k.",
+                      lo=1, hi=6)
+    base_channels: int = opt(16, "Channels of the first level (custom preset).", lo=1, hi=512)
+    norm: str = opt("none", "Normalisation layer.", choices=("none", "batch", "instance", "group"))
+    activation: str = opt("relu", "Activation.", choices=("relu", "leaky_relu", "gelu", "silu"))
+    iterations: int = opt(20000, "Training iterations (optimizer steps).", lo=1, hi=10**8)
+    batch_size: int = opt(4, "Batch size (the paper: 4).", lo=1, hi=1024)
+    learning_rate: float = opt(1e-3, "Peak Adam learning rate (cosine schedule).", lo=1e-7, hi=1.0)
+    val_interval: int = opt(500, "Validate every this many iterations.", lo=1, hi=10**7)
+    seed: int = opt(0, "Training seed.", lo=0, hi=2**63 - 1)
+    device: str = opt("auto", "Training device.", choices=("auto", "cpu", "cuda"))
+    threads: int = opt(0, "CPU threads for inference (0: all cores).", lo=0, hi=1024)
+
+
+@dataclass
+class TrackerSection:
+    engine: str = opt("net", "Default engine: 'net' (U-Net) or 'fem' (finite elements).",
+                      choices=("net", "fem"))
+    envelope_margin: float = opt(1.1, "Contact displacements up to this factor of the largest "
+                                      "trained one are accepted.", lo=1.0, hi=10.0)
+    rigid_tolerance: float = opt(1e-3, "Largest deviation of a pose rotation from orthonormal.",
+                                 lo=1e-9, hi=1.0)
+
+
+@dataclass
+class IgtlSection:
+    tracker: str = opt("127.0.0.1:18944", "OpenIGTLink server that streams the probe "
+                                          "(PLUS); biopsynav connects to it as a client.")
+    listen: str = opt("127.0.0.1:18945", "Address where biopsynav listens for 3D Slicer and "
+                                         "other clients.")
+    probe_device: str = opt("ProbeToReference", "Device name of the probe TRANSFORM.")
+    max_body_bytes: int = opt(1 << 20, "Largest accepted message body.", lo=64, hi=1 << 30)
+
+
+@dataclass
+class EvaluateSection:
+    deformations_per_lesion: int = opt(4, "Probe pushes per lesion in Table 2.", lo=1, hi=50)
+    max_push_mm: float = opt(32.0, "Deepest probe push in Table 2.", lo=1.0, hi=200.0)
+    reference_refinement: int = opt(2, "Ground-truth FE grid is this many times finer.",
+                                    lo=1, hi=4)
+
+
+SECTIONS: dict[str, type] = {
+    "case": CaseSection,
+    "anatomy": AnatomySection,
+    "grid": GridSection,
+    "material": MaterialSection,
+    "solver": SolverSection,
+    "probe": ProbeSection,
+    "dataset": DatasetSection,
+    "network": NetworkSection,
+    "tracker": TrackerSection,
+    "igtl": IgtlSection,
+    "evaluate": EvaluateSection,
+}
+
+
+@dataclass
+class CaseConfig:
+    """The whole of ``case.toml``."""
+
+    case: CaseSection = field(default_factory=CaseSection)
+    anatomy: AnatomySection = field(default_factory=AnatomySection)
+    grid: GridSection = field(default_factory=GridSection)
+    material: MaterialSection = field(default_factory=MaterialSection)
+    solver: SolverSection = field(default_factory=SolverSection)
+    probe: ProbeSection = field(default_factory=ProbeSection)
+    dataset: DatasetSection = field(default_factory=DatasetSection)
+    network: NetworkSection = field(default_factory=NetworkSection)
+    tracker: TrackerSection = field(default_factory=TrackerSection)
+    igtl: IgtlSection = field(default_factory=IgtlSection)
+    evaluate: EvaluateSection = field(default_factory=EvaluateSection)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def section_dict(self, name: str) -> dict:
+        """One section as a plain dict (used in fingerprints)."""
+        return dataclasses.asdict(getattr(self, name))
+
+
+def _check_value(section: str, f: dataclasses.Field, value: Any, where: str) -> Any:
+    key = f"[{section}] {f.name}"
+    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+    expected = type(default)
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if expected is bool and not isinstance(value, bool):
+        raise InputError(f"{key} must be true or false, got {value!r}", where)
+    if expected is int and (isinstance(value, bool) or not isinstance(value, int)):
+        raise InputError(f"{key} must be an integer, got {value!r}", where)
+    if not isinstance(value, expected):
+        raise InputError(f"{key} must be of type {expected.__name__}, got {value!r}", where)
+    meta = f.metadata
+    if meta.get("choices") and value not in meta["choices"]:
+        raise InputError(f"{key} must be one of {', '.join(meta['choices'])}; got {value!r}",
+                         where)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if value != value:
+            raise InputError(f"{key} is NaN", where)
+        if meta.get("lo") is not None and value < meta["lo"]:
+            raise InputError(f"{key} = {value} is below its minimum {meta['lo']}", where)
+        if meta.get("hi") is not None and value > meta["hi"]:
+            raise InputError(f"{key} = {value} is above its maximum {meta['hi']}", where)
+    return value
+
+
+def _check_special(cfg: CaseConfig, where: str) -> None:
+    fp = cfg.probe.footprint_mm
+    if len(fp) != 2 or not all(isinstance(v, (int, float)) and v > 0 for v in fp):
+        raise InputError(f"[probe] footprint_mm must be two positive lengths, got {fp!r}", where)
+    for name, tissue in cfg.material.tissues.items():
+        if not isinstance(tissue, dict) or set(tissue) != {"E_mpa", "nu"}:
+            raise InputError(f"[material.tissues.{name}] needs exactly E_mpa and nu", where)
+        e, nu = tissue["E_mpa"], tissue["nu"]
+        if not isinstance(e, (int, float)) or not 0 < e < 1e3:
+            raise InputError(f"[material.tissues.{name}] E_mpa must be in (0, 1000) MPa, "
+                             f"got {e!r}", where)
+        if not isinstance(nu, (int, float)) or not -1 < nu < 0.5:
+            raise InputError(f"[material.tissues.{name}] nu must be in (-1, 0.5), got {nu!r}",
+                             where)
+    if cfg.material.default_tissue not in cfg.material.tissues:
+        raise InputError(f"[material] default_tissue {cfg.material.default_tissue!r} is not in "
+                         "[material.tissues]", where)
+    for label, tissue in cfg.anatomy.tissue_labels.items():
+        if tissue not in cfg.material.tissues:
+            raise InputError(f"[anatomy] tissue_labels maps {label} to unknown tissue "
+                             f"{tissue!r}", where)
+    cw = cfg.anatomy.chest_wall
+    valid_axes = {f"{s}-{m}" for s in "xyz" for m in ("min", "max")}
+    if cw != "auto" and cw not in valid_axes and not cw.startswith("plane:"):
+        raise InputError(f"[anatomy] chest_wall must be auto, x-min ... z-max or "
+                         f"plane:px,py,pz,nx,ny,nz; got {cw!r}", where)
+    if cw.startswith("plane:"):
+        try:
+            vals = [float(v) for v in cw[6:].split(",")]
+        except ValueError:
+            vals = []
+        if len(vals) != 6 or sum(v * v for v in vals[3:]) == 0:
+            raise InputError(f"[anatomy] chest_wall plane needs six numbers px,py,pz,nx,ny,nz "
+                             f"with a non-zero normal; got {cw!r}", where)
+    for addr_key in ("tracker", "listen"):
+        parse_address(getattr(cfg.igtl, addr_key), f"[igtl] {addr_key}")
+
+
+def parse_address(text: str, where: str = "address") -> tuple[str, int]:
+    """Parse ``HOST:PORT`` into a tuple; raise InputError naming ``where`` when malformed."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"expected HOST:PORT with a port in 1..65535, got {text!r}", where)
+    return host, int(port)
+
+
+def config_from_dict(data: dict, where: str = CASE_FILE) -> CaseConfig:
+    """Build and validate a configuration; unknown sections or keys are errors."""
+    cfg = CaseConfig()
+    for section, values in data.items():
+        if section not in SECTIONS:
+            raise InputError(f"unknown section [{section}]; known: {', '.join(SECTIONS)}", where)
+        if not isinstance(values, dict):
+            raise InputError(f"[{section}] must be a table", where)
+        cls = SECTIONS[section]
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        kwargs = {}
+        for key, value in values.items():
+            if key not in fields:
+                raise InputError(f"unknown key {key!r} in [{section}]; known: "
+                                 f"{', '.join(fields)}", where)
+            kwargs[key] = _check_value(section, fields[key], value, where)
+        if section == "material" and "tissues" in kwargs:
+            merged = CaseConfig().material.tissues
+            merged.update(kwargs["tissues"])
+            kwargs["tissues"] = merged
+        setattr(cfg, section, cls(**kwargs))
+    _check_special(cfg, where)
+    return cfg
+
+
+def load_config(case_dir: str | Path) -> CaseConfig:
+    """Read and validate ``CASE_DIR/case.toml``."""
+    path = Path(case_dir) / CASE_FILE
+    if not Path(case_dir).is_dir():
+        raise InputError("case folder does not exist", str(case_dir))
+    if not path.is_file():
+        raise InputError("no case.toml here; create the case with `biopsynav init`", str(path))
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML: {exc}", str(path)) from None
+    return config_from_dict(data, str(path))
+
+
+def save_config(case_dir: str | Path, cfg: CaseConfig) -> Path:
+    """Write ``case.toml`` atomically, with a header naming the units."""
+    header = ("# biopsynav case. Units: mm, N, MPa (1 kPa = 1e-3 MPa), s.\n"
+              "# Every key is documented in docs/case_toml.md.\n\n")
+    body = tomli_w.dumps(_drop_none(cfg.to_dict()))
+    return write_text_atomic(Path(case_dir) / CASE_FILE, header + body)
+
+
+def _drop_none(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _drop_none(v) for k, v in obj.items() if v is not None}
+    return obj
+
+
+def reference_markdown() -> str:
+    """The case.toml reference (every key, default, range and meaning) as Markdown."""
+    lines = ["# case.toml reference", "",
+             "Units: millimetres, newtons, megapascals (1 kPa = 1e-3 MPa), seconds.", ""]
+    defaults = CaseConfig()
+    for section, cls in SECTIONS.items():
+        lines += [f"## [{section}]", "", "| key | default | allowed | meaning |",
+                  "|---|---|---|---|"]
+        for f in dataclasses.fields(cls):
+            value = getattr(getattr(defaults, section), f.name)
+            meta = f.metadata
+            allowed = ""
+            if meta.get("choices"):
+                allowed = ", ".join(meta["choices"])
+            elif meta.get("lo") is not None or meta.get("hi") is not None:
+                allowed = f"[{meta.get('lo')}, {meta.get('hi')}]"
+            shown = repr(value) if not isinstance(value, dict) else "see meaning"
+            lines.append(f"| `{f.name}` | `{shown}` | {allowed} | {meta['doc']} |")
+        lines.append("")
+    return "\n".join(lines)

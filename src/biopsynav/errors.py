@@ -1,0 +1,28 @@
+"""One error type for every bad input; the CLI prints it as one line and exits with status 2."""
+
+from __future__ import annotations
+
+
+class BiopsynavError(Exception):
+    """A user-facing error: ``what`` is wrong, ``where`` names the input (file, key, message)."""
+
+    def __init__(self, what: str, where: str | None = None) -> None:
+        self.what = what
+        self.where = where
+        super().__init__(f"{where}: {what}" if where else what)
+
+
+class InputError(BiopsynavError):
+    """A file, a case.toml value or a command-line option that cannot be used."""
+
+
+class SolverError(BiopsynavError):
+    """A finite-element solve that did not converge; carries the Newton log."""
+
+    def __init__(self, what: str, where: str | None = None, log: list[dict] | None = None) -> None:
+        super().__init__(what, where)
+        self.log = log or []
+
+
+class FingerprintError(BiopsynavError):
+    """Data or a model made for another anatomy or grid than the case at hand."""

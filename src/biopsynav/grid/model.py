@@ -1,0 +1,98 @@
+"""The immersed grid as plain arrays (see :mod:`biopsynav.grid.index` for the index convention)."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..fileio import save_npz_atomic
+from . import index
+
+GRID_FILE = "grid.npz"
+
+
+@dataclass
+class Grid:
+    """A regular hexahedral grid around the anatomy.
+
+    Attributes (mm; node arrays are (nx, ny, nz), cell arrays (nx-1, ny-1, nz-1)):
+        origin: (3,) position of node (0, 0, 0).
+        spacing: cell edge length.
+        fraction: tissue volume fraction of each cell in [0, 1].
+        label: tissue label of each cell (-1: none, use the default tissue).
+        active_cells: cells that carry finite elements.
+        active_nodes: nodes of active cells.
+        fixed_nodes: active nodes on or behind the chest wall (Dirichlet u = 0).
+        status: per cell 0 outside, 1 boundary, 2 inside.
+    """
+
+    origin: np.ndarray
+    spacing: float
+    fraction: np.ndarray
+    label: np.ndarray
+    active_cells: np.ndarray
+    active_nodes: np.ndarray
+    fixed_nodes: np.ndarray
+    status: np.ndarray
+
+    @property
+    def node_shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.active_nodes.shape)  # type: ignore[return-value]
+
+    @property
+    def cell_shape(self) -> tuple[int, int, int]:
+        return index.cell_shape(self.node_shape)
+
+    @property
+    def n_nodes(self) -> int:
+        return int(np.prod(self.node_shape))
+
+    def node_coords(self) -> np.ndarray:
+        """Positions (n_nodes, 3) of every node in flat order, mm."""
+        return index.node_coordinates(self.origin, self.spacing, self.node_shape)
+
+    def active_cell_ijk(self) -> np.ndarray:
+        """Integer coordinates (n_active, 3) of active cells in flat order."""
+        return np.argwhere(self.active_cells)
+
+    def active_hexes(self) -> np.ndarray:
+        """Flat node indices (n_active, 8) of the active cells, VTK hexahedron order."""
+        return index.hex_connectivity(self.active_cell_ijk(), self.node_shape)
+
+    def active_fraction(self) -> np.ndarray:
+        """Volume fraction (n_active,) of the active cells."""
+        return self.fraction[self.active_cells]
+
+    def active_label(self) -> np.ndarray:
+        """Tissue label (n_active,) of the active cells (-1: default tissue)."""
+        return self.label[self.active_cells]
+
+    def fingerprint(self) -> str:
+        """SHA-256 of every array and the geometry: changes whenever the grid changes."""
+        h = hashlib.sha256()
+        for f in fields(self):
+            value = np.ascontiguousarray(getattr(self, f.name))
+            h.update(f.name.encode())
+            h.update(str(value.dtype).encode() + str(value.shape).encode())
+            h.update(value.tobytes())
+        return h.hexdigest()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the grid to an ``.npz`` atomically."""
+        return save_npz_atomic(path, **{f.name: np.asarray(getattr(self, f.name))
+                                        for f in fields(self)})
+
+    @classmethod
+    def load(cls, path: str | Path) -> Grid:
+        """Read a grid written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError("grid file is missing; run `biopsynav init` again", str(path))
+        with np.load(path) as data:
+            kwargs = {f.name: data[f.name] for f in fields(cls)}
+        kwargs["spacing"] = float(kwargs["spacing"])
+        return cls(**kwargs)

@@ -1,0 +1,40 @@
+"""What a tracker returns for one probe pose (mm, anatomy frame)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+OK = "ok"
+REST = "rest"  # rest pose taken; lesions at their pre-operative positions
+NO_CONTACT = "no_contact"
+OUT_OF_ENVELOPE = "out_of_envelope"
+INVALID_POSE = "invalid_pose"
+NO_REST_POSE = "no_rest_pose"
+RELIABLE = (OK, REST)
+
+
+@dataclass
+class LesionResult:
+    """One lesion: ``center`` (3,) predicted position, ``displacement`` (3,) from rest, mm."""
+
+    id: int
+    center: np.ndarray
+    displacement: np.ndarray
+    status: str = OK
+
+
+@dataclass
+class TrackingResult:
+    """All lesions for one pose; ``status`` is OK only when the numbers can be trusted."""
+
+    lesions: list[LesionResult]
+    status: str = OK
+    reason: str = ""
+    latency_ms: float = 0.0
+    surface: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def reliable(self) -> bool:
+        return self.status in RELIABLE
