@@ -66,8 +66,8 @@ class AnatomySection:
 
 @dataclass
 class GridSection:
-    cell_size_mm: float = opt(6.8, "Edge of the cubic hexahedral cells. The default gives the "
-                                   "built-in phantom about 2,200 active cells (the paper: 2,174).",
+    cell_size_mm: float = opt(7.3, "Edge of the cubic hexahedral cells. The default gives the "
+                                   "built-in phantom 2,225 active cells on 24 x 24 x 16 nodes (the paper: 2,174).",
                               lo=0.5, hi=100.0)
     margin_cells: int = opt(1, "Empty cells kept around the anatomy before padding.", lo=0, hi=8)
     samples_per_axis: int = opt(5, "Sub-cell sample points per axis for the tissue volume "
@@ -145,21 +145,39 @@ class DatasetSection:
 
 @dataclass
 class NetworkSection:
-    preset: str = opt("default", "Architecture preset: 'default' (sized for real-time CPU "
-                                 "inference) or 'paper' (128 first-level channels, ~90 M "
-                                 "parameters).", choices=("default", "paper", "custom"))
-    levels: int = opt(3, "U-Net levels k; grid node counts are padded to multiples of 2^k.",
-                      lo=1, hi=6)
-    base_channels: int = opt(16, "Channels of the first level (custom preset).", lo=1, hi=512)
-    norm: str = opt("none", "Normalisation layer.", choices=("none", "batch", "instance", "group"))
-    activation: str = opt("relu", "Activation.", choices=("relu", "leaky_relu", "gelu", "silu"))
+    preset: str = opt("default", "Architecture preset: 'default' (8 first-level channels, 3 "
+                                 "levels, 0.35 M parameters: sized for real-time CPU inference, "
+                                 "see docs/network.md), 'paper' (128 first-level channels, "
+                                 "1024 in the bottleneck, ~90 M parameters) or 'custom' "
+                                 "(levels, base_channels, norm, activation below).",
+                     choices=("default", "paper", "custom"))
+    levels: int = opt(3, "U-Net levels k of the custom preset; grid node counts must be "
+                         "multiples of 2^k.", lo=1, hi=6)
+    base_channels: int = opt(16, "Channels of the first level (custom preset); they double "
+                                 "per level.", lo=1, hi=512)
+    norm: str = opt("none", "Normalisation layer (custom preset).",
+                    choices=("none", "batch", "instance", "group"))
+    activation: str = opt("relu", "Activation (custom preset).",
+                          choices=("relu", "leaky_relu", "gelu", "silu"))
     iterations: int = opt(20000, "Training iterations (optimizer steps).", lo=1, hi=10**8)
     batch_size: int = opt(4, "Batch size (the paper: 4).", lo=1, hi=1024)
-    learning_rate: float = opt(1e-3, "Peak Adam learning rate (cosine schedule).", lo=1e-7, hi=1.0)
-    val_interval: int = opt(500, "Validate every this many iterations.", lo=1, hi=10**7)
-    seed: int = opt(0, "Training seed.", lo=0, hi=2**63 - 1)
-    device: str = opt("auto", "Training device.", choices=("auto", "cpu", "cuda"))
-    threads: int = opt(0, "CPU threads for inference (0: all cores).", lo=0, hi=1024)
+    learning_rate: float = opt(1e-3, "Peak Adam learning rate (linear warm-up, then cosine "
+                                     "decay to 1 % of it).", lo=1e-7, hi=1.0)
+    warmup_iterations: int = opt(300, "Linear learning-rate warm-up steps.", lo=0, hi=10**7)
+    loss: str = opt("mse", "Training loss over active nodes on the normalised displacement: "
+                           "'mse' (the paper's eq. 1) or 'l1'.", choices=("mse", "l1"))
+    val_interval: int = opt(500, "Validate on the held-out samples (and write a resumable "
+                                 "checkpoint) every this many iterations.", lo=1, hi=10**7)
+    seed: int = opt(0, "Training seed: the same seed, data and thread count give the same "
+                       "model.", lo=0, hi=2**63 - 1)
+    device: str = opt("auto", "Training device ('auto': CUDA when present, with bf16 mixed "
+                              "precision, else CPU).", choices=("auto", "cpu", "cuda"))
+    threads: int = opt(0, "CPU threads for training and inference (0: all cores).",
+                       lo=0, hi=1024)
+    runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
+                               "(frozen, optimize_for_inference), 'openvino' (fp32 forced) or "
+                               "'auto' (the fastest installed; see docs/network.md). Always "
+                               "fp32.", choices=("auto", "torchscript", "openvino"))
 
 
 @dataclass

@@ -1,0 +1,250 @@
+"""Readers for anatomy inputs: surfaces, tetrahedral volumes, label maps, lesion files.
+
+All readers return plain arrays in mm. Formats: STL/OBJ/PLY/OFF (trimesh), VTK/VTU (meshio;
+triangles = surface, tetrahedra = volume with optional per-cell tissue labels), NRRD/NIfTI/MHA
+label maps (SimpleITK + marching cubes), lesion CSVs ``id,x,y,z,radius_mm``.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..grid.index import image_array_to_xyz
+from .model import Lesion
+
+SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off")
+MESHIO_SUFFIXES = (".vtk", ".vtu")
+LABELMAP_SUFFIXES = (".nrrd", ".nhdr", ".nii", ".nii.gz", ".mha", ".mhd")
+
+
+@dataclass
+class RawAnatomy:
+    """What a reader found: a surface, optional label samples, optional lesions."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    label_points: np.ndarray
+    label_values: np.ndarray
+    lesions: list[Lesion]
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
+def _require_file(path: Path) -> None:
+    if not path.exists():
+        raise InputError("file not found", str(path))
+    if not path.is_file():
+        raise InputError("not a file", str(path))
+
+
+def read_anatomy(path: str | Path, breast_labels: list | None = None,
+                 lesion_labels: list | None = None, label_field: str = "") -> RawAnatomy:
+    """Read any supported anatomy file (surface, volume mesh or label map), in mm."""
+    path = Path(path)
+    _require_file(path)
+    suffix = _suffix(path)
+    if suffix in SURFACE_SUFFIXES:
+        v, f = read_surface_trimesh(path)
+        return RawAnatomy(v, f, np.zeros((0, 3)), np.zeros(0, np.int32), [])
+    if suffix in MESHIO_SUFFIXES:
+        return read_meshio(path, label_field)
+    if suffix in LABELMAP_SUFFIXES:
+        return read_labelmap(path, breast_labels or [], lesion_labels or [])
+    raise InputError(f"unsupported anatomy format {suffix!r}; use STL, OBJ, PLY, VTK, VTU, "
+                     "NRRD, NIfTI or MHA", str(path))
+
+
+def read_surface_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles of a surface file via trimesh (vertices merged)."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many kinds on broken files
+        raise InputError(f"cannot read surface: {exc}", str(path)) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError("file holds no triangles", str(path))
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+
+
+def read_meshio(path: Path, label_field: str = "") -> RawAnatomy:
+    """A VTK/VTU file: tetrahedra (volume, boundary taken) or triangles (surface)."""
+    import meshio
+
+    try:
+        mesh = meshio.read(path)
+    except Exception as exc:
+        raise InputError(f"cannot read mesh: {exc}", str(path)) from None
+    points = np.asarray(mesh.points, np.float64)[:, :3]
+    tets = [(i, b.data) for i, b in enumerate(mesh.cells) if b.type == "tetra"]
+    if tets:
+        block, conn = tets[0]
+        labels = _cell_labels(mesh, block, label_field, path)
+        faces = tet_boundary_faces(conn)
+        used, inv = np.unique(faces, return_inverse=True)
+        centroids = points[conn].mean(axis=1)
+        return RawAnatomy(points[used], inv.reshape(-1, 3), centroids if labels is not None
+                          else np.zeros((0, 3)),
+                          labels if labels is not None else np.zeros(0, np.int32), [])
+    tris = [b.data for b in mesh.cells if b.type == "triangle"]
+    if not tris:
+        raise InputError("mesh has neither tetrahedra nor triangles", str(path))
+    faces = np.vstack(tris).astype(np.int64)
+    used, inv = np.unique(faces, return_inverse=True)
+    return RawAnatomy(points[used], inv.reshape(-1, 3), np.zeros((0, 3)),
+                      np.zeros(0, np.int32), [])
+
+
+def _cell_labels(mesh, block: int, label_field: str, path: Path) -> np.ndarray | None:
+    data = mesh.cell_data
+    if label_field:
+        if label_field not in data:
+            raise InputError(f"cell data {label_field!r} not found; present: "
+                             f"{', '.join(data) or 'none'}", str(path))
+        return np.asarray(data[label_field][block]).astype(np.int32).ravel()
+    for values in data.values():
+        arr = np.asarray(values[block])
+        if arr.ndim == 1 and np.all(np.equal(np.mod(arr, 1), 0)):
+            return arr.astype(np.int32)
+    return None
+
+
+def tet_boundary_faces(tets: np.ndarray) -> np.ndarray:
+    """Boundary triangles (outward) of a tetrahedral mesh: faces used by exactly one tet."""
+    tets = np.asarray(tets, np.int64)
+    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+    faces = tets[:, local].reshape(-1, 3)
+    key = np.sort(faces, axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[counts[inv.ravel()] == 1]
+
+
+def read_labelmap(path: Path, breast_labels: list, lesion_labels: list) -> RawAnatomy:
+    """A segmented label map: breast surface by marching cubes, tissue labels, lesions."""
+    import SimpleITK as sitk
+
+    if not breast_labels:
+        raise InputError("a label map needs --breast-labels (label values of breast tissue)",
+                         str(path))
+    try:
+        image = sitk.ReadImage(str(path))
+    except RuntimeError as exc:
+        raise InputError(f"cannot read label map: {str(exc).splitlines()[0]}",
+                         str(path)) from None
+    labels = image_array_to_xyz(sitk.GetArrayFromImage(image)).astype(np.int64)
+    present = set(np.unique(labels).tolist())
+    for value in list(breast_labels) + list(lesion_labels):
+        if value not in present:
+            raise InputError(f"label {value} is absent from the label map (present: "
+                             f"{sorted(present)})", str(path))
+    to_mm = _index_to_physical(image)
+    mask = np.isin(labels, list(breast_labels) + list(lesion_labels))
+    vertices, faces = _mask_surface(mask, to_mm)
+    ijk = np.argwhere(mask)
+    step = max(1, len(ijk) // 400_000)
+    label_points = to_mm(ijk[::step].astype(np.float64))
+    label_values = labels[tuple(ijk[::step].T)].astype(np.int32)
+    lesions = _label_lesions(labels, lesion_labels, to_mm)
+    return RawAnatomy(vertices, faces, label_points, label_values, lesions)
+
+
+def _index_to_physical(image):
+    origin = np.array(image.GetOrigin(), np.float64)
+    spacing = np.array(image.GetSpacing(), np.float64)
+    direction = np.array(image.GetDirection(), np.float64).reshape(3, 3)
+
+    def to_mm(ijk: np.ndarray) -> np.ndarray:
+        return origin + (np.asarray(ijk) * spacing) @ direction.T
+
+    return to_mm
+
+
+def _mask_surface(mask: np.ndarray, to_mm) -> tuple[np.ndarray, np.ndarray]:
+    from skimage.measure import marching_cubes
+
+    padded = np.pad(mask.astype(np.float32), 1)
+    verts, faces, _, _ = marching_cubes(padded, level=0.5)
+    verts = to_mm(verts - 1.0)
+    faces = faces[:, ::-1].astype(np.int64)  # skimage winds inward for a 1-inside mask
+    return verts, faces
+
+
+def _label_lesions(labels: np.ndarray, lesion_labels: list, to_mm) -> list[Lesion]:
+    from scipy import ndimage
+
+    lesions: list[Lesion] = []
+    for value in lesion_labels:
+        comps, n = ndimage.label(labels == value)
+        for c in range(1, n + 1):
+            comp = comps == c
+            v, _ = _mask_surface(comp, to_mm)
+            center = to_mm(np.argwhere(comp).mean(axis=0))
+            radius = float(np.linalg.norm(v - center, axis=1).mean())
+            lesions.append(Lesion(len(lesions) + 1, center, radius, v))
+    return lesions
+
+
+def read_lesion_csv(path: str | Path, n_points: int) -> list[Lesion]:
+    """Spherical lesions from a CSV with columns ``id,x,y,z,radius_mm`` (mm)."""
+    path = Path(path)
+    _require_file(path)
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        need = {"id", "x", "y", "z", "radius_mm"}
+        if reader.fieldnames is None or not need <= {c.strip() for c in reader.fieldnames}:
+            raise InputError(f"lesion CSV needs the columns id,x,y,z,radius_mm; found "
+                             f"{reader.fieldnames}", str(path))
+        lesions = []
+        for line, row in enumerate(reader, start=2):
+            row = {k.strip(): (v or "").strip() for k, v in row.items() if k}
+            try:
+                lid = int(row["id"])
+                center = np.array([float(row[c]) for c in "xyz"])
+                radius = float(row["radius_mm"])
+            except ValueError:
+                raise InputError(f"line {line}: not a number in {row}", str(path)) from None
+            if not np.isfinite(center).all() or not np.isfinite(radius) or radius <= 0:
+                raise InputError(f"line {line}: lesion {lid} needs finite coordinates and a "
+                                 "positive radius", str(path))
+            lesions.append(Lesion(lid, center, radius, sphere_points(center, radius, n_points)))
+    if not lesions:
+        raise InputError("lesion CSV has no rows", str(path))
+    ids = [les.id for les in lesions]
+    if len(set(ids)) != len(ids):
+        raise InputError("lesion ids are not unique", str(path))
+    return lesions
+
+
+def read_lesion_meshes(paths: list[Path]) -> list[Lesion]:
+    """One lesion per closed surface file: centre = volume centroid, points = vertices."""
+    from .model import surface_volume
+
+    lesions = []
+    for i, path in enumerate(sorted(paths), start=1):
+        v, f = read_anatomy(path).vertices, read_anatomy(path).faces
+        tri = v[f]
+        vol6 = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
+        vol = surface_volume(v, f)
+        if abs(vol) < 1e-9:
+            raise InputError("lesion surface encloses no volume", str(path))
+        center = (vol6[:, None] * tri.sum(axis=1)).sum(axis=0) / (24.0 * vol)
+        radius = float(np.linalg.norm(v - center, axis=1).mean())
+        lesions.append(Lesion(i, center, radius, v))
+    return lesions
+
+
+def sphere_points(center: np.ndarray, radius: float, n: int) -> np.ndarray:
+    """``n`` nearly uniform points (n, 3) on a sphere (Fibonacci lattice), mm."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    return center + radius * np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)

@@ -1,0 +1,148 @@
+"""The anatomy of a case as plain arrays: a closed breast surface, its chest wall, its lesions."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..fileio import save_npz_atomic
+
+ANATOMY_FILE = "anatomy.npz"
+
+
+@dataclass
+class Lesion:
+    """A lesion kept as its centre (3,) and surface points (n, 3), mm."""
+
+    id: int
+    center: np.ndarray
+    radius_mm: float
+    points: np.ndarray
+
+
+@dataclass
+class Anatomy:
+    """Closed, outward-oriented breast surface and what sits in it (all mm).
+
+    Attributes:
+        vertices: (nv, 3) surface vertices.
+        faces: (nf, 3) triangles, counter-clockwise seen from outside.
+        normals: (nv, 3) outward unit vertex normals.
+        fixed_vertices: (nv,) True on the chest wall.
+        chest_point, chest_normal: (3,) a point of the chest-wall plane and its unit normal
+            pointing out of the breast (posterior).
+        lesions: the lesions.
+        label_points, label_values: (m, 3) and (m,) tissue-label samples (empty if unlabelled).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    fixed_vertices: np.ndarray
+    chest_point: np.ndarray
+    chest_normal: np.ndarray
+    lesions: list[Lesion] = field(default_factory=list)
+    label_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    label_values: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) minimum and maximum corner of the surface, mm."""
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
+    def volume_ml(self) -> float:
+        """Enclosed volume in millilitres (1 mL = 1000 mm^3)."""
+        return surface_volume(self.vertices, self.faces) / 1000.0
+
+    def lesion_points_all(self) -> tuple[np.ndarray, np.ndarray]:
+        """All lesion centres and surface points stacked (n, 3), with the lesion index (n,)."""
+        pts = [np.vstack([les.center[None], les.points]) for les in self.lesions]
+        owner = [np.full(len(p), i) for i, p in enumerate(pts)]
+        if not pts:
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        return np.vstack(pts), np.concatenate(owner)
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the geometry, chest wall, lesions and labels."""
+        h = hashlib.sha256()
+        for arr in self._arrays().values():
+            a = np.ascontiguousarray(arr)
+            h.update(str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+        return h.hexdigest()
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        counts = np.array([len(les.points) for les in self.lesions], dtype=np.int64)
+        return {
+            "vertices": self.vertices, "faces": self.faces, "normals": self.normals,
+            "fixed_vertices": self.fixed_vertices, "chest_point": self.chest_point,
+            "chest_normal": self.chest_normal,
+            "lesion_ids": np.array([les.id for les in self.lesions], dtype=np.int64),
+            "lesion_centers": np.array([les.center for les in self.lesions]).reshape(-1, 3),
+            "lesion_radii": np.array([les.radius_mm for les in self.lesions], dtype=np.float64),
+            "lesion_counts": counts,
+            "lesion_points": (np.vstack([les.points for les in self.lesions])
+                              if self.lesions else np.zeros((0, 3))),
+            "label_points": self.label_points, "label_values": self.label_values,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write to ``.npz`` atomically."""
+        return save_npz_atomic(path, **self._arrays())
+
+    @classmethod
+    def load(cls, path: str | Path) -> Anatomy:
+        """Read an anatomy written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError("anatomy file is missing; run `biopsynav init` again", str(path))
+        with np.load(path) as d:
+            a = {k: d[k] for k in d.files}
+        splits = np.cumsum(a["lesion_counts"])[:-1]
+        lesions = [Lesion(int(i), c, float(r), p) for i, c, r, p in zip(
+            a["lesion_ids"], a["lesion_centers"], a["lesion_radii"],
+            np.split(a["lesion_points"], splits), strict=True)]
+        return cls(a["vertices"], a["faces"], a["normals"], a["fixed_vertices"],
+                   a["chest_point"], a["chest_normal"], lesions, a["label_points"],
+                   a["label_values"])
+
+
+def surface_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed enclosed volume (mm^3) of a closed triangle surface (positive if outward)."""
+    tri = vertices[faces]
+    return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted outward unit vertex normals (nv, 3)."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(vertices, dtype=np.float64)
+    for c in range(3):
+        np.add.at(vn, faces[:, c], fn)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    return vn / np.where(norm > 0, norm, 1.0)
+
+
+def winding_number(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                   chunk: int = 256) -> np.ndarray:
+    """Generalised winding number (n,) of points w.r.t. a closed surface (1 inside, 0 outside).
+
+    Van Oosterom-Strackee solid angles, vectorised over faces, chunked over points.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    tri = vertices[faces]
+    out = np.empty(len(points))
+    for s in range(0, len(points), chunk):
+        r = tri[None, :, :, :] - points[s:s + chunk, None, None, :]
+        ln = np.linalg.norm(r, axis=3)
+        a, b, c = r[:, :, 0], r[:, :, 1], r[:, :, 2]
+        det = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+        la, lb, lc = ln[:, :, 0], ln[:, :, 1], ln[:, :, 2]
+        den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc
+               + np.einsum("pfi,pfi->pf", b, c) * la + np.einsum("pfi,pfi->pf", c, a) * lb)
+        out[s:s + chunk] = 2.0 * np.arctan2(det, den).sum(axis=1) / (4.0 * np.pi)
+    return out

@@ -1,0 +1,119 @@
+"""A case is a folder: ``case.toml`` plus what the pipeline writes into it.
+
+Layout: ``inputs/`` (copies of the user's files), ``anatomy.npz``, ``grid.npz`` (written by
+``init``), ``dataset.zarr`` (``generate``), ``model/`` (``train``), ``eval/`` (``evaluate``),
+``report.html`` and ``report.md`` (``report``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from .anatomy.build import build_anatomy
+from .anatomy.model import ANATOMY_FILE, Anatomy
+from .anatomy.phantom import phantom_lesions_csv
+from .config import CaseConfig, load_config, save_config
+from .errors import InputError
+from .fileio import write_json_atomic, write_text_atomic
+from .grid.build import build_grid
+from .grid.model import GRID_FILE, Grid
+
+STAGES = {
+    "anatomy": ANATOMY_FILE,
+    "grid": GRID_FILE,
+    "dataset": "dataset.zarr/zarr.json",
+    "model": "model/meta.json",
+    "evaluation": "eval/table1.json",
+    "report": "report.html",
+}
+
+
+@dataclass
+class Case:
+    """A loaded case: its folder, validated configuration, anatomy and grid."""
+
+    dir: Path
+    cfg: CaseConfig
+    anatomy: Anatomy
+    grid: Grid
+
+    @classmethod
+    def load(cls, case_dir: str | Path) -> Case:
+        """Read ``case.toml``, ``anatomy.npz`` and ``grid.npz`` of a case folder."""
+        case_dir = Path(case_dir)
+        cfg = load_config(case_dir)
+        return cls(case_dir, cfg, Anatomy.load(case_dir / ANATOMY_FILE),
+                   Grid.load(case_dir / GRID_FILE))
+
+    def fingerprint(self) -> str:
+        """SHA-256 of anatomy and grid: data and models carry it to refuse another patient's."""
+        return hashlib.sha256((self.anatomy.fingerprint() + self.grid.fingerprint())
+                              .encode()).hexdigest()
+
+    def stages_done(self) -> dict[str, bool]:
+        """Which pipeline outputs exist in the folder."""
+        return {name: (self.dir / rel).exists() for name, rel in STAGES.items()}
+
+
+def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
+    """Build anatomy and grid from ``cfg`` and write ``case.toml``, ``anatomy.npz``,
+    ``grid.npz`` (each atomically; nothing is written if the inputs are bad)."""
+    anatomy, facts = build_anatomy(cfg, case_dir)
+    grid = build_grid(anatomy, cfg.grid, cfg.network.levels)
+    save_config(case_dir, cfg)
+    anatomy.save(case_dir / ANATOMY_FILE)
+    grid.save(case_dir / GRID_FILE)
+    write_json_atomic(case_dir / "inputs" / "facts.json", facts)
+    return Case(case_dir, cfg, anatomy, grid)
+
+
+def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | None],
+              overwrite: bool = False) -> Case:
+    """Create a case folder: copy the inputs into ``inputs/``, point case.toml at them, build.
+
+    ``inputs`` maps ``"anatomy"`` and ``"lesions"`` to user files (or None). A half-built case is
+    never left behind: on error the new folder is removed.
+    """
+    case_dir = Path(case_dir)
+    if (case_dir / "case.toml").exists() and not overwrite:
+        raise InputError("a case already exists here; use --overwrite to rebuild it",
+                         str(case_dir))
+    created = not case_dir.exists()
+    try:
+        (case_dir / "inputs").mkdir(parents=True, exist_ok=True)
+        for key, src in inputs.items():
+            if src is None:
+                continue
+            src = Path(src)
+            if not src.exists():
+                raise InputError("file not found", str(src))
+            dst = case_dir / "inputs" / src.name
+            if src.is_dir():
+                shutil.copytree(src, dst, dirs_exist_ok=True)
+            elif src.resolve() != dst.resolve():
+                shutil.copy2(src, dst)
+            rel = str(dst.relative_to(case_dir))
+            if key == "anatomy":
+                cfg.anatomy.path = rel
+            else:
+                cfg.anatomy.lesions = rel
+        if cfg.anatomy.source == "phantom" and not cfg.anatomy.lesions:
+            write_text_atomic(case_dir / "inputs" / "phantom_lesions.csv", phantom_lesions_csv())
+            cfg.anatomy.lesions = "inputs/phantom_lesions.csv"
+        return build_case(case_dir, cfg)
+    except BaseException:
+        if created:
+            shutil.rmtree(case_dir, ignore_errors=True)
+        raise
+
+
+def surface_kind(path: Path) -> str:
+    """'labelmap', 'volume' or 'surface' from a file name (volume meshes: checked on read)."""
+    from .anatomy.io import LABELMAP_SUFFIXES, _suffix
+
+    if _suffix(path) in LABELMAP_SUFFIXES:
+        return "labelmap"
+    return "surface"

@@ -1,0 +1,268 @@
+"""The ``biopsynav`` command line: a thin layer over the pipeline stages.
+
+Every bad input ends as one line ``biopsynav: error: WHERE: WHAT`` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from .errors import BiopsynavError, InputError
+
+
+def _float_list(text: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}"
+                                         ) from None
+
+
+def cmd_init(args: argparse.Namespace) -> int:
+    from .case import init_case
+    from .config import CaseConfig, config_from_dict
+
+    cfg = CaseConfig()
+    overrides: dict = {"anatomy": {}}
+    if args.phantom:
+        if args.surface or args.labelmap:
+            raise InputError("--phantom takes no --surface or --labelmap", "init")
+        overrides["anatomy"]["source"] = "phantom"
+        overrides["case"] = {"name": "phantom"}
+    elif args.surface:
+        overrides["anatomy"]["source"] = "surface"
+    elif args.labelmap:
+        overrides["anatomy"].update(source="labelmap", breast_labels=args.breast_labels or [],
+                                    lesion_labels=args.lesion_labels or [])
+    else:
+        raise InputError("give --phantom, --surface FILE or --labelmap FILE", "init")
+    overrides["anatomy"]["chest_wall"] = args.chest_wall
+    if args.tissue_labels:
+        overrides["anatomy"]["tissue_labels"] = dict(
+            item.split("=", 1) for item in args.tissue_labels.split(","))
+    if args.cell_size:
+        overrides["grid"] = {"cell_size_mm": args.cell_size}
+    if args.config:
+        import tomllib
+
+        try:
+            extra = tomllib.loads(Path(args.config).read_text(encoding="utf-8"))
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise InputError(f"cannot read: {exc}", args.config) from None
+        for section, values in extra.items():
+            overrides.setdefault(section, {}).update(values)
+    cfg = config_from_dict(overrides, "command line")
+    anatomy_file = args.surface or args.labelmap
+    case = init_case(args.case_dir, cfg, {"anatomy": anatomy_file, "lesions": args.lesions},
+                     overwrite=args.overwrite)
+    print(f"case written to {case.dir} ({case.grid.active_cells.sum()} active cells, "
+          f"{len(case.anatomy.lesions)} lesions)")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .info import case_summary, format_summary
+
+    summary = case_summary(args.case_dir)
+    print(json.dumps(summary) if args.json else format_summary(summary))
+    return 0
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from .case import Case
+    from .show import render_case
+
+    out = render_case(Case.load(args.case_dir), args.out)
+    print(f"picture written to {out}")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .fem.simulate import simulate
+
+    out = Path(args.out) if args.out else Path(args.case_dir) / "simulate"
+    result = simulate(args.case_dir, args.force, args.at, out)
+    print(json.dumps(result, indent=2, default=str))
+    return 0
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    from .dataset.generate import generate_case
+
+    summary = generate_case(args.case_dir, workers=args.workers, scheduler=args.scheduler,
+                            overwrite=args.overwrite)
+    print(json.dumps(summary, indent=2, default=str))
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from .network.train import train_case
+
+    summary = train_case(args.case_dir, preset=args.preset, iterations=args.iterations,
+                         device=args.device)
+    print(summary)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate_case
+
+    evaluate_case(args.case_dir, table2=not args.table1_only, measured=args.measured,
+                  poses=args.poses)
+    return 0
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from .tracker.csvtrack import track_csv
+
+    n = track_csv(args.case_dir, args.poses, args.out, engine=args.engine)
+    print(f"{n} poses tracked, lesion positions written to {args.out}")
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from .igtl.server import serve
+
+    serve(args.case_dir, tracker_addr=args.tracker, listen_addr=args.listen,
+          device=args.device, engine=args.engine)
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from .report import write_report
+
+    paths = write_report(args.case_dir)
+    print("report written to " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .pipeline import run_case
+
+    run_case(args.case_dir, workers=args.workers)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .pipeline import run_demo
+
+    run_demo(args.case_dir, quick=args.quick, workers=args.workers)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="biopsynav",
+        description="Real-time breast lesion tracking for ultrasound-guided biopsy. "
+                    "Units: mm, N, MPa.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name: str, func: Callable, help_: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(func=func)
+        return p
+
+    p = add("init", cmd_init, "Create a case folder from anatomy files or the built-in phantom.")
+    p.add_argument("case_dir", type=Path)
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--phantom", action="store_true", help="built-in CIRS 073-like phantom")
+    src.add_argument("--surface", type=Path, help="closed surface (STL/OBJ/PLY/VTK/VTU) or "
+                     "tetrahedral volume mesh (VTK/VTU) of the breast, mm")
+    src.add_argument("--labelmap", type=Path, help="segmented label map (NRRD/NIfTI/MHA)")
+    p.add_argument("--lesions", type=Path, help="lesion CSV (id,x,y,z,radius_mm) or a folder "
+                   "of lesion surface meshes")
+    p.add_argument("--breast-labels", type=_float_list, help="label values of breast tissue")
+    p.add_argument("--lesion-labels", type=_float_list, help="label values of lesions")
+    p.add_argument("--tissue-labels", help="map label values to tissues, e.g. "
+                   "1=fat,2=gland,3=skin")
+    p.add_argument("--chest-wall", default="auto", help="auto | x-min ... z-max | "
+                   "plane:px,py,pz,nx,ny,nz (default auto)")
+    p.add_argument("--cell-size", type=float, help="grid cell size, mm")
+    p.add_argument("--config", type=Path, help="a TOML file with case.toml sections to set")
+    p.add_argument("--overwrite", action="store_true", help="rebuild an existing case")
+
+    p = add("info", cmd_info, "Print the case summary.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--json", action="store_true", help="one JSON object")
+
+    p = add("show", cmd_show, "Write a PNG of anatomy, lesions, chest wall and grid.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--out", type=Path, help="PNG path (default CASE_DIR/anatomy.png)")
+
+    p = add("simulate", cmd_simulate, "One finite-element probe push.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--force", type=float, nargs=3, required=True, metavar=("FX", "FY", "FZ"),
+                   help="total probe force, N")
+    p.add_argument("--at", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"),
+                   help="probe centre near the skin, mm")
+    p.add_argument("--out", type=Path, help="output folder (default CASE_DIR/simulate)")
+
+    p = add("generate", cmd_generate, "Generate the training data (random probe pushes).")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
+                   "cores)")
+    p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
+    p.add_argument("--overwrite", action="store_true", help="discard data made for another "
+                   "anatomy, grid or protocol")
+
+    p = add("train", cmd_train, "Train the U-Net surrogate (resumable).")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--preset", choices=("default", "paper", "custom"))
+    p.add_argument("--iterations", type=int)
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"))
+
+    p = add("evaluate", cmd_evaluate, "The paper's Table 1 and Table 2.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--table1-only", action="store_true", help="skip Table 2")
+    p.add_argument("--poses", type=Path, help="poses CSV of a measured experiment")
+    p.add_argument("--measured", type=Path, help="measured lesion positions CSV "
+                   "(frame,lesion_id,x,y,z) for Table 2 from user data")
+
+    p = add("track", cmd_track, "Track lesions along a CSV of probe poses.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--poses", type=Path, required=True, help="CSV frame,sequence,m00..m23")
+    p.add_argument("--out", type=Path, required=True, help="output CSV")
+    p.add_argument("--engine", choices=("net", "fem"), default="net")
+
+    p = add("serve", cmd_serve, "Serve lesion positions to 3D Slicer over OpenIGTLink.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--tracker", help="probe tracker server HOST:PORT (PLUS; default "
+                   "127.0.0.1:18944)")
+    p.add_argument("--listen", help="listen for clients on HOST:PORT (default "
+                   "127.0.0.1:18945)")
+    p.add_argument("--device", help="probe TRANSFORM device name (default ProbeToReference)")
+    p.add_argument("--engine", choices=("net", "fem"), default="net")
+
+    p = add("report", cmd_report, "Write report.html and report.md.")
+    p.add_argument("case_dir", type=Path)
+
+    p = add("run", cmd_run, "Run every missing stage of a case.")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--workers", type=int, default=0)
+
+    p = add("demo", cmd_demo, "The whole pipeline on the built-in phantom.")
+    p.add_argument("case_dir", type=Path, nargs="?", default=Path("demo-case"))
+    p.add_argument("--quick", action="store_true", help="reduced sizes, a few minutes")
+    p.add_argument("--workers", type=int, default=0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except BiopsynavError as exc:
+        print(f"biopsynav: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("biopsynav: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""Build the immersed grid: extent, padding, tissue volume fractions, labels, active and fixed nodes.
+
+Volume fractions come from an exact inside test on a regular lattice of ``n^3`` sub-cell sample
+points per cell: every lattice column along z is intersected with the surface triangles (a
+vectorised scan conversion), and the parity of crossings below a sample says inside or outside.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..anatomy.model import Anatomy
+from ..config import GridSection
+from ..errors import InputError
+from . import index
+from .model import Grid
+
+# tiny irrational offsets keep lattice columns off mesh vertices and edges
+_COLUMN_JITTER = np.array([np.sqrt(2.0) * 1e-7, np.sqrt(3.0) * 1e-7])
+
+
+def build_grid(anatomy: Anatomy, settings: GridSection, levels: int) -> Grid:
+    """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm``; node counts are
+    padded to multiples of ``2**levels`` (the U-Net's pooling)."""
+    h = float(settings.cell_size_mm)
+    origin, node_shape = _grid_frame(anatomy, h, settings.margin_cells, 2 ** levels)
+    cshape = index.cell_shape(node_shape)
+    if int(np.prod(cshape)) > 5_000_000:
+        raise InputError(f"grid of {cshape} cells is too large; increase [grid] cell_size_mm")
+    inside, lattice = inside_lattice(anatomy.vertices, anatomy.faces, origin, h, cshape,
+                                     settings.samples_per_axis)
+    n = settings.samples_per_axis
+    fraction = inside.reshape(cshape[0], n, cshape[1], n, cshape[2], n).mean(axis=(1, 3, 5))
+    touched = _cells_touched(anatomy, origin, h, cshape)
+    active = (fraction > settings.fraction_threshold) | touched
+    status = np.where(fraction >= 1.0, 2, np.where((fraction > 0) | touched, 1, 0))
+    label = _cell_labels(anatomy, inside, lattice, cshape, n, active)
+    active_nodes = _nodes_of_cells(active, node_shape)
+    coords = index.node_coordinates(origin, h, node_shape).reshape((*node_shape, 3))
+    behind = (coords - anatomy.chest_point) @ anatomy.chest_normal >= -1e-6 * h
+    fixed = active_nodes & behind
+    if not fixed.any():
+        raise InputError("no grid node lies on the chest wall; check [anatomy] chest_wall")
+    return Grid(origin=origin, spacing=h, fraction=fraction.astype(np.float32),
+                label=label, active_cells=active, active_nodes=active_nodes,
+                fixed_nodes=fixed, status=status.astype(np.int8))
+
+
+def _grid_frame(anatomy: Anatomy, h: float, margin: int,
+                multiple: int) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """Origin and node shape: the box around the anatomy plus margins, padded to ``multiple``.
+
+    When the chest wall is perpendicular to an axis, a node plane is put on it and no margin is
+    added behind it, so that fixed nodes sit exactly on the chest wall.
+    """
+    lo, hi = anatomy.bounds
+    origin = np.empty(3)
+    shape = []
+    for ax in range(3):
+        n_ax = anatomy.chest_normal[ax]
+        cells = int(np.ceil((hi[ax] - lo[ax]) / h - 1e-9))
+        if abs(n_ax) > 0.999:  # chest wall perpendicular to this axis
+            wall = float(anatomy.chest_point[ax])
+            nodes = cells + margin + 1
+            pad = (-nodes) % multiple
+            nodes += pad
+            start = wall if n_ax < 0 else wall - (nodes - 1) * h
+        else:
+            nodes = cells + 2 * margin + 1
+            pad = (-nodes) % multiple
+            nodes += pad
+            centre = 0.5 * (lo[ax] + hi[ax])
+            start = centre - 0.5 * (nodes - 1) * h
+        origin[ax] = start
+        shape.append(nodes)
+    return origin, tuple(shape)  # type: ignore[return-value]
+
+
+def inside_lattice(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, h: float,
+                   cshape: tuple[int, int, int], n: int) -> tuple[np.ndarray, tuple]:
+    """Inside test (Mx, My, Mz) bool on the lattice of n^3 sample points per cell."""
+    step = h / n
+    axes = tuple(origin[ax] + (np.arange(cshape[ax] * n) + 0.5) * step for ax in range(3))
+    xs, ys, zs = axes
+    xq = xs + _COLUMN_JITTER[0] * h
+    yq = ys + _COLUMN_JITTER[1] * h
+    col, zc = _column_crossings(vertices, faces, xq, yq)
+    counts = np.zeros((len(xs) * len(ys), len(zs) + 1), dtype=np.int32)
+    np.add.at(counts, (col, np.searchsorted(zs, zc)), 1)
+    parity = np.cumsum(counts, axis=1)[:, :-1] % 2 == 1
+    return parity.reshape(len(xs), len(ys), len(zs)), axes
+
+
+def _column_crossings(vertices: np.ndarray, faces: np.ndarray, xs: np.ndarray,
+                      ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat column ids and z of every crossing of lattice columns (x_i, y_j) with triangles."""
+    tri = vertices[faces]
+    ix0 = np.searchsorted(xs, tri[:, :, 0].min(axis=1))
+    ix1 = np.searchsorted(xs, tri[:, :, 0].max(axis=1))
+    iy0 = np.searchsorted(ys, tri[:, :, 1].min(axis=1))
+    iy1 = np.searchsorted(ys, tri[:, :, 1].max(axis=1))
+    nx_, ny_ = ix1 - ix0, iy1 - iy0
+    per = nx_ * ny_
+    t = np.repeat(np.arange(len(tri)), per)
+    local = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
+    ix = ix0[t] + local // np.maximum(ny_[t], 1)
+    iy = iy0[t] + local % np.maximum(ny_[t], 1)
+    px, py = xs[ix], ys[iy]
+    a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+    d = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    w1 = ((px - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (py - a[:, 1]))
+    w2 = ((b[:, 0] - a[:, 0]) * (py - a[:, 1]) - (px - a[:, 0]) * (b[:, 1] - a[:, 1]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = w1 / d, w2 / d
+    hit = (d != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
+    z = a[:, 2] + u * (b[:, 2] - a[:, 2]) + v * (c[:, 2] - a[:, 2])
+    return (ix * len(ys) + iy)[hit], z[hit]
+
+
+def _cells_touched(anatomy: Anatomy, origin: np.ndarray, h: float,
+                   cshape: tuple[int, int, int]) -> np.ndarray:
+    """Cells (cshape) holding a surface vertex or a lesion point."""
+    lesion_pts, _ = anatomy.lesion_points_all()
+    pts = np.vstack([anatomy.vertices, lesion_pts])
+    ijk = np.clip(np.floor((pts - origin) / h).astype(np.int64), 0, np.array(cshape) - 1)
+    touched = np.zeros(cshape, dtype=bool)
+    touched[tuple(ijk.T)] = True
+    return touched
+
+
+def _cell_labels(anatomy: Anatomy, inside: np.ndarray, lattice: tuple, cshape, n: int,
+                 active: np.ndarray) -> np.ndarray:
+    """Majority tissue label of the inside samples of each cell (-1 without labels)."""
+    label = np.full(cshape, -1, dtype=np.int32)
+    if len(anatomy.label_values) == 0:
+        return label
+    ii, jj, kk = np.nonzero(inside)
+    pts = np.stack([lattice[0][ii], lattice[1][jj], lattice[2][kk]], axis=1)
+    _, nearest = cKDTree(anatomy.label_points).query(pts, workers=-1)
+    values = anatomy.label_values[nearest]
+    uniq, vidx = np.unique(values, return_inverse=True)
+    cell = index.flat_index(np.stack([ii // n, jj // n, kk // n], axis=1), cshape)
+    votes = np.zeros((int(np.prod(cshape)), len(uniq)), dtype=np.int32)
+    np.add.at(votes, (cell, vidx.ravel()), 1)
+    has = votes.sum(axis=1) > 0
+    flat = np.full(int(np.prod(cshape)), -1, dtype=np.int32)
+    flat[has] = uniq[np.argmax(votes[has], axis=1)]
+    label = flat.reshape(cshape)
+    # active cells without an inside sample take the label of the nearest label sample
+    missing = active & (label < 0)
+    if missing.any():
+        centres = np.argwhere(missing)
+        origin = np.array([lattice[a][0] for a in range(3)]) - 0.5 * (lattice[0][1]
+                                                                      - lattice[0][0])
+        h = (lattice[0][1] - lattice[0][0]) * n
+        _, near = cKDTree(anatomy.label_points).query(origin + (centres + 0.5) * h)
+        label[missing] = anatomy.label_values[near]
+    return label
+
+
+def _nodes_of_cells(cells: np.ndarray, node_shape: tuple[int, int, int]) -> np.ndarray:
+    nodes = np.zeros(node_shape, dtype=bool)
+    for dx, dy, dz in index.HEX_CORNERS:
+        nodes[dx:dx + cells.shape[0], dy:dy + cells.shape[1], dz:dz + cells.shape[2]] |= cells
+    return nodes

@@ -1,0 +1,68 @@
+"""Trilinear embedding of points (surface vertices, lesion points, probe contacts) in the grid.
+
+One sparse matrix ``W`` (n_points, n_nodes) does both directions: ``W @ field`` interpolates a
+node field at the points, ``W.T @ values`` spreads point values onto the nodes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import InputError
+from . import index
+from .model import Grid
+
+
+@dataclass
+class Embedding:
+    """Points located in grid cells: ``cells`` (n,) flat cell ids, ``nodes`` (n, 8) flat node
+    ids, ``weights`` (n, 8) trilinear weights (rows sum to 1), ``matrix`` CSR (n, n_nodes)."""
+
+    cells: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    matrix: sp.csr_matrix
+
+    @classmethod
+    def build(cls, grid: Grid, points: np.ndarray, require_active: bool = True,
+              where: str = "points") -> Embedding:
+        """Locate ``points`` (n, 3) mm; raise InputError if any lies outside the active cells."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(points).all():
+            raise InputError("points contain NaN or infinite coordinates", where)
+        cshape = np.array(grid.cell_shape)
+        rel = (points - grid.origin) / grid.spacing
+        ijk = np.floor(rel).astype(np.int64)
+        outside = np.any((ijk < 0) | (ijk > cshape - 1) | (rel > cshape), axis=1)
+        ijk = np.clip(ijk, 0, cshape - 1)
+        if require_active:
+            outside |= ~grid.active_cells[tuple(ijk.T)]
+        if outside.any():
+            first = points[np.argmax(outside)]
+            raise InputError(f"{int(outside.sum())} of {len(points)} points lie outside the "
+                             f"active grid cells (first at {np.round(first, 2).tolist()} mm)",
+                             where)
+        xi = np.clip(rel - ijk, 0.0, 1.0)
+        weights = trilinear_weights(xi)
+        nodes = index.hex_connectivity(ijk, grid.node_shape)
+        rows = np.repeat(np.arange(len(points)), 8)
+        matrix = sp.csr_matrix((weights.ravel(), (rows, nodes.ravel())),
+                               shape=(len(points), grid.n_nodes))
+        return cls(index.flat_index(ijk, grid.cell_shape), nodes, weights, matrix)
+
+    def interpolate(self, field: np.ndarray) -> np.ndarray:
+        """Node field (n_nodes, C) -> values (n_points, C) at the points."""
+        return np.einsum("pk,pkc->pc", self.weights, np.asarray(field)[self.nodes])
+
+    def spread(self, values: np.ndarray) -> np.ndarray:
+        """Point values (n_points, C) -> node sums (n_nodes, C) with the trilinear weights."""
+        return np.asarray(self.matrix.T @ np.asarray(values))
+
+
+def trilinear_weights(xi: np.ndarray) -> np.ndarray:
+    """Weights (n, 8) of local coordinates ``xi`` (n, 3) in [0, 1]^3, VTK corner order."""
+    c = index.HEX_CORNERS
+    return np.prod(np.where(c[None, :, :] == 1, xi[:, None, :], 1.0 - xi[:, None, :]), axis=2)

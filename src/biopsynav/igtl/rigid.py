@@ -1,0 +1,89 @@
+"""A deterministic stand-in tracker for the OpenIGTLink service: NOT a tissue model.
+
+Lesions follow the probe rigidly: ``centre = T @ inv(T_rest) @ centre_rest``. It exists to
+exercise and benchmark the network service without a trained model (tests, the round-trip part
+of ``benchmarks/tracking_latency.py``, demos); the real tracker is
+``biopsynav.tracker.Tracker``. It reports the same statuses as the real one for the cases it can
+judge: invalid (NaN or non-rigid) pose, no rest pose, and a push deeper than ``max_push_mm``
+along the rest pose's beam axis (out of envelope).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..tracker.result import (
+    INVALID_POSE,
+    NO_REST_POSE,
+    OK,
+    OUT_OF_ENVELOPE,
+    REST,
+    LesionResult,
+    TrackingResult,
+)
+
+
+def pose_problem(T: np.ndarray, rigid_tolerance: float = 1e-3) -> str:
+    """Why ``T`` is not a usable rigid 4 x 4 pose, or "" when it is."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        return f"pose has shape {T.shape}, expected (4, 4)"
+    if not np.all(np.isfinite(T)):
+        return "pose holds NaN or infinite values"
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=rigid_tolerance):
+        return "pose bottom row is not 0 0 0 1"
+    R = T[:3, :3]
+    dev = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if dev > rigid_tolerance or np.linalg.det(R) < 0:
+        return f"pose rotation is not orthonormal (deviation {dev:.2e})"
+    return ""
+
+
+class RigidLesionTracker:
+    """Lesions at ``centers`` (N, 3) mm in the rest pose, moved rigidly by the probe motion."""
+
+    def __init__(self, centers: np.ndarray, ids: list[int] | None = None,
+                 max_push_mm: float = 40.0, rigid_tolerance: float = 1e-3) -> None:
+        self.centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        self.ids = list(ids) if ids is not None else list(range(1, len(self.centers) + 1))
+        self.max_push_mm = max_push_mm
+        self.rigid_tolerance = rigid_tolerance
+        self._rest: np.ndarray | None = None
+        self._rest_inv: np.ndarray | None = None
+
+    @property
+    def has_rest_pose(self) -> bool:
+        return self._rest is not None
+
+    def set_rest_pose(self, T: np.ndarray) -> None:
+        """Take ``T`` as the rest pose; ValueError for an unusable pose."""
+        problem = pose_problem(T, self.rigid_tolerance)
+        if problem:
+            raise ValueError(problem)
+        self._rest = np.asarray(T, dtype=np.float64).copy()
+        self._rest_inv = np.linalg.inv(self._rest)
+
+    def update(self, T: np.ndarray) -> TrackingResult:
+        """Lesion centres for pose ``T``; a status instead of numbers when the pose is unusable."""
+        t0 = time.perf_counter()
+        problem = pose_problem(T, self.rigid_tolerance)
+        if problem:
+            return self._empty(INVALID_POSE, problem, t0)
+        if self._rest is None:
+            return self._empty(NO_REST_POSE, "no rest pose set", t0)
+        T = np.asarray(T, dtype=np.float64)
+        motion = T @ self._rest_inv
+        push = float(np.dot(T[:3, 3] - self._rest[:3, 3], self._rest[:3, 2]))
+        if push > self.max_push_mm:
+            return self._empty(OUT_OF_ENVELOPE, f"probe pushed {push:.1f} mm, beyond the "
+                               f"{self.max_push_mm:.1f} mm envelope", t0)
+        moved = self.centers @ motion[:3, :3].T + motion[:3, 3]
+        status = REST if np.allclose(motion, np.eye(4), atol=1e-9) else OK
+        lesions = [LesionResult(i, c, c - c0, status)
+                   for i, c, c0 in zip(self.ids, moved, self.centers, strict=True)]
+        return TrackingResult(lesions, status, "", (time.perf_counter() - t0) * 1e3)
+
+    def _empty(self, status: str, reason: str, t0: float) -> TrackingResult:
+        return TrackingResult([], status, reason, (time.perf_counter() - t0) * 1e3)

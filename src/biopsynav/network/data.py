@@ -1,0 +1,124 @@
+"""Reading ``CASE_DIR/dataset.zarr`` once into memory, and the normalisation statistics.
+
+The data contract (written by the dataset stage): ``inputs`` (N, 4, nx, ny, nz) float32 (contact
+displacement in mm on channels 0-2, trilinear weight sum on channel 3), ``targets`` (N, 3, nx, ny,
+nz) float32 FE displacement in mm, ``done`` (N,) bool, ``active_nodes`` (nx, ny, nz) bool, attrs
+``n_train``, ``n_test``, ``fingerprint``, ``node_shape``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+
+DATASET_NAME = "dataset.zarr"
+
+
+@dataclass
+class Dataset:
+    """The whole data set in memory (CPU float32 tensors)."""
+
+    inputs: torch.Tensor  # (N, 4, nx, ny, nz) mm / weight
+    targets: torch.Tensor  # (N, 3, nx, ny, nz) mm
+    active: torch.Tensor  # (nx, ny, nz) bool
+    train_idx: torch.Tensor  # (n_train_done,) int64, complete training samples
+    test_idx: torch.Tensor  # (n_test_done,) int64, complete held-out samples
+    fingerprint: str
+    node_shape: tuple[int, int, int]
+    path: Path
+
+    @property
+    def n_active(self) -> int:
+        return int(self.active.sum())
+
+
+def dataset_path(case_or_zarr: str | Path) -> Path:
+    """``dataset.zarr`` of a case folder, or the given path when it already is a zarr group."""
+    p = Path(case_or_zarr)
+    return p if p.suffix == ".zarr" else p / DATASET_NAME
+
+
+def load_dataset(case_or_zarr: str | Path) -> Dataset:
+    """Load the arrays once; only samples flagged ``done`` are kept in the index lists."""
+    import zarr
+
+    path = dataset_path(case_or_zarr)
+    if not path.exists():
+        raise InputError("no training data; run `biopsynav generate` first", str(path))
+    try:
+        g = zarr.open_group(str(path), mode="r")
+        attrs = dict(g.attrs)
+        inputs = np.asarray(g["inputs"][:], dtype=np.float32)
+        targets = np.asarray(g["targets"][:], dtype=np.float32)
+        done = np.asarray(g["done"][:], dtype=bool)
+        active = np.asarray(g["active_nodes"][:], dtype=bool)
+        n_train, n_test = int(attrs["n_train"]), int(attrs["n_test"])
+        node_shape = tuple(int(n) for n in attrs["node_shape"])
+        fingerprint = str(attrs["fingerprint"])
+    except (KeyError, ValueError, OSError) as exc:
+        raise InputError(f"not a complete dataset.zarr ({type(exc).__name__}: {exc})",
+                         str(path)) from None
+    _check_shapes(inputs, targets, done, active, node_shape, str(path))
+    idx = np.flatnonzero(done)
+    train = idx[idx < n_train]
+    test = idx[(idx >= n_train) & (idx < n_train + n_test)]
+    if train.size == 0 or test.size == 0:
+        raise InputError(f"dataset has {train.size} complete training and {test.size} complete "
+                         "test samples; both must be > 0", str(path))
+    return Dataset(torch.from_numpy(inputs), torch.from_numpy(targets), torch.from_numpy(active),
+                   torch.from_numpy(train), torch.from_numpy(test), fingerprint,
+                   node_shape, path)  # type: ignore[arg-type]
+
+
+def _check_shapes(inputs: np.ndarray, targets: np.ndarray, done: np.ndarray,
+                  active: np.ndarray, node_shape: tuple, where: str) -> None:
+    n = inputs.shape[0]
+    ok = (inputs.ndim == 5 and inputs.shape[1] == 4 and tuple(inputs.shape[2:]) == node_shape
+          and targets.shape == (n, 3, *node_shape) and done.shape == (n,)
+          and tuple(active.shape) == node_shape)
+    if not ok:
+        raise InputError(f"inconsistent shapes: inputs {inputs.shape}, targets {targets.shape}, "
+                         f"done {done.shape}, active_nodes {active.shape}, node_shape "
+                         f"{node_shape}", where)
+
+
+def normalisation_stats(data: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel scales from the training samples, over active nodes only.
+
+    Returns ``in_scale`` (4,) and ``out_scale`` (3,): the root mean square of each channel. Input
+    statistics are taken over active nodes touched by the contact (weight sum > 0), since the
+    input is zero elsewhere by construction; target statistics over all active nodes. Only
+    scales (no shifts) are used, so a zero input stays zero and the output is displacement in
+    units of ``out_scale`` (mm).
+    """
+    x = data.inputs[data.train_idx]  # (n, 4, nx, ny, nz)
+    y = data.targets[data.train_idx]
+    act = data.active
+    contact = (x[:, 3] > 0) & act  # (n, nx, ny, nz)
+    xin = x.permute(1, 0, 2, 3, 4)[:, contact]  # (4, n_contact_nodes)
+    if xin.shape[1] == 0:
+        xin = x.permute(1, 0, 2, 3, 4)[:, :, act].reshape(4, -1)
+    yout = y.permute(1, 0, 2, 3, 4)[:, :, act].reshape(3, -1)
+    in_scale = _rms(xin)
+    out_scale = _rms(yout)
+    return in_scale, out_scale
+
+
+def _rms(values: torch.Tensor) -> np.ndarray:
+    rms = values.double().pow(2).mean(dim=1).sqrt().numpy()
+    return np.where(rms > 1e-12, rms, 1.0).astype(np.float32)
+
+
+def envelope(data: Dataset) -> dict:
+    """The training envelope in mm: largest contact displacement norm and target displacement."""
+    x = data.inputs[data.train_idx]
+    y = data.targets[data.train_idx]
+    contact = torch.linalg.vector_norm(x[:, :3], dim=1)
+    disp = torch.linalg.vector_norm(y, dim=1)
+    return {"max_contact_disp_mm": float(contact.max()), "max_target_disp_mm": float(disp.max()),
+            "max_weight_sum": float(x[:, 3].max())}

@@ -1,0 +1,144 @@
+"""3D U-Net of Mendizabal, Tagliabue et al. (2019), section 2.1.
+
+Tensors are ``(B, C, nx, ny, nz)`` (see :mod:`biopsynav.grid.index`). The encoder has ``levels``
+stages of two padded 3x3x3 convolutions followed by a 2x2x2 max pooling; the bottleneck has two
+3x3x3 convolutions; the decoder has ``levels`` stages of a 2x2x2 transposed convolution,
+concatenation with the matching encoder features (skip connection) and two padded 3x3x3
+convolutions; a final 1x1x1 convolution maps to the output channels. Channels double per level
+(``base_channels * 2**level``), so the paper preset (128, 3 levels) has a 1024-channel bottleneck.
+Node counts must be multiples of ``2**levels`` (the grid stage pads them so).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+from ..errors import InputError
+
+NORMS = ("none", "batch", "instance", "group")
+ACTIVATIONS = ("relu", "leaky_relu", "gelu", "silu")
+
+
+@dataclass(frozen=True)
+class UNetSpec:
+    """Architecture of a :class:`UNet3d` (stored in ``meta.json``)."""
+
+    in_channels: int = 4
+    out_channels: int = 3
+    base_channels: int = 8
+    levels: int = 3
+    norm: str = "none"
+    activation: str = "relu"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> UNetSpec:
+        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
+
+    def channels(self) -> list[int]:
+        """Feature channels per encoder level, then the bottleneck (``levels + 1`` values)."""
+        return [self.base_channels * 2**i for i in range(self.levels + 1)]
+
+
+#: Named presets. ``default`` was chosen by measurement (docs/network.md): the smallest width
+#: that meets the accuracy target while predicting in <= 3 ms on 2 CPU cores.
+PRESETS: dict[str, UNetSpec] = {
+    "paper": UNetSpec(base_channels=128, levels=3),
+    "default": UNetSpec(base_channels=8, levels=3),
+}
+
+
+def preset_spec(name: str, *, levels: int = 3, base_channels: int = 16, norm: str = "none",
+                activation: str = "relu") -> UNetSpec:
+    """Spec of preset ``name``; ``custom`` takes the given width, depth, norm and activation."""
+    if name == "custom":
+        return UNetSpec(base_channels=base_channels, levels=levels, norm=norm,
+                        activation=activation)
+    if name not in PRESETS:
+        raise InputError(f"unknown network preset {name!r}; known: "
+                         f"{', '.join([*PRESETS, 'custom'])}", "[network] preset")
+    return PRESETS[name]
+
+
+def _norm(kind: str, channels: int) -> nn.Module:
+    if kind == "none":
+        return nn.Identity()
+    if kind == "batch":
+        return nn.BatchNorm3d(channels)
+    if kind == "instance":
+        return nn.InstanceNorm3d(channels, affine=True)
+    if kind == "group":
+        return nn.GroupNorm(min(8, channels), channels)
+    raise InputError(f"unknown norm {kind!r}; known: {', '.join(NORMS)}", "[network] norm")
+
+
+def _act(kind: str) -> nn.Module:
+    table = {"relu": nn.ReLU, "leaky_relu": lambda: nn.LeakyReLU(0.01), "gelu": nn.GELU,
+             "silu": nn.SiLU}
+    if kind not in table:
+        raise InputError(f"unknown activation {kind!r}; known: {', '.join(ACTIVATIONS)}",
+                         "[network] activation")
+    return table[kind]()
+
+
+def double_conv(c_in: int, c_out: int, norm: str, act: str) -> nn.Sequential:
+    """Two padded 3x3x3 convolutions, each followed by the norm and the activation."""
+    bias = norm in ("none", "instance")
+    return nn.Sequential(
+        nn.Conv3d(c_in, c_out, 3, padding=1, bias=bias), _norm(norm, c_out), _act(act),
+        nn.Conv3d(c_out, c_out, 3, padding=1, bias=bias), _norm(norm, c_out), _act(act),
+    )
+
+
+class UNet3d(nn.Module):
+    """The U-Net; ``forward(x (B, in, nx, ny, nz)) -> (B, out, nx, ny, nz)``."""
+
+    def __init__(self, spec: UNetSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        ch = spec.channels()
+        self.down = nn.ModuleList()
+        c_prev = spec.in_channels
+        for c in ch[:-1]:
+            self.down.append(double_conv(c_prev, c, spec.norm, spec.activation))
+            c_prev = c
+        self.pool = nn.MaxPool3d(2)
+        self.bottleneck = double_conv(ch[-2], ch[-1], spec.norm, spec.activation)
+        self.up = nn.ModuleList()
+        self.dec = nn.ModuleList()
+        for lvl in reversed(range(spec.levels)):
+            self.up.append(nn.ConvTranspose3d(ch[lvl + 1], ch[lvl], 2, stride=2))
+            self.dec.append(double_conv(2 * ch[lvl], ch[lvl], spec.norm, spec.activation))
+        self.head = nn.Conv3d(ch[0], spec.out_channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips: list[torch.Tensor] = []
+        for block in self.down:
+            x = block(x)
+            skips.append(x)
+            x = self.pool(x)
+        x = self.bottleneck(x)
+        for i, (up, dec) in enumerate(zip(self.up, self.dec, strict=True)):
+            x = up(x)
+            x = dec(torch.cat([x, skips[len(skips) - 1 - i]], dim=1))
+        return self.head(x)
+
+
+def count_parameters(spec: UNetSpec) -> int:
+    """Trainable parameters of ``spec`` without allocating its weights (meta device)."""
+    with torch.device("meta"):
+        model = UNet3d(spec)
+    return sum(p.numel() for p in model.parameters())
+
+
+def check_node_shape(node_shape: tuple[int, ...], levels: int) -> None:
+    """Raise InputError unless every node count is a multiple of ``2**levels``."""
+    f = 2**levels
+    if any(int(n) % f for n in node_shape):
+        raise InputError(f"grid node counts {tuple(node_shape)} must be multiples of 2^{levels} "
+                         f"= {f} for a {levels}-level U-Net", "grid")
