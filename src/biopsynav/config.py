@@ -198,6 +198,14 @@ class IgtlSection:
                                          "other clients.")
     probe_device: str = opt("ProbeToReference", "Device name of the probe TRANSFORM.")
     max_body_bytes: int = opt(1 << 20, "Largest accepted message body.", lo=64, hi=1 << 30)
+    max_clients: int = opt(32, "Most listening clients at once; more are refused.",
+                           lo=1, hi=4096)
+    client_backlog_bytes: int = opt(4 << 20, "Unsent reply bytes held for one client; a "
+                                             "client that does not read beyond this is "
+                                             "dropped.", lo=1024, hi=1 << 30)
+    reconnect_max_s: float = opt(2.0, "Longest wait between attempts to reach the tracker "
+                                      "server (exponential backoff from 0.05 s).",
+                                 lo=0.05, hi=60.0)
 
 
 @dataclass
