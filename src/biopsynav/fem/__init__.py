@@ -1,0 +1,11 @@
+"""Finite elements: static total-Lagrangian hyperelasticity on the immersed hexahedral grid.
+
+``FEModel`` (plain arrays or ``FEModel.from_case``), ``Loads``, ``solve`` -> displacement and
+``SolveReport``; ``SolverSettings.from_config(cfg.solver)``. See ``docs/fem.md``.
+"""
+
+from .loads import Loads
+from .model import FEModel, lame_constants
+from .solver import SolveReport, SolverSettings, solve
+
+__all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "lame_constants", "solve"]

@@ -1,0 +1,243 @@
+"""Sparse direct solvers for the symmetric tangent, with the symbolic analysis done once.
+
+Every backend receives the upper triangle of the matrix in CSR form (``indptr``, ``indices``
+fixed per model, ``data`` new at each Newton iteration) and offers ``factor(data)`` and
+``solve(rhs)``. ``factor`` raises :class:`FactorizationError` when the matrix cannot be
+factored (singular, or not positive definite for a Cholesky-type backend).
+
+* ``pardiso``: MKL Pardiso through pypardiso's library handle, called directly: analysis
+  (phase 11) once per model, then numerical factorisation (22) and solve (33). It first tries
+  the SPD mode (``mtype=2``, Cholesky); when a tangent is not positive definite (neo-Hookean
+  or SVK tangents near an instability) it switches for that matrix to symmetric indefinite
+  (``mtype=-2``, Bunch-Kaufman pivoting, its own analysis done once on first need).
+* ``cholmod``: scikit-sparse's CHOLMOD, when installed; ``analyze`` once, then
+  ``cholesky_inplace``; an indefinite matrix falls back to SuperLU.
+* ``superlu``: SciPy's SuperLU (always available), a full factorisation per call.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from typing import Protocol
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..errors import InputError
+
+BACKENDS = ("pardiso", "cholmod", "superlu")
+
+
+class FactorizationError(RuntimeError):
+    """The tangent could not be factored (singular or, for Cholesky, not positive definite)."""
+
+
+class LinearSolver(Protocol):
+    name: str
+    last_mode: str
+
+    def factor(self, data: np.ndarray) -> None: ...
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray: ...
+
+
+def available_backends() -> list[str]:
+    """Installed backends, fastest first."""
+    found = []
+    try:
+        import pypardiso  # noqa: F401
+        found.append("pardiso")
+    except ImportError:
+        pass
+    try:
+        import sksparse.cholmod  # noqa: F401
+        found.append("cholmod")
+    except ImportError:
+        pass
+    found.append("superlu")
+    return found
+
+
+def make_solver(backend: str, indptr: np.ndarray, indices: np.ndarray) -> LinearSolver:
+    """A solver for the upper-triangle pattern; ``backend``: auto, pardiso, cholmod, superlu."""
+    installed = available_backends()
+    if backend == "auto":
+        backend = installed[0]
+    if backend not in BACKENDS:
+        raise InputError(f"unknown solver backend {backend!r}; use auto, "
+                         f"{', '.join(BACKENDS)}", "[solver] backend")
+    if backend not in installed:
+        raise InputError(f"solver backend {backend!r} is not installed (installed: "
+                         f"{', '.join(installed)})", "[solver] backend")
+    cls = {"pardiso": PardisoSolver, "cholmod": CholmodSolver, "superlu": SuperLUSolver}[backend]
+    return cls(indptr, indices)
+
+
+def full_matrix(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> sp.csr_matrix:
+    """The full symmetric matrix from its upper-triangle CSR arrays."""
+    n = len(indptr) - 1
+    upper = sp.csr_matrix((data, indices, indptr), shape=(n, n))
+    return (upper + sp.triu(upper, k=1, format="csr").T).tocsr()
+
+
+class _PardisoHandle:
+    """One MKL Pardiso instance (one matrix type) for a fixed pattern; phases 11/22/33."""
+
+    def __init__(self, function, indptr: np.ndarray, indices: np.ndarray, mtype: int) -> None:
+        self._pardiso = function
+        self.mtype = mtype
+        self.n = len(indptr) - 1
+        self.ia = np.ascontiguousarray(indptr + 1, dtype=np.int32)
+        self.ja = np.ascontiguousarray(indices + 1, dtype=np.int32)
+        self.pt = np.zeros(64, dtype=np.int64)
+        self.iparm = np.zeros(64, dtype=np.int32)
+        self.iparm[0] = 1  # no solver defaults: every iparm below is explicit
+        self.iparm[1] = 2  # METIS nested dissection ordering
+        self.iparm[7] = 2  # at most two iterative-refinement steps
+        self.iparm[9] = 8  # pivot perturbation 1e-8 (symmetric indefinite)
+        self.iparm[10] = 0  # no scaling (symmetric)
+        self.iparm[12] = 0  # no weighted matching (symmetric)
+        self.iparm[17] = -1  # report factor non-zeros
+        self.iparm[20] = 1  # Bunch-Kaufman pivoting for mtype -2
+        self.iparm[34] = 0  # one-based indices (ia, ja above)
+        self.perm = np.zeros(self.n, dtype=np.int32)
+        self.analysed = False
+        self._data = np.zeros(len(indices))
+
+    def _call(self, phase: int, data: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> int:
+        err = ctypes.c_int32(0)
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        f64 = ctypes.POINTER(ctypes.c_double)
+        self._pardiso(self.pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+                      ctypes.byref(ctypes.c_int32(1)), ctypes.byref(ctypes.c_int32(1)),
+                      ctypes.byref(ctypes.c_int32(self.mtype)),
+                      ctypes.byref(ctypes.c_int32(phase)), ctypes.byref(ctypes.c_int32(self.n)),
+                      data.ctypes.data_as(f64), self.ia.ctypes.data_as(i32),
+                      self.ja.ctypes.data_as(i32), self.perm.ctypes.data_as(i32),
+                      ctypes.byref(ctypes.c_int32(1)), self.iparm.ctypes.data_as(i32),
+                      ctypes.byref(ctypes.c_int32(0)), rhs.ctypes.data_as(f64),
+                      out.ctypes.data_as(f64), ctypes.byref(err))
+        return int(err.value)
+
+    def factor(self, data: np.ndarray) -> None:
+        self._data = np.ascontiguousarray(data, dtype=np.float64)
+        dummy = np.zeros(1)
+        if not self.analysed:
+            err = self._call(11, self._data, dummy, dummy)
+            if err:
+                raise FactorizationError(f"Pardiso analysis failed (error {err})")
+            self.analysed = True
+        err = self._call(22, self._data, dummy, dummy)
+        if err:
+            raise FactorizationError(f"Pardiso factorisation failed (error {err}, mtype "
+                                     f"{self.mtype})")
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        out = np.zeros_like(rhs)
+        err = self._call(33, self._data, rhs, out)
+        if err:
+            raise FactorizationError(f"Pardiso solve failed (error {err})")
+        return out
+
+    @property
+    def negative_pivots(self) -> int:
+        """Negative eigenvalues of the last factored matrix (mtype -2 only)."""
+        return int(self.iparm[22])
+
+    def release(self) -> None:
+        if self.analysed:
+            dummy = np.zeros(1)
+            self._call(-1, self._data, dummy, dummy)
+            self.analysed = False
+
+    def __del__(self) -> None:
+        try:
+            self.release()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
+
+
+class PardisoSolver:
+    """MKL Pardiso: SPD Cholesky first, symmetric indefinite LDL^T when that fails."""
+
+    name = "pardiso"
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray) -> None:
+        import pypardiso
+
+        function = pypardiso.PyPardisoSolver()._mkl_pardiso  # argtypes already declared
+        self._spd = _PardisoHandle(function, indptr, indices, 2)
+        self._make_indefinite = lambda: _PardisoHandle(function, indptr, indices, -2)
+        self._indefinite: _PardisoHandle | None = None
+        self._active = self._spd
+        self.last_mode = "spd"
+
+    def factor(self, data: np.ndarray) -> None:
+        try:
+            self._spd.factor(data)
+            self._active, self.last_mode = self._spd, "spd"
+            return
+        except FactorizationError:
+            pass
+        if self._indefinite is None:
+            self._indefinite = self._make_indefinite()
+        self._indefinite.factor(data)
+        self._active = self._indefinite
+        self.last_mode = f"indefinite({self._indefinite.negative_pivots} neg)"
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        return self._active.solve(rhs)
+
+
+class CholmodSolver:
+    """CHOLMOD (scikit-sparse): symbolic analysis once; SuperLU when not positive definite."""
+
+    name = "cholmod"
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray) -> None:
+        self.indptr, self.indices = indptr, indices
+        self._factor = None
+        self._lu: SuperLUSolver | None = None
+        self.last_mode = "spd"
+
+    def factor(self, data: np.ndarray) -> None:
+        from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
+
+        matrix = full_matrix(self.indptr, self.indices, data).tocsc()
+        if self._factor is None:
+            self._factor = analyze(matrix)
+        try:
+            self._factor.cholesky_inplace(matrix)
+            self._lu, self.last_mode = None, "spd"
+        except CholmodNotPositiveDefiniteError:
+            self._lu = SuperLUSolver(self.indptr, self.indices)
+            self._lu.factor(data)
+            self.last_mode = "lu"
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        if self._lu is not None:
+            return self._lu.solve(rhs)
+        return np.asarray(self._factor(rhs)).ravel()
+
+
+class SuperLUSolver:
+    """SciPy SuperLU on the full matrix (no reusable analysis in SciPy)."""
+
+    name = "superlu"
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray) -> None:
+        self.indptr, self.indices = indptr, indices
+        self._lu = None
+        self.last_mode = "lu"
+
+    def factor(self, data: np.ndarray) -> None:
+        matrix = full_matrix(self.indptr, self.indices, data).tocsc()
+        try:
+            self._lu = spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")
+        except RuntimeError as exc:
+            raise FactorizationError(f"SuperLU failed: {exc}") from None
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        return self._lu.solve(rhs)

@@ -1,0 +1,112 @@
+"""Loads of a static solve: nodal forces and prescribed displacements of embedded points."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import InputError
+from .model import FEModel, find_positions
+
+
+@dataclass
+class Loads:
+    """Loads, both optional and combinable.
+
+    Attributes:
+        forces: (n_nodes, 3) nodal forces, N (dead loads; forces on fixed nodes are taken by
+            the support).
+        prescribed_matrix: (n_pts, n_nodes) sparse interpolation matrix ``W`` (trilinear
+            weights, rows summing to 1) of points whose displacement is prescribed.
+        prescribed_displacement: (n_pts, 3) target displacements ``g`` of those points, mm;
+            the solve enforces ``W u = g``.
+    """
+
+    forces: np.ndarray | None = None
+    prescribed_matrix: sp.spmatrix | None = None
+    prescribed_displacement: np.ndarray | None = None
+
+
+@dataclass
+class PreparedLoads:
+    """Loads in free-equation form for one model.
+
+    ``f`` (n_eq,) forces; ``w`` (n_pts, n_free_nodes) CSR, the prescribed-point matrix on free
+    nodes (fixed nodes carry u = 0 and drop out); ``g`` (n_pts, 3); ``w_full`` the caller's
+    matrix (for the constraint error); ``pen_pos`` / ``pen_val`` positions in the tangent's
+    upper CSR data and values of ``W^T W`` (penalty stiffness per unit penalty).
+    """
+
+    f: np.ndarray
+    w: sp.csr_matrix | None
+    g: np.ndarray | None
+    w_full: sp.csr_matrix | None
+    pen_pos: np.ndarray | None
+    pen_val: np.ndarray | None
+
+    @property
+    def has_constraints(self) -> bool:
+        return self.w is not None
+
+    @property
+    def is_zero(self) -> bool:
+        no_force = not np.any(self.f)
+        return no_force and (self.g is None or not np.any(self.g))
+
+
+def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:
+    """Check loads against ``model`` and bring them to free-equation form."""
+    f = _prepare_forces(model, loads.forces)
+    if loads.prescribed_matrix is None and loads.prescribed_displacement is None:
+        return PreparedLoads(f, None, None, None, None, None)
+    if loads.prescribed_matrix is None or loads.prescribed_displacement is None:
+        raise InputError("prescribed displacements need both the matrix and the targets",
+                         "Loads")
+    w_full = sp.csr_matrix(loads.prescribed_matrix, dtype=np.float64)
+    g = np.asarray(loads.prescribed_displacement, dtype=np.float64)
+    if w_full.shape[1] != model.n_nodes or g.shape != (w_full.shape[0], 3):
+        raise InputError(f"prescribed matrix must be (n_pts, {model.n_nodes}) and targets "
+                         f"(n_pts, 3); got {w_full.shape} and {g.shape}", "Loads")
+    if not np.all(np.isfinite(g)) or not np.all(np.isfinite(w_full.data)):
+        raise InputError("prescribed displacements contain NaN or infinity", "Loads")
+    w_full.eliminate_zeros()
+    used = model.used_nodes()
+    if np.any(~used[w_full.indices]):
+        raise InputError("a prescribed point lies outside the active cells (it weights nodes "
+                         "of no element)", "Loads")
+    free_nodes = np.flatnonzero(model.eq_of_dof[:, 0] >= 0)
+    w = w_full[:, free_nodes].tocsr()
+    pen_pos, pen_val = _penalty_pattern(model, w)
+    return PreparedLoads(f, w, g, w_full, pen_pos, pen_val)
+
+
+def _prepare_forces(model: FEModel, forces: np.ndarray | None) -> np.ndarray:
+    if forces is None:
+        return np.zeros(model.n_eq)
+    forces = np.asarray(forces, dtype=np.float64)
+    if forces.shape != (model.n_nodes, 3):
+        raise InputError(f"forces must be (n_nodes, 3) = ({model.n_nodes}, 3), got "
+                         f"{forces.shape}", "Loads")
+    if not np.all(np.isfinite(forces)):
+        raise InputError("forces contain NaN or infinity", "Loads")
+    if np.any(forces[~model.used_nodes()]):
+        raise InputError("forces act on nodes of no element (outside the active cells)",
+                         "Loads")
+    return model.to_free(forces)
+
+
+def _penalty_pattern(model: FEModel, w: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and values of ``W^T W`` (per component) in the upper CSR tangent data."""
+    wtw = (w.T @ w).tocoo()
+    keep = wtw.row <= wtw.col
+    rows, cols, vals = wtw.row[keep], wtw.col[keep], wtw.data[keep]
+    comp = np.arange(3)
+    eq_r = (3 * rows[:, None] + comp).ravel()
+    eq_c = (3 * cols[:, None] + comp).ravel()
+    pos = find_positions(model, eq_r.astype(np.int64), eq_c.astype(np.int64))
+    if np.any(pos < 0):
+        raise InputError("a prescribed point couples nodes that share no element (each point "
+                         "must weight the nodes of one cell)", "Loads")
+    return pos, np.repeat(vals, 3)
