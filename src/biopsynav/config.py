@@ -9,12 +9,12 @@ one place (:func:`reference_markdown`).
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import tomli_w
+import tomllib
 
 from .errors import InputError
 from .fileio import write_text_atomic
@@ -67,7 +67,8 @@ class AnatomySection:
 @dataclass
 class GridSection:
     cell_size_mm: float = opt(7.3, "Edge of the cubic hexahedral cells. The default gives the "
-                                   "built-in phantom 2,225 active cells on 24 x 24 x 16 nodes (the paper: 2,174).",
+                                   "built-in phantom 2,225 active cells on 24 x 24 x 16 nodes "
+                                   "(the paper: 2,174).",
                               lo=0.5, hi=100.0)
     margin_cells: int = opt(1, "Empty cells kept around the anatomy before padding.", lo=0, hi=8)
     samples_per_axis: int = opt(5, "Sub-cell sample points per axis for the tissue volume "
@@ -120,13 +121,23 @@ class SolverSection:
 
 @dataclass
 class ProbeSection:
-    footprint_mm: list = opt(None, "Probe face, long side x short side.", factory=lambda: [50.0, 10.0])
+    footprint_mm: list = opt(None, "Probe face, long side x short side.",
+                             factory=lambda: [50.0, 10.0])
     depth_tolerance_mm: float = opt(5.0, "Half-depth of the oriented selection box along the "
                                          "surface normal.", lo=0.1, hi=100.0)
     max_tilt_deg: float = opt(45.0, "Largest angle between the force and the inward normal.",
                               lo=0.0, hi=89.0)
     f_max_n: float = opt(1.0, "Largest total probe force (N), shared equally by the contact "
-                              "points; drawn uniformly in [0, f_max_n].", lo=0.0, hi=1e4)
+                              "points; drawn uniformly in [0, f_max_n]. A total force keeps the "
+                              "load independent of the skin-mesh density; the default pushes the "
+                              "5 kPa phantom up to about 35 mm (docs/dataset.md).",
+                         lo=0.0, hi=1e4)
+    min_chest_distance_mm: float = opt(5.0, "Training pushes are centred on skin vertices at "
+                                            "least this far in front of the chest-wall plane.",
+                                       lo=0.0, hi=1000.0)
+    min_contact_points: int = opt(4, "A training push needs at least this many skin vertices "
+                                     "under the footprint (else centre and angle are redrawn).",
+                                  lo=1, hi=100000)
     contact_tolerance_mm: float = opt(2.0, "Tracker rest pose: skin points within this distance "
                                            "of the probe face plane (and under the footprint) "
                                            "are in contact.", lo=0.0, hi=50.0)
@@ -139,8 +150,12 @@ class DatasetSection:
     seed: int = opt(0, "Seed: the same seed gives the same samples whatever the worker count.",
                     lo=0, hi=2**63 - 1)
     max_failure_share: float = opt(0.25, "Stop the job when more than this share of the draws "
-                                         "fails to converge.", lo=0.0, hi=1.0)
-    chunk_samples: int = opt(1, "Samples per storage chunk.", lo=1, hi=4096)
+                                         "fails to converge (checked once 20 draws, or all "
+                                         "requested if fewer, have been made).",
+                                   lo=0.0, hi=1.0)
+    chunk_samples: int = opt(1, "Samples per storage chunk of inputs and targets (1: a chunk "
+                                "per sample; 'done' always has one chunk per sample).",
+                             lo=1, hi=4096)
 
 
 @dataclass
@@ -316,7 +331,10 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
             raise InputError(f"[anatomy] chest_wall plane needs six numbers px,py,pz,nx,ny,nz "
                              f"with a non-zero normal; got {cw!r}", where)
     for addr_key in ("tracker", "listen"):
-        parse_address(getattr(cfg.igtl, addr_key), f"[igtl] {addr_key}")
+        try:
+            parse_address(getattr(cfg.igtl, addr_key), f"[igtl] {addr_key}")
+        except InputError as exc:
+            raise InputError(str(exc), where) from None
 
 
 def parse_address(text: str, where: str = "address") -> tuple[str, int]:

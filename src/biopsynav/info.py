@@ -58,7 +58,8 @@ def format_summary(s: dict) -> str:
     lines += [f"    #{les['id']}: centre {les['center_mm']} mm, radius {les['radius_mm']} mm"
               for les in s["lesions"]]
     lines += [
-        f"  grid      {' x '.join(map(str, s['grid_shape']))} nodes, cell {s['cell_size_mm']:g} mm, "
+        f"  grid      {' x '.join(map(str, s['grid_shape']))} nodes, "
+        f"cell {s['cell_size_mm']:g} mm, "
         f"{s['active_cells']} active cells ({s['boundary_cells']} boundary, "
         f"{s['inside_cells']} inside), {s['active_nodes']} active nodes, "
         f"{s['n_fixed_nodes']} fixed nodes, immersed volume {s['grid_volume_ml']:.1f} mL",

@@ -112,6 +112,7 @@ def _cell_labels(mesh, block: int, label_field: str, path: Path) -> np.ndarray |
         return np.asarray(data[label_field][block]).astype(np.int32).ravel()
     for values in data.values():
         arr = np.asarray(values[block])
+        arr = arr.reshape(len(arr), -1)[:, 0] if arr.ndim == 2 and arr.shape[1] == 1 else arr
         if arr.ndim == 1 and np.all(np.equal(np.mod(arr, 1), 0)):
             return arr.astype(np.int32)
     return None

@@ -1,4 +1,4 @@
-"""Build the immersed grid: extent, padding, tissue volume fractions, labels, active and fixed nodes.
+"""Build the immersed grid: extent, padding, volume fractions, labels, active and fixed nodes.
 
 Volume fractions come from an exact inside test on a regular lattice of ``n^3`` sub-cell sample
 points per cell: every lattice column along z is intersected with the surface triangles (a
@@ -113,7 +113,7 @@ def _column_crossings(vertices: np.ndarray, faces: np.ndarray, xs: np.ndarray,
     w2 = ((b[:, 0] - a[:, 0]) * (py - a[:, 1]) - (px - a[:, 0]) * (b[:, 1] - a[:, 1]))
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = w1 / d, w2 / d
-    hit = (d != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
+        hit = (d != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
     z = a[:, 2] + u * (b[:, 2] - a[:, 2]) + v * (c[:, 2] - a[:, 2])
     return (ix * len(ys) + iy)[hit], z[hit]
 

@@ -1,0 +1,59 @@
+import pytest
+
+from biopsynav.config import (
+    CaseConfig,
+    config_from_dict,
+    load_config,
+    reference_markdown,
+    save_config,
+)
+from biopsynav.errors import InputError
+
+
+def test_defaults_round_trip(tmp_path):
+    cfg = CaseConfig()
+    save_config(tmp_path, cfg)
+    assert load_config(tmp_path) == cfg
+    assert "# biopsynav case. Units: mm, N, MPa" in (tmp_path / "case.toml").read_text()
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"grid": {"cell_sise_mm": 5.0}}, "unknown key 'cell_sise_mm' in [grid]"),
+    ({"gird": {}}, "unknown section [gird]"),
+    ({"grid": {"cell_size_mm": -1.0}}, "below its minimum"),
+    ({"grid": {"cell_size_mm": "big"}}, "must be of type float"),
+    ({"dataset": {"n_train": 1.5}}, "must be an integer"),
+    ({"material": {"model": "linear"}}, "must be one of"),
+    ({"material": {"tissues": {"fat": {"E_mpa": -1, "nu": 0.4}}}}, "E_mpa must be in"),
+    ({"material": {"tissues": {"fat": {"E_mpa": 1e-3, "nu": 0.5}}}}, "nu must be in"),
+    ({"anatomy": {"chest_wall": "plane:1,2,3"}}, "six numbers"),
+    ({"anatomy": {"chest_wall": "bottom"}}, "chest_wall must be"),
+    ({"anatomy": {"tissue_labels": {"1": "bone"}}}, "unknown tissue 'bone'"),
+    ({"igtl": {"listen": "localhost"}}, "HOST:PORT"),
+    ({"probe": {"footprint_mm": [50.0]}}, "two positive lengths"),
+])
+def test_bad_values_name_the_key(data, message):
+    with pytest.raises(InputError) as err:
+        config_from_dict(data, "case.toml")
+    assert message in str(err.value)
+    assert str(err.value).startswith("case.toml: ")
+
+
+def test_bad_toml_file(tmp_path):
+    (tmp_path / "case.toml").write_text("[grid\ncell_size_mm = 3")
+    with pytest.raises(InputError, match="not valid TOML"):
+        load_config(tmp_path)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no case.toml"):
+        load_config(tmp_path / "empty")
+    with pytest.raises(InputError, match="case folder does not exist"):
+        load_config(tmp_path / "nothing")
+
+
+def test_reference_documents_every_key():
+    text = reference_markdown()
+    cfg = CaseConfig().to_dict()
+    for section, values in cfg.items():
+        assert f"## [{section}]" in text
+        for key in values:
+            assert f"`{key}`" in text
