@@ -1,0 +1,377 @@
+"""The OpenIGTLink service end to end: real pyigtl clients, a stand-in PLUS server, faults."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+import pyigtl
+import pytest
+
+from biopsynav.config import IgtlSection
+from biopsynav.igtl.protocol import HEADER_SIZE, encode_string, encode_transform
+from biopsynav.igtl.rigid import RigidLesionTracker
+from biopsynav.igtl.server import IgtlServer, run_service
+from biopsynav.tracker.result import INVALID_POSE, OK, REST, TrackingResult
+
+from .conftest import (
+    CENTERS,
+    HOST,
+    WAIT_S,
+    FakePlus,
+    RawClient,
+    Running,
+    free_port,
+    translation,
+    wait_until,
+)
+
+
+def expect_lesions(client: pyigtl.OpenIGTLinkClient, centers: np.ndarray) -> None:
+    """The client receives the POINT and every lesion TRANSFORM at ``centers``."""
+    point = client.wait_for_message("Lesions", timeout=WAIT_S)
+    assert point is not None, "no POINT received"
+    assert point.names == [f"Lesion{i}" for i in range(1, len(centers) + 1)]
+    np.testing.assert_allclose(np.array(point.positions), centers, atol=1e-4)
+    for i, center in enumerate(centers, start=1):
+        tf = client.wait_for_message(f"Lesion{i}ToReference", timeout=WAIT_S)
+        assert tf is not None, f"no TRANSFORM Lesion{i}ToReference"
+        np.testing.assert_allclose(tf.matrix[:3, 3], center, atol=1e-4)
+        np.testing.assert_allclose(tf.matrix[:3, :3], np.eye(3))
+
+
+def expect_status(client: pyigtl.OpenIGTLinkClient, prefix: str) -> str:
+    msg = client.wait_for_message("TrackingStatus", timeout=WAIT_S)
+    assert msg is not None, "no TrackingStatus"
+    assert msg.string.startswith(prefix), msg.string
+    return msg.string
+
+
+def raw_pose(T: np.ndarray) -> bytes:
+    return encode_transform("ProbeToReference", T)
+
+
+def test_pose_from_tracker_server_reaches_two_clients(tracker, plus):
+    run = Running(tracker, tracker_addr=(HOST, plus.port))
+    try:
+        a, b = run.slicer(), run.slicer()
+        plus.accept()
+        plus.send_pose(translation(5, 0, 0))  # first contact: becomes the rest pose
+        for client in (a, b):
+            expect_lesions(client, CENTERS)
+        plus.send_pose(translation(5, 2, 3))
+        for client in (a, b):
+            expect_lesions(client, CENTERS + [0, 2, 3])
+        stats = run.server.stats()
+        assert stats.tracker_connected and stats.poses_handled == 2
+        assert stats.rest_poses_set == 1 and stats.clients == 2
+    finally:
+        run.stop()
+
+
+def test_pose_sent_by_a_client_answers_every_client(running):
+    sender, other = running.slicer(), running.slicer()
+    sender.send_message(pyigtl.TransformMessage(np.eye(4), device_name="ProbeToReference"))
+    expect_lesions(other, CENTERS)
+    expect_lesions(sender, CENTERS)
+    sender.send_message(pyigtl.TransformMessage(translation(0, 0, 4),
+                                                device_name="ProbeToReference"))
+    expect_lesions(other, CENTERS + [0, 0, 4])
+
+
+def test_rest_pose_taken_automatically_then_set_by_command(running, tracker):
+    client = running.slicer()
+    raw = RawClient(running.port)
+    raw.send(raw_pose(translation(1, 1, 1)))
+    expect_lesions(client, CENTERS)
+    assert tracker.has_rest_pose
+    raw.send(raw_pose(translation(1, 1, 6)))
+    expect_lesions(client, CENTERS + [0, 0, 5])
+    raw.send(encode_string("biopsynavCommand", "SetRestPose"))
+    assert raw.read_until("STRING", "biopsynavReply").body.string == "SetRestPose: ok"
+    raw.send(raw_pose(translation(1, 1, 6)))
+    expect_lesions(client, CENTERS)
+    raw.send(raw_pose(translation(1, 1, 8)))
+    expect_lesions(client, CENTERS + [0, 0, 2])
+    raw.send(encode_string("biopsynavCommand", "Bogus"))
+    assert "unknown command" in raw.read_until("STRING", "biopsynavReply").body.string
+    raw.close()
+
+
+def test_set_rest_pose_without_any_pose_fails_politely(running):
+    raw = RawClient(running.port)
+    raw.send(encode_string("biopsynavCommand", "SetRestPose"))
+    reply = raw.read_until("STRING", "biopsynavReply").body.string
+    assert reply.startswith("SetRestPose: failed: no probe pose")
+    raw.close()
+
+
+def test_unreliable_result_sends_status_and_no_transforms(running):
+    client = running.slicer()
+    raw = RawClient(running.port)
+    raw.send(raw_pose(np.eye(4)))
+    expect_lesions(client, CENTERS)
+    raw.send(raw_pose(translation(0, 0, 25)))  # beyond the 20 mm envelope of the stand-in
+    assert "envelope" in expect_status(client, "out_of_envelope: ")
+    # the reply to the unreliable pose holds the status and no lesion TRANSFORM
+    msgs = []
+    while not msgs or msgs[-1].device != "TrackingStatus":
+        msgs.append(raw.read())
+    raw.send(raw_pose(translation(0, 0, 3)))
+    expect_status(client, OK)  # back to reliable: one "ok" status
+    expect_lesions(client, CENTERS + [0, 0, 3])
+    raw.close()
+
+
+def test_nan_pose_reports_invalid_pose_and_is_never_the_rest_pose(running, tracker):
+    client = running.slicer()
+    nan_pose = np.full((4, 4), np.nan)
+    client.send_message(pyigtl.TransformMessage(nan_pose, device_name="ProbeToReference"))
+    assert "NaN" in expect_status(client, INVALID_POSE)
+    assert not tracker.has_rest_pose
+    shear = np.eye(4)
+    shear[0, 1] = 0.5
+    client.send_message(pyigtl.TransformMessage(shear, device_name="ProbeToReference"))
+    assert "orthonormal" in expect_status(client, INVALID_POSE)
+    client.send_message(pyigtl.TransformMessage(np.eye(4), device_name="ProbeToReference"))
+    expect_status(client, REST)
+    expect_lesions(client, CENTERS)
+
+
+class BrokenTracker:
+    """Raises, then returns garbage, then NaN lesions: the server must survive all of it."""
+
+    has_rest_pose = True
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def set_rest_pose(self, T):
+        raise RuntimeError("cannot")
+
+    def update(self, T):
+        self.calls += 1
+        if self.calls == 1:
+            raise ZeroDivisionError("boom")
+        if self.calls == 2:
+            return None
+        lesion = type("L", (), {"id": 1, "center": [np.nan, 0, 0], "status": OK})()
+        return TrackingResult(lesions=[lesion, "junk"], status=OK)
+
+
+def test_tracker_that_raises_or_returns_garbage_does_not_stop_the_server():
+    run = Running(BrokenTracker())
+    try:
+        client = run.slicer()
+        raw = RawClient(run.port)
+        raw.send(raw_pose(np.eye(4)))
+        assert "boom" in expect_status(client, "tracker_error: ")
+        raw.send(raw_pose(np.eye(4)))
+        assert "NoneType" in expect_status(client, "tracker_error: ")
+        raw.send(raw_pose(np.eye(4)))
+        expect_status(client, OK)  # recovered; NaN lesion omitted, nothing else sent
+        raw.send(encode_string("biopsynavCommand", "SetRestPose"))
+        assert "cannot" in raw.read_until("STRING", "biopsynavReply").body.string
+        assert run.server.stats().tracker_failures == 2
+        raw.close()
+    finally:
+        run.stop()
+
+
+def _fault_then_healthy(running, payload: bytes, *, dropped: bool) -> RawClient:
+    """Send ``payload`` from a raw client; check the server and a healthy client go on."""
+    healthy = running.slicer()
+    bad = RawClient(running.port)
+    wait_until(lambda: running.server.stats().clients == 2)
+    bad.send(payload)
+    if dropped:
+        assert bad.closed_by_peer(), "faulty client was not dropped"
+        wait_until(lambda: running.server.stats().clients == 1)
+    healthy.send_message(pyigtl.TransformMessage(np.eye(4), device_name="ProbeToReference"))
+    expect_lesions(healthy, CENTERS)
+    return bad
+
+
+def test_client_disconnect_mid_message(running):
+    bad = RawClient(running.port)
+    bad.send(raw_pose(np.eye(4))[:HEADER_SIZE + 10])
+    bad.close()
+    wait_until(lambda: running.server.stats().disconnects_mid_message == 1)
+    _fault_then_healthy(running, b"", dropped=False).close()
+    assert running.server.stats().poses_handled == 1
+
+
+def test_malformed_header_drops_that_client_only(running):
+    _fault_then_healthy(running, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + b"\0" * 64,
+                        dropped=True).close()
+    stats = running.server.stats()
+    assert stats.protocol_errors == 1 and stats.clients_dropped == 1
+
+
+def test_oversized_body_drops_that_client_only(running):
+    header = bytearray(raw_pose(np.eye(4))[:HEADER_SIZE])
+    header[42:50] = struct.pack(">Q", 10 << 20)
+    _fault_then_healthy(running, bytes(header), dropped=True).close()
+    assert running.server.stats().clients_dropped == 1
+
+
+def test_wrong_crc_drops_the_message_not_the_client(running):
+    bad_pose = bytearray(raw_pose(translation(0, 0, 9)))
+    bad_pose[-1] ^= 0x55
+    bad = _fault_then_healthy(running, bytes(bad_pose), dropped=False)
+    wait_until(lambda: running.server.stats().messages_dropped == 1)
+    bad.send(raw_pose(translation(0, 0, 1)))  # same connection still served
+    bad.read_until("POINT", "Lesions")  # the reply to the healthy client's pose
+    point = bad.read_until("POINT", "Lesions")
+    np.testing.assert_allclose(point.body.positions, CENTERS + [0, 0, 1], atol=1e-4)
+    bad.close()
+    assert running.server.stats().poses_handled == 2
+
+
+def test_unknown_type_and_other_devices_are_skipped(running):
+    unknown = pyigtl.StringMessage("x" * 300, device_name="Whatever")
+    unknown._message_type = "CUSTOM_TYPE"
+    other = encode_transform("NeedleToReference", translation(0, 0, 50))
+    bad = _fault_then_healthy(running, unknown.pack() + other, dropped=False)
+    wait_until(lambda: running.server.stats().messages_skipped == 2)
+    bad.close()
+    assert running.server.stats().protocol_errors == 0
+
+
+def test_flood_of_poses_is_coalesced_and_others_keep_being_served(running, tracker):
+    observer = RawClient(running.port)
+    flooder = RawClient(running.port)
+    burst = b"".join(raw_pose(translation(0, 0, 0.001 * i)) for i in range(20000))
+    sender = threading.Thread(target=flooder.sock.sendall, args=(burst,))
+    sender.start()
+    sender.join(WAIT_S * 2)
+    wait_until(lambda: running.server.stats().poses_received == 20000, what="flood consumed")
+    stats = running.server.stats()
+    assert stats.poses_coalesced > 0
+    assert stats.poses_handled + stats.poses_coalesced == 20000
+    observer.send(raw_pose(translation(0, 0, 2)))
+    rest_z = tracker._rest[2, 3]  # the first pose handled, whichever survived coalescing
+    for _ in range(stats.poses_handled + 1):  # replies in order; the last answers z = 2
+        point = observer.read_until("POINT", "Lesions")
+        if np.allclose(point.body.positions, CENTERS + [0, 0, 2 - rest_z], atol=1e-4):
+            break
+    else:
+        raise AssertionError("no reply to the pose sent after the flood")
+    flooder.close()
+    observer.close()
+
+
+def test_client_that_does_not_read_is_dropped():
+    big = RigidLesionTracker(np.random.default_rng(0).normal(size=(200, 3)) * 20,
+                             max_push_mm=1e6)
+    run = Running(big, settings=IgtlSection(client_backlog_bytes=256 << 10))
+    try:
+        reader = RawClient(run.port)
+        sleeper = RawClient(run.port, rcvbuf=4096)  # never reads
+        wait_until(lambda: run.server.stats().clients == 2)
+        for i in range(400):
+            reader.send(raw_pose(translation(0, 0, 0.01 * i)))
+            reader.read_until("POINT", "Lesions")
+            if run.server.stats().clients_dropped:
+                break
+        assert run.server.stats().clients_dropped == 1
+        assert run.server.stats().clients == 1
+        reader.send(raw_pose(np.eye(4)))
+        assert len(reader.read_until("POINT", "Lesions").body.names) == 200
+        reader.close()
+        sleeper.close()
+    finally:
+        run.stop()
+
+
+def test_tracker_server_absent_then_appearing_then_restarting(tracker):
+    port = free_port()
+    run = Running(tracker, tracker_addr=(HOST, port))
+    plus = None
+    try:
+        client = run.slicer()
+        time.sleep(0.3)  # a few refused attempts with backoff
+        assert not run.server.stats().tracker_connected
+        plus = FakePlus(port)
+        plus.accept()
+        wait_until(lambda: run.server.stats().tracker_connected)
+        plus.send_pose(np.eye(4))
+        expect_lesions(client, CENTERS)
+        plus.close()  # PLUS goes away and comes back
+        wait_until(lambda: run.server.stats().tracker_disconnects == 1)
+        plus = FakePlus(port)
+        plus.accept()
+        plus.send_pose(translation(0, 1, 0))
+        expect_lesions(client, CENTERS + [0, 1, 0])
+        assert run.server.stats().tracker_connects == 2
+    finally:
+        if plus is not None:
+            plus.close()
+        run.stop()
+
+
+def test_pyigtl_server_as_plus_stand_in(tracker):
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    plus = pyigtl.OpenIGTLinkServer(port=0, local_server=True)  # installs signal handlers
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+    run = Running(tracker, tracker_addr=(HOST, plus.server_address[1]))
+    try:
+        client = run.slicer()
+        wait_until(lambda: run.server.stats().tracker_connected)
+        plus.send_message(pyigtl.TransformMessage(translation(3, 0, 0),
+                                                  device_name="ProbeToReference"), wait=True)
+        expect_lesions(client, CENTERS)
+    finally:
+        run.stop()
+        plus.stop()
+
+
+def test_run_service_stops_on_event_and_on_sigint(tracker):
+    started = threading.Event()
+    stop = threading.Event()
+    holder = {}
+
+    def on_started(server):
+        holder["server"] = server
+        started.set()
+
+    thread = threading.Thread(target=lambda: holder.setdefault("stats", run_service(
+        tracker, None, (HOST, 0), stop_event=stop, on_started=on_started)))
+    thread.start()
+    assert started.wait(WAIT_S)
+    raw = RawClient(holder["server"].address[1])
+    raw.send(raw_pose(np.eye(4)))
+    raw.read_until("POINT", "Lesions")
+    stop.set()
+    thread.join(WAIT_S)
+    assert not thread.is_alive() and holder["stats"].poses_handled == 1
+    raw.close()
+
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    before = signal.getsignal(signal.SIGINT)
+    stats = run_service(tracker, None, (HOST, 0))  # main thread: SIGINT stops it
+    timer.join()
+    assert stats.poses_handled == 0 and signal.getsignal(signal.SIGINT) is before
+
+
+def test_constructor_has_no_side_effects_and_listens_on_loopback(tracker):
+    port = free_port()
+    server = IgtlServer(tracker, f"{HOST}:{port}", None)
+    with socket.socket() as probe:
+        assert probe.connect_ex((HOST, port)) != 0  # nothing bound yet
+    assert IgtlServer(tracker).listen_addr == ("127.0.0.1", 18945)
+    del server
+
+
+def test_bad_listen_address_is_an_input_error(tracker):
+    from biopsynav.errors import InputError
+
+    with pytest.raises(InputError):
+        IgtlServer(tracker, "nonsense", None)
