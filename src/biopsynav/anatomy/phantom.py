@@ -54,15 +54,21 @@ def phantom_lesions_csv() -> str:
     return "\n".join(rows) + "\n"
 
 
-def make_phantom_case(case_dir, overwrite: bool = False, cell_size_mm: float | None = None):
-    """Create the built-in phantom case in ``case_dir`` and return the loaded :class:`Case`."""
-    from ..case import init_case
-    from ..config import CaseConfig
+def make_phantom_case(case_dir, overwrite: bool = False, cell_size_mm: float | None = None,
+                      overrides: dict | None = None):
+    """Create the built-in phantom case in ``case_dir`` and return the loaded :class:`Case`.
 
-    cfg = CaseConfig()
-    cfg.case.name = "phantom"
-    cfg.case.description = "Built-in CIRS 073-like phantom: 150 x 120 x 75 mm dome, 10 lesions"
-    cfg.anatomy.source = "phantom"
+    ``overrides`` holds case.toml sections to set (validated like case.toml).
+    """
+    from ..case import init_case
+    from ..config import config_from_dict
+
+    data: dict = {section: dict(values) for section, values in (overrides or {}).items()}
+    data.setdefault("case", {}).setdefault("name", "phantom")
+    data["case"].setdefault("description", "Built-in CIRS 073-like phantom: 150 x 120 x 75 mm "
+                                           "dome, 10 lesions")
+    data.setdefault("anatomy", {})["source"] = "phantom"
     if cell_size_mm is not None:
-        cfg.grid.cell_size_mm = float(cell_size_mm)
+        data.setdefault("grid", {})["cell_size_mm"] = float(cell_size_mm)
+    cfg = config_from_dict(data, "phantom settings")
     return init_case(case_dir, cfg, {}, overwrite=overwrite)

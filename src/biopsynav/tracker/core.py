@@ -1,0 +1,217 @@
+"""Probe pose in, lesion positions out.
+
+Probe frame (documented once, used everywhere): origin at the centre of the probe face, z along
+the ultrasound beam into the tissue, x along the long (50 mm) side of the face, y = z x x.
+A pose ``T`` is the 4 x 4 (or top 3 x 4) probe-to-anatomy transform in mm.
+
+At the rest pose (probe just touching the skin) the contact points are the skin vertices under
+the footprint (|x| <= L/2, |y| <= W/2 in the probe frame) within ``[probe]
+contact_tolerance_mm`` of the face plane, facing the probe. They then follow the rigid motion of
+the probe from the rest pose (the paper's assumption); their displacement, spread on the grid,
+drives the network (or the FE model with prescribed displacements), and lesions are read off
+the predicted grid displacement by trilinear interpolation.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..case import Case
+from ..errors import InputError
+from ..grid.embedding import Embedding
+from . import result as st
+from .result import LesionResult, TrackingResult
+
+LIFT_OFF_MM = 0.5  # contact points moved this far out of the tissue: the probe left the skin
+
+
+def as_pose(matrix: np.ndarray) -> np.ndarray:
+    """A 4 x 4 float64 pose from a 4 x 4 or 3 x 4 array (no checks)."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    return m
+
+
+def pose_problem(matrix: np.ndarray, tol: float) -> str:
+    """Empty if ``matrix`` is a finite rigid transform, else why it is not."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape not in ((4, 4), (3, 4)):
+        return f"pose has shape {m.shape}, expected 4 x 4 or 3 x 4"
+    if not np.isfinite(m).all():
+        return "pose contains NaN or infinite values"
+    m = as_pose(m)
+    if not np.allclose(m[3], [0, 0, 0, 1], atol=tol):
+        return "pose last row is not (0, 0, 0, 1)"
+    r = m[:3, :3]
+    dev = float(np.abs(r.T @ r - np.eye(3)).max())
+    if dev > tol or np.linalg.det(r) < 0:
+        return f"pose rotation is not rigid (orthonormality error {dev:.2g}, det " \
+               f"{np.linalg.det(r):.3g})"
+    return ""
+
+
+def contact_indices(anatomy, pose: np.ndarray, footprint: tuple[float, float],
+                    tol: float) -> np.ndarray:
+    """Indices of skin vertices in contact with the probe face at ``pose`` (rest pose)."""
+    pose = as_pose(pose)
+    r, t = pose[:3, :3], pose[:3, 3]
+    local = (anatomy.vertices - t) @ r  # rows: vertices in the probe frame
+    facing = anatomy.normals @ r[:, 2] < 0.0  # outward skin normal against the beam
+    inside = ((np.abs(local[:, 0]) <= footprint[0] / 2) & (np.abs(local[:, 1]) <= footprint[1] / 2)
+              & (np.abs(local[:, 2]) <= tol) & facing & ~anatomy.fixed_vertices)
+    return np.flatnonzero(inside)
+
+
+class Tracker:
+    """Lesion tracker of one case, backed by the U-Net (``engine="net"``) or the FE model."""
+
+    def __init__(self, case: Case, engine: str, surrogate=None, fem_model=None,
+                 fem_settings=None) -> None:
+        self.case = case
+        self.engine = engine
+        self._surrogate = surrogate
+        self._fem_model = fem_model
+        self._fem_settings = fem_settings
+        a = case.anatomy
+        self._lesion_ids = [les.id for les in a.lesions]
+        self._lesion_centres = np.array([les.center for les in a.lesions]).reshape(-1, 3)
+        self._lesion_emb = Embedding.build(case.grid, self._lesion_centres, where="lesions")
+        self._rest: np.ndarray | None = None
+        self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
+        self._contact_emb: Embedding | None = None
+        self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
+        self._input_flat = self._input.reshape(4, -1)
+        self._surface_emb: Embedding | None = None
+        env = surrogate.envelope if surrogate is not None else {}
+        self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
+        self.envelope_margin = case.cfg.tracker.envelope_margin
+
+    @classmethod
+    def load(cls, case_dir: str | Path, engine: str | None = None) -> Tracker:
+        """Load a case and its engine: ``"net"`` (trained model, fingerprint-checked) or
+        ``"fem"`` (finite elements with prescribed contact displacements)."""
+        case = Case.load(case_dir)
+        engine = engine or case.cfg.tracker.engine
+        if engine == "net":
+            from ..network.infer import Surrogate
+
+            sur = Surrogate.load(case.dir / "model", case.fingerprint(),
+                                 threads=case.cfg.network.threads)
+            return cls(case, engine, surrogate=sur)
+        if engine == "fem":
+            from ..fem import FEModel, SolverSettings
+
+            return cls(case, engine, fem_model=FEModel.from_case(case),
+                       fem_settings=SolverSettings.from_config(case.cfg.solver))
+        raise InputError(f"unknown engine {engine!r}; use net or fem", "tracker")
+
+    @property
+    def has_rest_pose(self) -> bool:
+        return self._rest is not None
+
+    @property
+    def n_contact(self) -> int:
+        return len(self._contact)
+
+    def set_rest_pose(self, pose: np.ndarray) -> int:
+        """Take ``pose`` (probe just touching the skin) as the rest pose; return the number of
+        contact points. Raises InputError for a pose that is not a finite rigid transform."""
+        problem = pose_problem(pose, self.case.cfg.tracker.rigid_tolerance)
+        if problem:
+            raise InputError(problem, "rest pose")
+        pose = as_pose(pose)
+        cfg = self.case.cfg.probe
+        idx = contact_indices(self.case.anatomy, pose, tuple(cfg.footprint_mm),
+                              cfg.contact_tolerance_mm)
+        self._rest = pose
+        self._rest_inv = np.linalg.inv(pose)
+        self._contact = idx
+        self._contact_points = self.case.anatomy.vertices[idx]
+        self._contact_normals = self.case.anatomy.normals[idx]
+        if len(idx):
+            emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
+            self._contact_emb = emb
+            wsum = np.asarray(emb.matrix.sum(axis=0)).ravel()
+            self._contact_nodes = np.flatnonzero(wsum > 0)
+            w = emb.matrix[:, self._contact_nodes].T.tocsr()  # (n_nodes_c, n_contact)
+            self._spread = (w.multiply(1.0 / wsum[self._contact_nodes][:, None])).tocsr()
+            self._input[:] = 0.0
+            self._input_flat[3, self._contact_nodes] = wsum[self._contact_nodes]
+        return len(idx)
+
+    def contact_displacement(self, pose: np.ndarray) -> np.ndarray:
+        """Displacement (n_contact, 3) mm of the contact points moved rigidly with the probe."""
+        rel = as_pose(pose) @ self._rest_inv
+        moved = self._contact_points @ rel[:3, :3].T + rel[:3, 3]
+        return moved - self._contact_points
+
+    def update(self, pose: np.ndarray, with_surface: bool = False) -> TrackingResult:
+        """Lesion positions for probe ``pose``; the status says whether to trust them."""
+        start = time.perf_counter()
+        problem = pose_problem(pose, self.case.cfg.tracker.rigid_tolerance)
+        if problem:
+            return self._unreliable(st.INVALID_POSE, problem, start)
+        if self._rest is None:
+            return self._unreliable(st.NO_REST_POSE, "no rest pose set", start)
+        if not len(self._contact):
+            return self._unreliable(st.NO_CONTACT, "no skin under the probe face at the rest "
+                                    "pose", start)
+        u_c = self.contact_displacement(pose)
+        push = -np.einsum("ij,ij->i", u_c, self._contact_normals)  # into the tissue
+        if np.median(push) < -LIFT_OFF_MM:
+            return self._rest_result(st.NO_CONTACT, "probe lifted off the skin", start)
+        largest = float(np.linalg.norm(u_c, axis=1).max())
+        if largest > self.max_contact_mm * self.envelope_margin:
+            return self._unreliable(st.OUT_OF_ENVELOPE, f"contact displacement {largest:.1f} mm "
+                                    f"beyond the trained {self.max_contact_mm:.1f} mm", start)
+        try:
+            field = self._predict(u_c)
+        except Exception as exc:  # FE non-convergence and similar: never a confident number
+            return self._unreliable(st.OUT_OF_ENVELOPE, f"{type(exc).__name__}: {exc}", start)
+        disp = self._lesion_emb.interpolate(field)
+        lesions = [LesionResult(i, c + d, d, st.OK) for i, c, d in
+                   zip(self._lesion_ids, self._lesion_centres, disp, strict=True)]
+        res = TrackingResult(lesions, st.OK, "", 0.0)
+        if with_surface:
+            res.surface = self.case.anatomy.vertices + self._surface_embedding().interpolate(field)
+        res.latency_ms = (time.perf_counter() - start) * 1e3
+        return res
+
+    def _predict(self, u_c: np.ndarray) -> np.ndarray:
+        """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
+        if self.engine == "net":
+            self._input_flat[:3, self._contact_nodes] = (self._spread @ u_c).T
+            out = self._surrogate.predict(self._input)
+            return out.reshape(3, -1).T
+        from ..fem import Loads, solve
+
+        u, _ = solve(self._fem_model, Loads(prescribed_matrix=self._contact_emb.matrix,
+                                            prescribed_displacement=u_c), self._fem_settings)
+        return u
+
+    def network_input(self, u_c: np.ndarray) -> np.ndarray:
+        """The (4, nx, ny, nz) network input for contact displacements (as in the dataset)."""
+        x = np.zeros_like(self._input)
+        x.reshape(4, -1)[3] = self._input_flat[3]
+        x.reshape(4, -1)[:3, self._contact_nodes] = (self._spread @ u_c).T
+        return x
+
+    def _surface_embedding(self) -> Embedding:
+        if self._surface_emb is None:
+            self._surface_emb = Embedding.build(self.case.grid, self.case.anatomy.vertices)
+        return self._surface_emb
+
+    def _rest_result(self, status: str, reason: str, start: float) -> TrackingResult:
+        lesions = [LesionResult(i, c.copy(), np.zeros(3), status) for i, c in
+                   zip(self._lesion_ids, self._lesion_centres, strict=True)]
+        return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
+
+    def _unreliable(self, status: str, reason: str, start: float) -> TrackingResult:
+        nan = np.full(3, np.nan)
+        lesions = [LesionResult(i, nan.copy(), nan.copy(), status) for i in self._lesion_ids]
+        return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
+
