@@ -31,6 +31,7 @@ class Dataset:
     fingerprint: str
     node_shape: tuple[int, int, int]
     path: Path
+    attrs: dict
 
     @property
     def n_active(self) -> int:
@@ -72,7 +73,7 @@ def load_dataset(case_or_zarr: str | Path) -> Dataset:
                          "test samples; both must be > 0", str(path))
     return Dataset(torch.from_numpy(inputs), torch.from_numpy(targets), torch.from_numpy(active),
                    torch.from_numpy(train), torch.from_numpy(test), fingerprint,
-                   node_shape, path)  # type: ignore[arg-type]
+                   node_shape, path, attrs)  # type: ignore[arg-type]
 
 
 def _check_shapes(inputs: np.ndarray, targets: np.ndarray, done: np.ndarray,

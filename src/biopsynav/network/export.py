@@ -41,21 +41,27 @@ class SurrogateNet(nn.Module):
         return self.unet(x * self.in_inv) * self.out_scale * self.mask
 
 
-def to_torchscript(net: SurrogateNet) -> torch.jit.ScriptModule:
-    """Frozen, inference-optimised TorchScript of a copy of ``net`` (fp32, CPU)."""
+def save_torchscript(net: SurrogateNet, path: str | Path) -> Path:
+    """Save ``net`` as scripted TorchScript (fp32, CPU) to ``path`` atomically.
+
+    The file holds the scripted, not yet frozen module: a module frozen and passed through
+    ``optimize_for_inference`` cannot be saved and loaded again (prepacked oneDNN weights), so
+    :func:`load_torchscript` freezes and optimises it at load time.
+    """
     import copy
 
     net = copy.deepcopy(net).float().cpu().eval()
-    with torch.no_grad():
-        scripted = torch.jit.script(net)
-        return torch.jit.optimize_for_inference(torch.jit.freeze(scripted))
-
-
-def save_torchscript(net: SurrogateNet, path: str | Path) -> Path:
-    """Export ``net`` as frozen TorchScript to ``path`` atomically."""
     buf = io.BytesIO()
-    torch.jit.save(to_torchscript(net), buf)
+    with torch.no_grad():
+        torch.jit.save(torch.jit.script(net), buf)
     return write_bytes_atomic(path, buf.getvalue())
+
+
+def load_torchscript(path: str | Path) -> torch.jit.ScriptModule:
+    """Load a saved module, then freeze it and optimise it for CPU inference."""
+    module = torch.jit.load(str(path), map_location="cpu").eval()
+    with torch.no_grad():
+        return torch.jit.optimize_for_inference(torch.jit.freeze(module))
 
 
 def save_onnx(net: SurrogateNet, path: str | Path, node_shape: tuple[int, int, int]) -> Path:

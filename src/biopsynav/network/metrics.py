@@ -11,7 +11,7 @@ import torch
 
 
 def mean_norm_error(pred: torch.Tensor, target: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
-    """Per-sample e (B,) in mm of ``pred``/``target`` (B, 3, nx, ny, nz) over ``active`` (nx, ny, nz)."""
+    """Per-sample e (B,) in mm; ``pred``/``target`` (B, 3, nx, ny, nz), ``active`` (nx, ny, nz)."""
     norm = torch.linalg.vector_norm(pred - target, dim=1)  # (B, nx, ny, nz)
     return norm[:, active].mean(dim=1)
 

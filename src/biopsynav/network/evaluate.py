@@ -1,0 +1,107 @@
+"""The paper's Table 1 on the held-out samples, measured with the deployed runtime and precision.
+
+Writes ``OUT/table1.json``, ``OUT/error_histogram.png``, ``OUT/worst_sample.png`` and
+``OUT/largest_deformation.png`` (``OUT`` = ``CASE_DIR/eval`` by default).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FingerprintError
+from ..fileio import write_json_atomic
+from .data import load_dataset
+from .infer import Surrogate, case_fingerprint
+from .metrics import mean_norm_error_np, summarize
+from .plots import plot_error_histogram, plot_sample
+
+EVAL_DIR = "eval"
+
+
+def predict_all(sur: Surrogate, x: np.ndarray, batch: int = 8) -> np.ndarray:
+    """Predictions (n, 3, nx, ny, nz) mm of inputs (n, 4, nx, ny, nz), in batches."""
+    return np.concatenate([np.array(sur.predict(x[i:i + batch]))
+                           for i in range(0, x.shape[0], batch)])
+
+
+def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000) -> dict:
+    """Batch-1 prediction times (ms) over ``n`` calls cycling through the samples ``x``."""
+    samples = [np.ascontiguousarray(x[i]) for i in range(min(len(x), 64))]
+    sur.warm_up(20)
+    t = np.empty(n)
+    for i in range(n):
+        s = samples[i % len(samples)]
+        t0 = time.perf_counter()
+        sur.predict(s)
+        t[i] = time.perf_counter() - t0
+    t *= 1e3
+    return {"predict_p50_ms": float(np.median(t)), "predict_p99_ms": float(np.percentile(t, 99)),
+            "predict_mean_ms": float(t.mean()), "predict_std_ms": float(t.std()),
+            "predict_n": n}
+
+
+def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
+             expected_fingerprint: str, *, runtime: str | None = None, threads: int = 0,
+             n_timing: int = 1000) -> dict:
+    """Table 1 of the model in ``model_dir`` on the test samples of ``dataset``; see module doc."""
+    data = load_dataset(dataset)
+    if data.fingerprint != expected_fingerprint:
+        raise FingerprintError("the data set was generated for another anatomy or grid than "
+                               "this case; regenerate it", str(data.path))
+    sur = Surrogate.load(model_dir, expected_fingerprint, runtime=runtime, threads=threads)
+    x = data.inputs[data.test_idx].numpy()
+    y = data.targets[data.test_idx].numpy()
+    active = data.active.numpy()
+    pred = predict_all(sur, x)
+    e = mean_norm_error_np(pred, y, active)
+    disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
+    result = summarize(e)
+    result.update(time_predictions(sur, x, n_timing))
+    meta = sur.meta
+    result.update({
+        "train_min": float(meta["training"]["train_time_s"]) / 60.0,
+        "max_disp_mm": float(disp.max()),
+        "largest_deformation_index": int(disp.argmax()),
+        "worst_sample": int(data.test_idx[result["worst_index"]]),
+        "largest_deformation_sample": int(data.test_idx[int(disp.argmax())]),
+        "n_active_nodes": int(active.sum()),
+        "runtime": sur.runtime, "precision": sur.precision,
+        "architecture": meta["architecture"], "n_parameters": meta["n_parameters"],
+        "e_per_sample_mm": e.tolist(),
+    })
+    _figures(Path(out_dir), pred, y, active, e, disp, meta.get("spacing_mm") or 1.0)
+    write_json_atomic(Path(out_dir) / "table1.json", result)
+    return result
+
+
+def _figures(out: Path, pred: np.ndarray, y: np.ndarray, active: np.ndarray, e: np.ndarray,
+             disp: np.ndarray, spacing: float) -> None:
+    plot_error_histogram(e, out / "error_histogram.png")
+    w, big = int(e.argmax()), int(disp.argmax())
+    plot_sample(pred[w], y[w], active, spacing,
+                f"worst sample: e = {e[w]:.4f} mm", out / "worst_sample.png")
+    plot_sample(pred[big], y[big], active, spacing,
+                f"largest deformation {disp[big]:.1f} mm: e = {e[big]:.4f} mm",
+                out / "largest_deformation.png")
+
+
+def format_table1(r: dict) -> str:
+    """Table 1 as text (mm, ms, min)."""
+    return (f"mean e {r['mean_e_mm']:.4f} mm | std e {r['std_e_mm']:.4f} mm | "
+            f"max e {r['max_e_mm']:.4f} mm | prediction {r['predict_p50_ms']:.2f} ms median, "
+            f"{r['predict_p99_ms']:.2f} ms p99 ({r['runtime']}, {r['precision']}) | training "
+            f"{r['train_min']:.1f} min | max nodal displacement {r['max_disp_mm']:.2f} mm | "
+            f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes")
+
+
+def evaluate_case(case_dir: str | Path) -> dict:
+    """CLI entry: Table 1 of ``CASE_DIR/model`` on ``CASE_DIR/dataset.zarr`` into CASE_DIR/eval."""
+    from ..config import load_config
+
+    case_dir = Path(case_dir)
+    cfg = load_config(case_dir)
+    return evaluate(case_dir / "model", case_dir, case_dir / EVAL_DIR, case_fingerprint(case_dir),
+                    runtime=cfg.network.runtime, threads=cfg.network.threads)

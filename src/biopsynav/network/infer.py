@@ -1,0 +1,186 @@
+"""Real-time prediction with the exported model: :class:`Surrogate`.
+
+``Surrogate.load(model_dir, expected_fingerprint)`` refuses a model trained for another anatomy
+or grid (FingerprintError), checks the exported file against its checksum, picks the runtime
+(TorchScript, or OpenVINO with fp32 forced), sets the thread count and warms the runtime up, so
+that :meth:`Surrogate.predict` does nothing but the forward pass. Precision is always fp32.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .export import load_torchscript
+from .model_io import ONNX, TORCHSCRIPT, check_file, check_fingerprint, read_meta
+
+RUNTIMES = ("auto", "torchscript", "openvino")
+
+
+class _Runner(Protocol):
+    def __call__(self, x: np.ndarray) -> np.ndarray: ...
+
+
+class TorchScriptRunner:
+    """Frozen TorchScript on the CPU, fp32, run under ``torch.inference_mode``."""
+
+    name = "torchscript"
+
+    def __init__(self, path: Path, threads: int) -> None:
+        torch.set_num_threads(threads)
+        try:
+            self.module = load_torchscript(path)
+        except RuntimeError as exc:
+            raise InputError(f"cannot load the TorchScript model ({str(exc)[:200]}); retrain "
+                             "with `biopsynav train`", str(path)) from None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return self.module(torch.from_numpy(x)).numpy()
+
+
+class OpenVinoRunner:
+    """OpenVINO on the CPU with the inference precision forced to fp32 (never bf16)."""
+
+    name = "openvino"
+
+    def __init__(self, path: Path, threads: int, node_shape: tuple[int, int, int]) -> None:
+        import openvino as ov
+
+        self.node_shape = tuple(node_shape)
+        self.core = ov.Core()
+        self.model = self.core.read_model(str(path))
+        self.threads = threads
+        self.compiled: dict[int, object] = {}
+        self._request(1)
+
+    def _request(self, batch: int):
+        req = self.compiled.get(batch)
+        if req is None:
+            model = self.model.clone()
+            model.reshape({0: [batch, 4, *self.node_shape]})
+            cm = self.core.compile_model(model, "CPU", {
+                "INFERENCE_PRECISION_HINT": "f32", "INFERENCE_NUM_THREADS": self.threads,
+                "PERFORMANCE_HINT": "LATENCY"})
+            precision = str(cm.get_property("INFERENCE_PRECISION_HINT"))
+            if "32" not in precision:
+                raise InputError(f"OpenVINO picked precision {precision}, not fp32", "runtime")
+            req = cm.create_infer_request()
+            self.compiled[batch] = req
+        return req
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        req = self._request(x.shape[0])
+        return req.infer({0: x}, share_inputs=True)[0]
+
+
+def openvino_available() -> bool:
+    """Whether the ``openvino`` package can be imported."""
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_runtime(name: str) -> str:
+    """``auto`` -> ``openvino`` when installed (fastest measured, docs/network.md), else
+    ``torchscript``."""
+    if name not in RUNTIMES:
+        raise InputError(f"unknown runtime {name!r}; known: {', '.join(RUNTIMES)}", "runtime")
+    if name == "auto":
+        return "openvino" if openvino_available() else "torchscript"
+    if name == "openvino" and not openvino_available():
+        raise InputError("runtime 'openvino' requested but the openvino package is not "
+                         "installed", "runtime")
+    return name
+
+
+class Surrogate:
+    """The trained surrogate of one case: contact input -> displacement of every grid node."""
+
+    def __init__(self, runner: _Runner, meta: dict, model_dir: Path) -> None:
+        self._run = runner
+        self.meta = meta
+        self.model_dir = model_dir
+        self.node_shape: tuple[int, int, int] = tuple(meta["node_shape"])  # type: ignore
+        self.runtime: str = runner.name  # type: ignore[attr-defined]
+        self.precision = "fp32"
+
+    @property
+    def fingerprint(self) -> str:
+        return self.meta["fingerprint"]
+
+    @property
+    def envelope(self) -> dict:
+        """Training envelope (mm): ``max_contact_disp_mm``, ``max_target_disp_mm``, ..."""
+        return self.meta["envelope"]
+
+    @classmethod
+    def load(cls, model_dir: str | Path, expected_fingerprint: str, *,
+             runtime: str | None = None, threads: int = 0, warmup: int = 30) -> Surrogate:
+        """Load a model folder for a case whose fingerprint is ``expected_fingerprint``.
+
+        Raises FingerprintError when the model was trained for another anatomy or grid, and
+        InputError when files are missing or corrupt. ``runtime`` defaults to the one recorded
+        at training ([network] runtime); ``threads`` 0 uses all cores.
+        """
+        model_dir = Path(model_dir)
+        meta = read_meta(model_dir)
+        check_fingerprint(meta, expected_fingerprint, str(model_dir))
+        rt = resolve_runtime(runtime or meta.get("inference", {}).get("runtime", "auto"))
+        n = threads if threads > 0 else (os.cpu_count() or 1)
+        if rt == "openvino":
+            runner: _Runner = OpenVinoRunner(check_file(model_dir, ONNX, meta), n,
+                                            tuple(meta["node_shape"]))
+        else:
+            runner = TorchScriptRunner(check_file(model_dir, TORCHSCRIPT, meta), n)
+        sur = cls(runner, meta, model_dir)
+        sur.warm_up(warmup)
+        return sur
+
+    def warm_up(self, n: int) -> None:
+        """Run ``n`` predictions on zeros (TorchScript optimises its graph on the first runs)."""
+        x = np.zeros((4, *self.node_shape), np.float32)
+        for _ in range(n):
+            self.predict(x)
+
+    def predict(self, inputs: np.ndarray) -> np.ndarray:
+        """Displacement (3, nx, ny, nz) mm of input (4, nx, ny, nz); batched (B, ...) too.
+
+        ``inputs`` float32, channels 0-2 the contact displacement (mm), channel 3 the weight sum
+        (see the dataset contract). Zero-copy for C-contiguous float32 input.
+        """
+        x = np.ascontiguousarray(inputs, dtype=np.float32)
+        single = x.ndim == 4
+        if single:
+            x = x[None]
+        if x.ndim != 5 or x.shape[1] != 4 or tuple(x.shape[2:]) != self.node_shape:
+            raise InputError(f"input shape {tuple(inputs.shape)} is not (4, {self.node_shape}) "
+                             f"or (B, 4, {self.node_shape})", "predict")
+        y = self._run(x)
+        return y[0] if single else y
+
+
+def load_for_case(case_dir: str | Path, *, runtime: str | None = None,
+                  threads: int | None = None) -> Surrogate:
+    """Load ``CASE_DIR/model`` checked against the case's anatomy+grid fingerprint."""
+    from ..config import load_config
+
+    case_dir = Path(case_dir)
+    cfg = load_config(case_dir)
+    return Surrogate.load(case_dir / "model", case_fingerprint(case_dir),
+                          runtime=runtime or cfg.network.runtime,
+                          threads=cfg.network.threads if threads is None else threads)
+
+
+def case_fingerprint(case_dir: str | Path) -> str:
+    """Anatomy+grid fingerprint of a case (``biopsynav.case.Case``)."""
+    from ..case import Case  # type: ignore[import-not-found]
+
+    return Case.load(case_dir).fingerprint()

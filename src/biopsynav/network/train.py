@@ -1,0 +1,301 @@
+"""Training of the surrogate: Adam, warm-up + cosine learning rate, masked loss, validation on
+the held-out samples, best weights kept, resumable checkpoints, exports at the end.
+
+Files in ``model_dir`` (``CASE_DIR/model`` by default), all written atomically:
+
+* ``checkpoint.pt`` - everything to resume (weights, Adam state, history, best weights, timers);
+* ``best.pt`` - the weights with the lowest mean validation error so far;
+* ``model.ts`` - the exported inference model (frozen TorchScript, fp32, mm in and out);
+* ``model.onnx`` - the same graph as ONNX (for ONNX Runtime / OpenVINO);
+* ``meta.json`` - architecture, normalisation, grid, fingerprint, envelope, training figures;
+* ``loss_curve.png`` - training loss and validation error against iterations.
+
+Determinism: batches and learning rates are pure functions of (seed, iteration), so a run killed
+at any point and restarted from its last checkpoint ends with the same weights as an
+uninterrupted one (same machine, same thread count).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import io
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ..config import NetworkSection, load_config
+from ..errors import InputError
+from ..fileio import write_bytes_atomic
+from .data import Dataset, envelope, load_dataset, normalisation_stats
+from .export import SurrogateNet
+from .metrics import masked_loss, mean_norm_error
+from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
+
+MODEL_DIR = "model"
+CHECKPOINT = "checkpoint.pt"
+BEST = "best.pt"
+
+
+@dataclass
+class TrainSummary:
+    """Outcome of :func:`train`; times in seconds, errors in mm."""
+
+    model_dir: Path
+    iterations_done: int
+    iterations: int
+    best_val_e_mm: float
+    best_iteration: int
+    last_val_e_mm: float
+    train_time_s: float
+    resumed_from: int
+    finished: bool
+    spec: dict = field(default_factory=dict)
+    n_parameters: int = 0
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an InputError."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda' requested but no CUDA GPU is available", "--device")
+    return torch.device(name)
+
+
+def set_threads(threads: int) -> int:
+    """Use ``threads`` intra-op CPU threads (0: all cores); returns the count in use."""
+    n = threads if threads > 0 else (os.cpu_count() or 1)
+    torch.set_num_threads(n)
+    return n
+
+
+def lr_at(it: int, s: NetworkSection) -> float:
+    """Learning rate of iteration ``it``: linear warm-up, then cosine decay to 1 % of the peak."""
+    peak = s.learning_rate
+    if it < s.warmup_iterations:
+        return peak * (it + 1) / s.warmup_iterations
+    span = max(1, s.iterations - s.warmup_iterations)
+    t = min(1.0, (it - s.warmup_iterations) / span)
+    return peak * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
+def batch_indices(it: int, batch: int, n: int, seed: int) -> torch.Tensor:
+    """Positions (batch,) into the training list for iteration ``it``.
+
+    Epochs are random permutations seeded by (seed, epoch); iteration ``it`` takes the positions
+    ``it*batch ... it*batch+batch-1`` of their concatenation. Stateless, hence resumable.
+    """
+    start = it * batch
+    out = []
+    while len(out) < batch:
+        epoch, pos = divmod(start + len(out), n)
+        g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+        perm = torch.randperm(n, generator=g)
+        out.extend(perm[pos:pos + batch - len(out)].tolist())
+    return torch.tensor(out, dtype=torch.int64)
+
+
+def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset) -> dict:
+    """Settings that must match for a checkpoint to be resumed."""
+    keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
+            "val_interval")
+    return {"spec": spec.to_dict(), "fingerprint": data.fingerprint,
+            "n_train": int(data.train_idx.numel()), "n_test": int(data.test_idx.numel()),
+            **{k: getattr(s, k) for k in keys}}
+
+
+def _save_torch(obj: dict, path: Path) -> None:
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def _load_checkpoint(path: Path, signature: dict) -> dict | None:
+    """The checkpoint at ``path`` if it exists, is readable and matches ``signature``."""
+    if not path.is_file():
+        return None
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file means: start afresh
+        print(f"[network] ignoring unreadable checkpoint {path}: {type(exc).__name__}")
+        return None
+    if ckpt.get("signature") != signature:
+        print(f"[network] settings or data changed since {path} was written: training afresh")
+        return None
+    return ckpt
+
+
+@torch.no_grad()
+def validate(net: SurrogateNet, x: torch.Tensor, y: torch.Tensor, active: torch.Tensor,
+             batch: int = 8) -> torch.Tensor:
+    """Per-sample e (n,) in mm of the eager fp32 model on inputs ``x`` against targets ``y``."""
+    was_training = net.training
+    net.eval()
+    errs = [mean_norm_error(net(x[i:i + batch]).float(), y[i:i + batch], active)
+            for i in range(0, x.shape[0], batch)]
+    net.train(was_training)
+    return torch.cat(errs).cpu()
+
+
+def train(case_dir: str | Path, preset: str | None = None, iterations: int | None = None,
+          device: str | None = None, *, settings: NetworkSection | None = None,
+          dataset: str | Path | None = None, model_dir: str | Path | None = None,
+          progress: bool = True, stop_after: int | None = None) -> TrainSummary:
+    """Train (or resume training of) the surrogate of a case.
+
+    ``settings`` is the [network] section (defaults when None); ``preset``, ``iterations`` and
+    ``device`` override it. Data come from ``dataset`` (default ``CASE_DIR/dataset.zarr``) and
+    files go to ``model_dir`` (default ``CASE_DIR/model``). ``stop_after`` stops after that many
+    iterations in total, checkpoint written, as an interruption would (for tests).
+    """
+    s = dataclasses.replace(settings or NetworkSection())
+    if preset is not None:
+        s.preset = preset
+    if iterations is not None:
+        s.iterations = int(iterations)
+    if device is not None:
+        s.device = device
+    case_dir = Path(case_dir)
+    out = Path(model_dir) if model_dir is not None else case_dir / MODEL_DIR
+    spec = preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
+                       activation=s.activation)
+    dev = resolve_device(s.device)
+    threads = set_threads(s.threads)
+    torch.use_deterministic_algorithms(dev.type == "cpu", warn_only=True)
+
+    data = load_dataset(dataset if dataset is not None else case_dir)
+    check_node_shape(data.node_shape, spec.levels)
+    in_scale, out_scale = normalisation_stats(data)
+    signature = _signature(s, spec, data)
+
+    torch.manual_seed(s.seed)
+    net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy()).to(dev)
+    opt = torch.optim.Adam(net.unet.parameters(), lr=s.learning_rate)
+    state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
+             "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
+    ckpt = _load_checkpoint(out / CHECKPOINT, signature)
+    if ckpt is not None:
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        state.update(ckpt["state"])
+    resumed_from = state["iteration"]
+
+    runner = _Runner(net, opt, data, s, dev, out, signature, state)
+    runner.run(progress=progress, stop_after=stop_after)
+    finished = state["iteration"] >= s.iterations
+    if finished:
+        from .model_io import write_model  # local import: model_io imports this module
+
+        if state["best_state"] is not None:
+            net.unet.load_state_dict(state["best_state"])
+        write_model(out, net.cpu(), spec, data, in_scale, out_scale, envelope(data),
+                    training={"iterations": s.iterations, "batch_size": s.batch_size,
+                              "learning_rate": s.learning_rate, "loss": s.loss,
+                              "seed": s.seed, "device": dev.type, "threads": threads,
+                              "train_time_s": state["elapsed_s"],
+                              "best_val_e_mm": state["best_val"],
+                              "best_iteration": state["best_iteration"],
+                              "history": state["history"]},
+                    runtime=s.runtime)
+    last = state["history"][-1]["val_mean_e_mm"] if state["history"] else math.nan
+    return TrainSummary(out, state["iteration"], s.iterations, state["best_val"],
+                        state["best_iteration"], last, state["elapsed_s"], resumed_from,
+                        finished, spec.to_dict(), count_parameters(spec))
+
+
+class _Runner:
+    """The optimisation loop with validation, checkpoints and the progress bar."""
+
+    def __init__(self, net: SurrogateNet, opt: torch.optim.Optimizer, data: Dataset,
+                 s: NetworkSection, dev: torch.device, out: Path, signature: dict,
+                 state: dict) -> None:
+        self.net, self.opt, self.s, self.dev, self.out = net, opt, s, dev, out
+        self.signature, self.state = signature, state
+        self.active = data.active.to(dev)
+        self.mask = self.active.to(torch.float32)
+        scale = net.out_scale.to(dev)
+        self.x_train = data.inputs[data.train_idx].to(dev)
+        self.y_train = data.targets[data.train_idx].to(dev) / scale  # normalised targets
+        self.x_test = data.inputs[data.test_idx].to(dev)
+        self.y_test = data.targets[data.test_idx].to(dev)
+        self.amp = dev.type == "cuda"
+
+    def step(self, it: int) -> float:
+        s = self.s
+        idx = batch_indices(it, s.batch_size, self.x_train.shape[0], s.seed).to(self.dev)
+        for group in self.opt.param_groups:
+            group["lr"] = lr_at(it, s)
+        with torch.autocast(self.dev.type, dtype=torch.bfloat16, enabled=self.amp):
+            pred = self.net.forward_normalised(self.x_train[idx])
+        loss = masked_loss(pred.float(), self.y_train[idx], self.mask, s.loss)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return float(loss.detach())
+
+    def run(self, progress: bool, stop_after: int | None) -> None:
+        from tqdm import tqdm
+
+        st, s = self.state, self.s
+        end = s.iterations if stop_after is None else min(s.iterations, stop_after)
+        bar = tqdm(total=s.iterations, initial=st["iteration"], disable=not progress,
+                   desc="train", unit="it", dynamic_ncols=True)
+        t0 = time.perf_counter() - st["elapsed_s"]
+        self.net.train()
+        while st["iteration"] < end:
+            it = st["iteration"]
+            st["loss_sum"] += self.step(it)
+            st["loss_n"] += 1
+            st["iteration"] = it + 1
+            bar.update(1)
+            if st["iteration"] % s.val_interval == 0 or st["iteration"] == s.iterations:
+                st["elapsed_s"] = time.perf_counter() - t0
+                self.validate_and_log()
+                bar.set_postfix(loss=f"{st['history'][-1]['train_loss']:.3g}",
+                                val_e=f"{st['history'][-1]['val_mean_e_mm']:.4f}mm",
+                                best=f"{st['best_val']:.4f}mm")
+                self.save_checkpoint()
+        st["elapsed_s"] = time.perf_counter() - t0
+        if st["iteration"] < s.iterations and st["iteration"] % s.val_interval:
+            self.save_checkpoint()
+        bar.close()
+
+    def validate_and_log(self) -> None:
+        st = self.state
+        e = validate(self.net, self.x_test, self.y_test, self.active)
+        mean_e = float(e.mean())
+        st["history"].append({"iteration": st["iteration"],
+                              "train_loss": st["loss_sum"] / max(1, st["loss_n"]),
+                              "val_mean_e_mm": mean_e, "val_max_e_mm": float(e.max()),
+                              "lr": lr_at(st["iteration"] - 1, self.s),
+                              "elapsed_s": st["elapsed_s"]})
+        st["loss_sum"], st["loss_n"] = 0.0, 0
+        if mean_e < st["best_val"]:
+            st["best_val"], st["best_iteration"] = mean_e, st["iteration"]
+            st["best_state"] = copy.deepcopy({k: v.cpu() for k, v in
+                                              self.net.unet.state_dict().items()})
+            _save_torch({"model": st["best_state"], "iteration": st["iteration"],
+                         "val_mean_e_mm": mean_e}, self.out / BEST)
+        from .plots import plot_loss_curve
+
+        plot_loss_curve(st["history"], self.out / "loss_curve.png")
+
+    def save_checkpoint(self) -> None:
+        _save_torch({"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
+                     "state": self.state, "signature": self.signature}, self.out / CHECKPOINT)
+
+
+def train_case(case_dir: str | Path, preset: str | None = None, iterations: int | None = None,
+               device: str | None = None, *, progress: bool = True) -> TrainSummary:
+    """CLI entry: train with the [network] section of ``CASE_DIR/case.toml``, with overrides."""
+    cfg = load_config(case_dir)
+    return train(case_dir, preset, iterations, device, settings=cfg.network, progress=progress)
+
+
+__all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",
+           "resolve_device", "set_threads"]

@@ -1,0 +1,76 @@
+"""A small synthetic ``dataset.zarr`` in the exact format of the dataset stage (for tests).
+
+Geometry: a half-ellipsoid "breast" of active nodes on a (nx, ny, nz) grid, chest wall at z = 0.
+Each sample pushes a patch of top-surface nodes around a random centre by a random vector d
+(mm); the target is the smooth field ``u(p) = d * exp(-|p - c|^2 / (2 L^2)) * z / z_top``
+masked to active nodes: a learnable, localised response that vanishes at the chest wall.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+FINGERPRINT = "synthetic-fingerprint-0001"
+
+
+def active_mask(shape: tuple[int, int, int]) -> np.ndarray:
+    """Half-ellipsoid of active nodes (nx, ny, nz) bool."""
+    i, j, k = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
+    cx, cy = (shape[0] - 1) / 2, (shape[1] - 1) / 2
+    r = ((i - cx) / (0.5 * shape[0])) ** 2 + ((j - cy) / (0.5 * shape[1])) ** 2 + \
+        (k / (shape[2] - 0.5)) ** 2
+    return r <= 1.0
+
+
+def make_samples(n: int, shape: tuple[int, int, int], rng: np.random.Generator,
+                 spacing: float = 5.0, max_disp: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+    """Inputs (n, 4, *shape) and targets (n, 3, *shape), float32, for the mask of ``shape``."""
+    act = active_mask(shape)
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), axis=0)
+    pos = ijk * spacing  # (3, nx, ny, nz) mm
+    # top surface: the highest active node of each (i, j) column
+    top_k = np.where(act.any(axis=2), act.shape[2] - 1 - np.argmax(act[:, :, ::-1], axis=2), -1)
+    surf = np.zeros(shape, bool)
+    ii, jj = np.nonzero(top_k >= 0)
+    surf[ii, jj, top_k[ii, jj]] = True
+    surf_idx = np.argwhere(surf)
+    centres = surf_idx[rng.integers(0, len(surf_idx), n)] * spacing  # (n, 3) mm
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = -np.abs(d[:, 2]) * 2.0  # mostly pushing in
+    d *= (max_disp * rng.uniform(0.2, 1.0, n) / np.linalg.norm(d, axis=1))[:, None]
+    diff = pos[None] - centres[:, :, None, None, None]  # (n, 3, nx, ny, nz)
+    dist2 = (diff**2).sum(axis=1)  # (n, nx, ny, nz)
+    length = 2.5 * spacing
+    g = np.exp(-dist2 / (2 * length**2)) * (pos[2] / pos[2].max())[None]
+    targets = (d[:, :, None, None, None] * g[:, None]) * act[None, None]
+    w = np.where(surf[None] & (dist2 <= (1.5 * spacing) ** 2), np.exp(-dist2 / spacing**2), 0.0)
+    inputs = np.zeros((n, 4, *shape))
+    inputs[:, :3] = np.where(w[:, None] > 0, targets, 0.0)
+    inputs[:, 3] = w
+    return inputs.astype(np.float32), targets.astype(np.float32)
+
+
+def write_synthetic_dataset(case_dir: str | Path, shape: tuple[int, int, int] = (16, 16, 8),
+                            n_train: int = 48, n_test: int = 16, seed: int = 0,
+                            fingerprint: str = FINGERPRINT, spacing: float = 5.0,
+                            not_done: tuple[int, ...] = ()) -> Path:
+    """Write ``case_dir/dataset.zarr``; samples listed in ``not_done`` are flagged incomplete."""
+    rng = np.random.default_rng(seed)
+    n = n_train + n_test
+    x, y = make_samples(n, shape, rng, spacing)
+    path = Path(case_dir) / "dataset.zarr"
+    g = zarr.open_group(str(path), mode="w")
+    g.create_array("inputs", data=x, chunks=(1, 4, *shape))
+    g.create_array("targets", data=y, chunks=(1, 3, *shape))
+    done = np.ones(n, bool)
+    done[list(not_done)] = False
+    g.create_array("done", data=done)
+    g.create_array("active_nodes", data=active_mask(shape))
+    g.create_array("max_disp_mm", data=np.linalg.norm(y, axis=1).reshape(n, -1).max(axis=1))
+    g.create_array("force", data=rng.normal(size=(n, 3)).astype(np.float32))
+    g.attrs.update({"n_train": n_train, "n_test": n_test, "fingerprint": fingerprint,
+                    "node_shape": list(shape), "spacing_mm": spacing})
+    return path
