@@ -1,0 +1,118 @@
+"""Tracker with the FE engine on a coarse phantom: poses, contact, safety statuses, CSV I/O."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from biopsynav.errors import InputError
+from biopsynav.tracker import Tracker, pose_problem
+from biopsynav.tracker import result as st
+from biopsynav.tracker.csvtrack import MATRIX_COLUMNS, read_poses, track_csv
+
+TOP = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
+
+
+def pushed(depth: float) -> np.ndarray:
+    pose = TOP.copy()
+    pose[2, 3] -= depth
+    return pose
+
+
+@pytest.fixture(scope="module")
+def coarse_case(tmp_path_factory):
+    from biopsynav.anatomy.phantom import make_phantom_case
+
+    return make_phantom_case(tmp_path_factory.mktemp("trk") / "case", cell_size_mm=12.0)
+
+
+@pytest.fixture(scope="module")
+def fem_tracker(coarse_case):
+    return Tracker.load(coarse_case.dir, engine="fem")
+
+
+def test_pose_validation():
+    assert pose_problem(TOP, 1e-3) == ""
+    assert pose_problem(TOP[:3], 1e-3) == ""
+    bad = TOP.copy()
+    bad[0, 0] = np.nan
+    assert "NaN" in pose_problem(bad, 1e-3)
+    scaled = TOP.copy()
+    scaled[:3, :3] *= 1.1
+    assert "not rigid" in pose_problem(scaled, 1e-3)
+    mirrored = TOP.copy()
+    mirrored[:3, 0] *= -1
+    assert "not rigid" in pose_problem(mirrored, 1e-3)
+    assert "shape" in pose_problem(np.eye(3), 1e-3)
+
+
+def test_rest_pose_and_push(fem_tracker):
+    r = fem_tracker.update(TOP)
+    assert r.status == st.NO_REST_POSE and not r.reliable
+    assert all(np.isnan(les.center).all() for les in r.lesions)
+    n = fem_tracker.set_rest_pose(TOP)
+    assert n > 5
+    r0 = fem_tracker.update(TOP)
+    assert r0.status == st.OK
+    np.testing.assert_allclose([les.displacement for les in r0.lesions], 0.0, atol=1e-9)
+    r = fem_tracker.update(pushed(10.0), with_surface=True)
+    assert r.status == st.OK, r.reason
+    central = {les.id: les for les in r.lesions}[3]  # lesion 3 at (0, 0, 45), under the probe
+    assert -10.0 < central.displacement[2] < -1.0
+    assert abs(central.displacement[0]) < 0.5 and abs(central.displacement[1]) < 0.5
+    assert r.surface.shape == fem_tracker.case.anatomy.vertices.shape
+    # skin at the probe centre moves with the probe
+    top = np.argmax(fem_tracker.case.anatomy.vertices[:, 2])
+    assert r.surface[top, 2] == pytest.approx(65.0, abs=1.0)
+
+
+def test_unreliable_poses_give_no_numbers(fem_tracker):
+    fem_tracker.set_rest_pose(TOP)
+    nan_pose = pushed(5.0)
+    nan_pose[1, 3] = np.nan
+    for pose, status in [(nan_pose, st.INVALID_POSE), (pushed(5.0) * 1.5, st.INVALID_POSE)]:
+        r = fem_tracker.update(pose)
+        assert r.status == status and r.reason
+        assert all(np.isnan(les.center).all() for les in r.lesions)
+    lifted = fem_tracker.update(pushed(-10.0))
+    assert lifted.status == st.NO_CONTACT and "lifted" in lifted.reason
+    np.testing.assert_allclose([les.displacement for les in lifted.lesions], 0.0)
+    away = TOP.copy()
+    away[:3, 3] = [0.0, 0.0, 200.0]
+    fem_tracker.set_rest_pose(away)
+    assert fem_tracker.n_contact == 0
+    assert fem_tracker.update(away).status == st.NO_CONTACT
+    with pytest.raises(InputError, match="rest pose"):
+        fem_tracker.set_rest_pose(nan_pose)
+
+
+def _poses_csv(path, poses):
+    lines = ["frame,sequence," + ",".join(MATRIX_COLUMNS)]
+    for i, (seq, pose) in enumerate(poses):
+        lines.append(f"{i},{seq}," + ",".join(f"{v:.6f}" for v in pose[:3].ravel()))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_track_csv_fem(coarse_case, tmp_path):
+    poses = _poses_csv(tmp_path / "poses.csv", [("a", TOP), ("a", pushed(8.0)),
+                                                 ("b", TOP), ("b", pushed(4.0))])
+    out = tmp_path / "lesions.csv"
+    assert track_csv(coarse_case.dir, poses, out, engine="fem") == 4
+    rows = out.read_text().splitlines()
+    assert rows[0] == "frame,lesion_id,x,y,z,status"
+    assert len(rows) == 1 + 4 * len(coarse_case.anatomy.lesions)
+    assert all(r.endswith(",ok") for r in rows[1:])
+
+
+def test_bad_poses_csv(tmp_path):
+    bad = tmp_path / "p.csv"
+    bad.write_text("frame,x\n1,2\n")
+    with pytest.raises(InputError, match="lacks the columns"):
+        read_poses(bad)
+    (tmp_path / "q.csv").write_text("frame,sequence," + ",".join(MATRIX_COLUMNS) + "\n"
+                                    + "1,a," + ",".join(["x"] * 12) + "\n")
+    with pytest.raises(InputError, match="line 2"):
+        read_poses(tmp_path / "q.csv")
+    with pytest.raises(InputError, match="file not found"):
+        read_poses(tmp_path / "none.csv")
