@@ -218,6 +218,10 @@ class IgtlSection:
     client_backlog_bytes: int = opt(4 << 20, "Unsent reply bytes held for one client; a "
                                              "client that does not read beyond this is "
                                              "dropped.", lo=1024, hi=1 << 30)
+    max_poses_per_read: int = opt(4, "Probe poses tracked per read of one connection; older "
+                                     "poses of the same read are skipped (coalesced) so that "
+                                     "a backlog never delays the newest pose by more than "
+                                     "this many updates.", lo=1, hi=10**6)
     reconnect_max_s: float = opt(2.0, "Longest wait between attempts to reach the tracker "
                                       "server (exponential backoff from 0.05 s).",
                                  lo=0.05, hi=60.0)

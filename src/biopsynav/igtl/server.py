@@ -9,8 +9,9 @@ One thread, non-blocking sockets with TCP_NODELAY, no polling sleeps: the loop b
 ``select`` until a socket is ready, the next tracker reconnection is due, or :meth:`stop` writes
 to a wake-up socket. Every probe pose (from the tracker server or from any listening client) goes
 to ``tracker.update``; the reply (see :mod:`.replies`) is packed once and written to every
-listening client with one ``send`` of one buffer. When several poses arrive in one read only the
-newest is tracked (``poses_coalesced``), so a backlog never delays the display.
+listening client with one ``send`` of one buffer. When more than ``max_poses_per_read`` poses
+arrive in one read only the newest ones are tracked (the others count as ``poses_coalesced``),
+so a backlog (a stall, a flood) never delays the newest pose by more than that many updates.
 
 Faults are logged and cost only the connection (or message) they come from: malformed headers
 and oversized bodies drop the connection; a wrong CRC or an undecodable body drops the message;
@@ -450,31 +451,35 @@ class IgtlServer:
 
     # ------------------------------------------------------------------------- messages
     def _handle_items(self, conn: _Conn, items: list) -> None:
-        """Act on the messages of one read: commands in order, then the newest pose."""
-        pose: Message | None = None
-        fatal: IgtlProtocolError | None = None
+        """Act on the messages of one read in order; poses are handled in runs (see below)."""
+        poses: list[Message] = []
         for item in items:
             if isinstance(item, IgtlProtocolError):
                 self._stats.protocol_errors += 1
                 if not item.resync:
-                    fatal = item
-                    break
+                    self._handle_poses(poses)
+                    self._drop(conn, str(item))
+                    return
                 self._stats.messages_dropped += 1
                 log.warning("%s: message dropped: %s", conn.name, item)
             elif item.type == "TRANSFORM" and item.device == self.probe_device:
                 self._stats.poses_received += 1
-                if pose is not None:
-                    self._stats.poses_coalesced += 1
-                pose = item
-                self._latest_pose = np.array(item.body.matrix, dtype=np.float64)
+                poses.append(item)
             elif item.type == "STRING" and item.device == COMMAND_DEVICE:
+                self._handle_poses(poses)
+                poses = []
                 self._command(conn, item.body.string)
             else:
                 self._skip(conn, item)
-        if pose is not None:
-            self._handle_pose(self._latest_pose, pose.header.timestamp)
-        if fatal is not None:
-            self._drop(conn, str(fatal))
+        self._handle_poses(poses)
+
+    def _handle_poses(self, poses: list[Message]) -> None:
+        """Handle the newest ``max_poses_per_read`` of a run of poses; skip (coalesce) older."""
+        keep = self.settings.max_poses_per_read
+        self._stats.poses_coalesced += max(0, len(poses) - keep)
+        for msg in poses[-keep:]:
+            self._latest_pose = np.array(msg.body.matrix, dtype=np.float64)
+            self._handle_pose(self._latest_pose, msg.header.timestamp)
 
     def _skip(self, conn: _Conn, item: Message) -> None:
         self._stats.messages_skipped += 1
