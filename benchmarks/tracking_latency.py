@@ -296,6 +296,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
     csv_poses = read_poses_csv(args.poses) if args.poses else None
 
     def poses_for(tracker, n: int) -> np.ndarray:

@@ -318,6 +318,21 @@ def test_tracker_server_absent_then_appearing_then_restarting(tracker):
         run.stop()
 
 
+def test_tracker_server_sending_garbage_is_dropped_and_reconnected(tracker, plus):
+    run = Running(tracker, tracker_addr=(HOST, plus.port))
+    try:
+        client = run.slicer()
+        plus.accept()
+        plus.conn.sendall(b"\x00\x09" + b"garbage" * 20)
+        wait_until(lambda: run.server.stats().tracker_disconnects == 1)
+        plus.accept()  # the service comes back after its backoff
+        plus.send_pose(np.eye(4))
+        expect_lesions(client, CENTERS)
+        assert run.server.stats().protocol_errors == 1
+    finally:
+        run.stop()
+
+
 def test_pyigtl_server_as_plus_stand_in(tracker):
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     plus = pyigtl.OpenIGTLinkServer(port=0, local_server=True)  # installs signal handlers

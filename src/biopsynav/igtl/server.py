@@ -462,7 +462,10 @@ class IgtlServer:
                     return
                 self._stats.messages_dropped += 1
                 log.warning("%s: message dropped: %s", conn.name, item)
-            elif item.type == "TRANSFORM" and item.device == self.probe_device:
+                continue
+            if conn.is_tracker:
+                self._backoff = RECONNECT_MIN_S  # a valid message: the outage is over
+            if item.type == "TRANSFORM" and item.device == self.probe_device:
                 self._stats.poses_received += 1
                 poses.append(item)
             elif item.type == "STRING" and item.device == COMMAND_DEVICE:
