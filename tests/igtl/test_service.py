@@ -103,6 +103,25 @@ def test_rest_pose_taken_automatically_then_set_by_command(running, tracker):
     raw.close()
 
 
+def test_auto_rest_pose_waits_for_first_contact():
+    run = Running(RigidLesionTracker(CENTERS, skin_z=0.0))
+    try:
+        client = run.slicer()
+        for z in (-10.0, -4.0):  # probe in the air: rest pose re-taken, no contact
+            client.send_message(pyigtl.TransformMessage(translation(0, 0, z),
+                                                        device_name="ProbeToReference"))
+            assert "no skin" in expect_status(client, "no_contact: ")
+        client.send_message(pyigtl.TransformMessage(np.eye(4), device_name="ProbeToReference"))
+        expect_status(client, REST)  # first contact: this is the rest pose
+        expect_lesions(client, CENTERS)
+        client.send_message(pyigtl.TransformMessage(translation(0, 0, 3),
+                                                    device_name="ProbeToReference"))
+        expect_lesions(client, CENTERS + [0, 0, 3])
+        assert run.server.stats().rest_poses_set == 3
+    finally:
+        run.stop()
+
+
 def test_set_rest_pose_without_any_pose_fails_politely(running):
     raw = RawClient(running.port)
     raw.send(encode_string("biopsynavCommand", "SetRestPose"))

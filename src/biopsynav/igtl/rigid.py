@@ -4,8 +4,9 @@ Lesions follow the probe rigidly: ``centre = T @ inv(T_rest) @ centre_rest``. It
 exercise and benchmark the network service without a trained model (tests, the round-trip part
 of ``benchmarks/tracking_latency.py``, demos); the real tracker is
 ``biopsynav.tracker.Tracker``. It reports the same statuses as the real one for the cases it can
-judge: invalid (NaN or non-rigid) pose, no rest pose, and a push deeper than ``max_push_mm``
-along the rest pose's beam axis (out of envelope).
+judge: invalid (NaN or non-rigid) pose, no rest pose, no contact (a rest pose whose origin lies
+below ``skin_z``, when given) and a push deeper than ``max_push_mm`` along the rest pose's beam
+axis (out of envelope).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from ..tracker.result import (
     INVALID_POSE,
+    NO_CONTACT,
     NO_REST_POSE,
     OK,
     OUT_OF_ENVELOPE,
@@ -45,11 +47,13 @@ class RigidLesionTracker:
     """Lesions at ``centers`` (N, 3) mm in the rest pose, moved rigidly by the probe motion."""
 
     def __init__(self, centers: np.ndarray, ids: list[int] | None = None,
-                 max_push_mm: float = 40.0, rigid_tolerance: float = 1e-3) -> None:
+                 max_push_mm: float = 40.0, rigid_tolerance: float = 1e-3,
+                 skin_z: float | None = None) -> None:
         self.centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         self.ids = list(ids) if ids is not None else list(range(1, len(self.centers) + 1))
         self.max_push_mm = max_push_mm
         self.rigid_tolerance = rigid_tolerance
+        self.skin_z = skin_z
         self._rest: np.ndarray | None = None
         self._rest_inv: np.ndarray | None = None
 
@@ -73,6 +77,8 @@ class RigidLesionTracker:
             return self._empty(INVALID_POSE, problem, t0)
         if self._rest is None:
             return self._empty(NO_REST_POSE, "no rest pose set", t0)
+        if self.skin_z is not None and self._rest[2, 3] < self.skin_z:
+            return self._empty(NO_CONTACT, "no skin under the probe face at the rest pose", t0)
         T = np.asarray(T, dtype=np.float64)
         motion = T @ self._rest_inv
         push = float(np.dot(T[:3, 3] - self._rest[:3, 3], self._rest[:3, 2]))

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..config import IgtlSection, parse_address
 from ..errors import BiopsynavError, InputError
-from ..tracker.result import RELIABLE, TrackingResult
+from ..tracker.result import NO_CONTACT, RELIABLE, TrackingResult
 from .protocol import IgtlProtocolError, Message, MessageReader, encode_string
 from .replies import (
     CMD_SET_REST_POSE,
@@ -156,6 +156,7 @@ class IgtlServer:
         self._tracker_warned = False
         self._latest_pose: np.ndarray | None = None
         self._last_reliable = True
+        self._provisional_rest = False
         self._stop_requested = False
         self.address: Address | None = None
 
@@ -503,6 +504,7 @@ class IgtlServer:
             try:
                 self.tracker.set_rest_pose(self._latest_pose.copy())
                 self._stats.rest_poses_set += 1
+                self._provisional_rest = False
                 reply = f"{CMD_SET_REST_POSE}: ok"
             except Exception as exc:
                 reply = f"{CMD_SET_REST_POSE}: failed: {exc}"
@@ -515,22 +517,31 @@ class IgtlServer:
         self._stats.poses_handled += 1
         self._auto_rest_pose(T)
         result = self._safe_update(T)
+        if self._provisional_rest and result.status != NO_CONTACT:
+            self._provisional_rest = False
+            log.info("rest pose taken automatically at first contact (%s)", result.status)
         payload = self._reply_bytes(result, timestamp)
         for conn in list(self._clients):
             self._send(conn, payload)
         self._stats.replies_sent += len(self._clients)
 
     def _auto_rest_pose(self, T: np.ndarray) -> None:
-        """Take the first usable pose as rest pose (first contact) when none is set."""
+        """Rest pose at first contact when none was set.
+
+        The first finite pose is taken; while the tracker answers ``no_contact`` to that rest
+        pose (the probe is not on the skin yet) it is re-taken at every pose.
+        """
         try:
-            if self.tracker.has_rest_pose or not np.all(np.isfinite(T)):
+            if not np.all(np.isfinite(T)):
+                return
+            if self.tracker.has_rest_pose and not self._provisional_rest:
                 return
             self.tracker.set_rest_pose(T.copy())
         except Exception as exc:
             log.warning("automatic rest pose not taken: %s", exc)
             return
         self._stats.rest_poses_set += 1
-        log.info("rest pose taken automatically at the first probe pose")
+        self._provisional_rest = True
 
     def _safe_update(self, T: np.ndarray) -> TrackingResult:
         t0 = time.perf_counter()
