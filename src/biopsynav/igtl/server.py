@@ -131,6 +131,8 @@ def _nodelay(sock: socket.socket) -> None:
 class IgtlServer:
     """The service. No side effects until :meth:`start`; :meth:`run` loops until :meth:`stop`.
 
+    One use: once :meth:`run` has returned, make a new server to serve again.
+
     ``tracker_addr`` None: no tracker-server connection (poses only from listening clients).
     """
 
@@ -226,6 +228,7 @@ class IgtlServer:
         return snap
 
     def _close_all(self) -> None:
+        self._stop_requested = True
         for conn in list(self._clients):
             self._close(conn, "server stopping", logging.DEBUG)
         if self._tracker_conn is not None:
@@ -444,7 +447,7 @@ class IgtlServer:
         if conn.is_tracker:
             was_connected = not conn.connecting
             self._tracker_conn = None
-            if was_connected:
+            if was_connected and not self._stop_requested:
                 self._stats.tracker_disconnects += 1
                 self._tracker_unavailable("connection lost")
         elif conn in self._clients:
