@@ -127,8 +127,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     from .igtl.server import serve
 
-    serve(args.case_dir, tracker_addr=args.tracker, listen_addr=args.listen,
-          device=args.device, engine=args.engine)
+    serve(args.case_dir, tracker_addr=args.tracker, listen_addr=args.listen, device=args.device)
     return 0
 
 
@@ -235,7 +234,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", help="listen for clients on HOST:PORT (default "
                    "127.0.0.1:18945)")
     p.add_argument("--device", help="probe TRANSFORM device name (default ProbeToReference)")
-    p.add_argument("--engine", choices=("net", "fem"), default="net")
 
     p = add("report", cmd_report, "Write report.html and report.md.")
     p.add_argument("case_dir", type=Path)

@@ -114,6 +114,11 @@ class Tracker:
         return self._rest is not None
 
     @property
+    def rest_pose(self) -> np.ndarray | None:
+        """The rest pose (4, 4) or None."""
+        return self._rest
+
+    @property
     def n_contact(self) -> int:
         return len(self._contact)
 
