@@ -24,8 +24,11 @@ from .loads import Loads, PreparedLoads, prepare_loads
 from .model import FEModel
 
 EASY_ITERATIONS = 4  # an increment converging within this many iterations doubles the next
+REUSE_AFTER = 0.1  # a full Newton iteration cutting |R| by this lets the next reuse its factors
+REUSE_CONTRACTION = 0.25  # a reuse iteration must cut |R| by this, else the next is a full one
 ARMIJO = 1e-4
 MAX_BACKTRACKS = 6
+LS_TOLERANCE = 0.25  # accept a step once the energy slope drops to this fraction (Crisfield)
 
 
 @dataclass
@@ -41,6 +44,7 @@ class SolverSettings:
     backend: str = "auto"
     intermediate_tolerance: float = 1e-3
     penalty: float = 1e6
+    reuse_factorization: bool = True
     constraint_tolerance_mm: float = 1e-4
 
     @classmethod
@@ -82,6 +86,7 @@ class _System:
         self.alpha = penalty * reference_diagonal_mean(model) if loads.has_constraints else 0.0
         n_pts = loads.w.shape[0] if loads.has_constraints else 0
         self.lam = np.zeros((n_pts, 3))
+        self.k0_cacheable = not loads.has_constraints
 
     def evaluate(self, u: np.ndarray, t: float, tangent: bool):
         """Residual (n_eq,), tangent upper-CSR data (or None), min det F, potential energy."""
@@ -146,6 +151,24 @@ def linear_solver(model: FEModel, backend: str) -> LinearSolver:
     return model.cache[key]
 
 
+def reference_solver(model: FEModel, backend: str) -> LinearSolver:
+    """A solver holding the factorisation of the tangent at u = 0 (no penalty), cached on
+    the model: the first Newton iteration of every force-loaded solve starts from it."""
+    key = f"k0:{backend}"
+    if key not in model.cache:
+        n_el = model.n_elements
+        fe, ke = np.empty((n_el, 24)), np.empty((n_el, 24, 24))
+        kernels.element_kernel(np.zeros((model.n_nodes, 3)), model.hexes, model.elem_set,
+                               model.grads, model.jw, model.weight, model.mu, model.lam,
+                               model.material_id, True, fe, ke, np.empty(n_el), np.empty(n_el))
+        data = np.empty(model.nnz)
+        kernels.scatter_matrix(ke, model.scatter, data)
+        solver = make_solver(backend, model.indptr, model.indices)
+        solver.factor(data)
+        model.cache[key] = solver
+    return model.cache[key]
+
+
 class _IncrementFailed(Exception):
     def __init__(self, reason: str) -> None:
         super().__init__(reason)
@@ -186,12 +209,14 @@ def _continuation(system: _System, solver: LinearSolver, settings: SolverSetting
                   report: SolveReport) -> np.ndarray:
     """Adaptive load stepping from t = 0 to t = 1; returns the converged free displacement."""
     u = np.zeros(system.model.n_eq)
+    u_back, t_back = u, 0.0  # the converged state before u, for the secant predictor
     t, dt = 0.0, settings.initial_load_step
     last_reason = ""
     while t < 1.0:
         target = 1.0 if t + dt >= 1.0 - 1e-12 else t + dt
+        guess = u + (target - t) / (t - t_back) * (u - u_back) if t > 0.0 else u
         try:
-            u, n_it = _newton(system, solver, settings, report, u, t, target)
+            u_new, n_it = _newton(system, solver, settings, report, guess, t, target, base=u)
         except _IncrementFailed as exc:
             last_reason = exc.reason
             dt *= 0.5
@@ -202,72 +227,168 @@ def _continuation(system: _System, solver: LinearSolver, settings: SolverSetting
                     f"{last_reason}", "fem.solve", log=report.log) from None
             continue
         report.increments += 1
+        u_back, t_back, u = u, t, u_new
         t, dt = target, (2.0 * dt if n_it <= EASY_ITERATIONS else dt)
     return u
 
 
 def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
             report: SolveReport, u0: np.ndarray, t_prev: float, t: float,
-            final: bool | None = None) -> tuple[np.ndarray, int]:
-    """Newton iterations at load factor ``t`` from ``u0``; raises _IncrementFailed."""
+            final: bool | None = None, base: np.ndarray | None = None
+            ) -> tuple[np.ndarray, int]:
+    """Newton iterations at load factor ``t`` from the guess ``u0`` (``base``, the last
+    converged state, when the guess inverts an element); raises _IncrementFailed.
+
+    A full iteration factors the tangent at the current state (at rest, the model's cached
+    reference factorisation) and line-searches. Once a full iteration has cut |R| by
+    ``REUSE_AFTER`` (the quadratic regime), further iterations reuse that factorisation
+    (modified Newton: one solve and one force evaluation each) as long as each cuts |R| by
+    ``REUSE_CONTRACTION``; otherwise the next iteration is a full one again."""
     final = t >= 1.0 if final is None else final
     tol_r = settings.tol_residual if final else max(settings.tol_residual,
                                                     settings.intermediate_tolerance)
     tol_d = settings.tol_displacement if final else max(settings.tol_displacement,
                                                         settings.intermediate_tolerance)
     u = u0.copy()
-    r, data, _, energy = system.evaluate(u, t, tangent=True)
+    at_rest = system.k0_cacheable and not np.any(u)
+    r, data, det, energy = system.evaluate(u, t, tangent=not at_rest)
+    if (det <= 0.0 or not np.isfinite(energy)) and base is not None:
+        u = base.copy()
+        r, data, det, energy = system.evaluate(u, t, tangent=True)
+    active, reuse = solver, False
     for it in range(1, settings.max_iterations + 1):
-        try:
-            solver.factor(data)
-            du = -solver.solve(r)
-        except FactorizationError as exc:
-            raise _IncrementFailed(str(exc)) from None
-        if not np.all(np.isfinite(du)):
-            raise _IncrementFailed("the linear solve returned NaN")
-        if report.reference_residual == 0.0:
-            report.reference_residual = system.reference_residual(du / (t - t_prev))
-        u, r, data, energy, step, min_det = _line_search(system, settings, u, du, r, energy, t)
-        r_norm, du_norm = float(np.linalg.norm(r)), step * float(np.linalg.norm(du))
+        r_before = float(np.linalg.norm(r))
+        state = _reuse_step(system, active, u, r, t) if reuse else None
+        if state is not None:
+            u, r, energy, min_det, du_norm = state
+            step, mode, data = 1.0, "reuse", None
+        else:
+            if at_rest and it == 1:
+                active, mode = reference_solver(system.model, settings.backend), "k0-cached"
+            else:
+                if data is None:
+                    r, data, _, energy = system.evaluate(u, t, tangent=True)
+                active = solver
+                _factor(active, data)
+                mode = active.last_mode
+            du = _solve(active, r)
+            if report.reference_residual == 0.0:
+                report.reference_residual = system.reference_residual(du / (t - t_prev))
+            u, r, data, energy, step, min_det = _line_search(system, settings, u, du, r,
+                                                             energy, t)
+            du_norm = step * float(np.linalg.norm(du))
+        r_norm = float(np.linalg.norm(r))
+        reuse = settings.reuse_factorization and r_norm <= (
+            REUSE_CONTRACTION if mode == "reuse" else REUSE_AFTER) * r_before
         r0 = report.reference_residual
         report.iterations += 1
         report.log.append({"increment": report.increments + 1, "load": t, "step": t - t_prev,
                            "iteration": it, "residual": r_norm, "residual_rel": r_norm / r0,
                            "du": du_norm, "line_step": step, "min_det_F": min_det,
-                           "mode": solver.last_mode})
+                           "mode": mode})
         if r_norm <= tol_r * r0 and du_norm <= tol_d * max(float(np.linalg.norm(u)), 1e-300):
             return u, it
     raise _IncrementFailed(f"{settings.max_iterations} Newton iterations without convergence "
                            f"(|R|/|R0| = {report.log[-1]['residual_rel']:.3g})")
 
 
+def _factor(solver: LinearSolver, data: np.ndarray) -> None:
+    try:
+        solver.factor(data)
+    except FactorizationError as exc:
+        raise _IncrementFailed(str(exc)) from None
+
+
+def _solve(solver: LinearSolver, r: np.ndarray) -> np.ndarray:
+    try:
+        du = -solver.solve(r)
+    except FactorizationError as exc:
+        raise _IncrementFailed(str(exc)) from None
+    if not np.all(np.isfinite(du)):
+        raise _IncrementFailed("the linear solve returned NaN")
+    return du
+
+
+def _reuse_step(system: _System, solver: LinearSolver, u: np.ndarray, r: np.ndarray, t: float):
+    """A modified-Newton step with the last factorisation; None unless it keeps every
+    element uninverted and cuts |R| by REUSE_CONTRACTION."""
+    du = _solve(solver, r)
+    trial = u + du
+    r_t, _, det_t, energy_t = system.evaluate(trial, t, tangent=False)
+    if det_t <= 0.0 or not np.isfinite(energy_t):
+        return None
+    if float(np.linalg.norm(r_t)) > REUSE_CONTRACTION * float(np.linalg.norm(r)):
+        return None
+    return trial, r_t, energy_t, det_t, float(np.linalg.norm(du))
+
+
 def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: np.ndarray,
                  r: np.ndarray, energy: float, t: float):
-    """Backtrack along du until the state is uninverted and the residual norm or the potential
-    energy decreases (Armijo); returns the new state and the accepted step length."""
-    r_norm = float(np.linalg.norm(r))
-    slope = float(r @ du)  # directional derivative of the potential energy
+    """Step length along ``du``: the full Newton step when it keeps every element uninverted
+    and the energy's slope ``g(s) = R(u + s du) . du`` drops to half its initial size or
+    stays negative; else a safeguarded secant search on ``g`` (Crisfield), bisecting away
+    from inverted states. Without ``settings.line_search`` only inversion shortens the step.
+    Returns (u, R, tangent data, energy, step, min det F) of the accepted state."""
+    g0 = float(r @ du)
+    if g0 >= 0.0:  # not a descent direction (indefinite tangent): backtrack on |R|
+        return _backtrack_residual(system, u, du, r, t)
+    lo, hi = (0.0, g0), None
     step = 1.0
+    best = None
     worst_det = np.inf
+    for k in range(MAX_BACKTRACKS + 1):
+        trial = u + step * du
+        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=k == 0)
+        worst_det = min(worst_det, det_t)
+        if det_t <= 0.0 or not (np.isfinite(energy_t) and np.all(np.isfinite(r_t))):
+            hi = None
+            step = 0.5 * (lo[0] + step)
+            continue
+        g = float(r_t @ du)
+        lower = energy_t <= energy + 1e-12 * abs(energy)
+        if lower and (best is None or abs(g) < abs(best[0])):
+            best = (g, step, trial, r_t, data_t, energy_t, det_t)
+        if not settings.line_search or (lower and (abs(g) <= LS_TOLERANCE * abs(g0)
+                                                   or (k == 0 and g < 0.0))):
+            break
+        if g < 0.0:
+            lo = (step, g)
+        else:
+            hi = (step, g)
+        if hi is None:
+            step = 0.5 * (lo[0] + step)
+            continue
+        secant = lo[0] - lo[1] * (hi[0] - lo[0]) / (hi[1] - lo[1])
+        width = hi[0] - lo[0]
+        step = min(max(secant, lo[0] + 0.1 * width), hi[0] - 0.1 * width)
+    if best is None:
+        if worst_det <= 0.0:
+            raise _IncrementFailed(f"inverted elements (min det F = {worst_det:.3g}) along "
+                                   "the Newton direction")
+        raise _IncrementFailed("the line search found no decrease of the energy")
+    _, step, trial, r_t, data_t, energy_t, det_t = best
+    if data_t is None:
+        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=True)
+    return trial, r_t, data_t, energy_t, step, det_t
+
+
+def _backtrack_residual(system: _System, u: np.ndarray, du: np.ndarray, r: np.ndarray,
+                        t: float):
+    """Halve the step until the residual norm decreases on an uninverted state."""
+    r_norm = float(np.linalg.norm(r))
+    step, worst_det = 1.0, np.inf
     for _ in range(MAX_BACKTRACKS + 1):
         trial = u + step * du
         r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=True)
         worst_det = min(worst_det, det_t)
-        finite = np.isfinite(energy_t) and np.all(np.isfinite(r_t))
-        if det_t > 0.0 and finite:
-            if not settings.line_search:
-                return trial, r_t, data_t, energy_t, step, det_t
-            decrease = float(np.linalg.norm(r_t)) <= (1.0 - ARMIJO * step) * r_norm
-            descent = slope < 0.0 and energy_t <= energy + ARMIJO * step * slope
-            if decrease or descent:
-                return trial, r_t, data_t, energy_t, step, det_t
-        elif not settings.line_search and det_t <= 0.0:
-            break
+        if det_t > 0.0 and np.isfinite(energy_t) and \
+                float(np.linalg.norm(r_t)) <= (1.0 - ARMIJO * step) * r_norm:
+            return trial, r_t, data_t, energy_t, step, det_t
         step *= 0.5
     if worst_det <= 0.0:
         raise _IncrementFailed(f"inverted elements (min det F = {worst_det:.3g}) along the "
                                "Newton direction")
-    raise _IncrementFailed("the line search found no decrease of residual or energy")
+    raise _IncrementFailed("no decrease of the residual along a non-descent direction")
 
 
 def _enforce_constraints(system: _System, solver: LinearSolver, settings: SolverSettings,

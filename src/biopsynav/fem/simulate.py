@@ -1,0 +1,188 @@
+"""One probe push on a case: patch selection, force spreading, solve, VTU/STL/PNG output."""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..fileio import save_figure_atomic, write_bytes_atomic, write_json_atomic
+from .loads import Loads
+from .model import FEModel
+from .solver import SolveReport, SolverSettings, solve
+
+#: Largest distance (mm) between the --at point and the skin surface.
+MAX_AT_DISTANCE_MM = 10.0
+
+
+@dataclass
+class ProbePatch:
+    """Skin vertices under the probe face.
+
+    ``center`` (3,) the surface vertex nearest the requested point, ``normal`` (3,) its outward
+    normal, ``long_axis`` / ``short_axis`` (3,) unit vectors spanning the tangent plane,
+    ``vertices`` (n,) ids of the surface vertices in the patch, ``points`` (n, 3) mm.
+    """
+
+    center: np.ndarray
+    normal: np.ndarray
+    long_axis: np.ndarray
+    short_axis: np.ndarray
+    vertices: np.ndarray
+    points: np.ndarray
+
+
+def tangent_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The probe's long axis: the world x axis projected on the tangent plane (the y axis
+    when the normal is within 30 degrees of x); the short axis completes a right-handed frame
+    with the normal."""
+    normal = normal / np.linalg.norm(normal)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < np.cos(np.radians(30)) else \
+        np.array([0.0, 1.0, 0.0])
+    long_axis = ref - (ref @ normal) * normal
+    long_axis /= np.linalg.norm(long_axis)
+    return long_axis, np.cross(normal, long_axis)
+
+
+def probe_patch(vertices: np.ndarray, normals: np.ndarray, fixed: np.ndarray, at_mm: np.ndarray,
+                footprint_mm: tuple[float, float], depth_tolerance_mm: float) -> ProbePatch:
+    """Surface vertices in the oriented box (footprint x 2 depth_tolerance) centred at the
+    vertex nearest ``at_mm``; chest-wall vertices and vertices facing away are left out."""
+    at_mm = np.asarray(at_mm, dtype=np.float64)
+    if at_mm.shape != (3,) or not np.all(np.isfinite(at_mm)):
+        raise InputError(f"--at must be three finite numbers, got {at_mm.tolist()}", "--at")
+    candidates = np.flatnonzero(~fixed)
+    dist = np.linalg.norm(vertices[candidates] - at_mm, axis=1)
+    nearest = candidates[int(np.argmin(dist))]
+    if dist.min() > MAX_AT_DISTANCE_MM:
+        raise InputError(f"the point {np.round(at_mm, 2).tolist()} mm is {dist.min():.1f} mm "
+                         f"from the skin (at most {MAX_AT_DISTANCE_MM:g} mm)", "--at")
+    center, normal = vertices[nearest], normals[nearest] / np.linalg.norm(normals[nearest])
+    long_axis, short_axis = tangent_axes(normal)
+    rel = vertices - center
+    inside = ((np.abs(rel @ long_axis) <= footprint_mm[0] / 2)
+              & (np.abs(rel @ short_axis) <= footprint_mm[1] / 2)
+              & (np.abs(rel @ normal) <= depth_tolerance_mm)
+              & (normals @ normal > 0.0) & ~fixed)
+    ids = np.flatnonzero(inside)
+    return ProbePatch(center, normal, long_axis, short_axis, ids, vertices[ids])
+
+
+def patch_forces(embedding_spread, n_points: int, force_n: np.ndarray) -> np.ndarray:
+    """Node forces (n_nodes, 3) N: ``force_n`` (3,) shared equally by ``n_points`` points
+    and spread to nodes by ``embedding_spread`` ((n_points, 3) -> (n_nodes, 3))."""
+    per_point = np.broadcast_to(np.asarray(force_n, dtype=np.float64) / n_points, (n_points, 3))
+    return embedding_spread(np.ascontiguousarray(per_point))
+
+
+def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
+             out_dir: str | Path) -> dict:
+    """One probe push: total force ``force_n`` (3,) N on the probe patch at ``at_mm`` (3,) mm.
+
+    Writes ``displaced_surface.vtu``, ``displaced_surface.stl``, ``simulate.png`` and
+    ``simulate.json`` into ``out_dir`` (atomically) and returns the summary dict (paths,
+    patch size, max displacement, Newton iterations, time).
+
+    Raises:
+        InputError: bad force or point (NaN, wrong length, point far from the skin).
+        SolverError: the solve did not converge.
+    """
+    from ..case import Case
+    from ..grid.embedding import Embedding
+
+    force_n = np.asarray(force_n, dtype=np.float64).ravel()
+    if force_n.shape != (3,) or not np.all(np.isfinite(force_n)):
+        raise InputError(f"--force must be three finite numbers, got {force_n.tolist()}",
+                         "--force")
+    case = Case.load(case_dir)
+    anatomy, cfg = case.anatomy, case.cfg
+    patch = probe_patch(anatomy.vertices, anatomy.normals, anatomy.fixed_vertices, at_mm,
+                        tuple(cfg.probe.footprint_mm), cfg.probe.depth_tolerance_mm)
+    if len(patch.vertices) == 0:
+        raise InputError("no skin vertex under the probe footprint", "--at")
+    model = FEModel.from_case(case)
+    contact = Embedding.build(case.grid, patch.points, where="probe patch")
+    forces = patch_forces(contact.spread, len(patch.points), force_n)
+    u, report = solve(model, Loads(forces=forces), SolverSettings.from_config(cfg.solver))
+    skin = Embedding.build(case.grid, anatomy.vertices, where="skin surface")
+    surface_u = skin.interpolate(u)
+    out_dir = Path(out_dir)
+    paths = _write_outputs(out_dir, anatomy.vertices, anatomy.faces, surface_u, patch)
+    summary = {
+        "force_n": force_n, "at_mm": np.asarray(at_mm, dtype=np.float64),
+        "patch_center_mm": patch.center, "patch_normal": patch.normal,
+        "patch_long_axis": patch.long_axis, "patch_points": int(len(patch.vertices)),
+        "max_surface_displacement_mm": float(np.linalg.norm(surface_u, axis=1).max()),
+        "max_node_displacement_mm": report.max_displacement_mm,
+        **_report_summary(report), "files": {k: str(v) for k, v in paths.items()},
+    }
+    write_json_atomic(out_dir / "simulate.json", summary)
+    return summary
+
+
+def _report_summary(report: SolveReport) -> dict:
+    return {"newton_iterations": report.iterations, "load_increments": report.increments,
+            "residual_rel": report.residual_rel, "min_det_F": report.min_det_F,
+            "solve_time_s": report.time_s, "backend": report.backend}
+
+
+def _write_outputs(out_dir: Path, vertices: np.ndarray, faces: np.ndarray,
+                   surface_u: np.ndarray, patch: ProbePatch) -> dict[str, Path]:
+    import meshio
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh = meshio.Mesh(vertices + surface_u, [("triangle", faces)],
+                       point_data={"displacement": surface_u,
+                                   "displacement_magnitude": np.linalg.norm(surface_u, axis=1),
+                                   "in_patch": np.isin(np.arange(len(vertices)),
+                                                       patch.vertices).astype(np.int8)})
+    paths = {"vtu": out_dir / "displaced_surface.vtu", "stl": out_dir / "displaced_surface.stl",
+             "png": out_dir / "simulate.png"}
+    for key in ("vtu", "stl"):
+        write_bytes_atomic(paths[key], _mesh_bytes(mesh, key))
+    save_figure_atomic(_figure(vertices, faces, surface_u, patch), paths["png"])
+    return paths
+
+
+def _mesh_bytes(mesh, file_format: str) -> bytes:
+    """meshio writes to paths only: write into a private temporary folder and read back."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"mesh.{file_format}"
+        if file_format == "stl":
+            mesh = type(mesh)(mesh.points, mesh.cells)  # STL holds geometry only
+        mesh.write(path, file_format=file_format, **({"binary": True}
+                                                      if file_format == "stl" else {}))
+        return path.read_bytes()
+
+
+def _figure(vertices: np.ndarray, faces: np.ndarray, surface_u: np.ndarray, patch: ProbePatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 6))
+    ax = fig.add_subplot(projection="3d")
+    rest, moved = vertices, vertices + surface_u
+    ax.plot_trisurf(rest[:, 0], rest[:, 1], rest[:, 2], triangles=faces, color="0.8",
+                    alpha=0.15, linewidth=0)
+    mag = np.linalg.norm(surface_u, axis=1)
+    art = ax.plot_trisurf(moved[:, 0], moved[:, 1], moved[:, 2], triangles=faces,
+                          cmap="viridis", alpha=0.8, linewidth=0)
+    art.set_array(mag[faces].mean(axis=1))
+    fig.colorbar(art, ax=ax, shrink=0.6, label="displacement (mm)")
+    pts = moved[patch.vertices]
+    ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], color="red", s=6, label="probe patch")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    ax.set_box_aspect(np.ptp(np.vstack([rest, moved]), axis=0))
+    ax.legend(loc="upper left")
+    ax.set_title(f"probe push: max skin displacement {mag.max():.1f} mm")
+    return fig
+
+
+__all__ = ["ProbePatch", "probe_patch", "patch_forces", "simulate", "tangent_axes"]
