@@ -27,6 +27,7 @@ import scipy.sparse.linalg as spla
 from ..errors import InputError
 
 BACKENDS = ("pardiso", "cholmod", "superlu")
+MKL_DOMAIN_PARDISO = 4
 
 
 class FactorizationError(RuntimeError):
@@ -59,8 +60,13 @@ def available_backends() -> list[str]:
     return found
 
 
-def make_solver(backend: str, indptr: np.ndarray, indices: np.ndarray) -> LinearSolver:
-    """A solver for the upper-triangle pattern; ``backend``: auto, pardiso, cholmod, superlu."""
+def make_solver(backend: str, indptr: np.ndarray, indices: np.ndarray, threads: int = 0,
+                single: bool = False) -> LinearSolver:
+    """A solver for the upper-triangle pattern; ``backend``: auto, pardiso, cholmod, superlu.
+
+    ``threads`` (Pardiso only; 0: MKL's default, all cores) and ``single`` (Pardiso only:
+    factors in single precision, about a third faster; residuals stay in double precision,
+    so Newton still converges to the double-precision tolerance)."""
     installed = available_backends()
     if backend == "auto":
         backend = installed[0]
@@ -70,7 +76,9 @@ def make_solver(backend: str, indptr: np.ndarray, indices: np.ndarray) -> Linear
     if backend not in installed:
         raise InputError(f"solver backend {backend!r} is not installed (installed: "
                          f"{', '.join(installed)})", "[solver] backend")
-    cls = {"pardiso": PardisoSolver, "cholmod": CholmodSolver, "superlu": SuperLUSolver}[backend]
+    if backend == "pardiso":
+        return PardisoSolver(indptr, indices, threads, single)
+    cls = {"cholmod": CholmodSolver, "superlu": SuperLUSolver}[backend]
     return cls(indptr, indices)
 
 
@@ -84,9 +92,11 @@ def full_matrix(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> sp
 class _PardisoHandle:
     """One MKL Pardiso instance (one matrix type) for a fixed pattern; phases 11/22/33."""
 
-    def __init__(self, function, indptr: np.ndarray, indices: np.ndarray, mtype: int) -> None:
+    def __init__(self, function, indptr: np.ndarray, indices: np.ndarray, mtype: int,
+                 single: bool = False) -> None:
         self._pardiso = function
         self.mtype = mtype
+        self.dtype = np.float32 if single else np.float64
         self.n = len(indptr) - 1
         self.ia = np.ascontiguousarray(indptr + 1, dtype=np.int32)
         self.ja = np.ascontiguousarray(indices + 1, dtype=np.int32)
@@ -94,16 +104,17 @@ class _PardisoHandle:
         self.iparm = np.zeros(64, dtype=np.int32)
         self.iparm[0] = 1  # no solver defaults: every iparm below is explicit
         self.iparm[1] = 2  # METIS nested dissection ordering
-        self.iparm[7] = 2  # at most two iterative-refinement steps
+        self.iparm[7] = 0  # no iterative refinement (Newton corrects inexact steps)
         self.iparm[9] = 8  # pivot perturbation 1e-8 (symmetric indefinite)
         self.iparm[10] = 0  # no scaling (symmetric)
         self.iparm[12] = 0  # no weighted matching (symmetric)
         self.iparm[17] = -1  # report factor non-zeros
         self.iparm[20] = 1  # Bunch-Kaufman pivoting for mtype -2
+        self.iparm[27] = 1 if single else 0  # single-precision factors and solves
         self.iparm[34] = 0  # one-based indices (ia, ja above)
         self.perm = np.zeros(self.n, dtype=np.int32)
         self.analysed = False
-        self._data = np.zeros(len(indices))
+        self._data = np.zeros(len(indices), dtype=self.dtype)
 
     def _call(self, phase: int, data: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> int:
         err = ctypes.c_int32(0)
@@ -121,8 +132,8 @@ class _PardisoHandle:
         return int(err.value)
 
     def factor(self, data: np.ndarray) -> None:
-        self._data = np.ascontiguousarray(data, dtype=np.float64)
-        dummy = np.zeros(1)
+        self._data = np.ascontiguousarray(data, dtype=self.dtype)
+        dummy = np.zeros(1, dtype=self.dtype)
         if not self.analysed:
             err = self._call(11, self._data, dummy, dummy)
             if err:
@@ -134,12 +145,12 @@ class _PardisoHandle:
                                      f"{self.mtype})")
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        rhs = np.ascontiguousarray(rhs, dtype=self.dtype)
         out = np.zeros_like(rhs)
         err = self._call(33, self._data, rhs, out)
         if err:
             raise FactorizationError(f"Pardiso solve failed (error {err})")
-        return out
+        return out.astype(np.float64)
 
     @property
     def negative_pivots(self) -> int:
@@ -148,7 +159,7 @@ class _PardisoHandle:
 
     def release(self) -> None:
         if self.analysed:
-            dummy = np.zeros(1)
+            dummy = np.zeros(1, dtype=self.dtype)
             self._call(-1, self._data, dummy, dummy)
             self.analysed = False
 
@@ -164,12 +175,16 @@ class PardisoSolver:
 
     name = "pardiso"
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray) -> None:
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, threads: int = 0,
+                 single: bool = False) -> None:
         import pypardiso
 
-        function = pypardiso.PyPardisoSolver()._mkl_pardiso  # argtypes already declared
-        self._spd = _PardisoHandle(function, indptr, indices, 2)
-        self._make_indefinite = lambda: _PardisoHandle(function, indptr, indices, -2)
+        wrapper = pypardiso.PyPardisoSolver()
+        function = wrapper._mkl_pardiso  # argtypes already declared by pypardiso
+        if threads > 0:
+            wrapper.libmkl.MKL_Domain_Set_Num_Threads(int(threads), MKL_DOMAIN_PARDISO)
+        self._spd = _PardisoHandle(function, indptr, indices, 2, single)
+        self._make_indefinite = lambda: _PardisoHandle(function, indptr, indices, -2, single)
         self._indefinite: _PardisoHandle | None = None
         self._active = self._spd
         self.last_mode = "spd"

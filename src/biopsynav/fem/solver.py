@@ -45,6 +45,8 @@ class SolverSettings:
     intermediate_tolerance: float = 1e-3
     penalty: float = 1e6
     reuse_factorization: bool = True
+    single_precision: bool = True
+    threads: int = 0
     constraint_tolerance_mm: float = 1e-4
 
     @classmethod
@@ -143,18 +145,19 @@ def reference_diagonal_mean(model: FEModel) -> float:
     return model.cache["k0_diag_mean"]
 
 
-def linear_solver(model: FEModel, backend: str) -> LinearSolver:
-    """The model's solver for ``backend``, created (and analysed) once and then reused."""
-    key = f"solver:{backend}"
+def linear_solver(model: FEModel, settings: SolverSettings, single: bool) -> LinearSolver:
+    """The model's solver for these settings, created (and analysed) once and then reused."""
+    key = f"solver:{settings.backend}:{settings.threads}:{single}"
     if key not in model.cache:
-        model.cache[key] = make_solver(backend, model.indptr, model.indices)
+        model.cache[key] = make_solver(settings.backend, model.indptr, model.indices,
+                                       settings.threads, single)
     return model.cache[key]
 
 
-def reference_solver(model: FEModel, backend: str) -> LinearSolver:
+def reference_solver(model: FEModel, settings: SolverSettings) -> LinearSolver:
     """A solver holding the factorisation of the tangent at u = 0 (no penalty), cached on
     the model: the first Newton iteration of every force-loaded solve starts from it."""
-    key = f"k0:{backend}"
+    key = f"k0:{settings.backend}:{settings.threads}:{settings.single_precision}"
     if key not in model.cache:
         n_el = model.n_elements
         fe, ke = np.empty((n_el, 24)), np.empty((n_el, 24, 24))
@@ -163,7 +166,8 @@ def reference_solver(model: FEModel, backend: str) -> LinearSolver:
                                model.material_id, True, fe, ke, np.empty(n_el), np.empty(n_el))
         data = np.empty(model.nnz)
         kernels.scatter_matrix(ke, model.scatter, data)
-        solver = make_solver(backend, model.indptr, model.indices)
+        solver = make_solver(settings.backend, model.indptr, model.indices, settings.threads,
+                             settings.single_precision)
         solver.factor(data)
         model.cache[key] = solver
     return model.cache[key]
@@ -196,7 +200,9 @@ def solve(model: FEModel, loads: Loads,
         report.time_s = time.perf_counter() - start
         return np.zeros((model.n_nodes, 3)), report
     system = _System(model, prepared, settings.penalty)
-    solver = linear_solver(model, settings.backend)
+    # single precision only without the penalty (whose stiff terms need double precision)
+    single = settings.single_precision and not prepared.has_constraints
+    solver = linear_solver(model, settings, single)
     report.backend = solver.name
     u = _continuation(system, solver, settings, report)
     u = _enforce_constraints(system, solver, settings, report, u)
@@ -264,7 +270,7 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
             step, mode, data = 1.0, "reuse", None
         else:
             if at_rest and it == 1:
-                active, mode = reference_solver(system.model, settings.backend), "k0-cached"
+                active, mode = reference_solver(system.model, settings), "k0-cached"
             else:
                 if data is None:
                     r, data, _, energy = system.evaluate(u, t, tangent=True)
