@@ -8,7 +8,6 @@ that :meth:`Surrogate.predict` does nothing but the forward pass. Precision is a
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Protocol
 
@@ -18,6 +17,7 @@ import torch
 from ..errors import InputError
 from .export import load_torchscript
 from .model_io import ONNX, TORCHSCRIPT, check_file, check_fingerprint, read_meta
+from .train import auto_threads
 
 RUNTIMES = ("auto", "torchscript", "openvino")
 
@@ -128,13 +128,14 @@ class Surrogate:
 
         Raises FingerprintError when the model was trained for another anatomy or grid, and
         InputError when files are missing or corrupt. ``runtime`` defaults to the one recorded
-        at training ([network] runtime); ``threads`` 0 uses all cores.
+        at training ([network] runtime); ``threads`` 0 takes the idle cores
+        (:func:`~biopsynav.network.train.auto_threads`).
         """
         model_dir = Path(model_dir)
         meta = read_meta(model_dir)
         check_fingerprint(meta, expected_fingerprint, str(model_dir))
         rt = resolve_runtime(runtime or meta.get("inference", {}).get("runtime", "auto"))
-        n = threads if threads > 0 else (os.cpu_count() or 1)
+        n = threads if threads > 0 else auto_threads()
         if rt == "openvino":
             runner: _Runner = OpenVinoRunner(check_file(model_dir, ONNX, meta), n,
                                             tuple(meta["node_shape"]))

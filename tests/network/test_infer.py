@@ -1,0 +1,98 @@
+"""Inference: exported model equals eager, fingerprints enforced, bad files reported clearly."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from biopsynav.errors import FingerprintError, InputError
+from biopsynav.network.data import load_dataset
+from biopsynav.network.evaluate import evaluate
+from biopsynav.network.export import SurrogateNet
+from biopsynav.network.infer import Surrogate, openvino_available
+from biopsynav.network.unet import UNetSpec
+
+from .synth import FINGERPRINT
+
+
+def _eager(model_dir) -> SurrogateNet:
+    meta = json.loads((model_dir / "meta.json").read_text())
+    data_active = np.zeros(meta["node_shape"], bool)
+    net = SurrogateNet(UNetSpec.from_dict(meta["architecture"]),
+                       np.array(meta["normalisation"]["in_scale"]),
+                       np.array(meta["normalisation"]["out_scale"]), data_active)
+    best = torch.load(model_dir / "best.pt", weights_only=False)["model"]
+    net.unet.load_state_dict(best)
+    return net.eval()
+
+
+@pytest.mark.parametrize("runtime", ["torchscript", "openvino"])
+def test_exported_matches_eager(trained, runtime):
+    if runtime == "openvino" and not openvino_available():
+        pytest.skip("openvino not installed")
+    case, _ = trained
+    data = load_dataset(case)
+    net = _eager(case / "model")
+    net.mask.copy_(data.active.float()[None, None])
+    sur = Surrogate.load(case / "model", FINGERPRINT, runtime=runtime, warmup=2)
+    assert sur.runtime == runtime and sur.precision == "fp32"
+    x = data.inputs[data.test_idx[:3]]
+    with torch.no_grad():
+        ref = net(x).numpy()
+    batch = sur.predict(x.numpy())
+    one = sur.predict(x[0].numpy())
+    assert batch.shape == (3, 3, *data.node_shape) and one.shape == (3, *data.node_shape)
+    np.testing.assert_allclose(batch, ref, atol=1e-5)
+    np.testing.assert_allclose(one, ref[0], atol=1e-5)
+    assert np.all(one[:, ~data.active.numpy()] == 0)
+
+
+def test_predict_rejects_bad_shape(trained):
+    case, _ = trained
+    sur = Surrogate.load(case / "model", FINGERPRINT, runtime="torchscript", warmup=0)
+    with pytest.raises(InputError, match="input shape"):
+        sur.predict(np.zeros((3, 16, 8, 8), np.float32))
+
+
+def test_fingerprint_mismatch_refused(trained):
+    case, _ = trained
+    with pytest.raises(FingerprintError, match="another anatomy or grid"):
+        Surrogate.load(case / "model", "some-other-patient")
+
+
+def test_missing_and_corrupt_files(trained, tmp_path):
+    case, _ = trained
+    model = tmp_path / "model"
+    shutil.copytree(case / "model", model)
+    (model / "model.ts").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="corrupt"):
+        Surrogate.load(model, FINGERPRINT, runtime="torchscript")
+    (model / "model.ts").unlink()
+    with pytest.raises(InputError, match="missing"):
+        Surrogate.load(model, FINGERPRINT, runtime="torchscript")
+    (model / "meta.json").write_text("{not json")
+    with pytest.raises(InputError, match="corrupt"):
+        Surrogate.load(model, FINGERPRINT)
+    (model / "meta.json").unlink()
+    with pytest.raises(InputError, match="no trained model"):
+        Surrogate.load(model, FINGERPRINT)
+
+
+def test_evaluate_writes_table1(trained, tmp_path):
+    case, summary = trained
+    r = evaluate(case / "model", case, tmp_path, FINGERPRINT, runtime="torchscript",
+                 n_timing=30)
+    for key in ("mean_e_mm", "std_e_mm", "max_e_mm", "predict_p50_ms", "predict_p99_ms",
+                "train_min", "max_disp_mm"):
+        assert np.isfinite(r[key]), key
+    assert r["n_samples"] == 10 and r["max_e_mm"] >= r["mean_e_mm"]
+    assert abs(r["mean_e_mm"] - summary.best_val_e_mm) < 1e-4  # deployed == validated
+    for name in ("table1.json", "error_histogram.png", "worst_sample.png",
+                 "largest_deformation.png"):
+        assert (tmp_path / name).is_file(), name
+    with pytest.raises(FingerprintError):
+        evaluate(case / "model", case, tmp_path, "other")

@@ -1,0 +1,73 @@
+"""Masking: inactive nodes neither count nor dilute; statistics over active nodes only."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from biopsynav.network.data import load_dataset, normalisation_stats
+from biopsynav.network.metrics import masked_loss, mean_norm_error, mean_norm_error_np
+
+from .synth import write_synthetic_dataset
+
+
+def _mask():
+    m = torch.zeros(4, 4, 2, dtype=torch.bool)
+    m[:2] = True
+    return m
+
+
+def test_masked_loss_ignores_inactive_nodes():
+    torch.manual_seed(0)
+    mask = _mask()
+    pred, target = torch.randn(2, 3, 4, 4, 2), torch.randn(2, 3, 4, 4, 2)
+    base = masked_loss(pred, target, mask)
+    pred2 = pred.clone()
+    pred2[:, :, ~mask] = 1e6
+    assert torch.equal(masked_loss(pred2, target, mask), base)
+    expected = ((pred - target)[:, :, mask] ** 2).mean()  # mean over active values only
+    assert torch.allclose(base, expected)
+    l1 = masked_loss(pred, target, mask, "l1")
+    assert torch.allclose(l1, (pred - target)[:, :, mask].abs().mean())
+
+
+def test_mean_norm_error_is_mean_over_active_nodes():
+    mask = _mask()
+    pred = torch.zeros(1, 3, 4, 4, 2)
+    target = torch.zeros(1, 3, 4, 4, 2)
+    target[0, 0][mask] = 3.0
+    target[0, 1][mask] = 4.0
+    target[0, 2][~mask] = 100.0  # inactive: must not count
+    assert torch.allclose(mean_norm_error(pred, target, mask), torch.tensor([5.0]))
+    assert np.allclose(mean_norm_error_np(pred.numpy(), target.numpy(), mask.numpy()), [5.0])
+
+
+def test_normalisation_stats_over_active_nodes_only(tmp_path):
+    import zarr
+
+    path = write_synthetic_dataset(tmp_path, shape=(8, 8, 8), n_train=6, n_test=2)
+    ref_in, ref_out = normalisation_stats(load_dataset(tmp_path))
+    g = zarr.open_group(str(path), mode="r+")
+    act = g["active_nodes"][:]
+    y = g["targets"][:]
+    y[:, :, ~act] = 1e4  # garbage at inactive nodes
+    g["targets"][:] = y
+    x = g["inputs"][:]
+    x[:, :3, ~act] = 1e4
+    g["inputs"][:] = x
+    data = load_dataset(tmp_path)
+    s_in, s_out = normalisation_stats(data)
+    np.testing.assert_allclose(s_in, ref_in, rtol=1e-6)
+    np.testing.assert_allclose(s_out, ref_out, rtol=1e-6)
+    x = data.inputs[data.train_idx]
+    contact = (x[:, 3] > 0) & data.active
+    manual = x.permute(1, 0, 2, 3, 4)[:, contact].pow(2).mean(dim=1).sqrt().numpy()
+    np.testing.assert_allclose(s_in, manual, rtol=1e-5)
+    np.testing.assert_allclose(s_out, s_in[:3])
+
+
+def test_incomplete_samples_are_skipped(tmp_path):
+    write_synthetic_dataset(tmp_path, shape=(8, 8, 8), n_train=6, n_test=3, not_done=(1, 7))
+    data = load_dataset(tmp_path)
+    assert data.train_idx.tolist() == [0, 2, 3, 4, 5]
+    assert data.test_idx.tolist() == [6, 8]
