@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .errors import BiopsynavError, InputError
+from .fileio import json_default
 
 
 def _float_list(text: str) -> list[int]:
@@ -86,7 +87,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out else Path(args.case_dir) / "simulate"
     result = simulate(args.case_dir, args.force, args.at, out)
-    print(json.dumps(result, indent=2, default=str))
+    print(json.dumps(result, indent=2, default=json_default))
     return 0
 
 
@@ -95,7 +96,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     summary = generate_case(args.case_dir, workers=args.workers, scheduler=args.scheduler,
                             overwrite=args.overwrite)
-    print(json.dumps(summary, indent=2, default=str))
+    print(json.dumps(summary, indent=2, default=json_default))
     return 0
 
 
