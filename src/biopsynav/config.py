@@ -152,7 +152,7 @@ class ProbeSection:
                                          "surface normal.", lo=0.1, hi=100.0)
     max_tilt_deg: float = opt(45.0, "Largest angle between the force and the inward normal.",
                               lo=0.0, hi=89.0)
-    f_max_n: float = opt(1.0, "Largest total probe force (N), shared equally by the contact "
+    f_max_n: float = opt(4.5, "Largest total probe force (N), shared equally by the contact "
                               "points; drawn uniformly in [0, f_max_n]. A total force keeps the "
                               "load independent of the skin-mesh density; the default pushes the "
                               "5 kPa phantom up to about 35 mm (docs/dataset.md).",

@@ -1,0 +1,395 @@
+"""``biopsynav generate``: the training data of a case, in parallel, resumable.
+
+Workers (local processes, or a Dask cluster given a scheduler address) compute samples and
+return arrays; the main process alone writes them to ``dataset.zarr`` (:mod:`.store`), with at
+most two samples in flight per worker. A kill of anything loses only the samples in flight;
+running again computes just the missing ones. Sample ``i`` depends only on ``(seed, i, attempt)``
+(:func:`biopsynav.probe.sample_rng`), and a draw whose solve does not converge is recorded
+and replaced by the next attempt of the same index, so the result is bit-identical whatever
+the worker count, order or interruptions.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import Counter, deque
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import BiopsynavError, InputError
+from ..fileio import save_figure_atomic, write_json_atomic
+from .store import (
+    DatasetStore,
+    check_compatible,
+    create_store,
+    dataset_path,
+    open_store,
+    protocol_dict,
+    protocol_fingerprint,
+    remove_store,
+)
+from .worker import SINGLE_THREAD_ENV, WorkerSpec, dask_sample, init_process, process_sample
+
+SUMMARY_FILE = "dataset_summary.json"
+PLOT_FILE = "dataset.png"
+#: The failure share is judged once this many draws (or all requested, if fewer) were made.
+MIN_DRAWS_FOR_SHARE = 20
+#: A sample whose draw crashes the worker pool this many times stops the job.
+MAX_POOL_CRASHES = 3
+#: Samples in flight per worker (bounds memory and the work lost to a kill).
+IN_FLIGHT_PER_WORKER = 2
+
+
+def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None = None,
+                  overwrite: bool = False, n_train: int | None = None,
+                  n_test: int | None = None, progress: bool = True) -> dict:
+    """Generate (or complete) ``CASE_DIR/dataset.zarr``; returns the summary dict.
+
+    Args:
+        case_dir: the case folder (``biopsynav init`` done).
+        workers: local worker processes (0: all cores); ignored with ``scheduler``.
+        scheduler: ``tcp://HOST:PORT`` of a Dask distributed scheduler (its workers get the
+            case by value: no shared folder needed).
+        overwrite: discard an existing data set made for another anatomy, grid or protocol.
+        n_train, n_test: override ``[dataset]`` sizes (part of the protocol fingerprint).
+        progress: show a tqdm progress bar (rate, ETA) on stderr.
+
+    Returns the summary (also written to ``CASE_DIR/dataset_summary.json``; histograms in
+    ``CASE_DIR/dataset.png``): count, failures (this run and total), minutes, samples/min,
+    max and mean nodal displacement, max probe displacement.
+
+    Raises:
+        FingerprintError: the existing data set belongs to another anatomy, grid or protocol.
+        InputError: a bad option, or an unreadable/foreign dataset.zarr.
+        BiopsynavError: more than ``[dataset] max_failure_share`` of the draws did not converge.
+    """
+    from ..case import Case
+
+    start = time.perf_counter()
+    case = Case.load(case_dir)
+    n_train = int(case.cfg.dataset.n_train if n_train is None else n_train)
+    n_test = int(case.cfg.dataset.n_test if n_test is None else n_test)
+    if n_train < 1 or n_test < 1:
+        raise InputError(f"n_train and n_test must be >= 1, got {n_train} and {n_test}",
+                         "generate")
+    if workers < 0:
+        raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
+    store = prepare_store(case, n_train, n_test, overwrite)
+    spec = WorkerSpec(case, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
+    done = store.done_mask()
+    todo = np.flatnonzero(~done)
+    stats = Counter()
+    if todo.size:
+        runner = make_runner(spec, workers, scheduler)
+        try:
+            _run(runner, store, todo, stats, case.cfg.dataset.max_failure_share, progress)
+        finally:
+            runner.close()
+    summary = summarize(store, stats, time.perf_counter() - start)
+    write_json_atomic(case.dir / SUMMARY_FILE, summary)
+    plot_distributions(store, case.dir / PLOT_FILE)
+    return summary
+
+
+def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool) -> DatasetStore:
+    """Open the case's store if it matches, else create it (after removal with overwrite)."""
+    path = dataset_path(case.dir)
+    protocol = protocol_dict(case.cfg, n_train, n_test)
+    fingerprint = case.fingerprint()
+    if path.exists():
+        if overwrite:
+            remove_store(path)
+            for name in (SUMMARY_FILE, PLOT_FILE):
+                (case.dir / name).unlink(missing_ok=True)
+        else:
+            store = open_store(path)
+            check_compatible(store, fingerprint, protocol)
+            return store
+    return create_store(path, case.cfg, fingerprint, protocol, n_train, n_test,
+                        case.grid.node_shape, case.grid.active_nodes)
+
+
+# ----- runners: local processes or Dask -----------------------------------------------------
+
+class LocalRunner:
+    """A ``ProcessPoolExecutor`` (spawned processes, one MKL thread each) that is rebuilt when
+    a worker dies."""
+
+    def __init__(self, spec: WorkerSpec, workers: int) -> None:
+        self.spec = spec
+        self.workers = workers or os.cpu_count() or 1
+        threads = max(1, (os.cpu_count() or 1) // self.workers)
+        self.env = {**SINGLE_THREAD_ENV, "NUMBA_NUM_THREADS": str(threads)}
+        self.pool = self._new_pool()
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        import multiprocessing
+
+        saved = {k: os.environ.get(k) for k in self.env}
+        os.environ.update(self.env)  # spawned children inherit it before importing MKL
+        try:
+            return ProcessPoolExecutor(self.workers, multiprocessing.get_context("spawn"),
+                                       initializer=init_process,
+                                       initargs=(self.spec, self.env))
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+    @property
+    def capacity(self) -> int:
+        return self.workers
+
+    def submit(self, index: int, attempt: int) -> Future:
+        with _env(self.env):
+            return self.pool.submit(process_sample, int(index), int(attempt))
+
+    def wait_any(self, futures: list) -> set:
+        return wait(futures, return_when=FIRST_COMPLETED)[0]
+
+    def restart(self) -> None:
+        """Replace a broken pool (a worker died) by a fresh one."""
+        self._kill_processes()
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self.pool = self._new_pool()
+
+    def _kill_processes(self) -> None:
+        for proc in list(getattr(self.pool, "_processes", {}).values()):
+            if proc.is_alive():
+                proc.kill()
+
+    def close(self) -> None:
+        self._kill_processes()  # in-flight samples are lost by design; no waiting on them
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _env:
+    """Context manager: set environment variables temporarily (pool processes spawn lazily)."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        self.env = env
+        self.saved: dict[str, str | None] = {}
+
+    def __enter__(self) -> None:
+        self.saved = {k: os.environ.get(k) for k in self.env}
+        os.environ.update(self.env)
+
+    def __exit__(self, *exc: object) -> None:
+        for key, value in self.saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+class DaskRunner:
+    """Tasks on a Dask distributed cluster; the case is broadcast once to every worker."""
+
+    def __init__(self, spec: WorkerSpec, address: str) -> None:
+        from distributed import Client
+
+        try:
+            self.client = Client(address, timeout="20s")
+        except Exception as exc:  # noqa: BLE001 - connection errors of any kind
+            raise InputError(f"cannot reach the Dask scheduler: {exc}", address) from None
+        self.spec = self.client.scatter(spec, broadcast=True)
+        workers = self.client.scheduler_info().get("workers", {})
+        self.threads = sum(int(w.get("nthreads", 1)) for w in workers.values()) or 1
+
+    @property
+    def capacity(self) -> int:
+        return self.threads
+
+    def submit(self, index: int, attempt: int) -> Any:
+        return self.client.submit(dask_sample, self.spec, int(index), int(attempt), pure=False)
+
+    def wait_any(self, futures: list) -> set:
+        from distributed import wait as dask_wait
+
+        return set(dask_wait(futures, return_when="FIRST_COMPLETED").done)
+
+    def restart(self) -> None:  # pragma: no cover - Dask reschedules lost tasks itself
+        raise BiopsynavError("the Dask cluster lost a task")
+
+    def close(self) -> None:
+        self.client.close()
+
+
+def make_runner(spec: WorkerSpec, workers: int, scheduler: str | None):
+    """A Dask runner when ``scheduler`` is given, else local processes."""
+    if scheduler:
+        if not scheduler.startswith(("tcp://", "tls://", "inproc://", "ws://", "wss://")):
+            raise InputError(f"expected tcp://HOST:PORT, got {scheduler!r}", "--scheduler")
+        return DaskRunner(spec, scheduler)
+    return LocalRunner(spec, workers)
+
+
+# ----- the main loop ------------------------------------------------------------------------
+
+def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
+         max_failure_share: float, progress: bool) -> None:
+    """Keep the workers busy with the missing samples; write results as they come."""
+    from tqdm import tqdm
+
+    n_total = store.n_total
+    next_attempt = _next_attempts(store.failures())
+    queue = deque((int(i), next_attempt.get(int(i), 0)) for i in todo)
+    in_flight: dict[Any, tuple[int, int]] = {}
+    crashes: Counter = Counter()
+    limit = IN_FLIGHT_PER_WORKER * runner.capacity
+    bar = tqdm(total=n_total, initial=n_total - len(todo), unit="sample", smoothing=0.05,
+               disable=not progress, desc="generate", dynamic_ncols=True)
+    try:
+        while queue or in_flight:
+            while queue and len(in_flight) < limit:
+                index, attempt = queue.popleft()
+                in_flight[runner.submit(index, attempt)] = (index, attempt)
+            for future in runner.wait_any(list(in_flight)):
+                if future not in in_flight:
+                    continue  # resubmitted after a pool crash
+                index, attempt = in_flight.pop(future)
+                try:
+                    result = future.result()
+                except BrokenProcessPool:
+                    _recover_pool(runner, queue, in_flight, crashes, (index, attempt))
+                    stats["pool_restarts"] += 1
+                    break
+                if result["ok"]:
+                    store.write_sample(result)
+                    stats["computed"] += 1
+                    stats["solve_s"] += result["solve_s"]
+                    bar.update(1)
+                else:
+                    store.add_failures([_failure_record(result)])
+                    stats["failures"] += 1
+                    bar.set_postfix(failed=stats["failures"], refresh=False)
+                    queue.appendleft((index, attempt + 1))
+                    _check_failure_share(store, max_failure_share, n_total)
+    finally:
+        bar.close()
+
+
+def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
+                  lost: tuple[int, int]) -> None:
+    """A worker died: restart the pool and put every sample that was in flight back."""
+    lost_all = [lost, *in_flight.values()]
+    in_flight.clear()
+    for item in lost_all:
+        crashes[item] += 1
+        if crashes[item] >= MAX_POOL_CRASHES:
+            raise BiopsynavError(f"sample {item[0]} (attempt {item[1]}) was in flight in "
+                                 f"{MAX_POOL_CRASHES} worker crashes; stopping (out of "
+                                 "memory, or a crash in a native library?)", "generate")
+    runner.restart()
+    queue.extendleft(sorted(lost_all, reverse=True))
+
+
+def _next_attempts(failures: list[dict]) -> dict[int, int]:
+    """First attempt not known to fail, per index (failures are deterministic)."""
+    out: dict[int, int] = {}
+    for f in failures:
+        out[int(f["index"])] = max(out.get(int(f["index"]), 0), int(f["attempt"]) + 1)
+    return out
+
+
+def _failure_record(result: dict) -> dict:
+    """What the failures log keeps of a non-converged draw."""
+    return {"index": result["index"], "attempt": result["attempt"], "error": result["error"],
+            "force_n": result["force_n"], "tilt_deg": result["tilt_deg"],
+            "vertex": result["vertex"], "newton_iters": result["newton_iters"],
+            "solve_s": round(float(result["solve_s"]), 3),
+            "last_iterations": _plain(result["diagnostics"])}
+
+
+def _plain(obj: Any) -> Any:
+    """JSON-safe copy (numpy scalars to Python)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return str(obj)
+    return obj
+
+
+def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> None:
+    """Stop when more than ``share`` of all draws so far failed (after enough draws)."""
+    failures = len(store.failures())
+    draws = failures + int(store.done_mask().sum())
+    if draws >= min(MIN_DRAWS_FOR_SHARE, n_total) and failures > share * draws:
+        raise BiopsynavError(
+            f"{failures} of {draws} probe pushes did not converge, more than "
+            f"[dataset] max_failure_share = {share:g}; the FE solve cannot follow these "
+            "pushes: lower [probe] f_max_n or max_tilt_deg, or raise the tissue stiffness or "
+            "[solver] max_iterations (failures are logged in dataset.zarr attrs 'failures')",
+            "generate")
+
+
+# ----- summary and plot ---------------------------------------------------------------------
+
+def summarize(store: DatasetStore, stats: Counter, seconds: float) -> dict:
+    """Summary of the whole data set plus the figures of this run."""
+    meta = store.read_meta()
+    count = int(meta["index"].size)
+    minutes = seconds / 60.0
+    computed = int(stats["computed"])
+
+    def stat(name: str, fn) -> float:
+        return round(float(fn(meta[name])), 4) if count else 0.0
+
+    return {
+        "dataset": str(store.path),
+        "count": count,
+        "requested": store.n_total,
+        "n_train": int(store.group.attrs["n_train"]),
+        "n_test": int(store.group.attrs["n_test"]),
+        "computed_this_run": computed,
+        "failures": int(stats["failures"]),
+        "failures_total": len(store.failures()),
+        "pool_restarts": int(stats["pool_restarts"]),
+        "minutes": round(minutes, 3),
+        "samples_per_min": round(computed / minutes, 2) if computed and minutes > 0 else 0.0,
+        "mean_solve_s": round(stats["solve_s"] / computed, 3) if computed else 0.0,
+        "max_disp_mm": stat("max_disp_mm", np.max),
+        "mean_max_disp_mm": stat("max_disp_mm", np.mean),
+        "mean_disp_mm": stat("mean_disp_mm", np.mean),
+        "max_probe_disp_mm": stat("probe_disp_mm", np.max),
+        "mean_probe_disp_mm": stat("probe_disp_mm", np.mean),
+        "max_force_n": stat("force_n", np.max),
+        "mean_newton_iters": stat("newton_iters", np.mean),
+    }
+
+
+def plot_distributions(store: DatasetStore, path: Path) -> Path:
+    """PNG with histograms of force, tilt, maximal nodal and probe displacement."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    meta = store.read_meta()
+    panels = [("force_n", "total probe force (N)"), ("tilt_deg", "tilt (degrees)"),
+              ("max_disp_mm", "max nodal displacement (mm)"),
+              ("probe_disp_mm", "probe displacement (mm)")]
+    fig = Figure(figsize=(10, 7))
+    for k, (name, label) in enumerate(panels):
+        ax = fig.add_subplot(2, 2, k + 1)
+        ax.hist(meta[name], bins=30, color="tab:blue", alpha=0.8)
+        ax.set_xlabel(label)
+        ax.set_ylabel("samples")
+    fig.suptitle(f"{meta['index'].size} samples, {len(store.failures())} failed draws")
+    fig.tight_layout()
+    return save_figure_atomic(fig, path)
+
+
+__all__ = ["generate_case", "make_runner", "plot_distributions", "prepare_store", "summarize",
+           "protocol_fingerprint"]

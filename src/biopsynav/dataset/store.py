@@ -1,0 +1,253 @@
+"""``CASE_DIR/dataset.zarr``: the training data of a case, one chunk per sample.
+
+Layout (a Zarr v3 group; N = n_train + n_test; node arrays follow
+:mod:`biopsynav.grid.index`):
+
+* ``inputs`` (N, 4, nx, ny, nz) float32: channels 0-2 the contact-point displacement spread to
+  the nodes as a trilinear-weighted average (mm, 0 away from the contact), channel 3 the
+  trilinear weight sum ``W_P^T 1``;
+* ``targets`` (N, 3, nx, ny, nz) float32: FE displacement of every node (mm, 0 at inactive
+  nodes);
+* ``done`` (N,) bool, one chunk per sample, written last: a sample is complete or absent;
+* ``active_nodes`` (nx, ny, nz) bool;
+* per-sample metadata (N,) or (N, 3): see :data:`META_FIELDS`;
+* attrs: ``n_train``, ``n_test``, ``fingerprint`` (anatomy + grid), ``protocol_fingerprint``,
+  ``protocol`` (what it hashes), ``node_shape``, ``format``, ``failures`` (solver failures:
+  index, attempt, message, last Newton iterations).
+
+Samples ``[0, n_train)`` are for training, ``[n_train, N)`` held out.
+Zarr's local store writes every chunk and metadata document through a temporary file and a
+rename, so a kill leaves no torn chunk; the group itself is created in a temporary folder and
+renamed into place.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import CaseConfig
+from ..errors import FingerprintError, InputError
+
+DATASET_NAME = "dataset.zarr"
+FORMAT = "biopsynav-dataset/1"
+#: Bump when the protocol (draw order, input encoding) changes: old data is then refused.
+PROTOCOL_VERSION = 1
+
+#: name -> (trailing shape, dtype) of the per-sample metadata arrays.
+META_FIELDS: dict[str, tuple[tuple[int, ...], str]] = {
+    "center": ((3,), "float64"),
+    "vertex": ((), "int64"),
+    "long_axis": ((3,), "float64"),
+    "direction": ((3,), "float64"),
+    "force_n": ((), "float64"),
+    "tilt_deg": ((), "float64"),
+    "n_contact": ((), "int64"),
+    "attempt": ((), "int64"),
+    "max_disp_mm": ((), "float64"),
+    "mean_disp_mm": ((), "float64"),
+    "probe_disp_mm": ((), "float64"),
+    "newton_iters": ((), "int64"),
+    "residual": ((), "float64"),
+    "solve_s": ((), "float64"),
+}
+
+
+def dataset_path(case_dir: str | Path) -> Path:
+    return Path(case_dir) / DATASET_NAME
+
+
+def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
+    """Everything besides anatomy and grid that decides the samples' content.
+
+    [material], the FE-model inputs of other sections ([anatomy] tissue_labels, [grid]
+    min_fraction), [solver] without ``backend`` and ``threads`` (speed and round-off only;
+    workers always factor on one thread), [probe] without the
+    tracker's ``contact_tolerance_mm``, and the seed and sizes of [dataset].
+    """
+    solver = cfg.section_dict("solver")
+    for key in ("backend", "threads"):
+        solver.pop(key, None)
+    probe = cfg.section_dict("probe")
+    probe.pop("contact_tolerance_mm", None)
+    return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
+            "fe_model": {"tissue_labels": cfg.anatomy.tissue_labels,
+                         "min_fraction": cfg.grid.min_fraction},
+            "solver": solver, "probe": probe,
+            "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
+                        "n_test": int(n_test)}}
+
+
+def protocol_fingerprint(protocol: dict) -> str:
+    """SHA-256 of the canonical JSON of :func:`protocol_dict`."""
+    return hashlib.sha256(json.dumps(protocol, sort_keys=True).encode()).hexdigest()
+
+
+@dataclass
+class DatasetStore:
+    """An open ``dataset.zarr`` (read-write), with handles on its arrays."""
+
+    path: Path
+    group: Any
+    arrays: dict[str, Any]
+
+    @property
+    def n_total(self) -> int:
+        return int(self.group.attrs["n_train"]) + int(self.group.attrs["n_test"])
+
+    def done_mask(self) -> np.ndarray:
+        """(N,) bool: complete samples."""
+        return np.asarray(self.arrays["done"][:], dtype=bool)
+
+    def failures(self) -> list[dict]:
+        return list(self.group.attrs.get("failures", []))
+
+    def write_sample(self, result: dict) -> None:
+        """Write one converged sample: arrays, metadata, then ``done`` last."""
+        i = int(result["index"])
+        self.arrays["inputs"][i] = result["inputs"]
+        self.arrays["targets"][i] = result["targets"]
+        for name in META_FIELDS:
+            self.arrays[name][i] = result[name]
+        self.arrays["done"][i] = True
+
+    def add_failures(self, records: list[dict]) -> None:
+        """Append solver-failure records (deduplicated on index and attempt)."""
+        known = self.failures()
+        seen = {(f["index"], f["attempt"]) for f in known}
+        new = [r for r in records if (r["index"], r["attempt"]) not in seen]
+        if new:
+            self.group.attrs["failures"] = known + new
+
+    def read_meta(self) -> dict[str, np.ndarray]:
+        """The metadata arrays of the complete samples only, and their ``index``."""
+        done = self.done_mask()
+        out = {name: np.asarray(self.arrays[name][:])[done] for name in META_FIELDS}
+        out["index"] = np.flatnonzero(done)
+        return out
+
+
+def create_store(path: Path, cfg: CaseConfig, fingerprint: str, protocol: dict,
+                 n_train: int, n_test: int, node_shape: tuple[int, int, int],
+                 active_nodes: np.ndarray) -> DatasetStore:
+    """Create an empty store at ``path`` (built in a temporary folder, then renamed)."""
+    import zarr
+
+    n = int(n_train) + int(n_test)
+    chunk = int(min(cfg.dataset.chunk_samples, n))
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        group = zarr.open_group(str(tmp), mode="w")
+        for name, channels in (("inputs", 4), ("targets", 3)):
+            group.create_array(name, shape=(n, channels, *node_shape),
+                               chunks=(chunk, channels, *node_shape), dtype="float32",
+                               fill_value=0.0)
+        group.create_array("done", shape=(n,), chunks=(1,), dtype="bool", fill_value=False)
+        for name, (tail, dtype) in META_FIELDS.items():
+            group.create_array(name, shape=(n, *tail), chunks=(chunk, *tail), dtype=dtype,
+                               fill_value=0)
+        active = group.create_array("active_nodes", shape=tuple(node_shape),
+                                    chunks=tuple(node_shape), dtype="bool", fill_value=False)
+        active[...] = np.asarray(active_nodes, dtype=bool)
+        group.attrs.update({
+            "format": FORMAT, "n_train": int(n_train), "n_test": int(n_test),
+            "fingerprint": fingerprint, "protocol_fingerprint": protocol_fingerprint(protocol),
+            "protocol": protocol, "node_shape": [int(s) for s in node_shape],
+            "units": {"inputs": "mm (channels 0-2), weight (channel 3)", "targets": "mm",
+                      "force_n": "N", "center": "mm"},
+            "failures": [],
+        })
+        tmp.rename(path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return open_store(path)
+
+
+def open_store(path: Path, mode: str = "r+") -> DatasetStore:
+    """Open an existing store; raise InputError when it is not a biopsynav dataset."""
+    import zarr
+
+    hint = "; use --overwrite to replace it"
+    try:
+        group = zarr.open_group(str(path), mode=mode)
+        attrs = dict(group.attrs)
+    except Exception as exc:  # noqa: BLE001 - any read failure means unusable
+        raise InputError(f"not a readable Zarr group ({type(exc).__name__}: {exc}){hint}",
+                         str(path)) from None
+    if attrs.get("format") != FORMAT:
+        raise InputError(f"not a biopsynav dataset (format {attrs.get('format')!r}, expected "
+                         f"{FORMAT!r}){hint}", str(path))
+    names = ["inputs", "targets", "done", "active_nodes", *META_FIELDS]
+    try:
+        arrays = {name: group[name] for name in names}
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"incomplete dataset: {type(exc).__name__}: {exc}{hint}",
+                         str(path)) from None
+    store = DatasetStore(path, group, arrays)
+    _check_layout(store, hint)
+    return store
+
+
+def _check_layout(store: DatasetStore, hint: str) -> None:
+    attrs = store.group.attrs
+    try:
+        n = int(attrs["n_train"]) + int(attrs["n_test"])
+        shape = tuple(int(s) for s in attrs["node_shape"])
+        for key in ("fingerprint", "protocol_fingerprint"):
+            str(attrs[key])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"dataset attributes are damaged ({exc}){hint}", str(store.path)) \
+            from None
+    expect = {"inputs": (n, 4, *shape), "targets": (n, 3, *shape), "done": (n,),
+              "active_nodes": shape}
+    expect.update({name: (n, *tail) for name, (tail, _) in META_FIELDS.items()})
+    for name, want in expect.items():
+        got = tuple(store.arrays[name].shape)
+        if got != want:
+            raise InputError(f"array {name!r} has shape {got}, expected {want}{hint}",
+                             str(store.path))
+
+
+def check_compatible(store: DatasetStore, fingerprint: str, protocol: dict) -> None:
+    """Refuse (FingerprintError) a store made for another anatomy/grid or protocol."""
+    attrs = store.group.attrs
+    hint = "; run with --overwrite to discard it and start again"
+    if attrs["fingerprint"] != fingerprint:
+        raise FingerprintError("the data set was generated for another anatomy or grid "
+                               f"(fingerprint {str(attrs['fingerprint'])[:12]}..., case "
+                               f"{fingerprint[:12]}...){hint}", str(store.path))
+    if attrs["protocol_fingerprint"] != protocol_fingerprint(protocol):
+        changed = _changed_sections(dict(attrs.get("protocol", {})), protocol)
+        raise FingerprintError("the data set was generated with another protocol (changed: "
+                               f"{', '.join(changed) or 'unknown'}){hint}", str(store.path))
+
+
+def _changed_sections(old: dict, new: dict) -> list[str]:
+    """Names of protocol sections (and keys) that differ, e.g. ``[probe] f_max_n``."""
+    out = []
+    for section in sorted(set(old) | set(new)):
+        a, b = old.get(section), new.get(section)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+            out += [f"[{section}] {k}" for k in keys]
+        else:
+            out.append(f"[{section}]")
+    return out
+
+
+def remove_store(path: Path) -> None:
+    """Delete a store folder (or a file squatting its name)."""
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()

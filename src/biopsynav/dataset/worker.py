@@ -1,0 +1,145 @@
+"""What a worker does: build the FE model of a case once, then compute samples on request.
+
+Runs in local worker processes (``ProcessPoolExecutor`` initializer :func:`init_process`, task
+:func:`process_sample`) and in Dask workers (task :func:`dask_sample`, the context cached per
+worker thread). Workers never touch the store: they return plain arrays and the main process
+writes them.
+
+Kept free of heavy imports at module level so that a spawned process can set its thread
+limits before numba and MKL load.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: Environment of a worker process: one MKL/OpenMP thread keeps Pardiso's results
+#: bit-identical whatever the number of workers.
+SINGLE_THREAD_ENV = {"MKL_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                     "OPENBLAS_NUM_THREADS": "1", "MKL_DYNAMIC": "FALSE"}
+
+
+@dataclass
+class WorkerSpec:
+    """Everything a worker needs, picklable: the loaded case and the protocol key."""
+
+    case: Any  # biopsynav.case.Case
+    key: str  # fingerprint + protocol fingerprint: identifies the cached context
+
+
+class SampleContext:
+    """Per-worker precomputation: FE model, solver settings, skin embedding, eligible centres.
+
+    Attributes:
+        model: the :class:`biopsynav.fem.FEModel` (its linear-solver analysis is cached on it).
+        skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex.
+        centers: (k,) skin vertices that may centre a push.
+    """
+
+    def __init__(self, case: Any) -> None:
+        from ..fem import FEModel, SolverSettings
+        from ..grid.embedding import Embedding
+        from ..probe import eligible_centers
+
+        self.case = case
+        self.model = FEModel.from_case(case)
+        self.settings = SolverSettings.from_config(case.cfg.solver)
+        if hasattr(self.settings, "threads"):
+            self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
+        self.skin = Embedding.build(case.grid, case.anatomy.vertices, where="skin surface").matrix
+        self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
+        self.node_shape = case.grid.node_shape
+        self.active = np.asarray(case.grid.active_nodes, dtype=bool).ravel()
+
+
+def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
+    """Draw, solve and package sample ``index`` (draw ``attempt``).
+
+    Returns a dict with ``index``, ``attempt``, ``ok``; when ok: ``inputs`` (4, nx, ny, nz)
+    float32, ``targets`` (3, nx, ny, nz) float32 and the per-sample metadata; when the solve
+    did not converge: ``error`` (message) and ``diagnostics`` (last Newton iterations).
+    """
+    from ..errors import SolverError
+    from ..fem import Loads, solve
+    from ..grid.index import field_to_tensor
+    from ..probe import contact_input, nodal_forces, push_for_sample
+
+    cfg = ctx.case.cfg
+    push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
+                           ctx.centers)
+    contact = ctx.skin[push.contact]
+    start = time.perf_counter()
+    result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
+                              **push_metadata(push)}
+    try:
+        u, report = solve(ctx.model, Loads(forces=nodal_forces(contact, push.force)),
+                          ctx.settings)
+    except SolverError as exc:
+        result.update(ok=False, error=exc.what, solve_s=time.perf_counter() - start,
+                      diagnostics=exc.log[-5:], newton_iters=len(exc.log))
+        return result
+    contact_u = np.asarray(contact @ u)
+    node_disp = np.linalg.norm(u, axis=1)
+    result.update(
+        ok=True,
+        inputs=field_to_tensor(contact_input(contact, contact_u), ctx.node_shape)
+        .astype(np.float32),
+        targets=field_to_tensor(u, ctx.node_shape).astype(np.float32),
+        max_disp_mm=float(node_disp.max()),
+        mean_disp_mm=float(node_disp[ctx.active].mean()),
+        probe_disp_mm=float(np.linalg.norm(contact_u, axis=1).mean()),
+        newton_iters=int(report.iterations),
+        residual=float(report.residual_rel),
+        solve_s=float(time.perf_counter() - start),
+    )
+    return result
+
+
+def push_metadata(push: Any) -> dict:
+    """The per-sample probe parameters of a :class:`biopsynav.probe.ProbePush`."""
+    return {"center": push.center, "vertex": int(push.vertex), "long_axis": push.long_axis,
+            "direction": push.direction, "force_n": float(push.force_n),
+            "tilt_deg": float(push.tilt_deg), "n_contact": push.n_contact}
+
+
+# ----- local worker processes ---------------------------------------------------------------
+
+_PROCESS_CONTEXT: SampleContext | None = None
+
+
+def init_process(spec: WorkerSpec, env: dict[str, str]) -> None:
+    """``ProcessPoolExecutor`` initializer: thread limits, then the case's context, once."""
+    global _PROCESS_CONTEXT
+    os.environ.update(env)
+    _PROCESS_CONTEXT = SampleContext(spec.case)
+
+
+def process_sample(index: int, attempt: int) -> dict:
+    """Task of a local worker process (uses the context of :func:`init_process`)."""
+    if _PROCESS_CONTEXT is None:  # pragma: no cover - initializer always ran
+        raise RuntimeError("worker process has no case context")
+    return compute_sample(_PROCESS_CONTEXT, index, attempt)
+
+
+# ----- Dask workers -------------------------------------------------------------------------
+
+_THREAD_CONTEXTS: dict[tuple[str, int], SampleContext] = {}
+_THREAD_LOCK = threading.Lock()
+
+
+def dask_sample(spec: WorkerSpec, index: int, attempt: int) -> dict:
+    """Task of a Dask worker: the context is built once per worker thread (an FE model holds
+    a stateful factorisation, so threads do not share one)."""
+    key = (spec.key, threading.get_ident())
+    ctx = _THREAD_CONTEXTS.get(key)
+    if ctx is None:
+        ctx = SampleContext(spec.case)
+        with _THREAD_LOCK:
+            _THREAD_CONTEXTS[key] = ctx
+    return compute_sample(ctx, index, attempt)

@@ -1,0 +1,214 @@
+"""The probe: its contact patch on the skin and the random pushes of the training protocol.
+
+Paper section 2.3 (Mendizabal, Tagliabue et al. 2019), every number from ``[probe]``:
+
+1. a random skin vertex ``p`` that is not on the chest wall and lies at least
+   ``min_chest_distance_mm`` in front of the chest-wall plane (pushes hard against the fixed
+   support move almost nothing and often have half a footprint behind the wall);
+2. an oriented box centred at ``p``: long axis in the tangent plane at a random angle, short
+   axis, and the outward normal ``n_p``; size ``footprint_mm`` (50 x 10) x
+   ``2 * depth_tolerance_mm``;
+3. the contact points ``P``: skin vertices inside the box whose normal faces the same way
+   (``n_i . n_p > 0``, so the far side of a thin region is never selected), chest-wall
+   vertices excluded; a draw with fewer than ``min_contact_points`` is redrawn from the same
+   random stream;
+4. the force direction ``d``: ``-n_p`` tilted by ``alpha`` uniform in
+   ``[-max_tilt_deg, max_tilt_deg]`` about a random tangent axis (always into the tissue);
+5. the total force ``|F|`` uniform in ``[0, f_max_n]``, shared equally by the points of ``P``:
+   ``f_max_n`` is the force of the whole probe, so the load does not depend on the density
+   of the skin mesh; nodal forces are ``W_P^T (F / |P|)`` with ``W_P`` the trilinear
+   embedding of ``P``.
+
+Random numbers: one ``numpy.random.Generator`` per draw, seeded by
+``SeedSequence([seed, sample_index, attempt])``, so a sample never depends on which worker
+made it, in which order, or how many draws other samples needed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .anatomy.model import Anatomy
+from .config import ProbeSection
+from .errors import InputError
+
+#: A contact point must have ``n_i . n_p`` above this (faces the probe, not away from it).
+MIN_NORMAL_COSINE = 0.0
+#: Redraws of centre and angle before giving up on a patch with enough contact points.
+MAX_PATCH_DRAWS = 200
+
+
+@dataclass
+class ProbePush:
+    """One random probe push.
+
+    Attributes:
+        vertex: index of the centre skin vertex ``p``.
+        center: (3,) its position, mm.  normal: (3,) its outward unit normal.
+        long_axis, short_axis: (3,) unit vectors of the footprint in the tangent plane.
+        contact: (n,) indices of the skin vertices in contact (the set ``P``).
+        direction: (3,) unit force direction (into the tissue).
+        tilt_deg: signed tilt of ``direction`` away from ``-normal``, degrees.
+        force_n: total probe force, N.
+        attempt: which draw of this sample index it is (0 first; a failed solve moves on).
+    """
+
+    vertex: int
+    center: np.ndarray
+    normal: np.ndarray
+    long_axis: np.ndarray
+    short_axis: np.ndarray
+    contact: np.ndarray
+    direction: np.ndarray
+    tilt_deg: float
+    force_n: float
+    attempt: int = 0
+
+    @property
+    def force(self) -> np.ndarray:
+        """(3,) total force vector, N."""
+        return self.force_n * self.direction
+
+    @property
+    def n_contact(self) -> int:
+        return int(len(self.contact))
+
+
+def tangent_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A fixed right-handed orthonormal pair ``(e1, e2)`` spanning the plane normal to
+    ``normal`` (3,): ``e1`` is the world axis least aligned with the normal, projected."""
+    normal = np.asarray(normal, dtype=np.float64)
+    normal = normal / np.linalg.norm(normal)
+    ref = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    e1 = ref - (ref @ normal) * normal
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(normal, e1)
+
+
+def probe_frame(normal: np.ndarray, angle_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Long and short unit axes (3,) of a footprint on the plane normal to ``normal``: the long
+    axis is :func:`tangent_basis`'s ``e1`` rotated by ``angle_rad`` about the normal; the short
+    axis is ``normal x long`` (right-handed frame long, short, normal)."""
+    normal = np.asarray(normal, dtype=np.float64)
+    normal = normal / np.linalg.norm(normal)
+    e1, e2 = tangent_basis(normal)
+    long_axis = np.cos(angle_rad) * e1 + np.sin(angle_rad) * e2
+    return long_axis, np.cross(normal, long_axis)
+
+
+def probe_patch(anatomy: Anatomy, center_index: int, long_axis: np.ndarray,
+                footprint_mm: tuple[float, float] | list[float],
+                depth_tol: float) -> np.ndarray:
+    """Indices (n,) of the skin vertices under a probe centred on vertex ``center_index``.
+
+    The oriented box: ``long_axis`` (3,) (made orthogonal to the centre's outward normal
+    ``n_p``), the short axis ``n_p x long``, half-sizes ``footprint_mm / 2`` and ``depth_tol``
+    (mm) along ``n_p``. Kept: vertices inside the box, not on the chest wall, with
+    ``n_i . n_p > MIN_NORMAL_COSINE``. Sorted ascending.
+    """
+    normal = anatomy.normals[center_index] / np.linalg.norm(anatomy.normals[center_index])
+    long_axis = np.asarray(long_axis, dtype=np.float64)
+    long_axis = long_axis - (long_axis @ normal) * normal
+    long_axis /= np.linalg.norm(long_axis)
+    short_axis = np.cross(normal, long_axis)
+    rel = anatomy.vertices - anatomy.vertices[center_index]
+    inside = ((np.abs(rel @ long_axis) <= 0.5 * footprint_mm[0])
+              & (np.abs(rel @ short_axis) <= 0.5 * footprint_mm[1])
+              & (np.abs(rel @ normal) <= depth_tol)
+              & (anatomy.normals @ normal > MIN_NORMAL_COSINE)
+              & ~np.asarray(anatomy.fixed_vertices, dtype=bool))
+    return np.flatnonzero(inside)
+
+
+def eligible_centers(anatomy: Anatomy, min_chest_distance_mm: float) -> np.ndarray:
+    """Indices of skin vertices that may centre a push: off the chest wall and at least
+    ``min_chest_distance_mm`` in front of its plane."""
+    normal = anatomy.chest_normal / np.linalg.norm(anatomy.chest_normal)
+    depth = -(anatomy.vertices - anatomy.chest_point) @ normal  # mm in front of the wall
+    ok = ~np.asarray(anatomy.fixed_vertices, dtype=bool) & (depth >= min_chest_distance_mm)
+    found = np.flatnonzero(ok)
+    if found.size == 0:
+        raise InputError(f"no skin vertex lies {min_chest_distance_mm:g} mm or more in front "
+                         "of the chest wall", "[probe] min_chest_distance_mm")
+    return found
+
+
+def tilted_direction(normal: np.ndarray, tilt_rad: float, axis_angle_rad: float) -> np.ndarray:
+    """``-normal`` rotated by ``tilt_rad`` about the tangent axis at ``axis_angle_rad`` in the
+    plane of :func:`tangent_basis`; a unit vector (3,) with ``d . normal = -cos(tilt)``."""
+    e1, e2 = tangent_basis(normal)
+    axis = np.cos(axis_angle_rad) * e1 + np.sin(axis_angle_rad) * e2
+    inward = -np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    # Rodrigues with axis orthogonal to the rotated vector
+    return np.cos(tilt_rad) * inward + np.sin(tilt_rad) * np.cross(axis, inward)
+
+
+def sample_rng(seed: int, index: int, attempt: int) -> np.random.Generator:
+    """The generator of one draw: ``SeedSequence([seed, index, attempt])``."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(index), int(attempt)]))
+
+
+def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
+              centers: np.ndarray | None = None, attempt: int = 0) -> ProbePush:
+    """One random push following the protocol (module docstring).
+
+    ``centers``: the eligible centre vertices (:func:`eligible_centers`, precomputed by
+    callers that draw many). The draw order (centre, in-plane angle, then tilt axis, tilt,
+    force) is part of the protocol: changing it changes every sample.
+    """
+    if centers is None:
+        centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
+    for _ in range(MAX_PATCH_DRAWS):
+        vertex = int(centers[rng.integers(len(centers))])
+        angle = rng.uniform(0.0, np.pi)  # a footprint is symmetric under a half turn
+        normal = anatomy.normals[vertex] / np.linalg.norm(anatomy.normals[vertex])
+        long_axis, short_axis = probe_frame(normal, angle)
+        contact = probe_patch(anatomy, vertex, long_axis, probe.footprint_mm,
+                              probe.depth_tolerance_mm)
+        if len(contact) >= probe.min_contact_points:
+            break
+    else:
+        raise InputError(f"no probe patch with {probe.min_contact_points} or more skin vertices "
+                         f"in {MAX_PATCH_DRAWS} draws; the skin mesh is too coarse for the "
+                         "footprint", "[probe] min_contact_points")
+    axis_angle = rng.uniform(0.0, 2.0 * np.pi)
+    tilt = np.radians(rng.uniform(-probe.max_tilt_deg, probe.max_tilt_deg))
+    force_n = float(rng.uniform(0.0, probe.f_max_n))
+    return ProbePush(vertex, anatomy.vertices[vertex].copy(), normal, long_axis, short_axis,
+                     contact, tilted_direction(normal, tilt, axis_angle),
+                     float(np.degrees(tilt)), force_n, attempt)
+
+
+def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int,
+                    attempt: int, centers: np.ndarray | None = None) -> ProbePush:
+    """The push of sample ``index``, draw ``attempt`` (deterministic)."""
+    return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt)
+
+
+def nodal_forces(contact_matrix: sp.csr_matrix, force: np.ndarray) -> np.ndarray:
+    """Node forces (n_nodes, 3), N: the total ``force`` (3,) shared equally by the contact
+    points (rows of ``contact_matrix`` ``W_P``, (n, n_nodes)) and spread with ``W_P^T``."""
+    n = contact_matrix.shape[0]
+    per_point = np.broadcast_to(np.asarray(force, dtype=np.float64) / n, (n, 3))
+    return np.asarray(contact_matrix.T @ np.ascontiguousarray(per_point))
+
+
+def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray) -> np.ndarray:
+    """The network input as a node field (n_nodes, 4): channels 0-2 the trilinear-weighted
+    average of the contact displacements ``contact_u`` (n, 3) mm,
+    ``(W_P^T u_P) / (W_P^T 1)`` where the weight sum is positive and 0 elsewhere; channel 3
+    the weight sum ``W_P^T 1``."""
+    wt = contact_matrix.T.tocsr()
+    weight = np.asarray(wt @ np.ones(contact_matrix.shape[0]))
+    summed = np.asarray(wt @ np.asarray(contact_u, dtype=np.float64))
+    mean = np.divide(summed, weight[:, None], out=np.zeros_like(summed),
+                     where=weight[:, None] > 0)
+    return np.hstack([mean, weight[:, None]])
+
+
+__all__ = ["MIN_NORMAL_COSINE", "ProbePush", "contact_input", "draw_push", "eligible_centers",
+           "nodal_forces", "probe_frame", "probe_patch", "push_for_sample", "sample_rng",
+           "tangent_basis", "tilted_direction"]
