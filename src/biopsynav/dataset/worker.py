@@ -114,10 +114,22 @@ _PROCESS_CONTEXT: SampleContext | None = None
 
 
 def init_process(spec: WorkerSpec, env: dict[str, str]) -> None:
-    """``ProcessPoolExecutor`` initializer: thread limits, then the case's context, once."""
+    """``ProcessPoolExecutor`` initializer: thread limits, a watchdog that ends the process
+    when the main process dies (kill -9 leaves no orphan computing), then the case's
+    context, once."""
     global _PROCESS_CONTEXT
     os.environ.update(env)
+    parent = os.getppid()
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True,
+                     name="parent-watchdog").start()
     _PROCESS_CONTEXT = SampleContext(spec.case)
+
+
+def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
+    """Poll the parent id; once the parent is gone (re-parented), exit at once."""
+    while os.getppid() == parent:
+        time.sleep(period_s)
+    os._exit(1)
 
 
 def process_sample(index: int, attempt: int) -> dict:

@@ -1,0 +1,247 @@
+"""Data generation: contract, determinism across workers and Dask, kills, failures, guards."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from dataset_helpers import N_TEST, N_TRAIN, edit_config
+
+from biopsynav.case import Case
+from biopsynav.dataset.generate import generate_case
+from biopsynav.errors import BiopsynavError, FingerprintError, InputError
+from biopsynav.grid.embedding import Embedding
+from biopsynav.grid.index import tensor_to_field
+from biopsynav.probe import contact_input, probe_patch, push_for_sample
+
+N = N_TRAIN + N_TEST
+
+SCRIPT = """
+import sys
+from biopsynav.dataset.generate import generate_case
+
+if __name__ == "__main__":
+    generate_case(sys.argv[1], workers=int(sys.argv[2]), progress=False)
+"""
+
+
+def open_data(case_dir: Path):
+    return zarr.open_group(str(case_dir / "dataset.zarr"), mode="r")
+
+
+def count_done(case_dir: Path) -> int:
+    chunks = case_dir / "dataset.zarr" / "done" / "c"
+    return len(list(chunks.iterdir())) if chunks.is_dir() else 0
+
+
+def child_pids(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        out += [int(t) for t in text]
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+def start_generate(case_dir: Path, tmp_path: Path, workers: int) -> subprocess.Popen:
+    script = tmp_path / "gen.py"
+    script.write_text(SCRIPT)
+    return subprocess.Popen([sys.executable, str(script), str(case_dir), str(workers)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def wait_for_done(proc: subprocess.Popen, case_dir: Path, count: int) -> None:
+    deadline = time.monotonic() + 120
+    while count_done(case_dir) < count:
+        if proc.poll() is not None:
+            pytest.fail(f"generate exited early: {proc.stderr.read().decode()[-2000:]}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail("no progress within 120 s")
+        time.sleep(0.005)
+
+
+def test_contract_of_the_stored_samples(reference):
+    g = open_data(reference)
+    case = Case.load(reference)
+    shape = case.grid.node_shape
+    assert g["inputs"].shape == (N, 4, *shape) and g["inputs"].dtype == np.float32
+    assert g["targets"].shape == (N, 3, *shape) and g["targets"].dtype == np.float32
+    assert g["done"].shape == (N,) and g["done"].chunks == (1,) and g["done"][:].all()
+    assert g["inputs"].chunks[0] == 1
+    assert np.array_equal(g["active_nodes"][:], case.grid.active_nodes)
+    attrs = g.attrs
+    assert (attrs["n_train"], attrs["n_test"]) == (N_TRAIN, N_TEST)
+    assert attrs["fingerprint"] == case.fingerprint()
+    assert list(attrs["node_shape"]) == list(shape)
+    assert len(attrs["protocol_fingerprint"]) == 64
+    for name in ("center", "long_axis", "direction"):
+        assert g[name].shape == (N, 3)
+    for name in ("vertex", "force_n", "tilt_deg", "n_contact", "attempt", "max_disp_mm",
+                 "probe_disp_mm", "newton_iters", "residual", "solve_s"):
+        assert g[name].shape == (N,)
+    summary = json.loads((reference / "dataset_summary.json").read_text())
+    assert summary["count"] == N and summary["failures"] == 0
+    assert summary["max_disp_mm"] > 0 and summary["samples_per_min"] > 0
+    assert (reference / "dataset.png").stat().st_size > 1000
+
+    skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
+    inactive = ~case.grid.active_nodes
+    probe = case.cfg.probe
+    for i in (0, N - 1):
+        u = tensor_to_field(g["targets"][i]).astype(np.float64)
+        assert np.all(g["targets"][i][:, inactive] == 0)
+        push = push_for_sample(case.anatomy, probe, case.cfg.dataset.seed, i,
+                               int(g["attempt"][i]))
+        assert int(g["vertex"][i]) == push.vertex and g["force_n"][i] == push.force_n
+        contact = probe_patch(case.anatomy, push.vertex, push.long_axis, probe.footprint_mm,
+                              probe.depth_tolerance_mm)
+        assert g["n_contact"][i] == len(contact)
+        w = skin[contact]
+        expected = contact_input(w, w @ u)
+        got = tensor_to_field(g["inputs"][i])
+        assert np.allclose(got, expected, rtol=1e-4, atol=1e-4)
+        assert np.isclose(g["probe_disp_mm"][i], np.linalg.norm(w @ u, axis=1).mean(),
+                          rtol=1e-4)
+        assert np.isclose(g["max_disp_mm"][i], np.linalg.norm(u, axis=1).max(), rtol=1e-4)
+
+
+def test_one_worker_gives_the_same_samples_as_two(fresh_case, reference, assert_same_dataset):
+    summary = generate_case(fresh_case, workers=1, progress=False)
+    assert summary["count"] == N
+    assert_same_dataset(fresh_case, reference)
+
+
+def test_dask_local_cluster_gives_the_same_samples(fresh_case, reference,
+                                                  assert_same_dataset):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        summary = generate_case(fresh_case, scheduler=cluster.scheduler_address,
+                                progress=False)
+    assert summary["count"] == N
+    assert_same_dataset(fresh_case, reference)
+
+
+def test_resume_after_sigkill_of_the_main_process(fresh_case, reference, tmp_path,
+                                                  assert_same_dataset):
+    proc = start_generate(fresh_case, tmp_path, workers=1)
+    wait_for_done(proc, fresh_case, 3)
+    children = child_pids(proc.pid)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    at_kill = count_done(fresh_case)
+    assert at_kill < N, "the kill came too late to interrupt the run"
+    deadline = time.monotonic() + 30
+    while any(alive(p) for p in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(alive(p) for p in children), "orphaned worker processes"
+    summary = generate_case(fresh_case, workers=2, progress=False)
+    assert summary["count"] == N
+    assert summary["computed_this_run"] == N - at_kill
+    assert_same_dataset(fresh_case, reference)
+
+
+def test_a_killed_worker_is_replaced(fresh_case, reference, tmp_path, assert_same_dataset):
+    proc = start_generate(fresh_case, tmp_path, workers=2)
+    wait_for_done(proc, fresh_case, 2)
+    workers = [p for p in child_pids(proc.pid)
+               if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    assert workers
+    at_kill = count_done(fresh_case)
+    os.kill(workers[0], signal.SIGKILL)
+    assert proc.wait(timeout=120) == 0, proc.stderr.read().decode()[-2000:]
+    summary = json.loads((fresh_case / "dataset_summary.json").read_text())
+    assert summary["count"] == N
+    if at_kill < N:
+        assert summary["pool_restarts"] >= 1
+    assert_same_dataset(fresh_case, reference)
+
+
+def test_failed_solves_are_logged_and_replaced(fresh_case):
+    # no load stepping and few Newton iterations: the harder pushes fail
+    edit_config(fresh_case, solver={"max_iterations": 8, "min_load_step": 1.0},
+                dataset={"max_failure_share": 1.0})
+    summary = generate_case(fresh_case, workers=2, progress=False)
+    assert summary["count"] == N
+    assert summary["failures"] >= 1 and summary["failures"] == summary["failures_total"]
+    g = open_data(fresh_case)
+    attempts = g["attempt"][:]
+    failed = {(f["index"], f["attempt"]) for f in g.attrs["failures"]}
+    assert len(failed) == summary["failures"]
+    for f in g.attrs["failures"]:
+        assert "converge" in f["error"] or "Newton" in f["error"]
+        assert f["last_iterations"] and f["newton_iters"] >= 1
+    for i in range(N):  # every earlier attempt of a sample failed; the kept one is its own
+        assert {(i, a) for a in range(attempts[i])} <= failed
+    case = Case.load(fresh_case)
+    replaced = np.flatnonzero(attempts > 0)
+    assert replaced.size
+    for i in replaced:
+        push = push_for_sample(case.anatomy, case.cfg.probe, case.cfg.dataset.seed, i,
+                               int(attempts[i]))
+        assert g["force_n"][i] == push.force_n
+
+
+def test_too_many_failures_stop_the_job(fresh_case):
+    edit_config(fresh_case, solver={"max_iterations": 1, "min_load_step": 1.0},
+                dataset={"max_failure_share": 0.25})
+    with pytest.raises(BiopsynavError, match="did not converge"):
+        generate_case(fresh_case, workers=1, progress=False)
+    assert len(open_data(fresh_case).attrs["failures"]) > 0.25 * N
+
+
+def test_guard_against_mixing(reference, tmp_path):
+    case_dir = tmp_path / "case"
+    shutil.copytree(reference, case_dir)
+    # a tracker-only setting does not invalidate the data
+    edit_config(case_dir, probe={"contact_tolerance_mm": 3.0})
+    assert generate_case(case_dir, workers=1, progress=False)["computed_this_run"] == 0
+    edit_config(case_dir, probe={"f_max_n": 2.0})
+    with pytest.raises(FingerprintError, match=r"another protocol.*f_max_n.*--overwrite"):
+        generate_case(case_dir, workers=1, progress=False)
+    with pytest.raises(FingerprintError, match="n_train"):
+        generate_case(case_dir, workers=1, progress=False, n_train=N_TRAIN + 1)
+    summary = generate_case(case_dir, workers=1, progress=False, overwrite=True, n_train=2,
+                            n_test=1)
+    assert summary["count"] == 3 and open_data(case_dir).attrs["n_train"] == 2
+    group = zarr.open_group(str(case_dir / "dataset.zarr"), mode="r+")
+    group.attrs["fingerprint"] = "0" * 64
+    with pytest.raises(FingerprintError, match="another anatomy or grid"):
+        generate_case(case_dir, workers=1, progress=False, n_train=2, n_test=1)
+
+
+@pytest.mark.parametrize("damage", ["garbage", "foreign", "file", "missing_array"])
+def test_corrupt_or_foreign_store_is_refused(reference, tmp_path, damage):
+    case_dir = tmp_path / "case"
+    shutil.copytree(reference, case_dir)
+    path = case_dir / "dataset.zarr"
+    if damage == "garbage":
+        (path / "zarr.json").write_text("{not json")
+    elif damage == "foreign":
+        shutil.rmtree(path)
+        zarr.open_group(str(path), mode="w").attrs["made_by"] = "someone else"
+    elif damage == "file":
+        shutil.rmtree(path)
+        path.write_text("hello")
+    else:
+        shutil.rmtree(path / "targets")
+    with pytest.raises(InputError, match="--overwrite"):
+        generate_case(case_dir, workers=1, progress=False)

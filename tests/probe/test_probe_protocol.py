@@ -1,0 +1,120 @@
+"""The probe protocol: patch geometry, tilt, force sharing, determinism, network input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from biopsynav.anatomy.phantom import make_phantom_case
+from biopsynav.config import ProbeSection
+from biopsynav.grid.embedding import Embedding
+from biopsynav.probe import (
+    contact_input,
+    eligible_centers,
+    nodal_forces,
+    probe_frame,
+    probe_patch,
+    push_for_sample,
+)
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    return make_phantom_case(tmp_path_factory.mktemp("probe") / "case", cell_size_mm=15.0)
+
+
+@pytest.fixture(scope="module")
+def pushes(case):
+    probe = case.cfg.probe
+    centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
+    return [push_for_sample(case.anatomy, probe, 7, i, a, centers)
+            for i in range(25) for a in range(2)]
+
+
+def test_frame_is_orthonormal_and_right_handed():
+    normal = np.array([0.3, -0.5, 0.8])
+    normal /= np.linalg.norm(normal)
+    for angle in (0.0, 0.7, 2.5):
+        long_axis, short_axis = probe_frame(normal, angle)
+        frame = np.stack([long_axis, short_axis, normal])
+        assert np.allclose(frame @ frame.T, np.eye(3), atol=1e-12)
+        assert np.isclose(np.linalg.det(frame), 1.0)
+
+
+def test_patch_lies_in_the_footprint_box(case, pushes):
+    anatomy, probe = case.anatomy, case.cfg.probe
+    half = np.array([probe.footprint_mm[0] / 2, probe.footprint_mm[1] / 2,
+                     probe.depth_tolerance_mm])
+    for push in pushes:
+        assert push.n_contact >= probe.min_contact_points
+        assert push.vertex in push.contact  # the centre is always in its own box
+        rel = anatomy.vertices[push.contact] - push.center
+        local = rel @ np.stack([push.long_axis, push.short_axis, push.normal]).T
+        assert np.all(np.abs(local) <= half + 1e-9)
+        assert np.all(anatomy.normals[push.contact] @ push.normal > 0.0)
+        assert not anatomy.fixed_vertices[push.contact].any()
+        # every vertex in the box facing the same way is selected
+        again = probe_patch(anatomy, push.vertex, push.long_axis, probe.footprint_mm,
+                            probe.depth_tolerance_mm)
+        assert np.array_equal(again, push.contact)
+
+
+def test_centres_keep_away_from_the_chest_wall(case, pushes):
+    anatomy = case.anatomy
+    for push in pushes:
+        depth = -(push.center - anatomy.chest_point) @ anatomy.chest_normal
+        assert depth >= case.cfg.probe.min_chest_distance_mm - 1e-9
+        assert not anatomy.fixed_vertices[push.vertex]
+
+
+def test_direction_tilt_and_force_bounds(case, pushes):
+    probe = case.cfg.probe
+    tilts = np.array([p.tilt_deg for p in pushes])
+    forces = np.array([p.force_n for p in pushes])
+    assert np.all(np.abs(tilts) <= probe.max_tilt_deg)
+    assert np.all((forces >= 0) & (forces <= probe.f_max_n))
+    assert tilts.min() < -5 and tilts.max() > 5  # both signs drawn
+    for push in pushes:
+        assert np.isclose(np.linalg.norm(push.direction), 1.0)
+        cos = -push.direction @ push.normal
+        assert cos > 0  # into the tissue
+        assert np.isclose(np.degrees(np.arccos(np.clip(cos, -1, 1))), abs(push.tilt_deg),
+                          atol=1e-6)
+
+
+def test_total_force_is_shared_by_the_contact_points(case, pushes):
+    skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
+    for push in pushes[:10]:
+        forces = nodal_forces(skin[push.contact], push.force)
+        assert forces.shape == (case.grid.n_nodes, 3)
+        assert np.allclose(forces.sum(axis=0), push.force, rtol=1e-12, atol=1e-12)
+
+
+def test_pushes_are_reproducible_per_index_and_attempt(case, pushes):
+    probe = case.cfg.probe
+    again = push_for_sample(case.anatomy, probe, 7, 3, 1)
+    ref = pushes[3 * 2 + 1]
+    assert again.vertex == ref.vertex and again.force_n == ref.force_n
+    assert np.array_equal(again.direction, ref.direction)
+    other = push_for_sample(case.anatomy, probe, 7, 3, 0)
+    assert (other.vertex, other.force_n) != (ref.vertex, ref.force_n)
+    assert push_for_sample(case.anatomy, probe, 8, 3, 1).force_n != ref.force_n
+
+
+def test_contact_input_is_a_weighted_average_with_weight_channel(case, pushes):
+    skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
+    push = pushes[0]
+    w = skin[push.contact]
+    uniform = np.tile([1.0, -2.0, 3.0], (push.n_contact, 1))
+    field = contact_input(w, uniform)
+    weight = field[:, 3]
+    assert np.isclose(weight.sum(), push.n_contact)
+    touched = weight > 0
+    assert np.allclose(field[touched, :3], [1.0, -2.0, 3.0])
+    assert np.all(field[~touched, :3] == 0)
+
+
+def test_tilt_zero_pushes_along_the_inward_normal(case):
+    probe = ProbeSection(max_tilt_deg=0.0)
+    push = push_for_sample(case.anatomy, probe, 0, 0, 0)
+    assert np.allclose(push.direction, -push.normal)
