@@ -6,6 +6,7 @@
 
 from .loads import Loads
 from .model import FEModel, lame_constants
-from .solver import SolveReport, SolverSettings, solve
+from .solver import SolveReport, SolverSettings, internal_forces, solve, tangent_matrix
 
-__all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "lame_constants", "solve"]
+__all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "internal_forces", "lame_constants",
+           "solve", "tangent_matrix"]

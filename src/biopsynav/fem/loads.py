@@ -33,16 +33,14 @@ class Loads:
 class PreparedLoads:
     """Loads in free-equation form for one model.
 
-    ``f`` (n_eq,) forces; ``w`` (n_pts, n_free_nodes) CSR, the prescribed-point matrix on free
-    nodes (fixed nodes carry u = 0 and drop out); ``g`` (n_pts, 3); ``w_full`` the caller's
-    matrix (for the constraint error); ``pen_pos`` / ``pen_val`` positions in the tangent's
-    upper CSR data and values of ``W^T W`` (penalty stiffness per unit penalty).
+    ``f`` (n_eq,) forces; ``w`` (n_pts, n_nodes) CSR prescribed-point matrix; ``g``
+    (n_pts, 3); ``pen_pos`` / ``pen_val`` positions in the tangent's upper CSR data and values
+    of ``W^T W`` per component on free equations (penalty stiffness per unit penalty).
     """
 
     f: np.ndarray
     w: sp.csr_matrix | None
     g: np.ndarray | None
-    w_full: sp.csr_matrix | None
     pen_pos: np.ndarray | None
     pen_val: np.ndarray | None
 
@@ -60,7 +58,7 @@ def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:
     """Check loads against ``model`` and bring them to free-equation form."""
     f = _prepare_forces(model, loads.forces)
     if loads.prescribed_matrix is None and loads.prescribed_displacement is None:
-        return PreparedLoads(f, None, None, None, None, None)
+        return PreparedLoads(f, None, None, None, None)
     if loads.prescribed_matrix is None or loads.prescribed_displacement is None:
         raise InputError("prescribed displacements need both the matrix and the targets",
                          "Loads")
@@ -76,10 +74,8 @@ def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:
     if np.any(~used[w_full.indices]):
         raise InputError("a prescribed point lies outside the active cells (it weights nodes "
                          "of no element)", "Loads")
-    free_nodes = np.flatnonzero(model.eq_of_dof[:, 0] >= 0)
-    w = w_full[:, free_nodes].tocsr()
-    pen_pos, pen_val = _penalty_pattern(model, w)
-    return PreparedLoads(f, w, g, w_full, pen_pos, pen_val)
+    pen_pos, pen_val = _penalty_pattern(model, w_full)
+    return PreparedLoads(f, w_full, g, pen_pos, pen_val)
 
 
 def _prepare_forces(model: FEModel, forces: np.ndarray | None) -> np.ndarray:
@@ -100,13 +96,13 @@ def _prepare_forces(model: FEModel, forces: np.ndarray | None) -> np.ndarray:
 def _penalty_pattern(model: FEModel, w: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     """Positions and values of ``W^T W`` (per component) in the upper CSR tangent data."""
     wtw = (w.T @ w).tocoo()
-    keep = wtw.row <= wtw.col
-    rows, cols, vals = wtw.row[keep], wtw.col[keep], wtw.data[keep]
-    comp = np.arange(3)
-    eq_r = (3 * rows[:, None] + comp).ravel()
-    eq_c = (3 * cols[:, None] + comp).ravel()
-    pos = find_positions(model, eq_r.astype(np.int64), eq_c.astype(np.int64))
+    eq_r = model.eq_of_dof[wtw.row].ravel()  # (nnz * 3,) component-wise
+    eq_c = model.eq_of_dof[wtw.col].ravel()
+    vals = np.repeat(wtw.data, 3)
+    keep = (eq_r >= 0) & (eq_c >= 0) & (eq_r <= eq_c)
+    eq_r, eq_c, vals = eq_r[keep], eq_c[keep], vals[keep]
+    pos = find_positions(model, eq_r, eq_c)
     if np.any(pos < 0):
         raise InputError("a prescribed point couples nodes that share no element (each point "
                          "must weight the nodes of one cell)", "Loads")
-    return pos, np.repeat(vals, 3)
+    return pos, vals

@@ -40,7 +40,8 @@ class FEModel:
         hexes: (n_el, 8) flat node ids per element, VTK hexahedron order.
         weight: (n_el,) tissue volume fraction in (0, 1] scaling each element's Gauss weights.
         E_mpa: (n_el,) Young's modulus, MPa.  nu: (n_el,) Poisson ratio.
-        fixed: (n_nodes,) bool, Dirichlet nodes (u = 0 on all three components).
+        fixed: (n_nodes,) bool, Dirichlet nodes (u = 0 on all three components), or
+            (n_nodes, 3) bool per component (rollers).
         material: 'neo-hookean' or 'svk'.
 
     Nodes used by no element carry no equation; solves return zero displacement there.
@@ -55,7 +56,7 @@ class FEModel:
         self.weight = _per_element(weight, n_el, "weight")
         self.E_mpa = _per_element(E_mpa, n_el, "E_mpa")
         self.nu = _per_element(nu, n_el, "nu")
-        self.fixed = np.asarray(fixed, dtype=bool).ravel()
+        self.fixed = _fixed_components(fixed, len(self.nodes))
         self.material = material
         _validate(self)
         self.material_id = MATERIALS[material]
@@ -63,7 +64,6 @@ class FEModel:
         self.grads, self.jw, self.elem_set = _unique_gradients(self.nodes[self.hexes])
         self.eq_of_dof, self.n_eq = _number_equations(self.hexes, self.fixed, len(self.nodes))
         self.elem_eq = self.eq_of_dof[self.hexes].reshape(n_el, 24)
-        _check_anchored(self)
         self.indptr, self.indices, self.scatter = _upper_pattern(self.elem_eq, self.n_eq)
         self.diag_pos = self.indptr[:-1].copy()  # first entry of each upper row is its diagonal
         self.cache: dict[str, Any] = {}  # linear-solver handles (symbolic analysis) per backend
@@ -93,6 +93,13 @@ class FEModel:
         mask = self.eq_of_dof >= 0
         out[mask] = vec[self.eq_of_dof[mask]]
         return out
+
+    def check_anchored(self) -> None:
+        """Raise InputError if a connected piece of the mesh has no fixed node (a singular
+        stiffness); checked once, by the first solve."""
+        if not self.cache.get("anchored"):
+            _check_anchored(self)
+            self.cache["anchored"] = True
 
     def used_nodes(self) -> np.ndarray:
         """(n_nodes,) bool: nodes that belong to at least one element."""
@@ -130,6 +137,17 @@ def _per_element(values: np.ndarray, n_el: int, name: str) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+def _fixed_components(fixed: np.ndarray, n_nodes: int) -> np.ndarray:
+    """Dirichlet mask (n_nodes, 3) from a node mask (n_nodes,) or a component mask."""
+    fixed = np.asarray(fixed, dtype=bool)
+    if fixed.shape == (n_nodes,):
+        return np.repeat(fixed[:, None], 3, axis=1)
+    if fixed.shape != (n_nodes, 3):
+        raise InputError(f"fixed must be (n_nodes,) or (n_nodes, 3) with n_nodes = {n_nodes}, "
+                         f"got {fixed.shape}", "FEModel")
+    return fixed
+
+
 def _validate(m: FEModel) -> None:
     where = "FEModel"
     if m.nodes.ndim != 2 or m.nodes.shape[1] != 3:
@@ -138,9 +156,6 @@ def _validate(m: FEModel) -> None:
         raise InputError(f"hexes must be (n_el, 8) with n_el > 0, got {m.hexes.shape}", where)
     if m.hexes.min() < 0 or m.hexes.max() >= len(m.nodes):
         raise InputError("hexes refer to nodes that do not exist", where)
-    if m.fixed.shape != (len(m.nodes),):
-        raise InputError(f"fixed must be (n_nodes,) = ({len(m.nodes)},), got {m.fixed.shape}",
-                         where)
     if m.material not in MATERIALS:
         raise InputError(f"material must be one of {', '.join(MATERIALS)}, got "
                          f"{m.material!r}", where)
@@ -175,14 +190,15 @@ def _unique_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 def _number_equations(hexes: np.ndarray, fixed: np.ndarray,
                       n_nodes: int) -> tuple[np.ndarray, int]:
-    """Equation number (n_nodes, 3) of each free component (-1: fixed or unused node)."""
+    """Equation number (n_nodes, 3) of each free component (-1: fixed or unused node),
+    node by node (x, y, z of a node are consecutive)."""
     used = np.zeros(n_nodes, dtype=bool)
     used[hexes.ravel()] = True
-    free = used & ~fixed
+    free = used[:, None] & ~fixed
     eq = np.full((n_nodes, 3), -1, dtype=np.int64)
-    n_free = int(free.sum())
-    eq[free] = np.arange(3 * n_free).reshape(n_free, 3)
-    return eq, 3 * n_free
+    n_eq = int(free.sum())
+    eq[free] = np.arange(n_eq)
+    return eq, n_eq
 
 
 def _check_anchored(m: FEModel) -> None:
@@ -194,7 +210,7 @@ def _check_anchored(m: FEModel) -> None:
     n_comp, comp = connected_components(incidence.T @ incidence, directed=False)
     used = m.used_nodes()
     anchored = np.zeros(n_comp, dtype=bool)
-    anchored[comp[used & m.fixed]] = True
+    anchored[comp[used & m.fixed.any(axis=1)]] = True
     floating = np.unique(comp[used][~anchored[comp[used]]])
     if floating.size:
         count = int(np.isin(comp, floating).sum() - np.isin(comp[~used], floating).sum())

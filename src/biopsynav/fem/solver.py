@@ -105,9 +105,9 @@ class _System:
             data = np.empty(m.nnz)
             kernels.scatter_matrix(self.ke, m.scatter, data)
         if self.loads.has_constraints:
-            gap = self.loads.w @ u.reshape(-1, 3) - t * self.loads.g  # (n_pts, 3)
+            gap = self.loads.w @ m.to_nodes(u) - t * self.loads.g  # (n_pts, 3)
             traction = self.alpha * gap + self.lam
-            residual += (self.loads.w.T @ traction).ravel()
+            residual += m.to_free(self.loads.w.T @ traction)
             energy += 0.5 * self.alpha * float(np.sum(gap * gap)) + float(np.sum(self.lam * gap))
             if tangent:
                 np.add.at(data, self.loads.pen_pos, self.alpha * self.loads.pen_val)
@@ -117,7 +117,7 @@ class _System:
         """Largest |W u - g| over the prescribed points, mm (0 without constraints)."""
         if not self.loads.has_constraints:
             return 0.0
-        gap = self.loads.w_full @ self.model.to_nodes(u) - self.loads.g
+        gap = self.loads.w @ self.model.to_nodes(u) - self.loads.g
         return float(np.sqrt((gap * gap).sum(axis=1)).max())
 
     def reference_residual(self, du_full: np.ndarray) -> float:
@@ -125,8 +125,8 @@ class _System:
         by the reactions they need in the linearised problem (``du_full`` = K0^-1 load)."""
         r0 = float(np.dot(self.loads.f, self.loads.f))
         if self.loads.has_constraints:
-            gap = self.loads.w @ du_full.reshape(-1, 3) - self.loads.g
-            reaction = (self.loads.w.T @ (self.alpha * gap)).ravel()
+            gap = self.loads.w @ self.model.to_nodes(du_full) - self.loads.g
+            reaction = self.model.to_free(self.loads.w.T @ (self.alpha * gap))
             r0 += float(np.dot(reaction, reaction))
         return float(np.sqrt(r0))
 
@@ -194,6 +194,7 @@ def solve(model: FEModel, loads: Loads,
     """
     settings = settings or SolverSettings()
     start = time.perf_counter()
+    model.check_anchored()
     prepared = prepare_loads(model, loads)
     report = SolveReport(backend="none")
     if prepared.is_zero:
@@ -405,7 +406,7 @@ def _enforce_constraints(system: _System, solver: LinearSolver, settings: Solver
         report.constraint_error_mm = error
         if error <= settings.constraint_tolerance_mm:
             return u
-        gap = system.loads.w @ u.reshape(-1, 3) - system.loads.g
+        gap = system.loads.w @ system.model.to_nodes(u) - system.loads.g
         system.lam += system.alpha * gap
         try:
             u, _ = _newton(system, solver, settings, report, u, 0.0, 1.0, final=True)
@@ -422,7 +423,30 @@ def _final_checks(system: _System, settings: SolverSettings, report: SolveReport
     report.min_det_F = min_det
     report.residual = float(np.linalg.norm(r))
     report.residual_rel = report.residual / report.reference_residual
-    report.max_displacement_mm = float(np.linalg.norm(u.reshape(-1, 3), axis=1).max())
+    report.max_displacement_mm = float(np.linalg.norm(system.model.to_nodes(u), axis=1).max())
     if min_det <= 0.0 or not np.all(np.isfinite(u)):
         raise SolverError(f"the converged state has inverted elements (min det F = "
                           f"{min_det:.3g})", "fem.solve", log=report.log)
+
+
+def internal_forces(model: FEModel, u: np.ndarray) -> np.ndarray:
+    """Internal nodal forces (n_nodes, 3) N at displacement ``u`` (n_nodes, 3) mm, on every
+    node (on fixed nodes they are the support reactions)."""
+    n_el = model.n_elements
+    fe = np.empty((n_el, 24))
+    kernels.element_kernel(np.ascontiguousarray(u, dtype=np.float64), model.hexes,
+                           model.elem_set, model.grads, model.jw, model.weight, model.mu,
+                           model.lam, model.material_id, False, fe, np.empty((1, 24, 24)),
+                           np.empty(n_el), np.empty(n_el))
+    out = np.zeros((model.n_nodes, 3))
+    np.add.at(out, model.hexes, fe.reshape(n_el, 8, 3))
+    return out
+
+
+def tangent_matrix(model: FEModel, u: np.ndarray):
+    """The full symmetric tangent (n_eq, n_eq) N/mm (CSR) at displacement ``u`` (n_nodes, 3)."""
+    from .linsolve import full_matrix
+
+    system = _System(model, prepare_loads(model, Loads()), 0.0)
+    _, data, _, _ = system.evaluate(model.to_free(u), 0.0, tangent=True)
+    return full_matrix(model.indptr, model.indices, data)

@@ -1,0 +1,115 @@
+"""FE solve speed: biopsynav against scikit-fem on the built-in phantom.
+
+The same problem in both: the phantom at the default grid (about 2,200 active cells), the
+default material (neo-Hookean) and stiffness, a probe push at 30 degrees from the inward
+normal on a 50 x 10 mm patch, large enough for >= 30 mm maximum displacement, the same
+Newton tolerance (|R| <= 1e-8 |R0| and |du| <= 1e-8 |u|). scikit-fem assembles its own weak
+form (:mod:`biopsynav.fem.skfem_peer`) and solves with SciPy's default sparse solver. Also
+times biopsynav at two and four times the cell count.
+
+Usage: ``python benchmarks/fem_solve.py [--repeats N] [--peer-repeats N] [--force F]``.
+The last line reads ``RESULT fem_ms=... peer_ms=... ratio=... max_disp_mm=... newton_iters=...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from biopsynav.anatomy.phantom import make_phantom_case
+from biopsynav.fem import FEModel, Loads, SolverSettings, solve
+from biopsynav.fem.simulate import patch_forces, probe_patch
+from biopsynav.fem.skfem_peer import SkfemModel
+from biopsynav.grid.embedding import Embedding
+
+PUSH_AT_MM = np.array([20.0, 10.0, 80.0])
+TILT_DEG = 30.0
+
+
+def push_forces(case, total_force_n: float) -> np.ndarray:
+    """Node forces (n_nodes, 3) N of a push at TILT_DEG from the inward normal."""
+    anatomy, cfg = case.anatomy, case.cfg
+    patch = probe_patch(anatomy.vertices, anatomy.normals, anatomy.fixed_vertices, PUSH_AT_MM,
+                        tuple(cfg.probe.footprint_mm), cfg.probe.depth_tolerance_mm)
+    tilt = np.radians(TILT_DEG)
+    direction = np.cos(tilt) * -patch.normal + np.sin(tilt) * patch.long_axis
+    embedding = Embedding.build(case.grid, patch.points)
+    return patch_forces(embedding.spread, len(patch.points), total_force_n * direction)
+
+
+def time_ours(model: FEModel, forces: np.ndarray, settings: SolverSettings,
+              repeats: int) -> tuple[list[float], list, np.ndarray]:
+    """Wall times (s) of ``repeats`` solves after one warm-up (JIT, analysis)."""
+    u, report = solve(model, Loads(forces=forces), settings)
+    times, reports = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        u, report = solve(model, Loads(forces=forces), settings)
+        times.append(time.perf_counter() - start)
+        reports.append(report)
+    return times, reports, u
+
+
+def time_peer(model: FEModel, forces: np.ndarray, repeats: int, tol: float):
+    peer = SkfemModel(model.nodes, model.hexes, model.weight, model.E_mpa, model.nu,
+                      model.fixed, model.material)
+    start = time.perf_counter()
+    x, info = peer.solve(forces, tol=tol)
+    times = [time.perf_counter() - start]
+    for _ in range(repeats - 1):
+        start = time.perf_counter()
+        x, info = peer.solve(forces, tol=tol, increments=info["increments"])
+        times.append(time.perf_counter() - start)
+    return times, info, peer.dofs_to_nodal(x, model.n_nodes)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--peer-repeats", type=int, default=2)
+    parser.add_argument("--force", type=float, default=3.0, help="total probe force, N")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        case = make_phantom_case(Path(tmp) / "phantom")
+        settings = SolverSettings.from_config(case.cfg.solver)
+        model = FEModel.from_case(case)
+        forces = push_forces(case, args.force)
+        print(f"phantom: {model.n_elements} active cells, {model.n_eq} unknowns, "
+              f"E = {model.E_mpa.min() * 1e3:g} kPa, {model.material}, push {args.force} N "
+              f"at {TILT_DEG:g} deg")
+        times, reports, u = time_ours(model, forces, settings, args.repeats)
+        fem_ms = 1e3 * float(np.median(times))
+        iters = float(np.median([r.iterations for r in reports]))
+        max_disp = reports[-1].max_displacement_mm
+        factorisations = sum(1 for e in reports[-1].log if e["mode"] not in
+                             ("reuse", "k0-cached"))
+        print(f"biopsynav: median {fem_ms:.1f} ms per solve (min {1e3 * min(times):.1f}), "
+              f"{iters:g} Newton iterations ({factorisations} factorisations), "
+              f"{reports[-1].increments} increment(s), max displacement {max_disp:.1f} mm, "
+              f"backend {reports[-1].backend}")
+        peer_times, info, u_peer = time_peer(model, forces, args.peer_repeats,
+                                             settings.tol_residual)
+        peer_ms = 1e3 * float(np.median(peer_times))
+        diff = float(np.abs(u - u_peer).max() / np.abs(u).max())
+        print(f"scikit-fem: median {peer_ms:.0f} ms per solve, {info['iterations']} Newton "
+              f"iterations in {info['increments']} increment(s); max nodal difference "
+              f"{diff:.2e} of the max displacement")
+        for factor in (2, 4):
+            size = case.cfg.grid.cell_size_mm / factor ** (1.0 / 3.0)
+            fine = make_phantom_case(Path(tmp) / f"phantom{factor}", cell_size_mm=size)
+            fine_model = FEModel.from_case(fine)
+            fine_times, fine_reports, _ = time_ours(fine_model, push_forces(fine, args.force),
+                                                    settings, max(3, args.repeats // 2))
+            print(f"{factor}x cells ({fine_model.n_elements} cells, {fine_model.n_eq} "
+                  f"unknowns, {size:.2f} mm): median {1e3 * np.median(fine_times):.0f} ms per "
+                  f"solve, {np.median([r.iterations for r in fine_reports]):g} iterations")
+    print(f"RESULT fem_ms={fem_ms:.1f} peer_ms={peer_ms:.0f} ratio={peer_ms / fem_ms:.1f} "
+          f"max_disp_mm={max_disp:.1f} newton_iters={iters:g}")
+
+
+if __name__ == "__main__":
+    main()

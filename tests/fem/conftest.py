@@ -1,0 +1,40 @@
+"""Shared meshes and closed-form stresses for the finite-element tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from biopsynav.fem.mesh import box_mesh
+
+E_MPA = 5e-3
+NU = 0.45
+
+
+def lame(e_mpa: float = E_MPA, nu: float = NU) -> tuple[float, float]:
+    return e_mpa / (2 * (1 + nu)), e_mpa * nu / ((1 + nu) * (1 - 2 * nu))
+
+
+def pk1_exact(material: str, f: np.ndarray, e_mpa: float = E_MPA, nu: float = NU) -> np.ndarray:
+    """First Piola-Kirchhoff stress (3, 3) MPa of a homogeneous deformation gradient."""
+    mu, lam = lame(e_mpa, nu)
+    if material == "svk":
+        e = 0.5 * (f.T @ f - np.eye(3))
+        return f @ (lam * np.trace(e) * np.eye(3) + 2 * mu * e)
+    f_inv_t = np.linalg.inv(f).T
+    return mu * (f - f_inv_t) + lam * np.log(np.linalg.det(f)) * f_inv_t
+
+
+def distorted_box(cells=(2, 2, 2), size=20.0):
+    """A box whose interior nodes are moved off the regular grid (a patch-test mesh)."""
+    nodes, hexes = box_mesh(cells, (size, size, size))
+    rng = np.random.default_rng(3)
+    interior = np.all((nodes > 1e-9) & (nodes < size - 1e-9), axis=1)
+    h = size / max(cells)
+    nodes[interior] += rng.uniform(-0.2, 0.2, (int(interior.sum()), 3)) * h
+    return nodes, hexes
+
+
+@pytest.fixture(params=["neo-hookean", "svk"])
+def material(request) -> str:
+    return request.param
