@@ -181,7 +181,6 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
                        activation=s.activation)
     dev = resolve_device(s.device)
     threads = set_threads(s.threads)
-    torch.use_deterministic_algorithms(dev.type == "cpu", warn_only=True)
 
     data = load_dataset(dataset if dataset is not None else case_dir)
     check_node_shape(data.node_shape, spec.levels)
@@ -201,7 +200,12 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     resumed_from = state["iteration"]
 
     runner = _Runner(net, opt, data, s, dev, out, signature, state)
-    runner.run(progress=progress, stop_after=stop_after)
+    was_deterministic = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        runner.run(progress=progress, stop_after=stop_after)
+    finally:
+        torch.use_deterministic_algorithms(was_deterministic)
     finished = state["iteration"] >= s.iterations
     if finished:
         from .model_io import write_model  # local import: model_io imports this module
