@@ -1,0 +1,235 @@
+"""Solver checks: analytic uniaxial stretch, scikit-fem cross-check, convergence, failures,
+prescribed displacements."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.optimize import fsolve
+
+from biopsynav.errors import InputError, SolverError
+from biopsynav.fem import FEModel, Loads, SolverSettings, solve
+from biopsynav.fem.linsolve import available_backends
+from biopsynav.fem.mesh import box_mesh
+
+from .conftest import E_MPA, NU, distorted_box, lame
+
+TIGHT = SolverSettings(tol_residual=1e-12, tol_displacement=1e-12, single_precision=False,
+                       constraint_tolerance_mm=1e-9)
+
+
+def _uniaxial_exact(material: str, p11: float) -> tuple[float, float]:
+    """Stretches (axial, lateral) of a block under uniaxial first Piola stress p11 (MPa)."""
+    mu, lam = lame()
+
+    def equations(x):
+        l1, lt = x
+        if material == "svk":
+            e1, et = 0.5 * (l1**2 - 1), 0.5 * (lt**2 - 1)
+            tr = e1 + 2 * et
+            return [l1 * (lam * tr + 2 * mu * e1) - p11, lam * tr + 2 * mu * et]
+        log_j = np.log(l1 * lt**2)
+        return [l1 * (mu * (1 - 1 / l1**2) + lam * log_j / l1**2) - p11,
+                mu * (1 - 1 / lt**2) + lam * log_j / lt**2]
+
+    l1, lt = fsolve(equations, [1.0, 1.0], xtol=1e-13)
+    return float(l1), float(lt)
+
+
+def _roller_block(n: int = 2, size: float = 10.0):
+    nodes, hexes = box_mesh((n, n, n), (size, size, size))
+    fixed = np.zeros((len(nodes), 3), bool)
+    for axis in range(3):
+        fixed[:, axis] = nodes[:, axis] < 1e-9
+    return nodes, hexes, fixed
+
+
+def _face_forces(nodes: np.ndarray, n: int, size: float, traction: np.ndarray) -> np.ndarray:
+    """Consistent nodal forces of a uniform traction (MPa) on the face x = size."""
+    h = size / n
+    on_face = nodes[:, 0] > size - 1e-9
+    inner = lambda c: np.where((c > 1e-9) & (c < size - 1e-9), 1.0, 0.5)  # noqa: E731
+    share = inner(nodes[:, 1]) * inner(nodes[:, 2]) * h * h
+    forces = np.zeros_like(nodes)
+    forces[on_face] = share[on_face, None] * traction
+    return forces
+
+
+@pytest.mark.parametrize("p11_over_e", [0.3, -0.12])
+def test_uniaxial_stretch_matches_closed_form(material, p11_over_e):
+    n, size = 2, 10.0
+    nodes, hexes, fixed = _roller_block(n, size)
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, material)
+    p11 = p11_over_e * E_MPA
+    forces = _face_forces(nodes, n, size, np.array([p11, 0.0, 0.0]))
+    u, report = solve(model, Loads(forces=forces), TIGHT)
+    l1, lt = _uniaxial_exact(material, p11)
+    corner = np.argmax(nodes.sum(axis=1))
+    assert abs((1 + u[corner, 0] / size) - l1) < 1e-6 * l1
+    assert abs((1 + u[corner, 1] / size) - lt) < 1e-6 * lt
+    assert abs(l1 - 1) > 0.08  # a large strain
+    assert np.all(u[fixed] == 0.0)
+
+
+def test_cross_check_against_scikit_fem(material):
+    pytest.importorskip("skfem")
+    from biopsynav.fem.skfem_peer import SkfemModel
+
+    nodes, hexes = box_mesh((4, 3, 3), (40.0, 30.0, 30.0))
+    fixed = nodes[:, 2] < 1e-9
+    rng = np.random.default_rng(0)
+    weight = rng.uniform(0.3, 1.0, len(hexes))
+    e_mpa = rng.uniform(3e-3, 8e-3, len(hexes))
+    top = np.flatnonzero(nodes[:, 2] > 30 - 1e-9)
+    forces = np.zeros_like(nodes)
+    forces[top] = np.array([0.3, 0.1, -1.0]) * 0.1 / len(top)
+    model = FEModel(nodes, hexes, weight, e_mpa, NU, fixed, material)
+    u, _ = solve(model, Loads(forces=forces), TIGHT)
+    peer = SkfemModel(nodes, hexes, weight, e_mpa, NU, fixed, material)
+    x, _ = peer.solve(forces, tol=1e-12)
+    u_peer = peer.dofs_to_nodal(x, len(nodes))
+    assert np.abs(u).max() > 1.0
+    assert np.abs(u - u_peer).max() < 1e-6 * np.abs(u).max()
+
+
+def _pushed_box(material="neo-hookean", force=0.02):
+    nodes, hexes = box_mesh((4, 3, 3), (40.0, 30.0, 30.0))
+    fixed = nodes[:, 2] < 1e-9
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, material)
+    top = np.flatnonzero(nodes[:, 2] > 30 - 1e-9)
+    forces = np.zeros_like(nodes)
+    forces[top] = np.array([0.5, 0.0, -1.0]) * force / len(top)
+    return model, forces
+
+
+def test_newton_converges_quadratically():
+    model, forces = _pushed_box(force=0.1)
+    settings = SolverSettings(tol_residual=1e-13, tol_displacement=1e-13,
+                              reuse_factorization=False, single_precision=False)
+    _, report = solve(model, Loads(forces=forces), settings)
+    rel = [e["residual_rel"] for e in report.log if e["residual_rel"] > 1e-12]
+    assert len(rel) >= 3
+    tail = list(zip(rel[:-1], rel[1:]))[-2:]
+    for before, after in tail:  # e_{k+1} ~ C e_k^2
+        assert after < 10.0 * before**2 or after < 1e-11
+    assert report.log[-1]["residual_rel"] <= 1e-13
+
+
+def test_report_and_log_fields():
+    model, forces = _pushed_box()
+    u, report = solve(model, Loads(forces=forces))
+    assert report.iterations == len(report.log) > 0
+    assert report.increments >= 1 and report.min_det_F > 0 and report.time_s > 0
+    assert report.residual_rel <= 1e-8
+    assert report.max_displacement_mm == pytest.approx(np.linalg.norm(u, axis=1).max())
+    assert {"residual", "residual_rel", "du", "line_step", "min_det_F", "load"} <= set(
+        report.log[0])
+
+
+def test_repeated_solves_reuse_analysis_and_agree():
+    model, forces = _pushed_box()
+    u1, _ = solve(model, Loads(forces=forces))
+    cached = dict(model.cache)
+    u2, _ = solve(model, Loads(forces=forces))
+    assert all(model.cache[k] is v for k, v in cached.items())
+    assert np.abs(u1 - u2).max() < 1e-8 * np.abs(u1).max()
+
+
+def test_non_convergence_raises_with_log():
+    model, forces = _pushed_box(force=0.5)
+    settings = SolverSettings(max_iterations=1, min_load_step=0.25, reuse_factorization=False)
+    with pytest.raises(SolverError) as info:
+        solve(model, Loads(forces=forces), settings)
+    assert info.value.log and "min_load_step" in info.value.what
+
+
+def test_svk_past_its_limit_point_is_reported():
+    n, size = 2, 10.0
+    nodes, hexes, fixed = _roller_block(n, size)
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, "svk")
+    forces = _face_forces(nodes, n, size, np.array([-1.0 * E_MPA, 0.0, 0.0]))
+    with pytest.raises(SolverError) as info:
+        solve(model, Loads(forces=forces))
+    assert info.value.log
+    assert min(e["min_det_F"] for e in info.value.log) > 0  # never an inverted state kept
+
+
+def test_zero_load_returns_zero():
+    model, forces = _pushed_box()
+    u, report = solve(model, Loads(forces=0 * forces))
+    assert not u.any() and report.iterations == 0
+
+
+def test_bad_loads_are_input_errors():
+    model, forces = _pushed_box()
+    with pytest.raises(InputError):
+        solve(model, Loads(forces=forces[:-1]))
+    bad = forces.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InputError):
+        solve(model, Loads(forces=bad))
+
+
+def _top_points_matrix(nodes: np.ndarray, points: np.ndarray, cells, size) -> sp.csr_matrix:
+    """Trilinear interpolation matrix of points in a regular box mesh."""
+    from biopsynav.grid import index
+    from biopsynav.grid.embedding import trilinear_weights
+
+    h = np.asarray(size) / np.asarray(cells)
+    rel = points / h
+    ijk = np.minimum(np.floor(rel).astype(int), np.asarray(cells) - 1)
+    weights = trilinear_weights(rel - ijk)
+    node_ids = index.hex_connectivity(ijk, tuple(np.asarray(cells) + 1))
+    rows = np.repeat(np.arange(len(points)), 8)
+    return sp.csr_matrix((weights.ravel(), (rows, node_ids.ravel())),
+                         shape=(len(points), len(nodes)))
+
+
+def test_prescribed_displacements_are_met(material):
+    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
+    nodes, hexes = box_mesh(cells, size)
+    fixed = nodes[:, 2] < 1e-9
+    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, fixed, material)
+    points = np.array([[12.0, 14.0, 30.0], [17.5, 11.0, 30.0], [23.0, 16.0, 29.0]])
+    w = _top_points_matrix(nodes, points, cells, size)
+    target = np.tile([1.0, 0.5, -3.0], (3, 1))
+    forces = np.zeros_like(nodes)
+    forces[nodes[:, 2] > 29.9] = [0.0, 0.0, 1e-4]
+    u, report = solve(model, Loads(forces=forces, prescribed_matrix=w,
+                                   prescribed_displacement=target))
+    assert np.abs(w @ u - target).max() < 1e-3
+    assert report.constraint_error_mm <= 1e-4
+    assert np.all(u[fixed] == 0.0)
+
+
+def test_patch_test_with_prescribed_boundary():
+    nodes, hexes = distorted_box(cells=(3, 3, 3), size=30.0)
+    boundary = np.any((nodes < 1e-9) | (nodes > 30 - 1e-9), axis=1)
+    f_affine = np.array([[1.08, 0.04, 0.0], [0.02, 0.95, 0.03], [0.0, 0.05, 1.04]])
+    exact = (nodes - 15.0) @ (f_affine - np.eye(3)).T
+    fixed = np.zeros(len(nodes), bool)
+    fixed[np.argmin(np.linalg.norm(nodes - 15.0, axis=1))] = False
+    anchor = np.flatnonzero(boundary)
+    w = sp.csr_matrix((np.ones(len(anchor)), (np.arange(len(anchor)), anchor)),
+                      shape=(len(anchor), len(nodes)))
+    corner = np.argmin(nodes.sum(axis=1))
+    fixed[corner] = True  # keeps the model anchored; its target is moved to zero
+    exact -= exact[corner]
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed)
+    # the penalty's stiff terms limit the attainable relative residual to about 1e-10
+    settings = SolverSettings(tol_residual=1e-9, tol_displacement=1e-9,
+                              constraint_tolerance_mm=1e-8)
+    u, _ = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=exact[anchor]),
+                 settings)
+    assert np.abs(u - exact).max() < 1e-6 * np.abs(exact).max()
+
+
+@pytest.mark.parametrize("backend", available_backends())
+def test_every_installed_backend_gives_the_same_answer(backend):
+    model, forces = _pushed_box()
+    reference, _ = solve(model, Loads(forces=forces), TIGHT)
+    settings = SolverSettings(backend=backend, tol_residual=1e-12, tol_displacement=1e-12)
+    u, report = solve(model, Loads(forces=forces), settings)
+    assert report.backend == backend
+    assert np.abs(u - reference).max() < 1e-8 * np.abs(reference).max()
