@@ -103,7 +103,7 @@ def main() -> None:
             fine = make_phantom_case(Path(tmp) / f"phantom{factor}", cell_size_mm=size)
             fine_model = FEModel.from_case(fine)
             fine_times, fine_reports, _ = time_ours(fine_model, push_forces(fine, args.force),
-                                                    settings, max(3, args.repeats // 2))
+                                                    settings, 2)
             print(f"{factor}x cells ({fine_model.n_elements} cells, {fine_model.n_eq} "
                   f"unknowns, {size:.2f} mm): median {1e3 * np.median(fine_times):.0f} ms per "
                   f"solve, {np.median([r.iterations for r in fine_reports]):g} iterations")

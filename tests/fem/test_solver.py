@@ -110,7 +110,7 @@ def test_newton_converges_quadratically():
     _, report = solve(model, Loads(forces=forces), settings)
     rel = [e["residual_rel"] for e in report.log if e["residual_rel"] > 1e-12]
     assert len(rel) >= 3
-    tail = list(zip(rel[:-1], rel[1:]))[-2:]
+    tail = list(zip(rel[:-1], rel[1:], strict=True))[-2:]
     for before, after in tail:  # e_{k+1} ~ C e_k^2
         assert after < 10.0 * before**2 or after < 1e-11
     assert report.log[-1]["residual_rel"] <= 1e-13

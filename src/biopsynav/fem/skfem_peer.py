@@ -59,7 +59,9 @@ class SkfemModel:
         self.params = {"mu": mu[:, None] * per_qp, "lam": lam[:, None] * per_qp,
                        "frac": np.broadcast_to(weight, len(hexes))[:, None] * per_qp}
         self.material = material
-        self.fixed_dofs = self.basis.nodal_dofs[:, np.flatnonzero(fixed[used])].ravel()
+        fixed = np.asarray(fixed, dtype=bool)
+        fixed = np.repeat(fixed[:, None], 3, axis=1) if fixed.ndim == 1 else fixed
+        self.fixed_dofs = np.sort(self.basis.nodal_dofs.T[fixed[used]])
         self._forms()
 
     def _forms(self) -> None:
