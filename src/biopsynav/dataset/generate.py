@@ -135,7 +135,7 @@ class LocalRunner:
         try:
             return ProcessPoolExecutor(self.workers, multiprocessing.get_context("spawn"),
                                        initializer=init_process,
-                                       initargs=(self.spec, self.env))
+                                       initargs=(self.spec, self.env, os.getpid()))
         finally:
             for key, value in saved.items():
                 if value is None:

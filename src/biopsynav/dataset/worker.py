@@ -113,13 +113,13 @@ def push_metadata(push: Any) -> dict:
 _PROCESS_CONTEXT: SampleContext | None = None
 
 
-def init_process(spec: WorkerSpec, env: dict[str, str]) -> None:
+def init_process(spec: WorkerSpec, env: dict[str, str], parent: int) -> None:
     """``ProcessPoolExecutor`` initializer: thread limits, a watchdog that ends the process
     when the main process dies (kill -9 leaves no orphan computing), then the case's
-    context, once."""
+    context, once. ``parent``: the main process id (passed in, so that a main process that
+    died before this ran is noticed too)."""
     global _PROCESS_CONTEXT
     os.environ.update(env)
-    parent = os.getppid()
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True,
                      name="parent-watchdog").start()
     _PROCESS_CONTEXT = SampleContext(spec.case)
