@@ -254,10 +254,19 @@ class IgtlSection:
 
 @dataclass
 class EvaluateSection:
-    deformations_per_lesion: int = opt(4, "Probe pushes per lesion in Table 2.", lo=1, hi=50)
-    max_push_mm: float = opt(32.0, "Deepest probe push in Table 2.", lo=1.0, hi=200.0)
-    reference_refinement: int = opt(2, "Ground-truth FE grid is this many times finer.",
-                                    lo=1, hi=4)
+    deformations_per_lesion: int = opt(4, "Probe pushes per lesion in Table 2 by simulation "
+                                          "(the paper: four of increasing extent).", lo=1, hi=50)
+    max_push_mm: float = opt(32.0, "Deepest probe push in Table 2 by simulation: the push "
+                                   "depths are spread from 10/32 to 30/32 of it (10 ... 30 mm, "
+                                   "the centres of the paper's bins D10 ... D30, by default; "
+                                   "docs/evaluation.md).", lo=1.0, hi=200.0)
+    reference_refinement: float = opt(2.0, "The ground-truth FE grid of Table 2 has cells this "
+                                           "many times smaller than the training grid (2: half "
+                                           "the cell size, about 8 times the elements).",
+                                      lo=1.0, hi=4.0)
+    max_lesions: int = opt(0, "Lesions evaluated in Table 2 by simulation (0: all; else this "
+                              "many, spread over the lesion list) to bound the run time.",
+                           lo=0, hi=10000)
 
 
 SECTIONS: dict[str, type] = {

@@ -1,0 +1,132 @@
+"""``biopsynav evaluate``: Table 1 (network engineer's), then Table 2; files into CASE/eval."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from ..errors import InputError
+from ..fileio import write_json_atomic, write_text_atomic
+from .measured import evaluate_measured
+from .paper import PAPER_TABLE2_COL_MEAN, PAPER_TABLE2_MAX_ROW_MEAN
+from .simulation import run_simulation
+from .table import BIN_EDGES_MM, METHOD_TITLES, format_markdown, format_text, table_from_dict
+
+EVAL_DIR = "eval"
+TABLE2 = "table2"  # by simulation: eval/table2.json and eval/table2.md
+TABLE2_MEASURED = "table2_measured"  # from user data: eval/table2_measured.json and .md
+
+
+def require_model(case_dir: Path) -> None:
+    """Raise InputError unless the case has a trained model."""
+    if not (case_dir / "model" / "meta.json").is_file():
+        raise InputError("no trained model in this case; run `biopsynav train "
+                         f"{case_dir}` first (and `biopsynav generate` before it)",
+                         str(case_dir / "model"))
+
+
+def evaluate_case(case_dir: str | Path, table2: bool = True, measured: str | Path | None = None,
+                  poses: str | Path | None = None, quick: bool = False,
+                  log: Callable[[str], None] = print) -> dict:
+    """Table 1, then Table 2 (by simulation, or from ``poses`` + ``measured`` CSVs).
+
+    Writes ``CASE/eval/table1.json`` (+ PNGs, by :mod:`biopsynav.network.evaluate`),
+    ``CASE/eval/table2.json`` and ``table2.md`` (simulation) or ``table2_measured.json`` and
+    ``.md`` (user data), and prints the tables. ``quick`` evaluates a subset (3 lesions, a
+    1.5 times finer reference). Returns ``{"table1": ..., "table2": ...}`` (``table2``
+    absent with ``table2=False``).
+    """
+    case_dir = Path(case_dir)
+    if (measured is None) != (poses is None):
+        raise InputError("--poses and --measured go together: the tracked probe poses and the "
+                         "lesion positions measured in those frames", "evaluate")
+    require_model(case_dir)
+    from ..network.evaluate import evaluate_case as table1_case
+    from ..network.evaluate import format_table1
+
+    out: dict = {"table1": table1_case(case_dir)}
+    log("Table 1: " + format_table1(out["table1"]))
+    if measured is not None:
+        result = evaluate_measured(case_dir, poses, measured, log=log)
+        out["table2"] = write_table2(case_dir, result, TABLE2_MEASURED, log)
+    elif table2:
+        result = run_simulation(case_dir, quick=quick, log=log)
+        out["table2"] = write_table2(case_dir, result, TABLE2, log)
+    return out
+
+
+def write_table2(case_dir: Path, result: dict, stem: str,
+                 log: Callable[[str], None] = print) -> dict:
+    """Write ``eval/<stem>.json`` and ``eval/<stem>.md``, print the tables; return result."""
+    eval_dir = Path(case_dir) / EVAL_DIR
+    write_json_atomic(eval_dir / f"{stem}.json", result)
+    write_text_atomic(eval_dir / f"{stem}.md", table2_markdown(result))
+    log(table2_text(result))
+    return result
+
+
+def _source_line(result: dict) -> str:
+    if result["source"] == "measured":
+        return (f"Ground truth: lesion positions measured by the user "
+                f"({result['inputs']['measured']}; poses {result['inputs']['poses']}).")
+    ref = result["reference"]
+    return (f"Ground truth: FE model on a {ref['cell_size_mm']:.2f} mm grid "
+            f"({ref['active_cells']} active cells; training grid {ref['training_cell_size_mm']:g}"
+            f" mm, {ref['training_active_cells']} cells), same prescribed contact "
+            f"displacements.")
+
+
+def table2_text(result: dict) -> str:
+    """All method tables of a Table 2 result as aligned plain text, with failures."""
+    parts = [f"Table 2 ({result['source']}): TRE in mm per lesion and probe displacement "
+             f"(edges {', '.join(f'{e:g}' for e in BIN_EDGES_MM)} mm). " + _source_line(result)]
+    for m in result["methods"]:
+        parts.append(format_text(table_from_dict(result["tables"][m])))
+        overall = result["tables"][m]["overall_mean"]
+        parts.append(f"  average TRE over all cells: "
+                     f"{'-' if overall is None else f'{overall:.3f}'} mm")
+    parts.append(_failures_text(result))
+    if "total_s" in result.get("timing", {}):
+        parts.append(f"Table 2 took {result['timing']['total_s']:.1f} s")
+    return "\n\n".join(p for p in parts if p)
+
+
+def _failures_text(result: dict) -> str:
+    fails = [f for f in result["failures"] if f["method"] != "reference"]
+    if not fails:
+        return ""
+    lines = [f"{len(fails)} entries without a TRE ('-' in the tables):"]
+    for f in fails:
+        lines.append(f"  lesion {f['lesion']} push {f['push']} "
+                     f"({f['displacement_mm']:.1f} mm) {f['method']}: {f['status']}: "
+                     f"{f['reason']}")
+    return "\n".join(lines)
+
+
+def table2_markdown(result: dict) -> str:
+    """Table 2 as a Markdown document (one table per method, the paper's figures, failures)."""
+    lines = [f"# Table 2 ({result['source']})", "",
+             "Target registration error (mm) of the lesion under the probe, per lesion and "
+             "probe displacement range (D10 < 12.5 mm, D15 [12.5, 17.5), D20 [17.5, 22.5), "
+             "D25 [22.5, 27.5), D30 >= 27.5 mm); '-': no push in that range, or no "
+             "trustworthy result (listed below).", "", _source_line(result), ""]
+    for m in result["methods"]:
+        t = result["tables"][m]
+        lines += [f"## {METHOD_TITLES.get(m, m)}", "", format_markdown(table_from_dict(t)), ""]
+        if t["overall_mean"] is not None:
+            lines.append(f"Average TRE over all cells: {t['overall_mean']:.3f} mm; largest "
+                         f"lesion mean {t['max_row_mean']:.3f} mm.")
+        if m in PAPER_TABLE2_COL_MEAN:
+            cols = ", ".join(f"{v:.3f}" for v in PAPER_TABLE2_COL_MEAN[m])
+            lines.append(f"The paper (CIRS phantom, measured in US images): column means "
+                         f"{cols} mm; largest lesion mean {PAPER_TABLE2_MAX_ROW_MEAN[m]:.3f} mm.")
+        lines.append("")
+    fails = _failures_text(result)
+    if fails:
+        lines += ["## Missing entries", "", "```", fails, "```", ""]
+    timing = result.get("timing", {})
+    if timing.get("total_s") is not None:
+        lines.append(f"Run time: {timing['total_s']:.1f} s.")
+        for m, ms in timing.get("mean_ms", {}).items():
+            lines.append(f"- {m}: {ms:.1f} ms per push (mean)")
+    return "\n".join(lines) + "\n"

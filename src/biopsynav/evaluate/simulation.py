@@ -1,0 +1,206 @@
+"""Table 2 by simulation: probe above each lesion, four pushes, ground truth on a finer grid.
+
+Ground truth: the FE model of the same anatomy on a grid ``[evaluate] reference_refinement``
+times finer (half the cell size by default), driven by the same prescribed displacement of
+the same contact points (skin vertices, shared by both grids), so that the training-resolution
+FE model shows its discretisation error and the network shows that plus its learning error.
+Methods: ``net`` (the U-Net tracker), ``fem`` (FE tracker at the training resolution) and
+``rigid`` (lesions stay where they were at rest). TRE = |predicted - ground-truth centre|.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..case import Case
+from ..fem import FEModel, SolverSettings
+from ..grid.build import build_grid
+from ..tracker.core import Tracker
+from ..tracker.result import TrackingResult
+from .placement import Placement, place_probe, push_depths
+from .table import BIN_NAMES, Record, aggregate, bin_name
+
+METHODS: tuple[str, ...] = ("net", "fem", "rigid")
+QUICK_LESIONS = 3
+QUICK_REFINEMENT = 1.5
+#: prescribed contact displacements are met to this (mm) in the evaluation solves (the case's
+#: [solver] value when larger); far below the millimetre TREs that are measured
+CONSTRAINT_TOLERANCE_MM = 1e-2
+RESIDUAL_TOLERANCE = 1e-6
+
+
+def evaluation_solver_settings(case: Case) -> SolverSettings:
+    """Solver settings of the evaluation solves (reference and ``fem`` method alike): the
+    case's ``[solver]`` with tolerances loosened to ``CONSTRAINT_TOLERANCE_MM`` and
+    ``RESIDUAL_TOLERANCE`` where they are tighter."""
+    s = SolverSettings.from_config(case.cfg.solver)
+    s.constraint_tolerance_mm = max(s.constraint_tolerance_mm, CONSTRAINT_TOLERANCE_MM)
+    s.tol_residual = max(s.tol_residual, RESIDUAL_TOLERANCE)
+    s.tol_displacement = max(s.tol_displacement, RESIDUAL_TOLERANCE)
+    return s
+
+
+def reference_case(case: Case, refinement: float) -> Case:
+    """An in-memory case with the same anatomy and a grid ``refinement`` times finer."""
+    section = dataclasses.replace(case.cfg.grid,
+                                  cell_size_mm=case.cfg.grid.cell_size_mm / refinement)
+    grid = build_grid(case.anatomy, section, levels=0)
+    return Case(case.dir, case.cfg, case.anatomy, grid)
+
+
+def fem_tracker(case: Case, settings: SolverSettings) -> Tracker:
+    """A tracker backed by the FE model of ``case`` (whatever its grid)."""
+    return Tracker(case, "fem", fem_model=FEModel.from_case(case), fem_settings=settings)
+
+
+def select_lesions(n_lesions: int, max_lesions: int) -> list[int]:
+    """Indices of the lesions evaluated: all, or ``max_lesions`` spread evenly over the list."""
+    if max_lesions <= 0 or max_lesions >= n_lesions:
+        return list(range(n_lesions))
+    return sorted({int(round(v)) for v in np.linspace(0, n_lesions - 1, max_lesions)})
+
+
+@dataclass
+class Setup:
+    """What a Table 2 run uses: lesion indices, refinement, pushes per lesion, deepest push."""
+
+    lesions: list[int]
+    refinement: float
+    pushes: int
+    max_push_mm: float
+
+
+def setup_for(case: Case, quick: bool) -> Setup:
+    """The run's setup from ``[evaluate]``; ``quick`` caps lesions and refinement."""
+    ev = case.cfg.evaluate
+    max_lesions = ev.max_lesions
+    refinement = float(ev.reference_refinement)
+    if quick:
+        max_lesions = min(max_lesions, QUICK_LESIONS) if max_lesions > 0 else QUICK_LESIONS
+        refinement = min(refinement, QUICK_REFINEMENT)
+    return Setup(select_lesions(len(case.anatomy.lesions), max_lesions), refinement,
+                 ev.deformations_per_lesion, ev.max_push_mm)
+
+
+def run_simulation(case_dir, methods: Sequence[str] = METHODS, quick: bool = False,
+                   log: Callable[[str], None] = print) -> dict:
+    """Table 2 by simulation of the case in ``case_dir``; returns the JSON-ready result.
+
+    Keys: ``source`` ("simulation"), ``methods``, ``records`` (one per lesion, push and
+    method: displacement_mm, bin, tre_mm or None with status and reason, time_ms),
+    ``tables`` (per method, see :meth:`Table.to_dict`), ``placements``, ``reference`` (grid
+    facts), ``failures`` and ``timing`` (seconds).
+    """
+    t_start = time.perf_counter()
+    case = Case.load(case_dir)
+    setup = setup_for(case, quick)
+    settings = evaluation_solver_settings(case)
+    t0 = time.perf_counter()
+    ref_case = reference_case(case, setup.refinement)
+    reference = fem_tracker(ref_case, settings)
+    t_ref_build = time.perf_counter() - t0
+    log(f"Table 2: reference grid {ref_case.grid.spacing:.2f} mm "
+        f"({int(ref_case.grid.active_cells.sum())} active cells, built in {t_ref_build:.1f} s); "
+        f"{len(setup.lesions)} lesions x {setup.pushes} pushes up to {setup.max_push_mm:g} mm")
+    trackers = _method_trackers(case, methods, settings)
+    records: list[Record] = []
+    placements = []
+    for k, li in enumerate(setup.lesions):
+        t_les = time.perf_counter()
+        placement = place_probe(case.anatomy, li)
+        depths = push_depths(k, setup.pushes, setup.max_push_mm)
+        n_contact = _set_rest(placement, reference, trackers)
+        placements.append({**placement.to_dict(), "n_contact": n_contact,
+                           "push_depths_mm": depths.tolist()})
+        for p, depth in enumerate(depths):
+            records += push_records(placement, li, p, float(depth), reference, trackers, methods)
+        log(f"  lesion {placement.lesion}: {n_contact} contact points, pushes "
+            f"{', '.join(f'{d:.1f}' for d in depths)} mm, {time.perf_counter() - t_les:.1f} s")
+    lesion_ids = [int(case.anatomy.lesions[i].id) for i in setup.lesions]
+    return {
+        "source": "simulation",
+        "methods": list(methods),
+        "bins": list(BIN_NAMES),
+        "records": [r.to_dict() for r in records],
+        "tables": {m: aggregate(records, m, lesion_ids).to_dict() for m in methods},
+        "placements": placements,
+        "reference": {"cell_size_mm": float(ref_case.grid.spacing),
+                      "training_cell_size_mm": float(case.grid.spacing),
+                      "refinement": setup.refinement,
+                      "active_cells": int(ref_case.grid.active_cells.sum()),
+                      "training_active_cells": int(case.grid.active_cells.sum()),
+                      "n_equations": int(reference._fem_model.n_eq)},
+        "setup": dataclasses.asdict(setup) | {"quick": quick},
+        "failures": [r.to_dict() for r in records if r.tre_mm is None],
+        "timing": _timing(records, t_ref_build, time.perf_counter() - t_start),
+    }
+
+
+def _method_trackers(case: Case, methods: Sequence[str],
+                     settings: SolverSettings) -> dict[str, Tracker]:
+    trackers: dict[str, Tracker] = {}
+    if "net" in methods:
+        trackers["net"] = Tracker.load(case.dir, engine="net")
+    if "fem" in methods:
+        trackers["fem"] = fem_tracker(case, settings)
+    return trackers
+
+
+def _set_rest(placement: Placement, reference: Tracker, trackers: dict[str, Tracker]) -> int:
+    n = reference.set_rest_pose(placement.pose)
+    for tr in trackers.values():
+        tr.set_rest_pose(placement.pose)
+    return n
+
+
+def push_records(placement: Placement, lesion_index: int, push: int, depth_mm: float,
+                 reference: Tracker, trackers: dict[str, Tracker],
+                 methods: Sequence[str]) -> list[Record]:
+    """Records of every method for one push of ``depth_mm`` (probe displacement) mm."""
+    pose = placement.pushed(depth_mm)
+    displacement = float(np.linalg.norm(pose[:3, 3] - placement.pose[:3, 3]))
+    base = {"lesion": placement.lesion, "push": push, "displacement_mm": displacement,
+            "bin": bin_name(displacement)}
+    truth = reference.update(pose)
+    if not truth.reliable:
+        reason = f"ground truth (fine FE): {truth.status}: {truth.reason}"
+        return [Record(**base, method=m, tre_mm=None, status="no_reference", reason=reason)
+                for m in methods]
+    true_centre = truth.lesions[lesion_index].center
+    rest_centre = true_centre - truth.lesions[lesion_index].displacement
+    out = []
+    for m in methods:
+        if m == "rigid":
+            out.append(Record(**base, method=m, tre_mm=float(np.linalg.norm(true_centre
+                                                                             - rest_centre)),
+                              time_ms=0.0))
+        else:
+            out.append(method_record(base, m, trackers[m].update(pose), lesion_index,
+                                     true_centre))
+    out.append(Record(**base, method="reference", tre_mm=0.0, time_ms=truth.latency_ms))
+    return out
+
+
+def method_record(base: dict, method: str, result: TrackingResult, lesion_index: int,
+                  true_centre: np.ndarray) -> Record:
+    """The record of one tracker result against the ground-truth centre (3,) mm."""
+    if not result.reliable:
+        return Record(**base, method=method, tre_mm=None, status=result.status,
+                      reason=result.reason, time_ms=result.latency_ms)
+    tre = float(np.linalg.norm(result.lesions[lesion_index].center - true_centre))
+    return Record(**base, method=method, tre_mm=tre, time_ms=result.latency_ms)
+
+
+def _timing(records: list[Record], ref_build_s: float, total_s: float) -> dict:
+    per_method: dict[str, list[float]] = {}
+    for r in records:
+        if r.time_ms is not None and r.tre_mm is not None:
+            per_method.setdefault(r.method, []).append(r.time_ms)
+    return {"total_s": total_s, "reference_build_s": ref_build_s,
+            "mean_ms": {m: float(np.mean(v)) for m, v in per_method.items()},
+            "n_solves": {m: len(v) for m, v in per_method.items()}}
