@@ -1,0 +1,62 @@
+"""``biopsynav report``: ``CASE/report.html`` (self-contained) and ``CASE/report.md``.
+
+Sections: pipeline stages, the case (anatomy picture, case.toml), training data, training,
+Table 1 (with the paper's), Table 2 (three methods, with the paper's), timing (FE against
+network against the paper's), versions and machine. A section whose stage has not run says
+so ("not run yet: run `biopsynav <stage> CASE`"); the report never fails on a partial case.
+Figures the report makes itself go to ``CASE/report_files/``; the Markdown links every image
+relative to the case folder, the HTML embeds them as base64 data URIs.
+"""
+
+from __future__ import annotations
+
+import datetime
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+from ..config import load_config  # noqa: E402
+from ..fileio import write_text_atomic  # noqa: E402
+from .blocks import to_html, to_markdown  # noqa: E402
+from .sections import (  # noqa: E402
+    FIG_DIR,
+    case_section,
+    dataset_section,
+    machine_section,
+    stages_section,
+    table1_section,
+    table2_section,
+    timing_section,
+    training_section,
+)
+
+HTML_FILE = "report.html"
+MD_FILE = "report.md"
+
+
+def build_sections(case_dir: Path) -> tuple[str, list]:
+    """Title and sections of the report of ``case_dir`` (makes the report's own figures)."""
+    cfg = load_config(case_dir)
+    fig_dir = case_dir / FIG_DIR
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    title = f"biopsynav report: {cfg.case.name} ({stamp})"
+    sections = [stages_section(case_dir), case_section(case_dir, cfg),
+                dataset_section(case_dir), training_section(case_dir),
+                table1_section(case_dir), table2_section(case_dir, fig_dir),
+                timing_section(case_dir, fig_dir), machine_section()]
+    return title, sections
+
+
+def write_report(case_dir: str | Path) -> list[Path]:
+    """Write ``CASE/report.html`` and ``CASE/report.md``; return their paths (HTML first)."""
+    case_dir = Path(case_dir)
+    title, sections = build_sections(case_dir)
+    html_path = write_text_atomic(case_dir / HTML_FILE, to_html(title, sections))
+    md_path = write_text_atomic(case_dir / MD_FILE, to_markdown(title, sections, case_dir))
+    return [html_path, md_path]
+
+
+__all__ = ["HTML_FILE", "MD_FILE", "build_sections", "write_report"]

@@ -1,0 +1,235 @@
+"""The report's sections, each built from its stage's outputs or a "not run yet" note."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ..config import CaseConfig
+from ..errors import BiopsynavError
+from ..evaluate.paper import PAPER_TABLE1
+from ..evaluate.run import TABLE2, TABLE2_MEASURED, table2_text
+from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
+from .blocks import Grid, Image, Note, Para, Pre, Section
+from .figures import plot_table2, plot_timing, timing_rows
+from .machine import versions_and_machine
+
+FIG_DIR = "report_files"  # figures the report makes, beside report.html
+
+
+def not_run(stage: str, case_dir: Path, what: str) -> Note:
+    """The note of a missing stage output."""
+    return Note(f"{what}: not run yet: run `biopsynav {stage} {case_dir}`.")
+
+
+def read_json(path: Path) -> dict | None:
+    """The JSON object at ``path``, or None if missing or unreadable."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def _num(v, fmt: str = ".4g") -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return format(v, fmt)
+    return str(v)
+
+
+def case_section(case_dir: Path, cfg: CaseConfig) -> Section:
+    """The anatomy picture and every case.toml parameter."""
+    s = Section("The case")
+    s.blocks.append(Para(f"{cfg.case.name}: {cfg.case.description or 'no description'}. "
+                         "Units: mm, N, MPa."))
+    picture = anatomy_picture(case_dir)
+    if isinstance(picture, Path):
+        s.blocks.append(Image(picture, "Anatomy: surface, chest wall, lesions and the active "
+                                       "grid cells (3D view and three mid-slices)."))
+    else:
+        s.blocks.append(picture)
+    rows = []
+    for section, values in cfg.to_dict().items():
+        for key, value in values.items():
+            shown = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
+            rows.append([f"[{section}] {key}", shown])
+    s.blocks += [Para("Parameters (case.toml):"), Grid(["parameter", "value"], rows)]
+    return s
+
+
+def anatomy_picture(case_dir: Path) -> Path | Note:
+    """``CASE/anatomy.png`` (rendered when missing or older than the grid), or a note."""
+    png, grid = case_dir / "anatomy.png", case_dir / "grid.npz"
+    if not grid.is_file() or not (case_dir / "anatomy.npz").is_file():
+        return not_run("init", case_dir, "Anatomy and grid")
+    if png.is_file() and png.stat().st_mtime >= grid.stat().st_mtime:
+        return png
+    try:
+        from ..case import Case
+        from ..show import render_case
+
+        return render_case(Case.load(case_dir), png)
+    except (BiopsynavError, OSError, ValueError) as exc:
+        return Note(f"The anatomy picture could not be rendered: {exc}")
+
+
+def dataset_section(case_dir: Path) -> Section:
+    """Data generation summary and histograms."""
+    s = Section("Training data (FE simulations)")
+    summary = read_json(case_dir / "dataset_summary.json")
+    if summary is None:
+        s.blocks.append(not_run("generate", case_dir, "Data generation"))
+        return s
+    s.blocks.append(Grid(["quantity", "value"], [[k, _num(v)] for k, v in summary.items()]))
+    if (case_dir / "dataset.png").is_file():
+        s.blocks.append(Image(case_dir / "dataset.png", "Distributions of probe force, tilt, "
+                                                        "maximal nodal and probe displacement."))
+    return s
+
+
+def training_section(case_dir: Path) -> Section:
+    """Architecture, training figures and the loss curve."""
+    s = Section("Network training")
+    meta = read_json(case_dir / "model" / "meta.json")
+    if meta is None:
+        s.blocks.append(not_run("train", case_dir, "Training"))
+        return s
+    rows = [["architecture", json.dumps(meta.get("architecture", "-"))],
+            ["parameters", _num(meta.get("n_parameters"))]]
+    rows += [[k, _num(v)] for k, v in (meta.get("training") or {}).items()
+             if not isinstance(v, (list, dict))]
+    s.blocks.append(Grid(["item", "value"], rows))
+    curve = next((p for p in (case_dir / "model" / "loss_curve.png",
+                              case_dir / "eval" / "loss_curve.png") if p.is_file()), None)
+    if curve is not None:
+        s.blocks.append(Image(curve, "Training loss and validation error against iterations."))
+    return s
+
+
+def table1_section(case_dir: Path) -> Section:
+    """Table 1 beside the paper's, error histogram, Figure 4 (worst, largest deformation)."""
+    s = Section("Table 1: network against FE on the held-out samples")
+    t1 = read_json(case_dir / "eval" / "table1.json")
+    if t1 is None:
+        s.blocks.append(not_run("evaluate", case_dir, "Table 1"))
+        return s
+    p = PAPER_TABLE1
+    rows = [
+        ["mean norm error e (mm)", _num(t1.get("mean_e_mm")), _num(p["mean_e_mm"])],
+        ["std of e (mm)", _num(t1.get("std_e_mm")), _num(p["std_e_mm"])],
+        ["max of e (mm)", _num(t1.get("max_e_mm")), _num(p["max_e_mm"])],
+        ["prediction time (ms)", f"{_num(t1.get('predict_mean_ms'))} ± "
+                                 f"{_num(t1.get('predict_std_ms'))} (median "
+                                 f"{_num(t1.get('predict_p50_ms'))}, p99 "
+                                 f"{_num(t1.get('predict_p99_ms'))})",
+         f"{p['predict_mean_ms']} ± {p['predict_std_ms']}"],
+        ["training time (min)", _num(t1.get("train_min")), _num(p["train_min"])],
+        ["max nodal displacement (mm)", _num(t1.get("max_disp_mm")), _num(p["max_disp_mm"])],
+        ["test samples", _num(t1.get("n_samples")), _num(p["n_test"])],
+        ["runtime / precision", f"{t1.get('runtime', '-')} / {t1.get('precision', '-')}",
+         "PyTorch, GPU"],
+    ]
+    s.blocks.append(Grid(["", "this case", "the paper"], rows))
+    figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
+                                       "samples."),
+               ("largest_deformation.png", "Figure 4(a): prediction (network) against FE on "
+                                           "the sample with the largest deformation."),
+               ("worst_sample.png", "Figure 4(b): prediction against FE on the sample with "
+                                    "the largest mean norm error.")]
+    for name, caption in figures:
+        path = case_dir / "eval" / name
+        s.blocks.append(Image(path, caption) if path.is_file() else
+                        Note(f"{name} is missing: run `biopsynav evaluate {case_dir}` again."))
+    return s
+
+
+def table2_section(case_dir: Path, fig_dir: Path) -> Section:
+    """Table 2 by simulation and, when present, from measured data; three methods each."""
+    s = Section("Table 2: target registration error per lesion and probe displacement")
+    found = False
+    for stem, title in ((TABLE2, "by simulation"), (TABLE2_MEASURED, "from measured data")):
+        result = read_json(case_dir / "eval" / f"{stem}.json")
+        if result is None:
+            continue
+        found = True
+        s.blocks += table2_blocks(result, title, fig_dir / f"{stem}.png")
+    if not found:
+        s.blocks.append(not_run("evaluate", case_dir, "Table 2"))
+    return s
+
+
+def table2_blocks(result: dict, title: str, png: Path) -> list:
+    """Tables (one per method), the paper's figures, a summary figure and the failures."""
+    blocks: list = [Para(f"Table 2 {title}. " + table2_text(result).split("\n\n")[0])]
+    for m in result["methods"]:
+        t = result["tables"][m]
+        header, *rows = _grid_rows(t)
+        blocks += [Para(f"{METHOD_TITLES.get(m, m)}: average TRE "
+                        f"{_num(t['overall_mean'], '.3f')} mm."), Grid(header, rows)]
+    blocks.append(Para("The paper, on the CIRS phantom with positions from ultrasound "
+                       "images: average TRE below 6.194 mm (U-Net) and 6.080 mm (FE) per "
+                       "lesion; column means D10 ... D30 of 2.75, 3.39, 4.22, 5.12, 5.76 mm "
+                       "(U-Net) and 2.02, 2.62, 3.55, 4.68, 4.96 mm (FE)."))
+    blocks.append(Image(plot_table2(result, png), "Mean TRE per displacement range (bars: "
+                                                  "this case; circles: the paper) and the "
+                                                  "distribution of all TREs."))
+    fails = [f for f in result.get("failures", []) if f["method"] != "reference"]
+    if fails:
+        blocks.append(Pre("\n".join(f"lesion {f['lesion']} push {f['push']} "
+                                    f"({f['displacement_mm']:.1f} mm) {f['method']}: "
+                                    f"{f['status']}: {f['reason']}" for f in fails)))
+    return blocks
+
+
+def _grid_rows(t: dict) -> list[list[str]]:
+    """Header and rows of a method table as strings (re-using the text formatter)."""
+    lines = format_text(table_from_dict(t)).splitlines()[1:]
+    rows = [line.split() for i, line in enumerate(lines) if i != 1]
+    width = len(rows[0])
+    return [r + [""] * (width - len(r)) for r in rows]
+
+
+def timing_section(case_dir: Path, fig_dir: Path) -> Section:
+    """FE against network times, with the paper's."""
+    s = Section("Timing")
+    summary = read_json(case_dir / "dataset_summary.json")
+    t1 = read_json(case_dir / "eval" / "table1.json")
+    t2 = read_json(case_dir / "eval" / f"{TABLE2}.json")
+    rows = timing_rows(summary, t1, t2)
+    if len(rows) == 2:
+        s.blocks.append(not_run("generate", case_dir, "Timings (data generation, training, "
+                                                      "evaluation)"))
+    s.blocks.append(Grid(["", "mean (ms)", "std (ms)"],
+                         [[lab, f"{v:.3g}", "-" if e is None else f"{e:.3g}"]
+                          for lab, v, e in rows]))
+    s.blocks.append(Image(plot_timing(rows, fig_dir / "timing.png"),
+                          "Time per deformation: FE (red) against the network (green); "
+                          "lighter bars: the paper's."))
+    if t2 and "timing" in t2:
+        s.blocks.append(Para(f"Table 2 by simulation took {t2['timing']['total_s']:.1f} s "
+                             f"(reference grid built in {t2['timing']['reference_build_s']:.1f}"
+                             " s)."))
+    return s
+
+
+def machine_section() -> Section:
+    return Section("Versions and machine", [Grid(["item", "value"], versions_and_machine())])
+
+
+def stages_section(case_dir: Path) -> Section:
+    """Which pipeline stages have their outputs."""
+    from ..case import STAGES
+
+    rows = [[name, rel, "yes" if (case_dir / rel).exists() else "no"]
+            for name, rel in STAGES.items() if name != "report"]
+    return Section("Pipeline stages", [Grid(["stage", "output", "done"], rows)])
+
+
+def dumps_compact(obj) -> str:
+    return json.dumps(obj, separators=(",", ":"))
+
+
+__all__ = ["FIG_DIR", "Image", "Note", "Pre", "case_section", "dataset_section",
+           "machine_section", "stages_section", "table1_section", "table2_section",
+           "timing_section", "training_section"]
