@@ -46,7 +46,7 @@ def plot_table2(result: dict, path: Path) -> Path:
     bins = np.linspace(0.0, top * 1.05 + 1e-9, 25)
     for m in methods:
         if tres[m]:
-            ax2.hist(tres[m], bins=bins, alpha=0.55, color=COLORS.get(m),
+            ax2.hist(tres[m], bins=bins, histtype="step", linewidth=2, color=COLORS.get(m),
                      label=f"{METHOD_TITLES.get(m, m)} (n={len(tres[m])})")
     ax2.set_xlabel("TRE (mm)")
     ax2.set_ylabel("pushes")

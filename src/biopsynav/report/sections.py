@@ -161,7 +161,8 @@ def table2_section(case_dir: Path, fig_dir: Path) -> Section:
 
 def table2_blocks(result: dict, title: str, png: Path) -> list:
     """Tables (one per method), the paper's figures, a summary figure and the failures."""
-    blocks: list = [Para(f"Table 2 {title}. " + table2_text(result).split("\n\n")[0])]
+    blocks: list = [Para(f"Table 2 {title}: " + table2_text(result).split("\n\n")[0]
+                         .split(": ", 1)[1])]
     for m in result["methods"]:
         t = result["tables"][m]
         header, *rows = _grid_rows(t)
@@ -201,7 +202,7 @@ def timing_section(case_dir: Path, fig_dir: Path) -> Section:
         s.blocks.append(not_run("generate", case_dir, "Timings (data generation, training, "
                                                       "evaluation)"))
     s.blocks.append(Grid(["", "mean (ms)", "std (ms)"],
-                         [[lab, f"{v:.3g}", "-" if e is None else f"{e:.3g}"]
+                         [[lab, f"{v:.4g}", "-" if e is None else f"{e:.3g}"]
                           for lab, v, e in rows]))
     s.blocks.append(Image(plot_timing(rows, fig_dir / "timing.png"),
                           "Time per deformation: FE (red) against the network (green); "
