@@ -155,7 +155,7 @@ class ProbeSection:
     f_max_n: float = opt(4.5, "Largest total probe force (N), shared equally by the contact "
                               "points; drawn uniformly in [0, f_max_n]. A total force keeps the "
                               "load independent of the skin-mesh density; the default pushes the "
-                              "5 kPa phantom up to about 35 mm (docs/dataset.md).",
+                              "5 kPa phantom up to ~30 mm probe displacement (docs/dataset.md).",
                          lo=0.0, hi=1e4)
     min_chest_distance_mm: float = opt(5.0, "Training pushes are centred on skin vertices at "
                                             "least this far in front of the chest-wall plane.",
