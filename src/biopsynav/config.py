@@ -214,6 +214,12 @@ class NetworkSection:
                               "precision, else CPU).", choices=("auto", "cpu", "cuda"))
     threads: int = opt(0, "CPU threads for training and inference (0: all cores).",
                        lo=0, hi=1024)
+    baseline: str = opt("linear-elastic", "Physics baseline: 'linear-elastic' (the network "
+                                          "learns only the residual of the case's linearised FE "
+                                          "model moved at the contact nodes; see "
+                                          "docs/network.md) or 'none' (the network predicts the "
+                                          "whole displacement).",
+                        choices=("linear-elastic", "none"))
     runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
                                "(frozen, optimize_for_inference), 'openvino' (fp32 forced) or "
                                "'auto' (the fastest installed; see docs/network.md). Always "

@@ -4,20 +4,29 @@
 or grid (FingerprintError), checks the exported file against its checksum, picks the runtime
 (TorchScript, or OpenVINO with fp32 forced), sets the thread count and warms the runtime up, so
 that :meth:`Surrogate.predict` does nothing but the forward pass. Precision is always fp32.
+
+When the model was trained on top of the linear-elastic baseline (``meta.json`` ``baseline``
+``kind = linear-elastic``), the exported network is the residual net and ``predict`` returns
+``baseline(x) + net(x)``; the baseline's Green's functions are computed at load from the case
+(``model_dir``'s parent folder, or ``case=``), whose fingerprint must match the model's.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import torch
 
 from ..errors import InputError
+from .baseline import LinearElasticBaseline
 from .export import load_torchscript
 from .model_io import ONNX, TORCHSCRIPT, check_file, check_fingerprint, read_meta
 from .train import auto_threads
+
+if TYPE_CHECKING:
+    from ..case import Case
 
 RUNTIMES = ("auto", "torchscript", "openvino")
 
@@ -104,8 +113,10 @@ def resolve_runtime(name: str) -> str:
 class Surrogate:
     """The trained surrogate of one case: contact input -> displacement of every grid node."""
 
-    def __init__(self, runner: _Runner, meta: dict, model_dir: Path) -> None:
+    def __init__(self, runner: _Runner, meta: dict, model_dir: Path,
+                 baseline: LinearElasticBaseline | None = None) -> None:
         self._run = runner
+        self.baseline = baseline
         self.meta = meta
         self.model_dir = model_dir
         self.node_shape: tuple[int, int, int] = tuple(meta["node_shape"])  # type: ignore
@@ -123,13 +134,16 @@ class Surrogate:
 
     @classmethod
     def load(cls, model_dir: str | Path, expected_fingerprint: str, *,
-             runtime: str | None = None, threads: int = 0, warmup: int = 30) -> Surrogate:
+             runtime: str | None = None, threads: int = 0, warmup: int = 30,
+             case: Case | None = None) -> Surrogate:
         """Load a model folder for a case whose fingerprint is ``expected_fingerprint``.
 
         Raises FingerprintError when the model was trained for another anatomy or grid, and
         InputError when files are missing or corrupt. ``runtime`` defaults to the one recorded
         at training ([network] runtime); ``threads`` 0 takes the idle cores
-        (:func:`~biopsynav.network.train.auto_threads`).
+        (:func:`~biopsynav.network.train.auto_threads`). ``case`` (a loaded
+        :class:`~biopsynav.case.Case`) is needed by a model with a physics baseline; by default
+        the case in ``model_dir``'s parent folder.
         """
         model_dir = Path(model_dir)
         meta = read_meta(model_dir)
@@ -141,7 +155,7 @@ class Surrogate:
                                             tuple(meta["node_shape"]))
         else:
             runner = TorchScriptRunner(check_file(model_dir, TORCHSCRIPT, meta), n)
-        sur = cls(runner, meta, model_dir)
+        sur = cls(runner, meta, model_dir, _load_baseline(meta, model_dir, case))
         sur.warm_up(warmup)
         return sur
 
@@ -165,7 +179,34 @@ class Surrogate:
             raise InputError(f"input shape {tuple(inputs.shape)} is not (4, {self.node_shape}) "
                              f"or (B, 4, {self.node_shape})", "predict")
         y = self._run(x)
+        if self.baseline is not None:
+            y = y + self.baseline.predict(x)
         return y[0] if single else y
+
+
+def _load_baseline(meta: dict, model_dir: Path,
+                   case: Case | None) -> LinearElasticBaseline | None:
+    """The physics baseline the model was trained with (None for ``kind = none``)."""
+    info = meta.get("baseline") or {"kind": "none"}
+    kind = info.get("kind", "none")
+    if kind == "none":
+        return None
+    if kind != "linear-elastic":
+        raise InputError(f"model needs an unknown baseline {kind!r}; retrain it", str(model_dir))
+    from ..case import Case
+
+    if case is None:
+        try:
+            case = Case.load(model_dir.parent)
+        except (InputError, OSError, ValueError) as exc:
+            raise InputError(f"this model adds a linear-elastic baseline, which needs its case "
+                             f"(case.toml, anatomy.npz, grid.npz) in {model_dir.parent} or "
+                             f"passed as case= ({exc})", str(model_dir)) from None
+    check_fingerprint(meta, case.fingerprint(), str(case.dir))
+    from .baseline import SPRING_POWER
+
+    return LinearElasticBaseline.from_case(case, spring=info.get("spring"),
+                                           power=float(info.get("spring_power", SPRING_POWER)))
 
 
 def load_for_case(case_dir: str | Path, *, runtime: str | None = None,

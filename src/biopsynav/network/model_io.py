@@ -33,7 +33,7 @@ def sha256(path: Path) -> str:
 
 def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
                 in_scale: np.ndarray, out_scale: np.ndarray, envelope: dict, training: dict,
-                runtime: str = "auto") -> dict:
+                runtime: str = "auto", baseline: dict | None = None) -> dict:
     """Export ``net`` (TorchScript and ONNX), check the export against eager, write meta.json."""
     net = net.cpu().eval()
     save_torchscript(net, out / TORCHSCRIPT)
@@ -52,9 +52,11 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
         "normalisation": {"in_scale": np.asarray(in_scale).tolist(),
                           "out_scale": np.asarray(out_scale).tolist(),
                           "kind": "per-channel RMS over active nodes of the training set "
-                                  "(inputs: over contact nodes); x/in_scale in, "
+                                  "(inputs: over contact nodes; outputs: of the residual when "
+                                  "a baseline is used); x/in_scale in, "
                                   "y*out_scale*active out"},
         "envelope": envelope,
+        "baseline": baseline or {"kind": "none"},
         "training": {k: v for k, v in training.items() if k != "history"},
         "inference": {"precision": "fp32", "runtime": runtime,
                       "export_max_abs_diff_mm": parity,

@@ -31,7 +31,7 @@ import torch
 from ..config import NetworkSection, load_config
 from ..errors import InputError
 from ..fileio import write_bytes_atomic
-from .data import Dataset, envelope, load_dataset, normalisation_stats
+from .data import Dataset, envelope, load_dataset, normalisation_stats, target_rms
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
@@ -118,7 +118,7 @@ def batch_indices(it: int, batch: int, n: int, seed: int) -> torch.Tensor:
 def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset) -> dict:
     """Settings that must match for a checkpoint to be resumed."""
     keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
-            "val_interval")
+            "val_interval", "baseline")
     return {"spec": spec.to_dict(), "fingerprint": data.fingerprint,
             "n_train": int(data.train_idx.numel()), "n_test": int(data.test_idx.numel()),
             **{k: getattr(s, k) for k in keys}}
@@ -182,13 +182,21 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     dev = resolve_device(s.device)
     threads = set_threads(s.threads)
 
-    data = load_dataset(dataset if dataset is not None else case_dir)
-    check_node_shape(data.node_shape, spec.levels)
+    full = load_dataset(dataset if dataset is not None else case_dir)
+    check_node_shape(full.node_shape, spec.levels)
+    data, baseline_meta = residual_dataset(full, s.baseline, case_dir)
     in_scale, out_scale = normalisation_stats(data)
+    if baseline_meta["kind"] != "none":
+        out_scale = target_rms(data)  # the residual's RMS over active nodes
     signature = _signature(s, spec, data)
+    signature["baseline_meta"] = baseline_meta
 
     torch.manual_seed(s.seed)
     net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy()).to(dev)
+    if baseline_meta["kind"] != "none":
+        # residual net starts as exactly zero: the model starts as the physics baseline
+        torch.nn.init.zeros_(net.unet.head.weight)
+        torch.nn.init.zeros_(net.unet.head.bias)
     opt = torch.optim.Adam(net.unet.parameters(), lr=s.learning_rate)
     state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
@@ -200,6 +208,8 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     resumed_from = state["iteration"]
 
     runner = _Runner(net, opt, data, s, dev, out, signature, state)
+    if ckpt is None and baseline_meta["kind"] != "none":
+        runner.keep_initial()  # the baseline alone is the model to beat
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True, warn_only=True)
     try:
@@ -212,7 +222,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
 
         if state["best_state"] is not None:
             net.unet.load_state_dict(state["best_state"])
-        write_model(out, net.cpu(), spec, data, in_scale, out_scale, envelope(data),
+        write_model(out, net.cpu(), spec, data, in_scale, out_scale, envelope(full),
                     training={"iterations": s.iterations, "batch_size": s.batch_size,
                               "learning_rate": s.learning_rate, "loss": s.loss,
                               "seed": s.seed, "device": dev.type, "threads": threads,
@@ -220,11 +230,46 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
                               "best_val_e_mm": state["best_val"],
                               "best_iteration": state["best_iteration"],
                               "history": state["history"]},
-                    runtime=s.runtime)
+                    runtime=s.runtime, baseline=baseline_meta)
     last = state["history"][-1]["val_mean_e_mm"] if state["history"] else math.nan
     return TrainSummary(out, state["iteration"], s.iterations, state["best_val"],
                         state["best_iteration"], last, state["elapsed_s"], resumed_from,
                         finished, spec.to_dict(), count_parameters(spec))
+
+
+def residual_dataset(data: Dataset, kind: str, case_dir: str | Path) -> tuple[Dataset, dict]:
+    """The data set the network trains on and the ``baseline`` entry of meta.json.
+
+    ``kind`` 'none': ``data`` itself. 'linear-elastic': targets replaced by the residual
+    ``target - baseline(input)`` of :class:`~biopsynav.network.baseline.LinearElasticBaseline`
+    of the case in ``case_dir`` (computed once for every sample); the case must be the one the
+    data were generated for (fingerprint).
+    """
+    if kind == "none":
+        return data, {"kind": "none"}
+    if kind != "linear-elastic":
+        raise InputError(f"unknown baseline {kind!r}; use linear-elastic or none",
+                         "[network] baseline")
+    from ..case import Case
+    from ..errors import FingerprintError
+    from .baseline import LinearElasticBaseline
+
+    case = Case.load(case_dir)
+    if case.fingerprint() != data.fingerprint:
+        raise FingerprintError("the data set was generated for another anatomy or grid than "
+                               "this case; the linear-elastic baseline needs the case's own "
+                               "FE model", str(data.path))
+    start = time.perf_counter()
+    base = LinearElasticBaseline.from_case(case)
+    setup_s = time.perf_counter() - start
+    idx = torch.cat([data.train_idx, data.test_idx])
+    targets = data.targets.clone()
+    pred = base.predict(data.inputs[idx].numpy())
+    targets[idx] -= torch.from_numpy(pred)
+    meta = {"kind": kind, "spring": base.spring, "spring_power": base.power,
+            "n_candidate_dofs": base.n_candidate_dofs, "setup_s": setup_s,
+            "all_samples_s": time.perf_counter() - start - setup_s}
+    return dataclasses.replace(data, targets=targets), meta
 
 
 class _Runner:
@@ -283,6 +328,14 @@ class _Runner:
         if st["iteration"] < s.iterations and st["iteration"] % s.val_interval:
             self.save_checkpoint()
         bar.close()
+
+    def keep_initial(self) -> None:
+        """Take the initial weights as the best so far (validated, not logged)."""
+        st = self.state
+        e = validate(self.net, self.x_test, self.y_test, self.active)
+        st["best_val"], st["best_iteration"] = float(e.mean()), 0
+        st["best_state"] = copy.deepcopy({k: v.cpu() for k, v in
+                                          self.net.unet.state_dict().items()})
 
     def validate_and_log(self) -> None:
         st = self.state

@@ -1,0 +1,198 @@
+"""Physics baseline of the surrogate: the exact small-strain linear-elastic response.
+
+:class:`LinearElasticBaseline` predicts the grid displacement that the case's FE model, linearised
+at u = 0 (tangent ``K`` = linear elasticity with the same E, nu, immersed weights and fixed chest
+wall), takes when the contact nodes are moved by the network input and every other node is
+force-free. The U-Net then only learns the residual (geometric and material non-linearity, and
+the difference between the trilinear contact average and true nodal values).
+
+Green's-function (Schur) form: with ``Z = K^-1 E`` for the candidate degrees of freedom (unit
+forces on every free component of every node that can ever carry contact weight), the solution
+with prescribed values ``g`` on the contact set ``c`` is ``u = Z[:, c] Z[c, c]^-1 g``: the
+forces ``f_c = Z[c, c]^-1 g`` on ``c`` reproduce ``g`` there, and no force acts elsewhere.
+``Z`` is computed once (one factorisation of ``K``, many right-hand sides) and held transposed
+(candidate dofs x free dofs, float32) so that a prediction gathers contiguous rows.
+
+Candidate nodes: the 8 nodes of every grid cell that holds a skin vertex off the chest wall
+(``case.anatomy.vertices[~fixed_vertices]``); contact weight (channel 3 of the input) can only
+land there. Fixed components of candidate nodes are left out (their displacement is zero).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.linalg as sla
+
+from ..errors import InputError
+
+if TYPE_CHECKING:
+    from ..case import Case
+    from ..fem import FEModel
+
+KINDS = ("none", "linear-elastic")
+# Soft contact (measured on the quick phantom, docs/network.md): spring of stiffness
+# SPRING_SCALE * w**SPRING_POWER / median(diag Z) per contact node of weight sum w.
+SPRING_SCALE = 0.3
+SPRING_POWER = 2.0
+
+
+class LinearElasticBaseline:
+    """Linear-elastic response to prescribed contact-node displacements (see module doc).
+
+    Args:
+        model: the case's FE model (its tangent at u = 0 is used).
+        candidate_nodes: flat node ids (C order over ``node_shape``) that may carry contact.
+        node_shape: (nx, ny, nz) of the grid.
+        dtype: storage precision of ``Z`` (float32: 4 bytes per candidate dof and free dof).
+        spring: None: hard constraints (the exact Dirichlet response, ``u_c = g``); a float
+            ``s``: soft constraints, each contact node tied to its input value by a spring of
+            stiffness ``s * w**power / median(diag Z)`` (w: its weight sum, channel 3).
+
+    Why springs: the input on a node is the trilinear-weighted *average* of the contact-point
+    displacements, not that node's displacement; on nodes with a small weight sum (a far
+    corner of a cell that holds contact points) it can be off by tens of mm. Measured on the
+    quick phantom: hard constraints mean e 1.18 mm, springs (s = 0.3, power 2) 0.30 mm, hard
+    constraints on the true nodal FE displacement 0.15 mm (the non-linearity alone).
+    """
+
+    def __init__(self, model: FEModel, candidate_nodes: np.ndarray,
+                 node_shape: tuple[int, int, int], dtype: type = np.float32,
+                 spring: float | None = SPRING_SCALE, power: float = SPRING_POWER) -> None:
+        start = time.perf_counter()
+        self.node_shape = tuple(int(n) for n in node_shape)
+        self.n_nodes = int(np.prod(self.node_shape))
+        if model.n_nodes != self.n_nodes:
+            raise InputError(f"FE model has {model.n_nodes} nodes, grid {self.n_nodes}",
+                             "baseline")
+        eq = model.eq_of_dof  # (n_nodes, 3), -1 fixed or unused
+        cand = np.unique(np.asarray(candidate_nodes, dtype=np.int64))
+        cand_eq = eq[cand]  # (n_cand, 3)
+        keep = cand_eq >= 0
+        self.cols = cand_eq[keep]  # (m,) free equations of the candidate dofs
+        # column of Z for (node, component), -1 where not a free candidate dof
+        self.col_of = np.full((self.n_nodes, 3), -1, dtype=np.int64)
+        self.col_of[np.repeat(cand, 3).reshape(-1, 3)[keep],
+                    np.tile(np.arange(3), len(cand)).reshape(-1, 3)[keep]] = \
+            np.arange(len(self.cols))
+        # output position (channel-major flat index) of every free equation
+        node_of_eq = np.empty(model.n_eq, dtype=np.int64)
+        comp_of_eq = np.empty(model.n_eq, dtype=np.int64)
+        nodes, comps = np.nonzero(eq >= 0)
+        node_of_eq[eq[nodes, comps]] = nodes
+        comp_of_eq[eq[nodes, comps]] = comps
+        self.out_pos = comp_of_eq * self.n_nodes + node_of_eq
+        self.zt = _greens_rows(model, self.cols, dtype)  # (m, n_eq)
+        self.spring = None if spring is None else float(spring)
+        self.power = float(power)
+        diag = self.zt[np.arange(len(self.cols)), self.cols] if len(self.cols) else np.ones(1)
+        self.z_ref = float(np.median(diag))  # mm/N, typical compliance of a candidate dof
+        self.setup_s = time.perf_counter() - start
+
+    @classmethod
+    def from_case(cls, case: Case, dtype: type = np.float32,
+                  spring: float | None = SPRING_SCALE,
+                  power: float = SPRING_POWER) -> LinearElasticBaseline:
+        """The baseline of a case: its FE model and the nodes around its free skin."""
+        from ..fem import FEModel
+
+        return cls(FEModel.from_case(case), candidate_nodes(case), case.grid.node_shape, dtype,
+                   spring, power)
+
+    @property
+    def n_candidate_dofs(self) -> int:
+        return int(self.cols.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.zt.nbytes)
+
+    def contact_columns(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Columns of Z (k,), prescribed values (k,) mm and weight sums (k,) of one input."""
+        flat = x.reshape(4, -1)
+        nodes = np.flatnonzero(flat[3] > 0)
+        sel = self.col_of[nodes]  # (n, 3)
+        ok = sel >= 0
+        g = flat[:3, nodes].T  # (n, 3)
+        w = np.repeat(flat[3, nodes][:, None], 3, axis=1)
+        return sel[ok], g[ok].astype(np.float64), w[ok].astype(np.float64)
+
+    def predict(self, inputs: np.ndarray) -> np.ndarray:
+        """Displacement (3, nx, ny, nz) float32 mm of input (4, nx, ny, nz); batched too."""
+        x = np.asarray(inputs)
+        if x.ndim == 5:
+            return np.stack([self.predict(xi) for xi in x])
+        if x.shape != (4, *self.node_shape):
+            raise InputError(f"input shape {x.shape} is not (4, {self.node_shape})", "baseline")
+        out = np.zeros(3 * self.n_nodes, dtype=np.float32)
+        sel, g, w = self.contact_columns(x)
+        if sel.size:
+            rows = self.zt[sel]  # (k, n_eq): Z[:, c]^T
+            zcc = rows[:, self.cols[sel]].astype(np.float64)  # Z[c, c]
+            zcc = 0.5 * (zcc + zcc.T)
+            if self.spring is None:  # hard: forces f with Z[c, c] f = g
+                a = _spd_solve(zcc, g)
+            else:  # springs D^2: (I + D Zcc D) h = D g, f = D h (symmetric positive definite)
+                d = np.sqrt(self.spring / self.z_ref * w ** self.power)
+                a = d * _spd_solve(np.eye(len(d)) + d[:, None] * zcc * d[None, :], d * g)
+            out[self.out_pos] = a.astype(self.zt.dtype) @ rows
+        return out.reshape(3, *self.node_shape)
+
+
+def _spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    try:
+        return sla.solve(a, b, assume_a="pos", check_finite=False)
+    except (np.linalg.LinAlgError, ValueError):
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def candidate_nodes(case: Case) -> np.ndarray:
+    """Flat ids of the nodes of every cell that holds a skin vertex off the chest wall."""
+    from ..grid.embedding import Embedding
+
+    verts = case.anatomy.vertices[~np.asarray(case.anatomy.fixed_vertices, dtype=bool)]
+    emb = Embedding.build(case.grid, verts, require_active=False, where="skin surface")
+    return np.unique(emb.nodes.ravel())
+
+
+def _greens_rows(model: FEModel, cols: np.ndarray, dtype: type) -> np.ndarray:
+    """``Z^T = (K^-1 E)^T`` (m, n_eq) for unit loads on equations ``cols`` (K symmetric).
+
+    One factorisation of K(u = 0) and blocks of many right-hand sides: MKL Pardiso through
+    pypardiso when installed (one call solves a whole block), else SciPy's SuperLU.
+    """
+    from ..fem import tangent_matrix
+
+    k = tangent_matrix(model, np.zeros((model.n_nodes, 3))).tocsr()
+    k.sort_indices()
+    solve = _factorised(k)
+    out = np.empty((len(cols), model.n_eq), dtype=dtype)
+    block = 1024
+    for start in range(0, len(cols), block):  # blocks of right-hand sides (memory)
+        c = cols[start:start + block]
+        rhs = np.zeros((model.n_eq, len(c)))
+        rhs[c, np.arange(len(c))] = 1.0
+        out[start:start + len(c)] = np.asarray(solve(rhs)).reshape(model.n_eq, len(c)).T
+    return out
+
+
+def _factorised(k):
+    """A function solving ``k x = b`` for a block ``b`` (n, m), factorised once."""
+    try:
+        import pypardiso
+    except ImportError:
+        pypardiso = None
+    if pypardiso is not None:
+        solver = pypardiso.PyPardisoSolver()
+        solver.factorize(k)
+
+        def solve(b: np.ndarray) -> np.ndarray:
+            return solver.solve(k, b)
+
+        return solve
+    import scipy.sparse.linalg as spla
+
+    lu = spla.splu(k.tocsc())
+    return lu.solve

@@ -1,0 +1,195 @@
+"""The linear-elastic physics baseline and the surrogate trained on its residual."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import zarr
+
+from biopsynav.errors import FingerprintError
+from biopsynav.fem import FEModel, Loads, SolverSettings, solve
+from biopsynav.grid.index import hex_connectivity
+from biopsynav.network.baseline import LinearElasticBaseline, candidate_nodes
+
+from .conftest import tiny_settings
+
+SHAPE = (6, 5, 4)
+SPACING = 5.0
+
+
+def box_model() -> FEModel:
+    """A 25 x 20 x 15 mm block of 5 mm hexahedra, bottom face (k = 0) fixed."""
+    ijk_n = np.stack(np.meshgrid(*[np.arange(n) for n in SHAPE], indexing="ij"), -1)
+    nodes = ijk_n.reshape(-1, 3) * SPACING
+    cells = np.stack(np.meshgrid(*[np.arange(n - 1) for n in SHAPE], indexing="ij"), -1)
+    hexes = hex_connectivity(cells.reshape(-1, 3), SHAPE)
+    fixed = ijk_n.reshape(-1, 3)[:, 2] == 0
+    return FEModel(nodes, hexes, 1.0, 0.003, 0.45, fixed)
+
+
+def top_nodes() -> np.ndarray:
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in SHAPE], indexing="ij"), -1)
+    return np.flatnonzero(ijk.reshape(-1, 3)[:, 2] == SHAPE[2] - 1)
+
+
+def contact_input(nodes: np.ndarray, g: np.ndarray, weight: float = 1.0) -> np.ndarray:
+    x = np.zeros((4, int(np.prod(SHAPE))), np.float32)
+    x[:3, nodes] = g.T
+    x[3, nodes] = weight
+    return x.reshape(4, *SHAPE)
+
+
+@pytest.fixture(scope="module")
+def box():
+    model = box_model()
+    return model, LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=None)
+
+
+def test_hard_baseline_is_the_fe_solution_of_a_small_prescribed_displacement(box):
+    """Hard constraints on nodes = the FE solve with those node displacements prescribed
+    (0.01 mm: the neo-Hookean model is linear to ~1e-4 there), every other node force-free."""
+    model, base = box
+    top = top_nodes()
+    rng = np.random.default_rng(0)
+    contact = rng.choice(top, 6, replace=False)
+    g = rng.normal(size=(6, 3)) * 0.01
+    pred = base.predict(contact_input(contact, g))
+    select = sp.csr_matrix((np.ones(6), (np.arange(6), contact)), shape=(6, model.n_nodes))
+    u, _ = solve(model, Loads(prescribed_matrix=select, prescribed_displacement=g),
+                 SolverSettings(backend="superlu"))
+    u_fe = u.T.reshape(3, *SHAPE)
+    assert np.abs(pred.reshape(3, -1)[:, contact].T - g).max() < 1e-6  # exact at the contact
+    assert np.abs(pred - u_fe).max() < 2e-3 * np.abs(u_fe).max()
+    assert np.abs(pred.reshape(3, -1)[:, ~model.fixed[:, 0]]).max() > 0  # it moves the rest
+    assert np.all(pred.reshape(3, -1)[:, model.fixed[:, 0]] == 0)  # chest wall fixed
+
+
+def test_springs_tend_to_hard_constraints_and_weaken_with_small_weights(box):
+    model, base = box
+    contact = top_nodes()[:4]
+    g = np.tile([0.0, 0.0, -1.0], (4, 1))
+    x = contact_input(contact, g)
+    hard = base.predict(x)
+    stiff = LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=1e7)
+    assert np.abs(stiff.predict(x) - hard).max() < 1e-4
+    soft = LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=0.3)
+    heavy, light = soft.predict(x), soft.predict(contact_input(contact, g, weight=0.1))
+    assert np.abs(light).max() < np.abs(heavy).max() <= np.abs(hard).max() + 1e-9
+
+
+def test_zero_input_gives_zero_and_batches_match(box):
+    _, base = box
+    assert np.all(base.predict(np.zeros((4, *SHAPE), np.float32)) == 0)
+    contact = top_nodes()[3:7]
+    x = np.stack([contact_input(contact, np.full((4, 3), 0.5)), np.zeros((4, *SHAPE))])
+    batch = base.predict(x)
+    assert batch.shape == (2, 3, *SHAPE)
+    assert np.array_equal(batch[0], base.predict(x[0])) and np.all(batch[1] == 0)
+
+
+# --- a real (coarse) phantom case: training on the residual and the Surrogate round trip ---
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    """The phantom at 24 mm cells (16 x 8 x 8 nodes) with a small data set whose targets are
+    the hard linear-elastic response plus a smooth non-linear term."""
+    from biopsynav.anatomy.phantom import make_phantom_case
+
+    case_dir = tmp_path_factory.mktemp("phantom") / "case"
+    case = make_phantom_case(case_dir, cell_size_mm=24.0)
+    shape = case.grid.node_shape
+    hard = LinearElasticBaseline.from_case(case, spring=None)
+    cand = candidate_nodes(case)
+    rng = np.random.default_rng(3)
+    n_train, n_test = 12, 4
+    n = n_train + n_test
+    x = np.zeros((n, 4, int(np.prod(shape))), np.float32)
+    for i in range(n):
+        nodes = rng.choice(cand, 5, replace=False)
+        x[i][:3, nodes] = (rng.normal(size=3) * 3.0)[:, None]
+        x[i][3, nodes] = rng.uniform(0.5, 3.0, 5)
+    x = x.reshape(n, 4, *shape)
+    lin = hard.predict(x)
+    y = (lin + 0.02 * lin * np.abs(lin)).astype(np.float32)
+    g = zarr.open_group(str(case_dir / "dataset.zarr"), mode="w")
+    g.create_array("inputs", data=x, chunks=(1, 4, *shape))
+    g.create_array("targets", data=y, chunks=(1, 3, *shape))
+    g.create_array("done", data=np.ones(n, bool))
+    g.create_array("active_nodes", data=np.asarray(case.grid.active_nodes, bool))
+    g.attrs.update({"n_train": n_train, "n_test": n_test, "fingerprint": case.fingerprint(),
+                    "node_shape": list(shape), "spacing_mm": 24.0})
+    return case_dir, case, x
+
+
+@pytest.fixture(scope="module")
+def trained_le(phantom):
+    from biopsynav.network.train import train
+
+    case_dir, _, _ = phantom
+    settings = tiny_settings(levels=2, iterations=20, val_interval=10, warmup_iterations=5,
+                             baseline="linear-elastic")
+    summary = train(case_dir, settings=settings, progress=False)
+    return case_dir / "model", summary
+
+
+def test_surrogate_adds_the_baseline_to_the_residual_net(phantom, trained_le):
+    import torch
+
+    from biopsynav.network.export import load_torchscript
+    from biopsynav.network.infer import Surrogate
+
+    case_dir, case, x = phantom
+    model_dir, summary = trained_le
+    meta = json.loads((model_dir / "meta.json").read_text())
+    assert meta["baseline"]["kind"] == "linear-elastic" and summary.finished
+    sur = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
+                         warmup=2)
+    assert sur.baseline is not None
+    base = LinearElasticBaseline.from_case(case, spring=meta["baseline"]["spring"])
+    net = load_torchscript(model_dir / "model.ts")
+    with torch.inference_mode():
+        residual = net(torch.from_numpy(x[:3])).numpy()
+    expect = residual + base.predict(x[:3])
+    assert np.abs(sur.predict(x[:3]) - expect).max() < 1e-4
+    assert np.abs(sur.predict(x[0]) - expect[0]).max() < 1e-4
+    # same case passed explicitly
+    sur2 = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
+                          warmup=0, case=case)
+    assert np.abs(sur2.predict(x[0]) - expect[0]).max() < 1e-4
+
+
+def test_fingerprint_refusal_with_baseline(phantom, trained_le, tmp_path):
+    import shutil
+
+    from biopsynav.network.infer import Surrogate
+
+    _, case, _ = phantom
+    model_dir, _ = trained_le
+    with pytest.raises(FingerprintError):
+        Surrogate.load(model_dir, "another-patient", runtime="torchscript", threads=1)
+    # a model folder claiming another fingerprint must not get this case's baseline either
+    other = tmp_path / "model"
+    shutil.copytree(model_dir, other)
+    meta = json.loads((other / "meta.json").read_text())
+    meta["fingerprint"] = "another-patient"
+    (other / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(FingerprintError):
+        Surrogate.load(other, "another-patient", runtime="torchscript", threads=1, case=case)
+
+
+def test_baseline_none_keeps_the_old_behaviour(phantom, tmp_path):
+    from biopsynav.network.infer import Surrogate
+    from biopsynav.network.train import train
+
+    case_dir, case, x = phantom
+    settings = tiny_settings(levels=2, iterations=4, val_interval=4, warmup_iterations=1,
+                             baseline="none")
+    train(case_dir, settings=settings, model_dir=tmp_path / "m", progress=False)
+    meta = json.loads((tmp_path / "m" / "meta.json").read_text())
+    assert meta["baseline"]["kind"] == "none"
+    sur = Surrogate.load(tmp_path / "m", case.fingerprint(), runtime="torchscript",
+                         threads=1, warmup=0)
+    assert sur.baseline is None and sur.predict(x[0]).shape == (3, *case.grid.node_shape)
