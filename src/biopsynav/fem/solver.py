@@ -427,6 +427,12 @@ def _final_checks(system: _System, settings: SolverSettings, report: SolveReport
     if min_det <= 0.0 or not np.all(np.isfinite(u)):
         raise SolverError(f"the converged state has inverted elements (min det F = "
                           f"{min_det:.3g})", "fem.solve", log=report.log)
+    last = report.log[-1]["increment"] if report.log else 0
+    modes = [e["mode"] for e in report.log if e["increment"] == last and e["mode"] != "reuse"]
+    if modes and modes[-1].startswith("indefinite"):
+        raise SolverError(f"the solve converged to an unstable equilibrium (tangent "
+                          f"{modes[-1]}): the load is past the structure's stability limit",
+                          "fem.solve", log=report.log)
 
 
 def internal_forces(model: FEModel, u: np.ndarray) -> np.ndarray:
