@@ -22,9 +22,10 @@ import numpy as np
 
 from biopsynav.anatomy.phantom import make_phantom_case
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
-from biopsynav.fem.simulate import patch_forces, probe_patch
 from biopsynav.fem.skfem_peer import SkfemModel
 from biopsynav.grid.embedding import Embedding
+from biopsynav.probe import nodal_forces
+from biopsynav.simulate import patch_at
 
 PUSH_AT_MM = np.array([20.0, 10.0, 80.0])
 TILT_DEG = 30.0
@@ -33,12 +34,12 @@ TILT_DEG = 30.0
 def push_forces(case, total_force_n: float) -> np.ndarray:
     """Node forces (n_nodes, 3) N of a push at TILT_DEG from the inward normal."""
     anatomy, cfg = case.anatomy, case.cfg
-    patch = probe_patch(anatomy.vertices, anatomy.normals, anatomy.fixed_vertices, PUSH_AT_MM,
-                        tuple(cfg.probe.footprint_mm), cfg.probe.depth_tolerance_mm)
+    patch = patch_at(anatomy, PUSH_AT_MM, tuple(cfg.probe.footprint_mm),
+                     cfg.probe.depth_tolerance_mm)
     tilt = np.radians(TILT_DEG)
     direction = np.cos(tilt) * -patch.normal + np.sin(tilt) * patch.long_axis
     embedding = Embedding.build(case.grid, patch.points)
-    return patch_forces(embedding.spread, len(patch.points), total_force_n * direction)
+    return nodal_forces(embedding.matrix, total_force_n * direction)
 
 
 def time_ours(model: FEModel, forces: np.ndarray, settings: SolverSettings,

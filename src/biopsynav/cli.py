@@ -83,7 +83,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from .fem.simulate import simulate
+    from .simulate import simulate
 
     out = Path(args.out) if args.out else Path(args.case_dir) / "simulate"
     result = simulate(args.case_dir, args.force, args.at, out)

@@ -8,11 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import save_figure_atomic, write_bytes_atomic, write_json_atomic
-from .loads import Loads
-from .model import FEModel
-from .solver import SolveReport, SolverSettings, solve
+from .errors import InputError
+from .fem import FEModel, Loads, SolveReport, SolverSettings, solve
+from .fileio import save_figure_atomic, write_bytes_atomic, write_json_atomic
+from .probe import nodal_forces, probe_patch
 
 #: Largest distance (mm) between the --at point and the skin surface.
 MAX_AT_DISTANCE_MM = 10.0
@@ -35,47 +34,33 @@ class ProbePatch:
     points: np.ndarray
 
 
-def tangent_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The probe's long axis: the world x axis projected on the tangent plane (the y axis
-    when the normal is within 30 degrees of x); the short axis completes a right-handed frame
-    with the normal."""
-    normal = normal / np.linalg.norm(normal)
-    ref = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < np.cos(np.radians(30)) else \
+def world_long_axis(normal: np.ndarray) -> np.ndarray:
+    """The probe's long axis for ``simulate``: the world x axis (y when the normal is within 30
+    degrees of x), to be projected on the tangent plane by :func:`biopsynav.probe.probe_patch`."""
+    return np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < np.cos(np.radians(30)) else \
         np.array([0.0, 1.0, 0.0])
-    long_axis = ref - (ref @ normal) * normal
-    long_axis /= np.linalg.norm(long_axis)
-    return long_axis, np.cross(normal, long_axis)
 
 
-def probe_patch(vertices: np.ndarray, normals: np.ndarray, fixed: np.ndarray, at_mm: np.ndarray,
-                footprint_mm: tuple[float, float], depth_tolerance_mm: float) -> ProbePatch:
-    """Surface vertices in the oriented box (footprint x 2 depth_tolerance) centred at the
-    vertex nearest ``at_mm``; chest-wall vertices and vertices facing away are left out."""
+def patch_at(anatomy, at_mm: np.ndarray, footprint_mm: tuple[float, float],
+             depth_tolerance_mm: float) -> ProbePatch:
+    """The probe patch (:func:`biopsynav.probe.probe_patch`) centred at the skin vertex nearest
+    ``at_mm`` (3,) mm; InputError if that point is not within 10 mm of the skin."""
     at_mm = np.asarray(at_mm, dtype=np.float64)
     if at_mm.shape != (3,) or not np.all(np.isfinite(at_mm)):
         raise InputError(f"--at must be three finite numbers, got {at_mm.tolist()}", "--at")
-    candidates = np.flatnonzero(~fixed)
-    dist = np.linalg.norm(vertices[candidates] - at_mm, axis=1)
+    candidates = np.flatnonzero(~anatomy.fixed_vertices)
+    dist = np.linalg.norm(anatomy.vertices[candidates] - at_mm, axis=1)
     nearest = candidates[int(np.argmin(dist))]
     if dist.min() > MAX_AT_DISTANCE_MM:
         raise InputError(f"the point {np.round(at_mm, 2).tolist()} mm is {dist.min():.1f} mm "
                          f"from the skin (at most {MAX_AT_DISTANCE_MM:g} mm)", "--at")
-    center, normal = vertices[nearest], normals[nearest] / np.linalg.norm(normals[nearest])
-    long_axis, short_axis = tangent_axes(normal)
-    rel = vertices - center
-    inside = ((np.abs(rel @ long_axis) <= footprint_mm[0] / 2)
-              & (np.abs(rel @ short_axis) <= footprint_mm[1] / 2)
-              & (np.abs(rel @ normal) <= depth_tolerance_mm)
-              & (normals @ normal > 0.0) & ~fixed)
-    ids = np.flatnonzero(inside)
-    return ProbePatch(center, normal, long_axis, short_axis, ids, vertices[ids])
-
-
-def patch_forces(embedding_spread, n_points: int, force_n: np.ndarray) -> np.ndarray:
-    """Node forces (n_nodes, 3) N: ``force_n`` (3,) shared equally by ``n_points`` points
-    and spread to nodes by ``embedding_spread`` ((n_points, 3) -> (n_nodes, 3))."""
-    per_point = np.broadcast_to(np.asarray(force_n, dtype=np.float64) / n_points, (n_points, 3))
-    return embedding_spread(np.ascontiguousarray(per_point))
+    normal = anatomy.normals[nearest] / np.linalg.norm(anatomy.normals[nearest])
+    ids = probe_patch(anatomy, nearest, world_long_axis(normal), footprint_mm,
+                      depth_tolerance_mm)
+    long_axis = world_long_axis(normal) - (world_long_axis(normal) @ normal) * normal
+    long_axis /= np.linalg.norm(long_axis)
+    return ProbePatch(anatomy.vertices[nearest], normal, long_axis,
+                      np.cross(normal, long_axis), ids, anatomy.vertices[ids])
 
 
 def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
@@ -90,8 +75,8 @@ def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
         InputError: bad force or point (NaN, wrong length, point far from the skin).
         SolverError: the solve did not converge.
     """
-    from ..case import Case
-    from ..grid.embedding import Embedding
+    from .case import Case
+    from .grid.embedding import Embedding
 
     force_n = np.asarray(force_n, dtype=np.float64).ravel()
     if force_n.shape != (3,) or not np.all(np.isfinite(force_n)):
@@ -99,13 +84,12 @@ def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
                          "--force")
     case = Case.load(case_dir)
     anatomy, cfg = case.anatomy, case.cfg
-    patch = probe_patch(anatomy.vertices, anatomy.normals, anatomy.fixed_vertices, at_mm,
-                        tuple(cfg.probe.footprint_mm), cfg.probe.depth_tolerance_mm)
+    patch = patch_at(anatomy, at_mm, tuple(cfg.probe.footprint_mm), cfg.probe.depth_tolerance_mm)
     if len(patch.vertices) == 0:
         raise InputError("no skin vertex under the probe footprint", "--at")
     model = FEModel.from_case(case)
     contact = Embedding.build(case.grid, patch.points, where="probe patch")
-    forces = patch_forces(contact.spread, len(patch.points), force_n)
+    forces = nodal_forces(contact.matrix, force_n)
     u, report = solve(model, Loads(forces=forces), SolverSettings.from_config(cfg.solver))
     skin = Embedding.build(case.grid, anatomy.vertices, where="skin surface")
     surface_u = skin.interpolate(u)
@@ -185,4 +169,4 @@ def _figure(vertices: np.ndarray, faces: np.ndarray, surface_u: np.ndarray, patc
     return fig
 
 
-__all__ = ["ProbePatch", "probe_patch", "patch_forces", "simulate", "tangent_axes"]
+__all__ = ["ProbePatch", "patch_at", "simulate"]

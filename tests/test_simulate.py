@@ -1,4 +1,4 @@
-"""One probe push on the phantom through :func:`biopsynav.fem.simulate.simulate`."""
+"""One probe push on the phantom through :func:`biopsynav.simulate.simulate`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from biopsynav.errors import InputError
 from biopsynav.fem import FEModel
-from biopsynav.fem.simulate import probe_patch, simulate
+from biopsynav.simulate import patch_at, simulate
 
 
 def test_simulate_writes_surface_and_figure(phantom_case, tmp_path):
@@ -43,8 +43,7 @@ def test_simulate_rejects_bad_inputs(phantom_case, tmp_path, force, at):
 
 def test_probe_patch_is_oriented_box_on_the_skin(phantom_case):
     anatomy = phantom_case.anatomy
-    patch = probe_patch(anatomy.vertices, anatomy.normals, anatomy.fixed_vertices,
-                        np.array([20.0, 10.0, 75.0]), (50.0, 10.0), 5.0)
+    patch = patch_at(anatomy, np.array([20.0, 10.0, 75.0]), (50.0, 10.0), 5.0)
     rel = patch.points - patch.center
     assert np.abs(rel @ patch.long_axis).max() <= 25.0 + 1e-9
     assert np.abs(rel @ patch.short_axis).max() <= 5.0 + 1e-9
