@@ -155,7 +155,10 @@ class Surrogate:
                                             tuple(meta["node_shape"]))
         else:
             runner = TorchScriptRunner(check_file(model_dir, TORCHSCRIPT, meta), n)
-        sur = cls(runner, meta, model_dir, _load_baseline(meta, model_dir, case))
+        baseline = _load_baseline(meta, model_dir, case)
+        if baseline is not None:
+            torch.set_num_threads(n)  # the baseline's BLAS runs in torch's thread pool
+        sur = cls(runner, meta, model_dir, baseline)
         sur.warm_up(warmup)
         return sur
 
