@@ -17,7 +17,7 @@ from .config import load_config
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
     "dataset": {"n_train": 64, "n_test": 16},
-    "network": {"iterations": 1500, "val_interval": 250},
+    "network": {"iterations": 500, "val_interval": 250},  # docs/network.md: physics baseline
 }
 
 
