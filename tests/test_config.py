@@ -57,3 +57,11 @@ def test_reference_documents_every_key():
         assert f"## [{section}]" in text
         for key in values:
             assert f"`{key}`" in text
+
+
+def test_docs_case_toml_is_current():
+    """docs/case_toml.md is generated: `python -m biopsynav.config > docs/case_toml.md`."""
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "case_toml.md"
+    assert doc.read_text(encoding="utf-8") == reference_markdown()

@@ -462,3 +462,7 @@ def reference_markdown() -> str:
             lines.append(f"| `{f.name}` | `{shown}` | {allowed} | {meta['doc']} |")
         lines.append("")
     return "\n".join(lines)
+
+
+if __name__ == "__main__":  # python -m biopsynav.config > docs/case_toml.md
+    print(reference_markdown(), end="")
