@@ -9,6 +9,7 @@ stopped, so running again after an interruption continues rather than restarts.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from .config import load_config
 
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
+    "evaluate": {"max_lesions": 3, "reference_refinement": 1.5},
     "dataset": {"n_train": 64, "n_test": 16},
     "network": {"iterations": 500, "val_interval": 250},  # docs/network.md: physics baseline
 }
@@ -32,6 +34,29 @@ def _stale(output: Path, *inputs: Path) -> bool:
 
 def _banner(step: int, total: int, text: str) -> None:
     print(f"\n[{step}/{total}] {text}", flush=True)
+
+
+def dataset_complete(case_dir: Path) -> bool:
+    """True when dataset.zarr holds every requested sample for the current anatomy, grid and
+    protocol (then ``generate`` has nothing to do)."""
+    from .case import Case
+    from .dataset.store import dataset_path, open_store, protocol_dict, protocol_fingerprint
+    from .errors import BiopsynavError
+
+    if not dataset_path(case_dir).exists():
+        return False
+    try:
+        case = Case.load(case_dir)
+        store = open_store(dataset_path(case_dir), mode="r")
+        attrs = store.group.attrs
+        cfg = case.cfg
+        expected = protocol_fingerprint(protocol_dict(cfg, cfg.dataset.n_train,
+                                                      cfg.dataset.n_test))
+        return (attrs.get("fingerprint") == case.fingerprint()
+                and attrs.get("protocol_fingerprint") == expected
+                and bool(store.done_mask().all()))
+    except BiopsynavError:
+        return False
 
 
 def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:
@@ -56,11 +81,16 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     from .dataset.generate import generate_case
 
     t = time.perf_counter()
-    data_summary = generate_case(case_dir, workers=workers)
+    summary_file = case_dir / "dataset_summary.json"
+    if dataset_complete(case_dir):
+        print("  up to date")
+        data_summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
+    else:
+        data_summary = generate_case(case_dir, workers=workers)
     timings["generate_s"] = time.perf_counter() - t
 
     _banner(3, 5, "network training")
-    meta, summary_file = case_dir / "model" / "meta.json", case_dir / "dataset_summary.json"
+    meta = case_dir / "model" / "meta.json"
     t = time.perf_counter()
     if _stale(meta, summary_file):
         from .network.train import train_case
