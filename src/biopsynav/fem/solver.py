@@ -131,9 +131,9 @@ class _System:
         return float(np.sqrt(r0))
 
 
-def reference_diagonal_mean(model: FEModel) -> float:
-    """Mean diagonal of the tangent at u = 0 (N/mm), cached on the model."""
-    if "k0_diag_mean" not in model.cache:
+def rest_tangent_data(model: FEModel) -> np.ndarray:
+    """CSR data (nnz,) of the tangent at u = 0 in the model's pattern, cached on the model."""
+    if "k0_data" not in model.cache:
         n_el = model.n_elements
         fe, ke = np.empty((n_el, 24)), np.empty((n_el, 24, 24))
         kernels.element_kernel(np.zeros((model.n_nodes, 3)), model.hexes, model.elem_set,
@@ -141,8 +141,13 @@ def reference_diagonal_mean(model: FEModel) -> float:
                                model.material_id, True, fe, ke, np.empty(n_el), np.empty(n_el))
         data = np.empty(model.nnz)
         kernels.scatter_matrix(ke, model.scatter, data)
-        model.cache["k0_diag_mean"] = float(data[model.diag_pos].mean())
-    return model.cache["k0_diag_mean"]
+        model.cache["k0_data"] = data
+    return model.cache["k0_data"]
+
+
+def reference_diagonal_mean(model: FEModel) -> float:
+    """Mean diagonal of the tangent at u = 0 (N/mm)."""
+    return float(rest_tangent_data(model)[model.diag_pos].mean())
 
 
 def linear_solver(model: FEModel, settings: SolverSettings, single: bool) -> LinearSolver:
@@ -159,16 +164,9 @@ def reference_solver(model: FEModel, settings: SolverSettings) -> LinearSolver:
     the model: the first Newton iteration of every force-loaded solve starts from it."""
     key = f"k0:{settings.backend}:{settings.threads}:{settings.single_precision}"
     if key not in model.cache:
-        n_el = model.n_elements
-        fe, ke = np.empty((n_el, 24)), np.empty((n_el, 24, 24))
-        kernels.element_kernel(np.zeros((model.n_nodes, 3)), model.hexes, model.elem_set,
-                               model.grads, model.jw, model.weight, model.mu, model.lam,
-                               model.material_id, True, fe, ke, np.empty(n_el), np.empty(n_el))
-        data = np.empty(model.nnz)
-        kernels.scatter_matrix(ke, model.scatter, data)
         solver = make_solver(settings.backend, model.indptr, model.indices, settings.threads,
                              settings.single_precision)
-        solver.factor(data)
+        solver.factor(rest_tangent_data(model).copy())
         model.cache[key] = solver
     return model.cache[key]
 
