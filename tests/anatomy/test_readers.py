@@ -132,3 +132,24 @@ def test_pinch_vertex_is_split():
     nv, nf, n_split = split_pinch_vertices(v, f)
     assert n_split == 1 and len(nv) == 8
     assert surface_volume(nv, nf) == pytest.approx(surface_volume(v, f))
+
+
+def test_lesion_surface_meshes(tmp_path, capsys, dome_stl):
+    from biopsynav.cli import main
+
+    folder = tmp_path / "lesions"
+    folder.mkdir()
+    centres = [np.array([0.0, 0.0, 12.0]), np.array([8.0, -6.0, 15.0])]
+    for i, c in enumerate(centres):
+        ball = trimesh.creation.icosphere(subdivisions=2, radius=3.0 + i)
+        ball.apply_translation(c)
+        ball.export(folder / f"lesion{i + 1}.stl")
+    case = tmp_path / "case"
+    assert main(["init", str(case), "--surface", str(dome_stl), "--lesions", str(folder)]) == 0
+    from biopsynav.case import Case
+
+    lesions = Case.load(case).anatomy.lesions
+    assert [les.id for les in lesions] == [1, 2]
+    for les, c, r in zip(lesions, centres, (3.0, 4.0), strict=True):
+        np.testing.assert_allclose(les.center, c, atol=1e-6)
+        assert les.radius_mm == pytest.approx(r, rel=0.02)

@@ -230,7 +230,8 @@ def read_lesion_meshes(paths: list[Path]) -> list[Lesion]:
 
     lesions = []
     for i, path in enumerate(sorted(paths), start=1):
-        v, f = read_anatomy(path).vertices, read_anatomy(path).faces
+        raw = read_anatomy(path)
+        v, f = raw.vertices, raw.faces
         tri = v[f]
         vol6 = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
         vol = surface_volume(v, f)
