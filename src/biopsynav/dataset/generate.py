@@ -261,6 +261,14 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     _recover_pool(runner, queue, in_flight, crashes, (index, attempt))
                     stats["pool_restarts"] += 1
                     break
+                except Exception as exc:
+                    if type(exc).__name__ != "KilledWorker":
+                        raise
+                    raise BiopsynavError(
+                        f"the Dask cluster lost the workers running sample {index} (attempt "
+                        f"{attempt}) several times ({exc}); the samples written so far are "
+                        "kept: check the workers' memory and logs, then run the same command "
+                        "again to resume", "generate") from None
                 if result["ok"]:
                     store.write_sample(result)
                     stats["computed"] += 1
