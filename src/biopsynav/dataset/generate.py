@@ -250,7 +250,14 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
         while queue or in_flight:
             while queue and len(in_flight) < limit:
                 index, attempt = queue.popleft()
-                in_flight[runner.submit(index, attempt)] = (index, attempt)
+                try:
+                    in_flight[runner.submit(index, attempt)] = (index, attempt)
+                except BrokenProcessPool:  # a worker died before its future said so
+                    queue.appendleft((index, attempt))
+                    _recover_pool(runner, queue, in_flight, crashes, None)
+                    stats["pool_restarts"] += 1
+            if not in_flight:
+                continue
             for future in runner.wait_any(list(in_flight)):
                 if future not in in_flight:
                     continue  # resubmitted after a pool crash
@@ -285,9 +292,9 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
 
 
 def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
-                  lost: tuple[int, int]) -> None:
+                  lost: tuple[int, int] | None) -> None:
     """A worker died: restart the pool and put every sample that was in flight back."""
-    lost_all = [lost, *in_flight.values()]
+    lost_all = ([lost] if lost else []) + list(in_flight.values())
     in_flight.clear()
     for item in lost_all:
         crashes[item] += 1
