@@ -65,3 +65,16 @@ def test_docs_case_toml_is_current():
 
     doc = Path(__file__).resolve().parents[1] / "docs" / "case_toml.md"
     assert doc.read_text(encoding="utf-8") == reference_markdown()
+
+
+def test_atomic_writes_leave_readable_files_and_no_temporaries(tmp_path):
+    import os
+
+    from biopsynav.fileio import write_text_atomic
+
+    path = write_text_atomic(tmp_path / "a" / "x.txt", "hello")
+    assert path.read_text() == "hello"
+    mask = os.umask(0)
+    os.umask(mask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~mask
+    assert [p.name for p in path.parent.iterdir()] == ["x.txt"]
