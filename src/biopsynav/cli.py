@@ -32,8 +32,10 @@ def cmd_init(args: argparse.Namespace) -> int:
     if args.phantom:
         if args.surface or args.labelmap:
             raise InputError("--phantom takes no --surface or --labelmap", "init")
+        from .anatomy.phantom import PHANTOM_DESCRIPTION
+
         overrides["anatomy"]["source"] = "phantom"
-        overrides["case"] = {"name": "phantom"}
+        overrides["case"] = {"name": "phantom", "description": PHANTOM_DESCRIPTION}
     elif args.surface:
         overrides["anatomy"]["source"] = "surface"
     elif args.labelmap:

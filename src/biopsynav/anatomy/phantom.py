@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 SEMI_AXES_MM = (75.0, 60.0, 75.0)
+PHANTOM_DESCRIPTION = "Built-in CIRS 073-like phantom: 150 x 120 x 75 mm dome, 10 lesions"
 MESH_STEP_MM = 2.5
 
 #: id, x, y, z, diameter (mm)
@@ -65,8 +66,7 @@ def make_phantom_case(case_dir, overwrite: bool = False, cell_size_mm: float | N
 
     data: dict = {section: dict(values) for section, values in (overrides or {}).items()}
     data.setdefault("case", {}).setdefault("name", "phantom")
-    data["case"].setdefault("description", "Built-in CIRS 073-like phantom: 150 x 120 x 75 mm "
-                                           "dome, 10 lesions")
+    data["case"].setdefault("description", PHANTOM_DESCRIPTION)
     data.setdefault("anatomy", {})["source"] = "phantom"
     if cell_size_mm is not None:
         data.setdefault("grid", {})["cell_size_mm"] = float(cell_size_mm)
