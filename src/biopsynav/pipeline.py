@@ -22,6 +22,11 @@ QUICK = {
     "network": {"iterations": 500, "val_interval": 250},  # docs/network.md: physics baseline
 }
 
+#: The full demo evaluates Table 2 on 3 of the 10 lesions: each lesion costs 3-9 minutes of
+#: fine-grid FE reference solves on 2 cores (BENCHMARKS.md); set [evaluate] max_lesions = 0
+#: in demo-case/case.toml and run `biopsynav evaluate demo-case` for all of them.
+FULL_DEMO = {"evaluate": {"max_lesions": 3}}
+
 
 def _mtime(path: Path) -> float:
     return path.stat().st_mtime if path.exists() else -1.0
@@ -130,7 +135,7 @@ def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: i
     if not (case_dir / "case.toml").exists():
         print(f"building the built-in phantom case in {case_dir}"
               + (" (quick: reduced sizes)" if quick else ""))
-        make_phantom_case(case_dir, overrides=QUICK if quick else None)
+        make_phantom_case(case_dir, overrides=QUICK if quick else FULL_DEMO)
     result = run_case(case_dir, workers=workers, quick=quick)
     minutes = (time.perf_counter() - start) / 60
     print(f"\nbiopsynav demo finished in {minutes:.1f} min. Report: {result['report'][0]}")
