@@ -45,8 +45,10 @@ def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000) -> dict:
 
 def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
              expected_fingerprint: str, *, runtime: str | None = None, threads: int = 0,
-             n_timing: int = 1000) -> dict:
-    """Table 1 of the model in ``model_dir`` on the test samples of ``dataset``; see module doc."""
+             n_timing: int = 1000, spacing_mm: float | None = None) -> dict:
+    """Table 1 of the model in ``model_dir`` on the test samples of ``dataset``; see module doc.
+
+    ``spacing_mm``: grid cell size for the figures (node units when unknown)."""
     data = load_dataset(dataset)
     if data.fingerprint != expected_fingerprint:
         raise FingerprintError("the data set was generated for another anatomy or grid than "
@@ -72,7 +74,8 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
         "architecture": meta["architecture"], "n_parameters": meta["n_parameters"],
         "e_per_sample_mm": e.tolist(),
     })
-    _figures(Path(out_dir), pred, y, active, e, disp, meta.get("spacing_mm") or 1.0)
+    _figures(Path(out_dir), pred, y, active, e, disp,
+             spacing_mm or meta.get("spacing_mm") or 1.0)
     write_json_atomic(Path(out_dir) / "table1.json", result)
     return result
 
@@ -103,5 +106,8 @@ def evaluate_case(case_dir: str | Path) -> dict:
 
     case_dir = Path(case_dir)
     cfg = load_config(case_dir)
+    from ..grid.model import GRID_FILE, Grid
+
     return evaluate(case_dir / "model", case_dir, case_dir / EVAL_DIR, case_fingerprint(case_dir),
-                    runtime=cfg.network.runtime, threads=cfg.network.threads)
+                    runtime=cfg.network.runtime, threads=cfg.network.threads,
+                    spacing_mm=Grid.load(case_dir / GRID_FILE).spacing)
