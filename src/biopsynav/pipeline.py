@@ -45,22 +45,19 @@ def dataset_complete(case_dir: Path) -> bool:
     """True when dataset.zarr holds every requested sample for the current anatomy, grid and
     protocol (then ``generate`` has nothing to do)."""
     from .case import Case
-    from .dataset.store import dataset_path, open_store, protocol_dict, protocol_fingerprint
+    from .dataset.store import check_compatible, dataset_path, open_store, protocol_dict
     from .errors import BiopsynavError
 
     if not dataset_path(case_dir).exists():
         return False
     try:
         case = Case.load(case_dir)
-        store = open_store(dataset_path(case_dir), mode="r")
-        attrs = store.group.attrs
         cfg = case.cfg
-        expected = protocol_fingerprint(protocol_dict(cfg, cfg.dataset.n_train,
-                                                      cfg.dataset.n_test))
-        return (attrs.get("fingerprint") == case.fingerprint()
-                and attrs.get("protocol_fingerprint") == expected
-                and bool(store.done_mask().all()))
-    except BiopsynavError:
+        store = open_store(dataset_path(case_dir), mode="r")
+        check_compatible(store, case.fingerprint(),
+                         protocol_dict(cfg, cfg.dataset.n_train, cfg.dataset.n_test))
+        return bool(store.done_mask().all())
+    except BiopsynavError:  # generate_case then reports what is wrong
         return False
 
 

@@ -114,11 +114,19 @@ def probe_patch(anatomy: Anatomy, center_index: int, long_axis: np.ndarray,
     long_axis = long_axis - (long_axis @ normal) * normal
     long_axis /= np.linalg.norm(long_axis)
     short_axis = np.cross(normal, long_axis)
-    rel = anatomy.vertices - anatomy.vertices[center_index]
-    inside = ((np.abs(rel @ long_axis) <= 0.5 * footprint_mm[0])
-              & (np.abs(rel @ short_axis) <= 0.5 * footprint_mm[1])
-              & (np.abs(rel @ normal) <= depth_tol)
-              & (anatomy.normals @ normal > MIN_NORMAL_COSINE)
+    axes = np.stack([long_axis, short_axis, normal], axis=1)
+    half = np.array([0.5 * footprint_mm[0], 0.5 * footprint_mm[1], depth_tol])
+    return skin_in_box(anatomy, anatomy.vertices[center_index], axes, half, normal)
+
+
+def skin_in_box(anatomy: Anatomy, centre: np.ndarray, axes: np.ndarray, half: np.ndarray,
+                facing: np.ndarray) -> np.ndarray:
+    """Indices (n,) of skin vertices off the chest wall inside an oriented box, with outward
+    normals along ``facing`` (n_i . facing > MIN_NORMAL_COSINE). ``centre`` (3,) mm, ``axes``
+    (3, 3) orthonormal box axes as columns, ``half`` (3,) half-sizes along them, mm."""
+    local = (anatomy.vertices - centre) @ axes
+    inside = (np.all(np.abs(local) <= half, axis=1)
+              & (anatomy.normals @ facing > MIN_NORMAL_COSINE)
               & ~np.asarray(anatomy.fixed_vertices, dtype=bool))
     return np.flatnonzero(inside)
 
@@ -211,4 +219,4 @@ def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray) -> np.nd
 
 __all__ = ["MIN_NORMAL_COSINE", "ProbePush", "contact_input", "draw_push", "eligible_centers",
            "nodal_forces", "probe_frame", "probe_patch", "push_for_sample", "sample_rng",
-           "tangent_basis", "tilted_direction"]
+           "skin_in_box", "tangent_basis", "tilted_direction"]

@@ -116,3 +116,11 @@ def test_bad_poses_csv(tmp_path):
         read_poses(tmp_path / "q.csv")
     with pytest.raises(InputError, match="file not found"):
         read_poses(tmp_path / "none.csv")
+
+
+def test_hot_path_input_matches_the_dataset_contract(fem_tracker):
+    """The tracker's precomputed spreading gives the input the dataset stores."""
+    fem_tracker.set_rest_pose(TOP)
+    u_c = fem_tracker.contact_displacement(pushed(7.0))
+    fem_tracker._input_flat[:3, fem_tracker._contact_nodes] = (fem_tracker._spread @ u_c).T
+    np.testing.assert_allclose(fem_tracker._input, fem_tracker.network_input(u_c), atol=1e-5)

@@ -22,6 +22,8 @@ import numpy as np
 from ..case import Case
 from ..errors import InputError
 from ..grid.embedding import Embedding
+from ..grid.index import field_to_tensor
+from ..probe import contact_input, skin_in_box
 from . import result as st
 from .result import LesionResult, TrackingResult
 
@@ -58,12 +60,10 @@ def contact_indices(anatomy, pose: np.ndarray, footprint: tuple[float, float],
                     tol: float) -> np.ndarray:
     """Indices of skin vertices in contact with the probe face at ``pose`` (rest pose)."""
     pose = as_pose(pose)
-    r, t = pose[:3, :3], pose[:3, 3]
-    local = (anatomy.vertices - t) @ r  # rows: vertices in the probe frame
-    facing = anatomy.normals @ r[:, 2] < 0.0  # outward skin normal against the beam
-    inside = ((np.abs(local[:, 0]) <= footprint[0] / 2) & (np.abs(local[:, 1]) <= footprint[1] / 2)
-              & (np.abs(local[:, 2]) <= tol) & facing & ~anatomy.fixed_vertices)
-    return np.flatnonzero(inside)
+    r = pose[:3, :3]
+    half = np.array([footprint[0] / 2, footprint[1] / 2, tol])
+    # outward skin normals against the beam (the probe's z axis)
+    return skin_in_box(anatomy, pose[:3, 3], r, half, -r[:, 2])
 
 
 class Tracker:
@@ -199,11 +199,11 @@ class Tracker:
         return u
 
     def network_input(self, u_c: np.ndarray) -> np.ndarray:
-        """The (4, nx, ny, nz) network input for contact displacements (as in the dataset)."""
-        x = np.zeros_like(self._input)
-        x.reshape(4, -1)[3] = self._input_flat[3]
-        x.reshape(4, -1)[:3, self._contact_nodes] = (self._spread @ u_c).T
-        return x
+        """The (4, nx, ny, nz) network input for contact displacements, built as the dataset
+        builds it (:func:`biopsynav.probe.contact_input`); the hot path uses a precomputed
+        equivalent."""
+        field = contact_input(self._contact_emb.matrix, u_c)
+        return field_to_tensor(field, self.case.grid.node_shape).astype(np.float32)
 
     def _surface_embedding(self) -> Embedding:
         if self._surface_emb is None:
