@@ -152,10 +152,11 @@ class ProbeSection:
                                          "surface normal.", lo=0.1, hi=100.0)
     max_tilt_deg: float = opt(45.0, "Largest angle between the force and the inward normal.",
                               lo=0.0, hi=89.0)
-    f_max_n: float = opt(4.5, "Largest total probe force (N), shared equally by the contact "
+    f_max_n: float = opt(4.0, "Largest total probe force (N), shared equally by the contact "
                               "points; drawn uniformly in [0, f_max_n]. A total force keeps the "
                               "load independent of the skin-mesh density; the default pushes the "
-                              "5 kPa phantom up to ~30 mm probe displacement (docs/dataset.md).",
+                              "5 kPa phantom up to ~35-40 mm probe displacement "
+                              "(docs/dataset.md).",
                          lo=0.0, hi=1e4)
     min_chest_distance_mm: float = opt(5.0, "Training pushes are centred on skin vertices at "
                                             "least this far in front of the chest-wall plane.",
@@ -178,6 +179,12 @@ class DatasetSection:
                                          "fails to converge (checked once 20 draws, or all "
                                          "requested if fewer, have been made).",
                                    lo=0.0, hi=1.0)
+    newton_budget: int = opt(40, "Newton iterations (all load increments together) after "
+                                 "which a draw's solve gives up: it is recorded as failed and "
+                                 "redrawn. Draws near the push's limit load need hundreds of "
+                                 "iterations and then mostly fail anyway; the budget keeps them "
+                                 "from costing most of the compute (docs/dataset.md). 0: no "
+                                 "limit.", lo=0, hi=100000)
     chunk_samples: int = opt(1, "Samples per storage chunk of inputs and targets (1: a chunk "
                                 "per sample; 'done' always has one chunk per sample).",
                              lo=1, hi=4096)

@@ -144,6 +144,15 @@ def test_non_convergence_raises_with_log():
     assert info.value.log and "min_load_step" in info.value.what
 
 
+def test_newton_budget_stops_the_solve_with_its_log():
+    model, forces = _pushed_box(force=0.1)
+    _, free = solve(model, Loads(forces=forces))
+    assert free.iterations > 3
+    with pytest.raises(SolverError) as info:
+        solve(model, Loads(forces=forces), SolverSettings(max_total_iterations=3))
+    assert len(info.value.log) == 3 and "max_total_iterations = 3" in info.value.what
+
+
 def test_svk_past_its_limit_point_is_reported():
     n, size = 2, 10.0
     nodes, hexes, fixed = _roller_block(n, size)

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from biopsynav.network.data import load_dataset
@@ -108,3 +109,20 @@ def test_kill_9_then_rerun_continues(synth_case, tmp_path):
     assert r.resumed_from == done and r.iterations_done == done + 5
     assert not list(tmp_path.glob(".*.tmp")), "temporary files left behind"
     assert np.isfinite(r.best_val_e_mm)
+
+
+@pytest.mark.skipif(not Path("/proc/stat").exists(), reason="needs Linux /proc/stat")
+def test_auto_threads_sees_a_busy_core():
+    from biopsynav.network.train import _busy_cores, auto_threads
+
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)
+        busy = _busy_cores(0.5)
+        threads = auto_threads(0.5)
+    finally:
+        spinner.kill()
+        spinner.wait()
+    cores = os.cpu_count() or 1
+    assert busy is not None and 0.6 <= busy <= cores + 0.01
+    assert 1 <= threads <= max(1, cores - 1 + (cores == 1))

@@ -52,6 +52,7 @@ class SampleContext:
         self.settings = SolverSettings.from_config(case.cfg.solver)
         if hasattr(self.settings, "threads"):
             self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
+        self.settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
         self.skin = Embedding.build(case.grid, case.anatomy.vertices, where="skin surface").matrix
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.node_shape = case.grid.node_shape

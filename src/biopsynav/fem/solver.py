@@ -33,11 +33,14 @@ LS_TOLERANCE = 0.25  # accept a step once the energy slope drops to this fractio
 
 @dataclass
 class SolverSettings:
-    """Newton settings (see ``[solver]`` in case.toml)."""
+    """Newton settings (see ``[solver]`` in case.toml). ``max_total_iterations``: give up
+    after this many Newton iterations over all increments (0: no limit; data generation sets
+    it from ``[dataset] newton_budget``)."""
 
     tol_residual: float = 1e-8
     tol_displacement: float = 1e-8
     max_iterations: int = 30
+    max_total_iterations: int = 0
     initial_load_step: float = 1.0
     min_load_step: float = 1.0 / 256
     line_search: bool = True
@@ -171,6 +174,10 @@ def reference_solver(model: FEModel, settings: SolverSettings) -> LinearSolver:
     return model.cache[key]
 
 
+class _BudgetExhausted(Exception):
+    """The solve used ``max_total_iterations`` Newton iterations without converging."""
+
+
 class _IncrementFailed(Exception):
     def __init__(self, reason: str) -> None:
         super().__init__(reason)
@@ -187,8 +194,9 @@ def solve(model: FEModel, loads: Loads,
     du |du| (mm), line_step, min_det_F, mode (linear-solver mode).
 
     Raises:
-        SolverError: no convergence down to ``min_load_step`` or inverted elements, with the
-            Newton log attached.
+        SolverError: no convergence down to ``min_load_step``, inverted elements, or more
+            than ``settings.max_total_iterations`` Newton iterations in all (when > 0), with
+            the Newton log attached.
     """
     settings = settings or SolverSettings()
     start = time.perf_counter()
@@ -203,8 +211,14 @@ def solve(model: FEModel, loads: Loads,
     single = settings.single_precision and not prepared.has_constraints
     solver = linear_solver(model, settings, single)
     report.backend = solver.name
-    u = _continuation(system, solver, settings, report)
-    u = _enforce_constraints(system, solver, settings, report, u)
+    try:
+        u = _continuation(system, solver, settings, report)
+        u = _enforce_constraints(system, solver, settings, report, u)
+    except _BudgetExhausted:
+        raise SolverError(f"no convergence within max_total_iterations = "
+                          f"{settings.max_total_iterations} Newton iterations (|R|/|R0| = "
+                          f"{report.log[-1]['residual_rel']:.3g} at load factor "
+                          f"{report.log[-1]['load']:.4f})", "fem.solve", log=report.log) from None
     _final_checks(system, settings, report, u)
     report.time_s = time.perf_counter() - start
     return model.to_nodes(u), report
@@ -293,6 +307,8 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
                            "mode": mode})
         if r_norm <= tol_r * r0 and du_norm <= tol_d * max(float(np.linalg.norm(u)), 1e-300):
             return u, it
+        if 0 < settings.max_total_iterations <= report.iterations:
+            raise _BudgetExhausted
     raise _IncrementFailed(f"{settings.max_iterations} Newton iterations without convergence "
                            f"(|R|/|R0| = {report.log[-1]['residual_rel']:.3g})")
 
