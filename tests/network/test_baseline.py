@@ -80,6 +80,27 @@ def test_springs_tend_to_hard_constraints_and_weaken_with_small_weights(box):
     assert np.abs(light).max() < np.abs(heavy).max() <= np.abs(hard).max() + 1e-9
 
 
+@pytest.mark.parametrize("spring", [None, 0.3])
+def test_contact_operator_equals_predict_for_a_fixed_contact_set(spring):
+    model = box_model()
+    base = LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=spring)
+    rng = np.random.default_rng(1)
+    contact = rng.choice(top_nodes(), 7, replace=False)
+    weights = np.zeros(int(np.prod(SHAPE)))
+    weights[contact] = rng.uniform(0.2, 2.0, 7)
+    rows = sp.random(5, 3 * weights.size, density=0.05, random_state=2, format="csr")
+    positions, full = base.contact_operator(weights)
+    _, restricted = base.contact_operator(weights.reshape(SHAPE), rows)
+    for _ in range(3):
+        x = contact_input(contact, rng.normal(size=(7, 3)))
+        x[3] = weights.reshape(SHAPE)
+        expected = base.predict(x).ravel()
+        flat = x[:3].ravel()[positions]
+        tol = 1e-5 * np.abs(expected).max()  # predict returns float32
+        assert np.allclose(full @ flat, expected, rtol=0, atol=tol)
+        assert np.allclose(restricted @ flat, rows @ expected, rtol=0, atol=tol * 10)
+
+
 def test_zero_input_gives_zero_and_batches_match(box):
     _, base = box
     assert np.all(base.predict(np.zeros((4, *SHAPE), np.float32)) == 0)
@@ -193,3 +214,29 @@ def test_baseline_none_keeps_the_old_behaviour(phantom, tmp_path):
     sur = Surrogate.load(tmp_path / "m", case.fingerprint(), runtime="torchscript",
                          threads=1, warmup=0)
     assert sur.baseline is None and sur.predict(x[0]).shape == (3, *case.grid.node_shape)
+
+
+def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(phantom,
+                                                                             trained_le):
+    """Tracker.update (network residual at the lesions + precomputed baseline operator) gives
+    the lesion positions of the full-grid path (``with_surface``: Surrogate.predict)."""
+    from biopsynav.network.infer import Surrogate
+    from biopsynav.tracker import Tracker
+
+    _, case, _ = phantom
+    model_dir, _ = trained_le
+    sur = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
+                         warmup=0, case=case)
+    tracker = Tracker(case, "net", surrogate=sur)
+    top = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
+    assert tracker.set_rest_pose(top) > 0 and tracker._lesion_base is not None
+    for depth, angle in ((3.0, 0.0), (8.0, 0.1)):
+        pose = top.copy()
+        pose[2, 3] -= depth
+        c, s = np.cos(angle), np.sin(angle)
+        pose[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ pose[:3, :3]
+        fast, full = tracker.update(pose), tracker.update(pose, with_surface=True)
+        assert fast.status == full.status == "ok"
+        moved = np.array([les.displacement for les in full.lesions])
+        assert np.abs(moved).max() > 0.1
+        assert np.abs(np.array([les.displacement for les in fast.lesions]) - moved).max() < 1e-4

@@ -135,25 +135,69 @@ class LinearElasticBaseline:
             # 2-core machine (docs/network.md)
             with torch.inference_mode():
                 rows = self._zt.index_select(0, torch.from_numpy(sel))  # (k, n_eq) = Z[:, c]^T
-                zcc = rows[:, torch.from_numpy(self.cols[sel])].double()  # Z[c, c]
-                zcc = 0.5 * (zcc + zcc.T)
-                gt = torch.from_numpy(g)
-                if self.spring is None:  # hard: forces f with Z[c, c] f = g
-                    a = _spd_solve(zcc, gt)
-                else:  # springs D^2: (I + D Zcc D) h = D g, f = D h (symmetric pos. definite)
-                    d = torch.from_numpy(np.sqrt(self.spring / self.z_ref * w ** self.power))
-                    eye = torch.eye(len(d), dtype=torch.float64)
-                    a = d * _spd_solve(eye + d[:, None] * zcc * d[None, :], d * gt)
+                a = self._contact_forces(rows, sel, w, torch.from_numpy(g)[:, None])[:, 0]
                 out[self.out_pos] = (a.to(rows.dtype) @ rows).numpy()
         return out.reshape(3, *self.node_shape)
 
+    def _contact_forces(self, rows: torch.Tensor, sel: np.ndarray, w: np.ndarray,
+                        g: torch.Tensor) -> torch.Tensor:
+        """Forces (k, r) float64 on the contact dofs ``sel`` (k,) for prescribed values ``g``
+        (k, r) mm: hard constraints ``Z[c, c]^-1 g`` or springs ``D (I + D Z[c, c] D)^-1 D g``
+        (``D^2`` the spring stiffnesses from the weight sums ``w`` (k,))."""
+        zcc = rows[:, torch.from_numpy(self.cols[sel])].double()  # Z[c, c]
+        zcc = 0.5 * (zcc + zcc.T)
+        if self.spring is None:  # hard: forces f with Z[c, c] f = g
+            return _spd_solve(zcc, g)
+        d = torch.from_numpy(np.sqrt(self.spring / self.z_ref * w ** self.power))
+        eye = torch.eye(len(d), dtype=torch.float64)
+        return d[:, None] * _spd_solve(eye + d[:, None] * zcc * d[None, :], d[:, None] * g)
+
+    def contact_operator(self, weights: np.ndarray, out_rows=None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """The baseline as one matrix, for a contact set that stays fixed (a tracker's rest
+        pose): only the displacement channels change between predictions, and the baseline is
+        linear in them.
+
+        Args:
+            weights: (n_nodes,) or (nx, ny, nz) weight sums (input channel 3).
+            out_rows: optional sparse (r, 3 * n_nodes) matrix applied to the channel-major flat
+                output (e.g. the trilinear interpolation at the lesion centres).
+
+        Returns:
+            ``positions`` (k,) int64 into the channel-major flat displacement channels
+            (``x[:3].ravel()``) and ``operator`` (r or 3 * n_nodes, k) float64, so that
+            ``operator @ x[:3].ravel()[positions]`` equals ``out_rows @ predict(x).ravel()``
+            (or ``predict(x).ravel()``) for every input ``x`` with these weight sums.
+        """
+        x = np.zeros((4, self.n_nodes))
+        x[3] = np.asarray(weights, dtype=np.float64).ravel()
+        nodes = np.flatnonzero(x[3] > 0)
+        sel_all = self.col_of[nodes]  # (n, 3)
+        ok = sel_all >= 0
+        positions = (np.arange(3)[None, :] * self.n_nodes + nodes[:, None])[ok]
+        sel = sel_all[ok]
+        w = np.repeat(x[3, nodes][:, None], 3, axis=1)[ok]
+        n_out = 3 * self.n_nodes if out_rows is None else out_rows.shape[0]
+        if not sel.size:
+            return positions, np.zeros((n_out, 0))
+        with torch.inference_mode():
+            rows = self._zt.index_select(0, torch.from_numpy(sel)).double()  # (k, n_eq)
+            a = self._contact_forces(rows, sel, w, torch.eye(len(sel), dtype=torch.float64))
+            z_full = (rows.T @ a).numpy()  # (n_eq, k): free equations
+        if out_rows is None:
+            operator = np.zeros((n_out, len(sel)))
+            operator[self.out_pos] = z_full
+            return positions, operator
+        return positions, np.asarray(out_rows[:, self.out_pos] @ z_full)
+
 
 def _spd_solve(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a^-1 b`` for a symmetric positive definite ``a`` (least squares if it is not)."""
+    """``a^-1 b`` (b: (k, r)) for a symmetric positive definite ``a`` (least squares if it
+    is not)."""
     chol, info = torch.linalg.cholesky_ex(a)
     if int(info) == 0:
-        return torch.cholesky_solve(b[:, None], chol)[:, 0]
-    return torch.linalg.lstsq(a, b[:, None]).solution[:, 0]
+        return torch.cholesky_solve(b, chol)
+    return torch.linalg.lstsq(a, b).solution
 
 
 def candidate_nodes(case: Case) -> np.ndarray:

@@ -174,6 +174,20 @@ class Surrogate:
         ``inputs`` float32, channels 0-2 the contact displacement (mm), channel 3 the weight sum
         (see the dataset contract). Zero-copy for C-contiguous float32 input.
         """
+        x, single = self._checked(inputs)
+        y = self._run(x)
+        if self.baseline is not None:
+            y = y + self.baseline.predict(x)
+        return y[0] if single else y
+
+    def predict_network(self, inputs: np.ndarray) -> np.ndarray:
+        """The exported network's part of :meth:`predict` only (the residual on top of the
+        physics baseline, or everything without one); same shapes and units."""
+        x, single = self._checked(inputs)
+        y = self._run(x)
+        return y[0] if single else y
+
+    def _checked(self, inputs: np.ndarray) -> tuple[np.ndarray, bool]:
         x = np.ascontiguousarray(inputs, dtype=np.float32)
         single = x.ndim == 4
         if single:
@@ -181,10 +195,7 @@ class Surrogate:
         if x.ndim != 5 or x.shape[1] != 4 or tuple(x.shape[2:]) != self.node_shape:
             raise InputError(f"input shape {tuple(inputs.shape)} is not (4, {self.node_shape}) "
                              f"or (B, 4, {self.node_shape})", "predict")
-        y = self._run(x)
-        if self.baseline is not None:
-            y = y + self.baseline.predict(x)
-        return y[0] if single else y
+        return x, single
 
 
 def _load_baseline(meta: dict, model_dir: Path,

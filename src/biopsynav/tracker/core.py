@@ -86,6 +86,7 @@ class Tracker:
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
+        self._lesion_base: tuple[np.ndarray, np.ndarray] | None = None
         env = surrogate.envelope if surrogate is not None else {}
         self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
         self.envelope_margin = case.cfg.tracker.envelope_margin
@@ -146,7 +147,19 @@ class Tracker:
             self._spread = (w.multiply(1.0 / wsum[self._contact_nodes][:, None])).tocsr()
             self._input[:] = 0.0
             self._input_flat[3, self._contact_nodes] = wsum[self._contact_nodes]
+            self._lesion_base = self._lesion_baseline(wsum)
         return len(idx)
+
+    def _lesion_baseline(self, wsum: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The network engine's physics baseline at the lesion centres as one matrix for this
+        contact set (see :meth:`LinearElasticBaseline.contact_operator`); None without one."""
+        baseline = getattr(self._surrogate, "baseline", None)
+        if self.engine != "net" or baseline is None or not len(self._lesion_ids):
+            return None
+        import scipy.sparse as sp
+
+        rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
+        return baseline.contact_operator(wsum, rows)
 
     def contact_displacement(self, pose: np.ndarray) -> np.ndarray:
         """Displacement (n_contact, 3) mm of the contact points moved rigidly with the probe."""
@@ -174,10 +187,13 @@ class Tracker:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"contact displacement {largest:.1f} mm "
                                     f"beyond the trained {self.max_contact_mm:.1f} mm", start)
         try:
-            field = self._predict(u_c)
+            if self._lesion_base is not None and not with_surface:
+                field, disp = None, self._net_lesion_displacement(u_c)
+            else:
+                field = self._predict(u_c)
+                disp = self._lesion_emb.interpolate(field)
         except Exception as exc:  # FE non-convergence and similar: never a confident number
             return self._unreliable(st.OUT_OF_ENVELOPE, f"{type(exc).__name__}: {exc}", start)
-        disp = self._lesion_emb.interpolate(field)
         lesions = [LesionResult(i, c + d, d, st.OK) for i, c, d in
                    zip(self._lesion_ids, self._lesion_centres, disp, strict=True)]
         res = TrackingResult(lesions, st.OK, "", 0.0)
@@ -185,6 +201,16 @@ class Tracker:
             res.surface = self.case.anatomy.vertices + self._surface_embedding().interpolate(field)
         res.latency_ms = (time.perf_counter() - start) * 1e3
         return res
+
+    def _net_lesion_displacement(self, u_c: np.ndarray) -> np.ndarray:
+        """Lesion displacements (n_lesions, 3) mm: the network's residual interpolated at the
+        lesions plus the physics baseline's precomputed lesion operator (no full-grid
+        baseline: the hot path of :meth:`update`)."""
+        self._input_flat[:3, self._contact_nodes] = (self._spread @ u_c).T
+        residual = self._surrogate.predict_network(self._input).reshape(3, -1).T
+        positions, operator = self._lesion_base
+        base = operator @ self._input.ravel()[positions]  # (3 * n_lesions,), axis-major
+        return self._lesion_emb.interpolate(residual) + base.reshape(3, -1).T
 
     def _predict(self, u_c: np.ndarray) -> np.ndarray:
         """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
