@@ -263,6 +263,10 @@ class IgtlSection:
     reconnect_max_s: float = opt(2.0, "Longest wait between attempts to reach the tracker "
                                       "server (exponential backoff from 0.05 s).",
                                  lo=0.05, hi=60.0)
+    stall_timeout_s: float = opt(5.0, "A connection that has sent part of a message and then "
+                                      "nothing for this long is dropped (a stalled or "
+                                      "half-dead peer never holds a partial message forever).",
+                                 lo=0.1, hi=3600.0)
 
 
 @dataclass

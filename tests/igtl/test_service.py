@@ -225,6 +225,28 @@ def test_client_disconnect_mid_message(running):
     assert running.server.stats().poses_handled == 1
 
 
+def test_client_stalled_mid_message_is_dropped_and_a_slow_one_is_not(tracker):
+    run = Running(tracker, settings=IgtlSection(stall_timeout_s=0.4))
+    try:
+        message = raw_pose(translation(0, 0, 1.0))
+        slow = RawClient(run.port)
+        for start in range(0, len(message), 40):  # a whole message, gaps below the timeout
+            slow.send(message[start:start + 40])
+            time.sleep(0.1)
+        assert slow.read_until("POINT", "Lesions") is not None
+        staller = RawClient(run.port)
+        staller.send(message[:HEADER_SIZE + 10])
+        wait_until(lambda: run.server.stats().stalled == 1, what="stalled client dropped")
+        stats = run.server.stats()
+        assert stats.clients_dropped == 1 and stats.clients == 1
+        slow.send(message)  # the other client is still served
+        assert slow.read_until("POINT", "Lesions") is not None
+        slow.close()
+        staller.close()
+    finally:
+        run.stop()
+
+
 def test_malformed_header_drops_that_client_only(running):
     _fault_then_healthy(running, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + b"\0" * 64,
                         dropped=True).close()

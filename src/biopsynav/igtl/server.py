@@ -97,6 +97,7 @@ class ServerStats:
     tracker_connects: int = 0
     tracker_disconnects: int = 0
     last_update_ms: float = math.nan
+    stalled: int = 0
 
 
 @dataclass(eq=False)
@@ -111,6 +112,7 @@ class _Conn:
     connecting: bool = False
     closed: bool = False
     seen_skipped: set = field(default_factory=set)
+    partial_since: float = math.inf  # monotonic time of the last bytes of an incomplete message
 
 
 def to_address(value: str | Address | None, where: str) -> Address | None:
@@ -212,6 +214,7 @@ class IgtlServer:
                 for key, mask in self._sel.select(self._timeout()):
                     self._dispatch(key, mask)
                 self._check_connect_timeout()
+                self._check_stalled()
         finally:
             self._close_all()
 
@@ -243,15 +246,33 @@ class IgtlServer:
 
     # ------------------------------------------------------------------------------ the loop
     def _timeout(self) -> float | None:
-        """Seconds until the next timed event (reconnect, connect timeout), None for none."""
-        if self.tracker_addr is None:
-            return None
+        """Seconds until the next timed event (reconnect, connect timeout, a stalled partial
+        message), None for none."""
         now = time.monotonic()
-        if self._tracker_conn is None:
-            return max(0.0, self._next_attempt - now)
-        if self._tracker_conn.connecting:
-            return max(0.0, self._connect_deadline - now)
-        return None
+        deadline = min(self._stall_deadlines(), default=math.inf)
+        if self.tracker_addr is not None:
+            if self._tracker_conn is None:
+                deadline = min(deadline, self._next_attempt)
+            elif self._tracker_conn.connecting:
+                deadline = min(deadline, self._connect_deadline)
+        return None if deadline == math.inf else max(0.0, deadline - now)
+
+    def _connections(self) -> list[_Conn]:
+        return self._clients + ([self._tracker_conn] if self._tracker_conn is not None else [])
+
+    def _stall_deadlines(self) -> list[float]:
+        return [c.partial_since + self.settings.stall_timeout_s for c in self._connections()
+                if c.partial_since < math.inf]
+
+    def _check_stalled(self) -> None:
+        """Drop connections that stopped in the middle of a message."""
+        now = time.monotonic()
+        for conn in self._connections():
+            if conn.partial_since + self.settings.stall_timeout_s <= now:
+                self._stats.stalled += 1
+                self._drop(conn, f"stalled in the middle of a message ({conn.reader.pending} "
+                                 f"bytes of it received, nothing for "
+                                 f"{now - conn.partial_since:.1f} s)")
 
     def _dispatch(self, key: selectors.SelectorKey, mask: int) -> None:
         if key.data == "listener":
@@ -389,7 +410,9 @@ class IgtlServer:
         if not data:
             self._on_eof(conn)
             return
-        self._handle_items(conn, conn.reader.feed(data))
+        items = conn.reader.feed(data)
+        conn.partial_since = time.monotonic() if conn.reader.pending else math.inf
+        self._handle_items(conn, items)
 
     def _on_eof(self, conn: _Conn) -> None:
         pending = conn.reader.pending
