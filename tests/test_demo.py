@@ -49,9 +49,9 @@ def test_demo_table2_network_matches_fe(quick_demo):
     assert all(np.isfinite(v) and v >= 0 for v in means.values()), means
     # the rigid model ignores the deformation: far worse than both physics-based methods
     assert means["rigid"] > 2 * means["fem"], means
-    # the network tracks the deformation: far better than ignoring it. It does NOT yet match
-    # the FE model within a few tenths of a millimetre on Table 2 (quick model: about 4.7 mm
-    # against 1.8 mm for FE; see BENCHMARKS.md and the open issue), so that is not asserted.
+    # the network tracks the deformation as well as the FE model of the same grid: average
+    # TRE within a few tenths of a millimetre (measured: 1.77 mm against 1.76 mm)
+    assert abs(means["net"] - means["fem"]) <= 0.3, means
     assert means["net"] < 0.5 * means["rigid"], means
 
 

@@ -179,6 +179,13 @@ class DatasetSection:
                                          "fails to converge (checked once 20 draws, or all "
                                          "requested if fewer, have been made).",
                                    lo=0.0, hi=1.0)
+    contact_input: str = opt("elastic", "How the contact displacement becomes the network "
+                                        "input on the contact nodes: 'elastic' (the nodal "
+                                        "values of the linear-elastic field that moves the "
+                                        "contact points as given; exact point constraints for "
+                                        "the physics baseline) or 'average' (trilinear-weighted "
+                                        "average of the contact points; docs/dataset.md).",
+                             choices=("elastic", "average"))
     newton_budget: int = opt(40, "Newton iterations (all load increments together) after "
                                  "which a draw's solve gives up: it is recorded as failed and "
                                  "redrawn. Draws near the push's limit load need hundreds of "

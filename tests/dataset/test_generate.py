@@ -19,6 +19,7 @@ from dataset_helpers import N_TEST, N_TRAIN, edit_config
 from biopsynav.case import Case
 from biopsynav.dataset.generate import generate_case
 from biopsynav.errors import BiopsynavError, FingerprintError, InputError
+from biopsynav.fem.greens import ContactCompliance
 from biopsynav.grid.embedding import Embedding
 from biopsynav.grid.index import tensor_to_field
 from biopsynav.probe import contact_input, probe_patch, push_for_sample
@@ -104,6 +105,8 @@ def test_contract_of_the_stored_samples(reference):
     skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
     inactive = ~case.grid.active_nodes
     probe = case.cfg.probe
+    assert case.cfg.dataset.contact_input == "elastic"
+    compliance = ContactCompliance.from_case(case)
     for i in (0, N - 1):
         u = tensor_to_field(g["targets"][i]).astype(np.float64)
         assert np.all(g["targets"][i][:, inactive] == 0)
@@ -114,7 +117,7 @@ def test_contract_of_the_stored_samples(reference):
                               probe.depth_tolerance_mm)
         assert g["n_contact"][i] == len(contact)
         w = skin[contact]
-        expected = contact_input(w, w @ u)
+        expected = contact_input(w, w @ u, "elastic", compliance)
         got = tensor_to_field(g["inputs"][i])
         assert np.allclose(got, expected, rtol=1e-4, atol=1e-4)
         assert np.isclose(g["probe_disp_mm"][i], np.linalg.norm(w @ u, axis=1).mean(),

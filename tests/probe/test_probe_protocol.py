@@ -7,9 +7,11 @@ import pytest
 
 from biopsynav.anatomy.phantom import make_phantom_case
 from biopsynav.config import ProbeSection
+from biopsynav.errors import InputError
 from biopsynav.grid.embedding import Embedding
 from biopsynav.probe import (
     contact_input,
+    contact_input_operator,
     eligible_centers,
     nodal_forces,
     probe_frame,
@@ -106,12 +108,54 @@ def test_contact_input_is_a_weighted_average_with_weight_channel(case, pushes):
     push = pushes[0]
     w = skin[push.contact]
     uniform = np.tile([1.0, -2.0, 3.0], (push.n_contact, 1))
-    field = contact_input(w, uniform)
+    field = contact_input(w, uniform, "average")
     weight = field[:, 3]
     assert np.isclose(weight.sum(), push.n_contact)
     touched = weight > 0
     assert np.allclose(field[touched, :3], [1.0, -2.0, 3.0])
     assert np.all(field[~touched, :3] == 0)
+
+
+@pytest.fixture(scope="module")
+def compliance(case):
+    from biopsynav.fem.greens import ContactCompliance
+
+    return ContactCompliance.from_case(case)
+
+
+def test_elastic_input_moves_the_points_as_given_and_is_linear(case, pushes, compliance):
+    """Point displacements of a linear-elastic field loaded on the contact nodes: the elastic
+    input reproduces them (W_P U = u_P) and is the operator's linear map; the average is not
+    even close on the same data."""
+    skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
+    rng = np.random.default_rng(4)
+    for push in pushes[:3]:
+        w = skin[push.contact]
+        op = contact_input_operator(w, "elastic", compliance)
+        nodes = np.flatnonzero(op.weights > 0)
+        rows, _ = compliance.contact_dofs(nodes)
+        forces = rng.normal(size=len(rows))
+        field = np.zeros(3 * compliance.n_nodes)
+        field[compliance.out_pos] = forces @ compliance.zt[rows].astype(np.float64)
+        u_nodes = field.reshape(3, -1).T
+        u_p = w @ u_nodes
+        got = contact_input(w, u_p, "elastic", compliance)
+        assert np.allclose(got[:, 3], op.weights)
+        scale = np.abs(u_p).max()
+        assert np.abs(w @ got[:, :3] - u_p).max() < 1e-3 * scale
+        assert np.allclose(op.field(u_p), got)
+        assert np.all(got[op.weights == 0, :3] == 0)
+        average = contact_input(w, u_p, "average")
+        assert np.abs(w @ average[:, :3] - u_p).max() > 10 * np.abs(w @ got[:, :3] - u_p).max()
+
+
+def test_unknown_or_incomplete_contact_input_is_an_input_error(case, pushes):
+    skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
+    w = skin[pushes[0].contact]
+    with pytest.raises(InputError, match="unknown contact input"):
+        contact_input_operator(w, "nearest")
+    with pytest.raises(InputError, match="compliance"):
+        contact_input_operator(w, "elastic", None)
 
 
 def test_tilt_zero_pushes_along_the_inward_normal(case):

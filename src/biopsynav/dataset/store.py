@@ -69,8 +69,9 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
 
     [material], the FE-model inputs of other sections ([anatomy] tissue_labels, [grid]
     min_fraction), [solver] without ``backend`` and ``threads`` (speed and round-off only;
-    workers always factor on one thread), [probe] without the
-    tracker's ``contact_tolerance_mm``, and the seed, sizes and Newton budget of [dataset].
+    workers always factor on one thread), [probe] without the tracker's
+    ``contact_tolerance_mm``, and the seed, sizes, Newton budget and contact input of
+    [dataset].
     """
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
@@ -82,7 +83,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
                          "min_fraction": cfg.grid.min_fraction},
             "solver": solver, "probe": probe,
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
-                        "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget}}
+                        "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,
+                        "contact_input": cfg.dataset.contact_input}}
 
 
 def protocol_fingerprint(protocol: dict) -> str:

@@ -34,7 +34,8 @@ class WorkerSpec:
 
 
 class SampleContext:
-    """Per-worker precomputation: FE model, solver settings, skin embedding, eligible centres.
+    """Per-worker precomputation: FE model, solver settings, skin embedding, eligible centres,
+    and the contact compliance of the elastic contact input (``Z`` of the candidate dofs).
 
     Attributes:
         model: the :class:`biopsynav.fem.FEModel` (its linear-solver analysis is cached on it).
@@ -57,6 +58,12 @@ class SampleContext:
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.node_shape = case.grid.node_shape
         self.active = np.asarray(case.grid.active_nodes, dtype=bool).ravel()
+        self.contact_input = case.cfg.dataset.contact_input
+        self.compliance = None
+        if self.contact_input == "elastic":
+            from ..fem.greens import ContactCompliance
+
+            self.compliance = ContactCompliance.from_case(case)
 
 
 def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
@@ -89,7 +96,8 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     node_disp = np.linalg.norm(u, axis=1)
     result.update(
         ok=True,
-        inputs=field_to_tensor(contact_input(contact, contact_u), ctx.node_shape)
+        inputs=field_to_tensor(contact_input(contact, contact_u, ctx.contact_input,
+                                             ctx.compliance), ctx.node_shape)
         .astype(np.float32),
         targets=field_to_tensor(u, ctx.node_shape).astype(np.float32),
         max_disp_mm=float(node_disp.max()),

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..fem.greens import ContactCompliance, candidate_nodes
 
 if TYPE_CHECKING:
     from ..case import Case
@@ -60,36 +61,18 @@ class LinearElasticBaseline:
 
     def __init__(self, model: FEModel, candidate_nodes: np.ndarray,
                  node_shape: tuple[int, int, int], dtype: type = np.float32,
-                 spring: float | None = SPRING_SCALE, power: float = SPRING_POWER) -> None:
+                 spring: float | None = SPRING_SCALE, power: float = SPRING_POWER,
+                 compliance: ContactCompliance | None = None) -> None:
         start = time.perf_counter()
-        self.node_shape = tuple(int(n) for n in node_shape)
-        self.n_nodes = int(np.prod(self.node_shape))
-        if model.n_nodes != self.n_nodes:
-            raise InputError(f"FE model has {model.n_nodes} nodes, grid {self.n_nodes}",
-                             "baseline")
-        eq = model.eq_of_dof  # (n_nodes, 3), -1 fixed or unused
-        cand = np.unique(np.asarray(candidate_nodes, dtype=np.int64))
-        cand_eq = eq[cand]  # (n_cand, 3)
-        keep = cand_eq >= 0
-        self.cols = cand_eq[keep]  # (m,) free equations of the candidate dofs
-        # column of Z for (node, component), -1 where not a free candidate dof
-        self.col_of = np.full((self.n_nodes, 3), -1, dtype=np.int64)
-        self.col_of[np.repeat(cand, 3).reshape(-1, 3)[keep],
-                    np.tile(np.arange(3), len(cand)).reshape(-1, 3)[keep]] = \
-            np.arange(len(self.cols))
-        # output position (channel-major flat index) of every free equation
-        node_of_eq = np.empty(model.n_eq, dtype=np.int64)
-        comp_of_eq = np.empty(model.n_eq, dtype=np.int64)
-        nodes, comps = np.nonzero(eq >= 0)
-        node_of_eq[eq[nodes, comps]] = nodes
-        comp_of_eq[eq[nodes, comps]] = comps
-        self.out_pos = comp_of_eq * self.n_nodes + node_of_eq
-        self.zt = _greens_rows(model, self.cols, dtype)  # (m, n_eq)
+        self.compliance = compliance or ContactCompliance(model, candidate_nodes, node_shape,
+                                                          dtype)
+        c = self.compliance
+        self.node_shape, self.n_nodes = c.node_shape, c.n_nodes
+        self.cols, self.col_of, self.out_pos, self.zt = c.cols, c.col_of, c.out_pos, c.zt
+        self.z_ref = c.z_ref
         self._zt = torch.from_numpy(self.zt)  # shares memory
         self.spring = None if spring is None else float(spring)
         self.power = float(power)
-        diag = self.zt[np.arange(len(self.cols)), self.cols] if len(self.cols) else np.ones(1)
-        self.z_ref = float(np.median(diag))  # mm/N, typical compliance of a candidate dof
         self.setup_s = time.perf_counter() - start
 
     @classmethod
@@ -198,58 +181,3 @@ def _spd_solve(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     if int(info) == 0:
         return torch.cholesky_solve(b, chol)
     return torch.linalg.lstsq(a, b).solution
-
-
-def candidate_nodes(case: Case) -> np.ndarray:
-    """Flat ids of the nodes of every cell that holds a skin vertex off the chest wall."""
-    from ..grid.embedding import Embedding
-
-    verts = case.anatomy.vertices[~np.asarray(case.anatomy.fixed_vertices, dtype=bool)]
-    emb = Embedding.build(case.grid, verts, require_active=False, where="skin surface")
-    return np.unique(emb.nodes.ravel())
-
-
-def _greens_rows(model: FEModel, cols: np.ndarray, dtype: type) -> np.ndarray:
-    """``Z^T = (K^-1 E)^T`` (m, n_eq) for unit loads on equations ``cols`` (K symmetric).
-
-    One factorisation of K(u = 0) and blocks of many right-hand sides: MKL Pardiso through
-    pypardiso when installed (one call solves a whole block), else SciPy's SuperLU.
-    """
-    from ..fem import tangent_matrix
-
-    k = tangent_matrix(model, np.zeros((model.n_nodes, 3))).tocsr()
-    k.sort_indices()
-    solve = _factorised(k)
-    out = np.empty((len(cols), model.n_eq), dtype=dtype)
-    block = 1024
-    for start in range(0, len(cols), block):  # blocks of right-hand sides (memory)
-        c = cols[start:start + block]
-        rhs = np.zeros((model.n_eq, len(c)))
-        rhs[c, np.arange(len(c))] = 1.0
-        out[start:start + len(c)] = np.asarray(solve(rhs)).reshape(model.n_eq, len(c)).T
-    return out
-
-
-def _factorised(k):
-    """A function solving ``k x = b`` for a block ``b`` (n, m), factorised once."""
-    try:
-        import pypardiso
-    except ImportError:
-        pypardiso = None
-    if pypardiso is not None:
-        import scipy.sparse as sp
-
-        upper = sp.triu(k, format="csr")
-        upper.sort_indices()
-        solver = pypardiso.PyPardisoSolver(mtype=2)  # SPD: K(u = 0) is positive definite
-        solver.factorize(upper)
-        solver.iparm[7] = 0  # no iterative refinement: 3x faster, same result to 1e-15
-
-        def solve(b: np.ndarray) -> np.ndarray:
-            return solver.solve(upper, np.asfortranarray(b))
-
-        return solve
-    import scipy.sparse.linalg as spla
-
-    lu = spla.splu(k.tocsc())
-    return lu.solve

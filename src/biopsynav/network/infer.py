@@ -128,6 +128,12 @@ class Surrogate:
         return self.meta["fingerprint"]
 
     @property
+    def contact_input(self) -> str:
+        """How the training inputs were built (``[dataset] contact_input``): 'elastic' or
+        'average' (models from before the option)."""
+        return str(self.meta.get("contact_input", "average"))
+
+    @property
     def envelope(self) -> dict:
         """Training envelope (mm): ``max_contact_disp_mm``, ``max_target_disp_mm``, ..."""
         return self.meta["envelope"]

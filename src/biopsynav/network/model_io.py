@@ -56,6 +56,7 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
                                   "a baseline is used); x/in_scale in, "
                                   "y*out_scale*active out"},
         "envelope": envelope,
+        "contact_input": _contact_input(data),
         "baseline": baseline or {"kind": "none"},
         "training": {k: v for k, v in training.items() if k != "history"},
         "inference": {"precision": "fp32", "runtime": runtime,
@@ -67,6 +68,12 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
     write_json_atomic(out / META, meta)
     write_json_atomic(out / "history.json", training.get("history", []))
     return meta
+
+
+def _contact_input(data: Dataset) -> str:
+    from .train import dataset_contact_input  # local import: train imports this module
+
+    return dataset_contact_input(data)
 
 
 @torch.no_grad()

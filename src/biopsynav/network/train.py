@@ -280,24 +280,36 @@ def residual_dataset(data: Dataset, kind: str, case_dir: str | Path) -> tuple[Da
                          "[network] baseline")
     from ..case import Case
     from ..errors import FingerprintError
-    from .baseline import LinearElasticBaseline
+    from .baseline import SPRING_SCALE, LinearElasticBaseline
 
     case = Case.load(case_dir)
     if case.fingerprint() != data.fingerprint:
         raise FingerprintError("the data set was generated for another anatomy or grid than "
                                "this case; the linear-elastic baseline needs the case's own "
                                "FE model", str(data.path))
+    contact = dataset_contact_input(data)
     start = time.perf_counter()
-    base = LinearElasticBaseline.from_case(case)
+    # elastic input: hard constraints reproduce the point-constrained linear solution exactly;
+    # averaged input: soft springs (docs/network.md)
+    base = LinearElasticBaseline.from_case(case, spring=None if contact == "elastic"
+                                           else SPRING_SCALE)
     setup_s = time.perf_counter() - start
     idx = torch.cat([data.train_idx, data.test_idx])
     targets = data.targets.clone()
     pred = base.predict(data.inputs[idx].numpy())
     targets[idx] -= torch.from_numpy(pred)
-    meta = {"kind": kind, "spring": base.spring, "spring_power": base.power,
+    meta = {"kind": kind, "contact_input": contact, "spring": base.spring,
+            "spring_power": base.power,
             "n_candidate_dofs": base.n_candidate_dofs, "setup_s": setup_s,
             "all_samples_s": time.perf_counter() - start - setup_s}
     return dataclasses.replace(data, targets=targets), meta
+
+
+def dataset_contact_input(data: Dataset) -> str:
+    """The contact-input kind the data set was generated with (``[dataset] contact_input``;
+    data sets from before the option are 'average')."""
+    protocol = data.attrs.get("protocol") or {}
+    return str(protocol.get("dataset", {}).get("contact_input", "average"))
 
 
 class _Runner:

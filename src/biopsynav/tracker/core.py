@@ -23,7 +23,7 @@ from ..case import Case
 from ..errors import InputError
 from ..grid.embedding import Embedding
 from ..grid.index import field_to_tensor
-from ..probe import contact_input, skin_in_box
+from ..probe import ContactInputOperator, contact_input, contact_input_operator, skin_in_box
 from . import result as st
 from .result import LesionResult, TrackingResult
 
@@ -87,6 +87,8 @@ class Tracker:
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
         self._lesion_base: tuple[np.ndarray, np.ndarray] | None = None
+        self._input_op: ContactInputOperator | None = None
+        self._compliance = None
         env = surrogate.envelope if surrogate is not None else {}
         self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
         self.envelope_margin = case.cfg.tracker.envelope_margin
@@ -138,17 +140,47 @@ class Tracker:
         self._contact = idx
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
+        self._input_op = None
+        self._lesion_base = None
+        self._input[:] = 0.0
         if len(idx):
             emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
             self._contact_emb = emb
-            wsum = np.asarray(emb.matrix.sum(axis=0)).ravel()
-            self._contact_nodes = np.flatnonzero(wsum > 0)
-            w = emb.matrix[:, self._contact_nodes].T.tocsr()  # (n_nodes_c, n_contact)
-            self._spread = (w.multiply(1.0 / wsum[self._contact_nodes][:, None])).tocsr()
-            self._input[:] = 0.0
-            self._input_flat[3, self._contact_nodes] = wsum[self._contact_nodes]
-            self._lesion_base = self._lesion_baseline(wsum)
+            if self.engine == "net":
+                self._input_op = self.input_operator()
+                self._input_flat[3] = self._input_op.weights
+                self._lesion_base = self._lesion_baseline(self._input_op.weights)
         return len(idx)
+
+    @property
+    def contact_input_kind(self) -> str:
+        """How contact displacements become the network input: the model's kind (net
+        engine) or the case's ``[dataset] contact_input``."""
+        if self._surrogate is not None:
+            return self._surrogate.contact_input
+        return self.case.cfg.dataset.contact_input
+
+    def input_operator(self) -> ContactInputOperator:
+        """The network input of the current contact set as a linear map of the contact
+        displacements (:func:`biopsynav.probe.contact_input_operator`, as the data set)."""
+        if self._contact_emb is None:
+            raise InputError("no contact points: set a rest pose with skin under the probe",
+                             "tracker")
+        kind = self.contact_input_kind
+        compliance = self._contact_compliance() if kind == "elastic" else None
+        return contact_input_operator(self._contact_emb.matrix, kind, compliance)
+
+    def _contact_compliance(self):
+        """The case's :class:`~biopsynav.fem.greens.ContactCompliance`: the baseline's when
+        the model has one, else computed once."""
+        baseline = getattr(self._surrogate, "baseline", None)
+        if baseline is not None:
+            return baseline.compliance
+        if self._compliance is None:
+            from ..fem.greens import ContactCompliance
+
+            self._compliance = ContactCompliance.from_case(self.case)
+        return self._compliance
 
     def _lesion_baseline(self, wsum: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The network engine's physics baseline at the lesion centres as one matrix for this
@@ -206,7 +238,7 @@ class Tracker:
         """Lesion displacements (n_lesions, 3) mm: the network's residual interpolated at the
         lesions plus the physics baseline's precomputed lesion operator (no full-grid
         baseline: the hot path of :meth:`update`)."""
-        self._input_flat[:3, self._contact_nodes] = (self._spread @ u_c).T
+        self._set_input(u_c)
         residual = self._surrogate.predict_network(self._input).reshape(3, -1).T
         positions, operator = self._lesion_base
         base = operator @ self._input.ravel()[positions]  # (3 * n_lesions,), axis-major
@@ -215,7 +247,7 @@ class Tracker:
     def _predict(self, u_c: np.ndarray) -> np.ndarray:
         """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
         if self.engine == "net":
-            self._input_flat[:3, self._contact_nodes] = (self._spread @ u_c).T
+            self._set_input(u_c)
             out = self._surrogate.predict(self._input)
             return out.reshape(3, -1).T
         from ..fem import Loads, solve
@@ -224,11 +256,19 @@ class Tracker:
                                             prescribed_displacement=u_c), self._fem_settings)
         return u
 
+    def _set_input(self, u_c: np.ndarray) -> None:
+        """Write the displacement channels of ``self._input`` for contact displacements
+        (n_contact, 3) mm (channel 3 was set at the rest pose)."""
+        op = self._input_op
+        self._input.reshape(-1)[op.positions] = op.matrix @ u_c.ravel()
+
     def network_input(self, u_c: np.ndarray) -> np.ndarray:
         """The (4, nx, ny, nz) network input for contact displacements, built as the dataset
-        builds it (:func:`biopsynav.probe.contact_input`); the hot path uses a precomputed
-        equivalent."""
-        field = contact_input(self._contact_emb.matrix, u_c)
+        builds it (:func:`biopsynav.probe.contact_input`); the hot path uses the rest pose's
+        precomputed operator instead."""
+        kind = self.contact_input_kind
+        compliance = self._contact_compliance() if kind == "elastic" else None
+        field = contact_input(self._contact_emb.matrix, u_c, kind, compliance)
         return field_to_tensor(field, self.case.grid.node_shape).astype(np.float32)
 
     def _surface_embedding(self) -> Embedding:
