@@ -3,19 +3,17 @@
 :class:`LinearElasticBaseline` predicts the grid displacement that the case's FE model, linearised
 at u = 0 (tangent ``K`` = linear elasticity with the same E, nu, immersed weights and fixed chest
 wall), takes when the contact nodes are moved by the network input and every other node is
-force-free. The U-Net then only learns the residual (geometric and material non-linearity, and
-the difference between the trilinear contact average and true nodal values).
+force-free. The U-Net then only learns the residual (geometric and material non-linearity).
 
-Green's-function (Schur) form: with ``Z = K^-1 E`` for the candidate degrees of freedom (unit
-forces on every free component of every node that can ever carry contact weight), the solution
-with prescribed values ``g`` on the contact set ``c`` is ``u = Z[:, c] Z[c, c]^-1 g``: the
-forces ``f_c = Z[c, c]^-1 g`` on ``c`` reproduce ``g`` there, and no force acts elsewhere.
-``Z`` is computed once (one factorisation of ``K``, many right-hand sides) and held transposed
-(candidate dofs x free dofs, float32) so that a prediction gathers contiguous rows.
+Green's-function (Schur) form, with ``Z`` of :class:`~biopsynav.fem.greens.ContactCompliance`
+(unit forces on every candidate dof): the solution with prescribed values ``g`` on the contact
+set ``c`` is ``u = Z[:, c] Z[c, c]^-1 g``: the forces ``f_c = Z[c, c]^-1 g`` on ``c`` reproduce
+``g`` there, and no force acts elsewhere.
 
-Candidate nodes: the 8 nodes of every grid cell that holds a skin vertex off the chest wall
-(``case.anatomy.vertices[~fixed_vertices]``); contact weight (channel 3 of the input) can only
-land there. Fixed components of candidate nodes are left out (their displacement is zero).
+With the elastic contact input (``[dataset] contact_input = "elastic"``, the default) the
+input already is the nodal field of the point-constrained linear solution, and hard constraints
+(``spring=None``) reproduce that solution exactly. Models trained on the averaged input use soft
+springs instead (``docs/network.md``).
 """
 
 from __future__ import annotations
