@@ -77,6 +77,22 @@ def test_rigid_tre_is_the_ground_truth_displacement_norm(coarse_phantom):
     assert failed[0].tre_mm is None and "solver failed" in failed[0].reason
 
 
+def test_network_against_fe_agreement_is_the_distance_of_their_centres(coarse_phantom):
+    a = coarse_phantom.anatomy
+    centres = np.array([les.center for les in a.lesions])
+    pl = place_probe(a, 0)
+    truth = _StubTracker(centres, np.array([0.0, 0.0, -5.0]))
+    net = _StubTracker(centres, np.array([0.0, 0.3, -5.4]))
+    fem = _StubTracker(centres, np.array([0.0, 0.0, -5.0]))
+    recs = {r.method: r for r in push_records(pl, 0, 0, 14.0, truth, {"net": net, "fem": fem},
+                                              ("net", "fem"))}
+    assert recs["net_vs_fem"].tre_mm == pytest.approx(0.5)
+    assert recs["net"].tre_mm == pytest.approx(0.5) and recs["fem"].tre_mm == pytest.approx(0)
+    broken = _StubTracker(centres, np.zeros(3), "out_of_envelope")
+    recs = push_records(pl, 0, 0, 14.0, truth, {"net": broken, "fem": fem}, ("net", "fem"))
+    assert "net_vs_fem" not in {r.method for r in recs}
+
+
 def test_fine_reference_moves_the_lesion_and_fem_tracks_it(coarse_phantom):
     settings = evaluation_solver_settings(coarse_phantom)
     ref = reference_case(coarse_phantom, 1.5)

@@ -17,7 +17,9 @@ import numpy as np
 BIN_NAMES: tuple[str, ...] = ("D10", "D15", "D20", "D25", "D30")
 BIN_EDGES_MM: tuple[float, ...] = (12.5, 17.5, 22.5, 27.5)
 METHOD_TITLES = {"net": "U-Net (network)", "fem": "FE model, training resolution",
-                 "rigid": "Rigid (lesions do not move)"}
+                 "rigid": "Rigid (lesions do not move)",
+                 "net_vs_fem": "Network against the FE model of the training grid (distance "
+                               "between their lesion centres, not a TRE)"}
 EMPTY = "-"
 
 

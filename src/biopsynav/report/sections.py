@@ -163,10 +163,12 @@ def table2_blocks(result: dict, title: str, png: Path) -> list:
     """Tables (one per method), the paper's figures, a summary figure and the failures."""
     blocks: list = [Para(f"Table 2 {title}: " + table2_text(result).split("\n\n")[0]
                          .split(": ", 1)[1])]
-    for m in result["methods"]:
+    for m in list(result["methods"]) + [m for m in result["tables"]
+                                        if m not in result["methods"]]:
         t = result["tables"][m]
         header, *rows = _grid_rows(t)
-        blocks += [Para(f"{METHOD_TITLES.get(m, m)}: average TRE "
+        what = "distance" if m not in result["methods"] else "TRE"
+        blocks += [Para(f"{METHOD_TITLES.get(m, m)}: average {what} "
                         f"{_num(t['overall_mean'], '.3f')} mm."), Grid(header, rows)]
     blocks.append(Para("The paper, on the CIRS phantom with positions from ultrasound "
                        "images: average TRE below 6.194 mm (U-Net) and 6.080 mm (FE) per "
