@@ -11,8 +11,9 @@ import zarr
 
 from biopsynav.errors import FingerprintError
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
+from biopsynav.fem.greens import candidate_nodes
 from biopsynav.grid.index import hex_connectivity
-from biopsynav.network.baseline import LinearElasticBaseline, candidate_nodes
+from biopsynav.network.baseline import LinearElasticBaseline
 
 from .conftest import tiny_settings
 

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..fem.greens import ContactCompliance, candidate_nodes
+from ..fem.greens import ContactCompliance
 
 if TYPE_CHECKING:
     from ..case import Case
@@ -42,13 +42,15 @@ class LinearElasticBaseline:
     """Linear-elastic response to prescribed contact-node displacements (see module doc).
 
     Args:
-        model: the case's FE model (its tangent at u = 0 is used).
-        candidate_nodes: flat node ids (C order over ``node_shape``) that may carry contact.
+        model: the case's FE model (its tangent at u = 0 is used); None with ``compliance``.
+        candidate_nodes: flat node ids (C order over ``node_shape``) that may carry contact;
+            None with ``compliance``.
         node_shape: (nx, ny, nz) of the grid.
         dtype: storage precision of ``Z`` (float32: 4 bytes per candidate dof and free dof).
         spring: None: hard constraints (the exact Dirichlet response, ``u_c = g``); a float
             ``s``: soft constraints, each contact node tied to its input value by a spring of
             stiffness ``s * w**power / median(diag Z)`` (w: its weight sum, channel 3).
+        compliance: an existing :class:`~biopsynav.fem.greens.ContactCompliance` to share.
 
     Why springs: the input on a node is the trilinear-weighted *average* of the contact-point
     displacements, not that node's displacement; on nodes with a small weight sum (a far
@@ -57,7 +59,7 @@ class LinearElasticBaseline:
     constraints on the true nodal FE displacement 0.15 mm (the non-linearity alone).
     """
 
-    def __init__(self, model: FEModel, candidate_nodes: np.ndarray,
+    def __init__(self, model: FEModel | None, candidate_nodes: np.ndarray | None,
                  node_shape: tuple[int, int, int], dtype: type = np.float32,
                  spring: float | None = SPRING_SCALE, power: float = SPRING_POWER,
                  compliance: ContactCompliance | None = None) -> None:
@@ -78,18 +80,16 @@ class LinearElasticBaseline:
                   spring: float | None = SPRING_SCALE,
                   power: float = SPRING_POWER) -> LinearElasticBaseline:
         """The baseline of a case: its FE model and the nodes around its free skin."""
-        from ..fem import FEModel
-
-        return cls(FEModel.from_case(case), candidate_nodes(case), case.grid.node_shape, dtype,
-                   spring, power)
+        compliance = ContactCompliance.from_case(case, dtype)
+        return cls(None, None, compliance.node_shape, dtype, spring, power, compliance)
 
     @property
     def n_candidate_dofs(self) -> int:
-        return int(self.cols.shape[0])
+        return self.compliance.n_candidate_dofs
 
     @property
     def nbytes(self) -> int:
-        return int(self.zt.nbytes)
+        return self.compliance.nbytes
 
     def contact_columns(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Columns of Z (k,), prescribed values (k,) mm and weight sums (k,) of one input."""

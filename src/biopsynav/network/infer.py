@@ -163,7 +163,10 @@ class Surrogate:
             runner = TorchScriptRunner(check_file(model_dir, TORCHSCRIPT, meta), n)
         baseline = _load_baseline(meta, model_dir, case)
         if baseline is not None:
-            torch.set_num_threads(n)  # the baseline's BLAS runs in torch's thread pool
+            # the baseline's small BLAS calls run in torch's pool; beside OpenVINO's own pool
+            # one torch thread is faster (two spinning pools fight for the cores: measured
+            # 3.6 ms against 5.0 ms per prediction on 2 cores, docs/network.md)
+            torch.set_num_threads(1 if rt == "openvino" else n)
         sur = cls(runner, meta, model_dir, baseline)
         sur.warm_up(warmup)
         return sur
