@@ -76,7 +76,7 @@ def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
         SolverError: the solve did not converge.
     """
     from .case import Case
-    from .grid.embedding import Embedding
+    from .grid.embedding import Embedding, surface_embedding
 
     force_n = np.asarray(force_n, dtype=np.float64).ravel()
     if force_n.shape != (3,) or not np.all(np.isfinite(force_n)):
@@ -91,7 +91,7 @@ def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
     contact = Embedding.build(case.grid, patch.points, where="probe patch")
     forces = nodal_forces(contact.matrix, force_n)
     u, report = solve(model, Loads(forces=forces), SolverSettings.from_config(cfg.solver))
-    skin = Embedding.build(case.grid, anatomy.vertices, where="skin surface")
+    skin = surface_embedding(case.grid, anatomy)
     surface_u = skin.interpolate(u)
     out_dir = Path(out_dir)
     paths = _write_outputs(out_dir, anatomy.vertices, anatomy.faces, surface_u, patch)

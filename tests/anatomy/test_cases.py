@@ -155,3 +155,33 @@ def test_label_absent_from_labelmap(tmp_path, capsys):
     code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
                        "1", "--lesion-labels", "4")
     assert code == 2 and "label 4 is absent" in err
+
+
+def test_ucdavis_coarse_grid_embeds_the_whole_skin(tmp_path, capsys, ucdavis_dir):
+    """Chest-wall vertices lie up to ~1 mm behind the fitted wall plane, where the grid's first
+    node plane sits: they are clamped onto that plane (fixed or unused nodes: they never move);
+    the rest must be in active cells.
+    (Data generation failed on the 12 mm grid before: every worker crashed on them.)"""
+    from pathlib import Path
+
+    import numpy as np
+
+    from biopsynav.case import Case
+    from biopsynav.dataset.generate import preflight
+    from biopsynav.grid.embedding import surface_embedding
+
+    lesions = Path(__file__).resolve().parents[2] / "examples" / "ucdavis_breast3" / "lesions.csv"
+    case_dir = tmp_path / "ucd"
+    code, _, err = run(capsys, "init", case_dir, "--surface", ucdavis_dir / "volmesh3.vtk",
+                       "--tissue-labels", "1=fat,2=gland,3=skin", "--lesions", lesions,
+                       "--cell-size", "12")
+    assert code == 0, err
+    case = Case.load(case_dir)
+    behind = case.anatomy.vertices[:, 2] < case.grid.origin[2]
+    assert behind.any() and np.all(case.anatomy.fixed_vertices[behind])
+    emb = surface_embedding(case.grid, case.anatomy)
+    assert emb.matrix.shape == (len(case.anatomy.vertices), case.grid.n_nodes)
+    assert np.allclose(np.asarray(emb.matrix.sum(axis=1)).ravel(), 1.0)
+    still = case.grid.fixed_nodes.ravel() | ~case.grid.active_nodes.ravel()  # never move
+    assert np.all(still[emb.nodes[behind]] | (emb.weights[behind] < 1e-9))
+    preflight(case)

@@ -85,6 +85,7 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
     todo = np.flatnonzero(~done)
     stats = Counter()
     if todo.size:
+        preflight(case)
         runner = make_runner(spec, workers, scheduler)
         try:
             _run(runner, store, todo, stats, case.cfg.dataset.max_failure_share, progress)
@@ -94,6 +95,16 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
     write_json_atomic(case.dir / SUMMARY_FILE, summary)
     plot_distributions(store, case.dir / PLOT_FILE)
     return summary
+
+
+def preflight(case: Any) -> None:
+    """Raise here, in the main process, what every worker would raise while setting up (a skin
+    vertex outside the active cells, no push centre), instead of a pool that keeps crashing."""
+    from ..grid.embedding import surface_embedding
+    from ..probe import eligible_centers
+
+    surface_embedding(case.grid, case.anatomy)
+    eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
 
 
 def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool) -> DatasetStore:

@@ -45,7 +45,7 @@ class SampleContext:
 
     def __init__(self, case: Any) -> None:
         from ..fem import FEModel, SolverSettings
-        from ..grid.embedding import Embedding
+        from ..grid.embedding import surface_embedding
         from ..probe import eligible_centers
 
         self.case = case
@@ -54,7 +54,7 @@ class SampleContext:
         if hasattr(self.settings, "threads"):
             self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
         self.settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
-        self.skin = Embedding.build(case.grid, case.anatomy.vertices, where="skin surface").matrix
+        self.skin = surface_embedding(case.grid, case.anatomy).matrix
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.node_shape = case.grid.node_shape
         self.active = np.asarray(case.grid.active_nodes, dtype=bool).ravel()

@@ -39,7 +39,7 @@ def build_grid(anatomy: Anatomy, settings: GridSection, levels: int) -> Grid:
     active_nodes = _nodes_of_cells(active, node_shape)
     coords = index.node_coordinates(origin, h, node_shape).reshape((*node_shape, 3))
     behind = (coords - anatomy.chest_point) @ anatomy.chest_normal >= -1e-6 * h
-    fixed = active_nodes & behind
+    fixed = active_nodes & (behind | _wall_layer(anatomy, node_shape))
     if not fixed.any():
         raise InputError("no grid node lies on the chest wall; check [anatomy] chest_wall")
     return Grid(origin=origin, spacing=h, fraction=fraction.astype(np.float32),
@@ -75,6 +75,21 @@ def _grid_frame(anatomy: Anatomy, h: float, margin: int,
         origin[ax] = start
         shape.append(nodes)
     return origin, tuple(shape)  # type: ignore[return-value]
+
+
+def _wall_layer(anatomy: Anatomy, node_shape: tuple[int, int, int]) -> np.ndarray:
+    """Nodes (node_shape) of the node plane that :func:`_grid_frame` put on a chest wall
+    perpendicular to an axis (|normal| > 0.999 along it). A fitted wall is rarely exactly
+    perpendicular: tilted by 0.06 degrees (the UC Davis breast), the plane test alone left
+    half of that layer free, and the breast hinged on the other half."""
+    layer = np.zeros(node_shape, dtype=bool)
+    for ax in range(3):
+        n_ax = anatomy.chest_normal[ax]
+        if abs(n_ax) > 0.999:
+            index = [slice(None)] * 3
+            index[ax] = 0 if n_ax < 0 else node_shape[ax] - 1
+            layer[tuple(index)] = True
+    return layer
 
 
 def inside_lattice(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, h: float,

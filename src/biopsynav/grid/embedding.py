@@ -62,6 +62,22 @@ class Embedding:
         return np.asarray(self.matrix.T @ np.asarray(values))
 
 
+def surface_embedding(grid: Grid, anatomy) -> Embedding:
+    """The embedding of every surface vertex of ``anatomy`` (a
+    :class:`~biopsynav.anatomy.model.Anatomy`), rows in vertex order.
+
+    Vertices off the chest wall must lie in active cells (InputError otherwise). Chest-wall
+    vertices (``anatomy.fixed_vertices``) may lie just behind the grid's first node plane,
+    which sits on the fitted chest-wall plane: they are clamped into the nearest cell, whose
+    nodes there are fixed, so they are never loaded and never move."""
+    fixed = np.asarray(anatomy.fixed_vertices, dtype=bool)
+    Embedding.build(grid, anatomy.vertices[~fixed], where="skin surface")  # the check
+    points = np.array(anatomy.vertices, dtype=np.float64)
+    top = grid.origin + (np.asarray(grid.node_shape) - 1) * grid.spacing
+    points[fixed] = np.clip(points[fixed], grid.origin, top)
+    return Embedding.build(grid, points, require_active=False, where="skin surface")
+
+
 def trilinear_weights(xi: np.ndarray) -> np.ndarray:
     """Weights (n, 8) of local coordinates ``xi`` (n, 3) in [0, 1]^3, VTK corner order."""
     c = index.HEX_CORNERS

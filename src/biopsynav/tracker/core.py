@@ -21,7 +21,7 @@ import numpy as np
 
 from ..case import Case
 from ..errors import InputError
-from ..grid.embedding import Embedding
+from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
 from ..probe import ContactInputOperator, contact_input, contact_input_operator, skin_in_box
 from . import result as st
@@ -273,7 +273,7 @@ class Tracker:
 
     def _surface_embedding(self) -> Embedding:
         if self._surface_emb is None:
-            self._surface_emb = Embedding.build(self.case.grid, self.case.anatomy.vertices)
+            self._surface_emb = surface_embedding(self.case.grid, self.case.anatomy)
         return self._surface_emb
 
     def _rest_result(self, status: str, reason: str, start: float) -> TrackingResult:
