@@ -1,7 +1,7 @@
 """Benchmark of the network stage: default training on the built-in phantom, then Table 1.
 
 Usage: ``python benchmarks/train_and_predict.py [CASE_DIR] [--quick] [--preset NAME]
-[--iterations N] [--runtime auto|torchscript|openvino] [--workers N]``.
+[--iterations N] [--runtime auto|torchscript|openvino] [--workers N] [--no-train]``.
 
 CASE_DIR (default ``bench-phantom``) is used as it is when it holds a case; otherwise the
 built-in phantom case is created there, and its data set generated when missing (800/200
@@ -45,6 +45,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--runtime", default=None)
     ap.add_argument("--workers", type=int, default=0)
+    ap.add_argument("--no-train", action="store_true",
+                    help="evaluate the case's trained model as it is (e.g. the demo case's); "
+                         "the training time comes from its meta.json")
     args = ap.parse_args(argv)
     case_dir = Path(args.case_dir)
     ensure_case(case_dir, args.quick, args.workers)
@@ -56,11 +59,12 @@ def main(argv: list[str] | None = None) -> dict:
 
     cfg = load_config(case_dir)
     iterations = args.iterations or (300 if args.quick else None)
-    summary = train(case_dir, args.preset, iterations, settings=cfg.network)
-    print(f"training: {summary.iterations_done} iterations, {summary.train_time_s / 60:.1f} min"
-          f" (this run resumed from {summary.resumed_from}), best validation e "
-          f"{summary.best_val_e_mm:.4f} mm at {summary.best_iteration}, "
-          f"{summary.n_parameters:,} parameters", flush=True)
+    if not args.no_train:
+        summary = train(case_dir, args.preset, iterations, settings=cfg.network)
+        print(f"training: {summary.iterations_done} iterations, "
+              f"{summary.train_time_s / 60:.1f} min (this run resumed from "
+              f"{summary.resumed_from}), best validation e {summary.best_val_e_mm:.4f} mm at "
+              f"{summary.best_iteration}, {summary.n_parameters:,} parameters", flush=True)
     r = evaluate(case_dir / "model", case_dir, case_dir / "eval", case_fingerprint(case_dir),
                  runtime=args.runtime or cfg.network.runtime, threads=cfg.network.threads,
                  n_timing=200 if args.quick else 1000)

@@ -241,3 +241,18 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(ph
         moved = np.array([les.displacement for les in full.lesions])
         assert np.abs(moved).max() > 0.1
         assert np.abs(np.array([les.displacement for les in fast.lesions]) - moved).max() < 1e-4
+
+
+def test_training_with_the_baseline_resumes_from_its_checkpoint(phantom, tmp_path):
+    """The baseline's set-up timings must not enter the checkpoint signature (they did: every
+    run with a baseline trained afresh)."""
+    from biopsynav.network.train import train
+
+    case_dir, _, _ = phantom
+    settings = tiny_settings(levels=2, iterations=8, val_interval=4, warmup_iterations=1,
+                             baseline="linear-elastic")
+    first = train(case_dir, settings=settings, model_dir=tmp_path / "m", progress=False,
+                  stop_after=4)
+    assert not first.finished and first.iterations_done == 4
+    second = train(case_dir, settings=settings, model_dir=tmp_path / "m", progress=False)
+    assert second.resumed_from == 4 and second.finished

@@ -217,7 +217,8 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     if baseline_meta["kind"] != "none":
         out_scale = target_rms(data)  # the residual's RMS over active nodes
     signature = _signature(s, spec, data)
-    signature["baseline_meta"] = baseline_meta
+    signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
+                                  if not k.endswith("_s")}  # not its timings
 
     torch.manual_seed(s.seed)
     net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy()).to(dev)
