@@ -181,6 +181,15 @@ def test_surrogate_adds_the_baseline_to_the_residual_net(phantom, trained_le):
     sur2 = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
                           warmup=0, case=case)
     assert np.abs(sur2.predict(x[0]) - expect[0]).max() < 1e-4
+    from biopsynav.network.infer import openvino_available
+
+    if openvino_available():  # the network started asynchronously beside the baseline
+        ov = Surrogate.load(model_dir, case.fingerprint(), runtime="openvino", threads=1,
+                            warmup=2, case=case)
+        assert np.abs(ov.predict(x[:3]) - expect).max() < 1e-3
+        first = ov.predict(x[0])
+        ov.predict(x[1])  # the request's buffer is reused: earlier results must not change
+        assert np.abs(first - expect[0]).max() < 1e-3
 
 
 def test_fingerprint_refusal_with_baseline(phantom, trained_le, tmp_path):
