@@ -80,10 +80,9 @@ def table2_text(result: dict) -> str:
     """All method tables of a Table 2 result as aligned plain text, with failures."""
     parts = [f"Table 2 ({result['source']}): TRE in mm per lesion and probe displacement "
              f"(edges {', '.join(f'{e:g}' for e in BIN_EDGES_MM)} mm). " + _source_line(result)]
-    for m in _shown(result):
+    for m, what in shown_tables(result):
         parts.append(format_text(table_from_dict(result["tables"][m])))
         overall = result["tables"][m]["overall_mean"]
-        what = "distance" if m not in result["methods"] else "TRE"
         parts.append(f"  average {what} over all cells: "
                      f"{'-' if overall is None else f'{overall:.3f}'} mm")
     parts.append(_failures_text(result))
@@ -92,10 +91,11 @@ def table2_text(result: dict) -> str:
     return "\n\n".join(p for p in parts if p)
 
 
-def _shown(result: dict) -> list[str]:
-    """The methods' tables, then the network-against-FE agreement when there is one."""
-    return list(result["methods"]) + [m for m in result["tables"]
-                                      if m not in result["methods"]]
+def shown_tables(result: dict) -> list[tuple[str, str]]:
+    """(table key, what its cells are) of a Table 2 result: the methods' tables ("TRE"), then
+    the network-against-FE agreement when there is one ("distance")."""
+    return [(m, "TRE") for m in result["methods"]] + [
+        (m, "distance") for m in result["tables"] if m not in result["methods"]]
 
 
 def _failures_text(result: dict) -> str:
@@ -117,11 +117,10 @@ def table2_markdown(result: dict) -> str:
              "probe displacement range (D10 < 12.5 mm, D15 [12.5, 17.5), D20 [17.5, 22.5), "
              "D25 [22.5, 27.5), D30 >= 27.5 mm); '-': no push in that range, or no "
              "trustworthy result (listed below).", "", _source_line(result), ""]
-    for m in _shown(result):
+    for m, what in shown_tables(result):
         t = result["tables"][m]
         lines += [f"## {METHOD_TITLES.get(m, m)}", "", format_markdown(table_from_dict(t)), ""]
         if t["overall_mean"] is not None:
-            what = "distance" if m not in result["methods"] else "TRE"
             lines.append(f"Average {what} over all cells: {t['overall_mean']:.3f} mm; largest "
                          f"lesion mean {t['max_row_mean']:.3f} mm.")
         if m in PAPER_TABLE2_COL_MEAN:

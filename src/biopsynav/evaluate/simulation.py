@@ -23,12 +23,9 @@ from ..grid.build import build_grid
 from ..tracker.core import Tracker
 from ..tracker.result import TrackingResult
 from .placement import Placement, place_probe, push_depths
-from .table import BIN_NAMES, Record, aggregate, bin_name
+from .table import AGREEMENT, BIN_NAMES, Record, aggregate, bin_name
 
 METHODS: tuple[str, ...] = ("net", "fem", "rigid")
-#: Pseudo-method of Table 2: distance between the network's and the FE model's lesion centres
-#: (same grid, same pose): how closely the network reproduces the model it was trained on.
-AGREEMENT = "net_vs_fem"
 QUICK_LESIONS = 3
 QUICK_REFINEMENT = 1.5
 #: prescribed contact displacements are met to this (mm) in the evaluation solves (the case's

@@ -16,10 +16,13 @@ import numpy as np
 
 BIN_NAMES: tuple[str, ...] = ("D10", "D15", "D20", "D25", "D30")
 BIN_EDGES_MM: tuple[float, ...] = (12.5, 17.5, 22.5, 27.5)
+#: Pseudo-method of Table 2: distance between the network's and the FE model's lesion centres
+#: (same grid, same pose): how closely the network reproduces the model it was trained on.
+AGREEMENT = "net_vs_fem"
 METHOD_TITLES = {"net": "U-Net (network)", "fem": "FE model, training resolution",
                  "rigid": "Rigid (lesions do not move)",
-                 "net_vs_fem": "Network against the FE model of the training grid (distance "
-                               "between their lesion centres, not a TRE)"}
+                 AGREEMENT: "Network against the FE model of the training grid (distance "
+                            "between their lesion centres, not a TRE)"}
 EMPTY = "-"
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from ..config import CaseConfig
 from ..errors import BiopsynavError
 from ..evaluate.paper import PAPER_TABLE1
-from ..evaluate.run import TABLE2, TABLE2_MEASURED, table2_text
+from ..evaluate.run import TABLE2, TABLE2_MEASURED, shown_tables, table2_text
 from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
 from .blocks import Grid, Image, Note, Para, Pre, Section
 from .figures import plot_table2, plot_timing, timing_rows
@@ -163,11 +163,9 @@ def table2_blocks(result: dict, title: str, png: Path) -> list:
     """Tables (one per method), the paper's figures, a summary figure and the failures."""
     blocks: list = [Para(f"Table 2 {title}: " + table2_text(result).split("\n\n")[0]
                          .split(": ", 1)[1])]
-    for m in list(result["methods"]) + [m for m in result["tables"]
-                                        if m not in result["methods"]]:
+    for m, what in shown_tables(result):
         t = result["tables"][m]
         header, *rows = _grid_rows(t)
-        what = "distance" if m not in result["methods"] else "TRE"
         blocks += [Para(f"{METHOD_TITLES.get(m, m)}: average {what} "
                         f"{_num(t['overall_mean'], '.3f')} mm."), Grid(header, rows)]
     blocks.append(Para("The paper, on the CIRS phantom with positions from ultrasound "
