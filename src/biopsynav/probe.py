@@ -263,7 +263,8 @@ def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
     n_pts = contact_matrix.shape[0]
     if kind == "average":
         spread = contact_matrix[:, nodes].T.toarray() / weights[nodes][:, None]  # (n_c, n)
-        matrix = np.kron(np.eye(3), spread) @ _point_major(n_pts)
+        # value (axis, node) from point-major u_P: spread on the same axis only
+        matrix = np.einsum("ac,jp->ajpc", np.eye(3), spread).reshape(3 * len(nodes), 3 * n_pts)
         positions = (np.arange(3)[:, None] * n_nodes + nodes[None, :]).ravel()
         return ContactInputOperator(weights, positions, matrix)
     if kind != "elastic":
@@ -290,12 +291,6 @@ def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
     positions = free_axes * n_nodes + nodes[free_nodes]
     order = local[free_nodes, free_axes]
     return ContactInputOperator(weights, positions, matrix[order])
-
-
-def _point_major(n_pts: int) -> np.ndarray:
-    """(3n, 3n) permutation from point-major ``u.ravel()`` to axis-major ``u.T.ravel()``."""
-    perm = (np.arange(3)[:, None] + 3 * np.arange(n_pts)[None, :]).ravel()
-    return np.eye(3 * n_pts)[perm]
 
 
 def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: str = "elastic",

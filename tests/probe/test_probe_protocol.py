@@ -114,6 +114,10 @@ def test_contact_input_is_a_weighted_average_with_weight_channel(case, pushes):
     touched = weight > 0
     assert np.allclose(field[touched, :3], [1.0, -2.0, 3.0])
     assert np.all(field[~touched, :3] == 0)
+    varied = np.random.default_rng(5).normal(size=(push.n_contact, 3))
+    field = contact_input(w, varied, "average")
+    expected = np.asarray(w.T @ varied)[touched] / weight[touched, None]
+    assert np.allclose(field[touched, :3], expected)
 
 
 @pytest.fixture(scope="module")

@@ -57,10 +57,11 @@ def _grid_frame(anatomy: Anatomy, h: float, margin: int,
     lo, hi = anatomy.bounds
     origin = np.empty(3)
     shape = []
+    walls = _wall_axes(anatomy)
     for ax in range(3):
         n_ax = anatomy.chest_normal[ax]
         cells = int(np.ceil((hi[ax] - lo[ax]) / h - 1e-9))
-        if abs(n_ax) > 0.999:  # chest wall perpendicular to this axis
+        if ax in walls:
             wall = float(anatomy.chest_point[ax])
             nodes = cells + margin + 1
             pad = (-nodes) % multiple
@@ -77,18 +78,22 @@ def _grid_frame(anatomy: Anatomy, h: float, margin: int,
     return origin, tuple(shape)  # type: ignore[return-value]
 
 
+def _wall_axes(anatomy: Anatomy) -> list[int]:
+    """Axes the chest wall is perpendicular to (|normal| > 0.999 along it): the grid puts a
+    node plane on the wall there, the first (normal < 0) or the last."""
+    return [ax for ax in range(3) if abs(anatomy.chest_normal[ax]) > 0.999]
+
+
 def _wall_layer(anatomy: Anatomy, node_shape: tuple[int, int, int]) -> np.ndarray:
     """Nodes (node_shape) of the node plane that :func:`_grid_frame` put on a chest wall
-    perpendicular to an axis (|normal| > 0.999 along it). A fitted wall is rarely exactly
+    perpendicular to an axis (:func:`_wall_axes`). A fitted wall is rarely exactly
     perpendicular: tilted by 0.06 degrees (the UC Davis breast), the plane test alone left
     half of that layer free, and the breast hinged on the other half."""
     layer = np.zeros(node_shape, dtype=bool)
-    for ax in range(3):
-        n_ax = anatomy.chest_normal[ax]
-        if abs(n_ax) > 0.999:
-            index = [slice(None)] * 3
-            index[ax] = 0 if n_ax < 0 else node_shape[ax] - 1
-            layer[tuple(index)] = True
+    for ax in _wall_axes(anatomy):
+        index = [slice(None)] * 3
+        index[ax] = 0 if anatomy.chest_normal[ax] < 0 else node_shape[ax] - 1
+        layer[tuple(index)] = True
     return layer
 
 

@@ -94,12 +94,19 @@ class LinearElasticBaseline:
     def contact_columns(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Columns of Z (k,), prescribed values (k,) mm and weight sums (k,) of one input."""
         flat = x.reshape(4, -1)
-        nodes = np.flatnonzero(flat[3] > 0)
+        positions, sel, w = self._contact_dofs(flat[3])
+        return sel, flat[:3].reshape(-1)[positions].astype(np.float64), w
+
+    def _contact_dofs(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For weight sums (n_nodes,) (input channel 3): the free candidate dofs of the nodes
+        with weight, node-major: their positions (k,) in the channel-major flat displacement
+        channels, their columns of Z (k,), and their nodes' weight sums (k,) float64."""
+        nodes = np.flatnonzero(weights > 0)
         sel = self.col_of[nodes]  # (n, 3)
         ok = sel >= 0
-        g = flat[:3, nodes].T  # (n, 3)
-        w = np.repeat(flat[3, nodes][:, None], 3, axis=1)
-        return sel[ok], g[ok].astype(np.float64), w[ok].astype(np.float64)
+        positions = (np.arange(3)[None, :] * self.n_nodes + nodes[:, None])[ok]
+        w = np.repeat(np.asarray(weights[nodes], dtype=np.float64)[:, None], 3, axis=1)
+        return positions, sel[ok], w[ok]
 
     def predict(self, inputs: np.ndarray) -> np.ndarray:
         """Displacement (3, nx, ny, nz) float32 mm of input (4, nx, ny, nz); batched too."""
@@ -150,14 +157,7 @@ class LinearElasticBaseline:
             ``operator @ x[:3].ravel()[positions]`` equals ``out_rows @ predict(x).ravel()``
             (or ``predict(x).ravel()``) for every input ``x`` with these weight sums.
         """
-        x = np.zeros((4, self.n_nodes))
-        x[3] = np.asarray(weights, dtype=np.float64).ravel()
-        nodes = np.flatnonzero(x[3] > 0)
-        sel_all = self.col_of[nodes]  # (n, 3)
-        ok = sel_all >= 0
-        positions = (np.arange(3)[None, :] * self.n_nodes + nodes[:, None])[ok]
-        sel = sel_all[ok]
-        w = np.repeat(x[3, nodes][:, None], 3, axis=1)[ok]
+        positions, sel, w = self._contact_dofs(np.asarray(weights, dtype=np.float64).ravel())
         n_out = 3 * self.n_nodes if out_rows is None else out_rows.shape[0]
         if not sel.size:
             return positions, np.zeros((n_out, 0))
