@@ -46,7 +46,8 @@ def contact_input(nodes: np.ndarray, g: np.ndarray, weight: float = 1.0) -> np.n
 @pytest.fixture(scope="module")
 def box():
     model = box_model()
-    return model, LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=None)
+    return model, LinearElasticBaseline.from_model(model, top_nodes(), SHAPE, np.float64,
+                                                   spring=None)
 
 
 def test_hard_baseline_is_the_fe_solution_of_a_small_prescribed_displacement(box):
@@ -74,9 +75,9 @@ def test_springs_tend_to_hard_constraints_and_weaken_with_small_weights(box):
     g = np.tile([0.0, 0.0, -1.0], (4, 1))
     x = contact_input(contact, g)
     hard = base.predict(x)
-    stiff = LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=1e7)
+    stiff = LinearElasticBaseline.from_model(model, top_nodes(), SHAPE, np.float64, spring=1e7)
     assert np.abs(stiff.predict(x) - hard).max() < 1e-4
-    soft = LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=0.3)
+    soft = LinearElasticBaseline.from_model(model, top_nodes(), SHAPE, np.float64, spring=0.3)
     heavy, light = soft.predict(x), soft.predict(contact_input(contact, g, weight=0.1))
     assert np.abs(light).max() < np.abs(heavy).max() <= np.abs(hard).max() + 1e-9
 
@@ -84,7 +85,7 @@ def test_springs_tend_to_hard_constraints_and_weaken_with_small_weights(box):
 @pytest.mark.parametrize("spring", [None, 0.3])
 def test_contact_operator_equals_predict_for_a_fixed_contact_set(spring):
     model = box_model()
-    base = LinearElasticBaseline(model, top_nodes(), SHAPE, np.float64, spring=spring)
+    base = LinearElasticBaseline.from_model(model, top_nodes(), SHAPE, np.float64, spring=spring)
     rng = np.random.default_rng(1)
     contact = rng.choice(top_nodes(), 7, replace=False)
     weights = np.zeros(int(np.prod(SHAPE)))

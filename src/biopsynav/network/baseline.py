@@ -18,7 +18,6 @@ springs instead (``docs/network.md``).
 
 from __future__ import annotations
 
-import time
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -42,15 +41,12 @@ class LinearElasticBaseline:
     """Linear-elastic response to prescribed contact-node displacements (see module doc).
 
     Args:
-        model: the case's FE model (its tangent at u = 0 is used); None with ``compliance``.
-        candidate_nodes: flat node ids (C order over ``node_shape``) that may carry contact;
-            None with ``compliance``.
-        node_shape: (nx, ny, nz) of the grid.
-        dtype: storage precision of ``Z`` (float32: 4 bytes per candidate dof and free dof).
+        compliance: the Green's functions (:class:`~biopsynav.fem.greens.ContactCompliance`)
+            of the FE model linearised at rest; :meth:`from_case` and :meth:`from_model` make
+            them.
         spring: None: hard constraints (the exact Dirichlet response, ``u_c = g``); a float
             ``s``: soft constraints, each contact node tied to its input value by a spring of
             stiffness ``s * w**power / median(diag Z)`` (w: its weight sum, channel 3).
-        compliance: an existing :class:`~biopsynav.fem.greens.ContactCompliance` to share.
 
     Why springs: the input on a node is the trilinear-weighted *average* of the contact-point
     displacements, not that node's displacement; on nodes with a small weight sum (a far
@@ -59,29 +55,31 @@ class LinearElasticBaseline:
     constraints on the true nodal FE displacement 0.15 mm (the non-linearity alone).
     """
 
-    def __init__(self, model: FEModel | None, candidate_nodes: np.ndarray | None,
-                 node_shape: tuple[int, int, int], dtype: type = np.float32,
-                 spring: float | None = SPRING_SCALE, power: float = SPRING_POWER,
-                 compliance: ContactCompliance | None = None) -> None:
-        start = time.perf_counter()
-        self.compliance = compliance or ContactCompliance(model, candidate_nodes, node_shape,
-                                                          dtype)
-        c = self.compliance
+    def __init__(self, compliance: ContactCompliance, spring: float | None = SPRING_SCALE,
+                 power: float = SPRING_POWER) -> None:
+        self.compliance = c = compliance
         self.node_shape, self.n_nodes = c.node_shape, c.n_nodes
         self.cols, self.col_of, self.out_pos, self.zt = c.cols, c.col_of, c.out_pos, c.zt
         self.z_ref = c.z_ref
         self._zt = torch.from_numpy(self.zt)  # shares memory
         self.spring = None if spring is None else float(spring)
         self.power = float(power)
-        self.setup_s = time.perf_counter() - start
 
     @classmethod
     def from_case(cls, case: Case, dtype: type = np.float32,
                   spring: float | None = SPRING_SCALE,
                   power: float = SPRING_POWER) -> LinearElasticBaseline:
         """The baseline of a case: its FE model and the nodes around its free skin."""
-        compliance = ContactCompliance.from_case(case, dtype)
-        return cls(None, None, compliance.node_shape, dtype, spring, power, compliance)
+        return cls(ContactCompliance.from_case(case, dtype), spring, power)
+
+    @classmethod
+    def from_model(cls, model: FEModel, candidate_nodes: np.ndarray,
+                   node_shape: tuple[int, int, int], dtype: type = np.float32,
+                   spring: float | None = SPRING_SCALE,
+                   power: float = SPRING_POWER) -> LinearElasticBaseline:
+        """The baseline of any FE model, with contact possible on ``candidate_nodes`` (flat
+        node ids, C order over ``node_shape`` (nx, ny, nz)); ``dtype``: storage of ``Z``."""
+        return cls(ContactCompliance(model, candidate_nodes, node_shape, dtype), spring, power)
 
     @property
     def n_candidate_dofs(self) -> int:
