@@ -23,7 +23,7 @@ from ..case import Case
 from ..errors import InputError
 from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
-from ..probe import ContactInputOperator, contact_input, contact_input_operator, skin_in_box
+from ..probe import ContactInputOperator, contact_input_operator, skin_in_box
 from . import result as st
 from .result import LesionResult, TrackingResult
 
@@ -264,11 +264,9 @@ class Tracker:
 
     def network_input(self, u_c: np.ndarray) -> np.ndarray:
         """The (4, nx, ny, nz) network input for contact displacements, built as the dataset
-        builds it (:func:`biopsynav.probe.contact_input`); the hot path uses the rest pose's
-        precomputed operator instead."""
-        kind = self.contact_input_kind
-        compliance = self._contact_compliance() if kind == "elastic" else None
-        field = contact_input(self._contact_emb.matrix, u_c, kind, compliance)
+        builds it (:func:`biopsynav.probe.contact_input` is ``contact_input_operator(...)
+        .field(u)``); the hot path writes the same operator's values into its own buffer."""
+        field = self.input_operator().field(u_c)
         return field_to_tensor(field, self.case.grid.node_shape).astype(np.float32)
 
     def _surface_embedding(self) -> Embedding:
