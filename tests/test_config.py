@@ -31,6 +31,9 @@ def test_defaults_round_trip(tmp_path):
     ({"anatomy": {"tissue_labels": {"1": "bone"}}}, "unknown tissue 'bone'"),
     ({"igtl": {"listen": "localhost"}}, "HOST:PORT"),
     ({"probe": {"footprint_mm": [50.0]}}, "two positive lengths"),
+    ({"dataset": {"contact_input": "nearest"}}, "must be one of"),
+    ({"dataset": {"newton_budget": -1}}, "below its minimum"),
+    ({"igtl": {"stall_timeout_s": 0.0}}, "below its minimum"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:
