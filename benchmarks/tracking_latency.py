@@ -18,7 +18,8 @@ are skipped (reported as nan) and the round trip uses the rigid stand-in tracker
 Poses: ``--poses`` reads the ``biopsynav track`` CSV (``frame, sequence, m00 ... m23``);
 otherwise a synthetic sequence pushes up to 8 mm along the rest pose's beam axis with a
 +-3 degree rock, the rest pose being ``tracker.rest_pose`` when the tracker has one, else the
-identity.
+probe placed over the case's first lesion as in Table 2 (:func:`biopsynav.evaluate.placement.
+place_probe`: face centre on the skin, beam towards the lesion), else (no case) the identity.
 
 The last line reads ``RESULT update_p50_ms=... update_p99_ms=... rtt_p50_ms=... rtt_p99_ms=...
 lost=... fem_update_ms=...``.
@@ -103,8 +104,16 @@ def stand_in_tracker():
 
 
 def rest_pose_of(tracker) -> np.ndarray:
+    """The tracker's rest pose; else the probe over the case's first lesion; else identity."""
     rest = getattr(tracker, "rest_pose", None)
-    return np.asarray(rest, dtype=np.float64) if rest is not None else np.eye(4)
+    if rest is not None:
+        return np.asarray(rest, dtype=np.float64)
+    case = getattr(tracker, "case", None)
+    if case is not None and len(case.anatomy.lesions):
+        from biopsynav.evaluate.placement import place_probe
+
+        return np.asarray(place_probe(case.anatomy, 0).pose, dtype=np.float64)
+    return np.eye(4)
 
 
 def time_updates(tracker, poses: np.ndarray) -> list[float]:

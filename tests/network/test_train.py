@@ -126,3 +126,20 @@ def test_auto_threads_sees_a_busy_core():
     cores = os.cpu_count() or 1
     assert busy is not None and 0.6 <= busy <= cores + 0.01
     assert 1 <= threads <= max(1, cores - 1 + (cores == 1))
+
+
+def test_validation_is_the_same_in_either_memory_layout():
+    from biopsynav.network.export import SurrogateNet
+    from biopsynav.network.train import validate
+    from biopsynav.network.unet import UNetSpec
+
+    torch.manual_seed(0)
+    shape = (8, 8, 8)
+    active = torch.rand(shape) > 0.3
+    net = SurrogateNet(UNetSpec(base_channels=4, levels=2), np.ones(4), np.ones(3),
+                       active.numpy())
+    x, y = torch.randn(5, 4, *shape), torch.randn(5, 3, *shape)
+    plain = validate(net, x, y, active, batch=2)
+    net.to(memory_format=torch.channels_last_3d)
+    last = validate(net, x, y, active, batch=2, memory_format=torch.channels_last_3d)
+    assert plain.shape == (5,) and torch.allclose(plain, last, rtol=1e-5, atol=1e-6)
