@@ -164,9 +164,12 @@ def _service_main(case_dir, plus_port: int, queue) -> None:
     tracker = None
     if case_dir is not None:
         try:
+            from biopsynav.config import load_config
             from biopsynav.tracker import Tracker
 
-            tracker = Tracker.load(case_dir)
+            # as `biopsynav serve` loads it: [igtl] inference_threads
+            tracker = Tracker.load(case_dir,
+                                   threads=load_config(case_dir).igtl.inference_threads)
         except ImportError:
             tracker = None
     if tracker is None:

@@ -275,6 +275,12 @@ class IgtlSection:
                                       "nothing for this long is dropped (a stalled or "
                                       "half-dead peer never holds a partial message forever).",
                                  lo=0.1, hi=3600.0)
+    inference_threads: int = opt(1, "CPU threads of the served tracker's network (0: the idle "
+                                    "cores, as [network] threads). One by default: at 100 Hz "
+                                    "on 2 cores a second thread has to be woken for every pose "
+                                    "and competes with the socket traffic (round trip 4.7-4.9 "
+                                    "ms with 1 thread against 5.5-5.6 ms with 2; "
+                                    "BENCHMARKS.md).", lo=0, hi=1024)
 
 
 @dataclass

@@ -266,3 +266,15 @@ def test_training_with_the_baseline_resumes_from_its_checkpoint(phantom, tmp_pat
     assert not first.finished and first.iterations_done == 4
     second = train(case_dir, settings=settings, model_dir=tmp_path / "m", progress=False)
     assert second.resumed_from == 4 and second.finished
+
+
+def test_tracker_load_takes_the_network_thread_count(phantom, trained_le):
+    """``Tracker.load(threads=...)`` (the service's ``[igtl] inference_threads``) reaches the
+    runtime."""
+    pytest.importorskip("openvino")
+    from biopsynav.tracker import Tracker
+
+    case_dir, _, _ = phantom
+    for threads in (1, 2):
+        run = Tracker.load(case_dir, threads=threads)._surrogate._run
+        assert run.name == "openvino" and run.threads == threads

@@ -44,6 +44,19 @@ def test_pose_validation():
     mirrored[:3, 0] *= -1
     assert "not rigid" in pose_problem(mirrored, 1e-3)
     assert "shape" in pose_problem(np.eye(3), 1e-3)
+    projective = TOP.copy()
+    projective[3, 2] = 0.01
+    assert "last row" in pose_problem(projective, 1e-3)
+    sheared = TOP.copy()
+    sheared[0, 1] += 0.01  # a shear breaks orthonormality
+    assert "not rigid" in pose_problem(sheared, 1e-3)
+    inf = TOP.copy()
+    inf[1, 3] = np.inf
+    assert "NaN or infinite" in pose_problem(inf, 1e-3)
+    turned = TOP.copy()
+    c, s = np.cos(0.3), np.sin(0.3)
+    turned[:3, :3] = turned[:3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    assert pose_problem(turned, 1e-6) == ""
 
 
 def test_rest_pose_and_push(fem_tracker):

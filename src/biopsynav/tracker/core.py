@@ -14,6 +14,7 @@ the predicted grid displacement by trilinear interpolation.
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -39,20 +40,29 @@ def as_pose(matrix: np.ndarray) -> np.ndarray:
 
 
 def pose_problem(matrix: np.ndarray, tol: float) -> str:
-    """Empty if ``matrix`` is a finite rigid transform, else why it is not."""
+    """Empty if ``matrix`` is a finite rigid transform, else why it is not.
+
+    Plain float arithmetic on the 12-16 numbers, no NumPy reductions: this runs first on every
+    pose, and took 0.1 ms hot / 0.4 ms after 10 ms idle with ``allclose`` and ``det``.
+    """
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape not in ((4, 4), (3, 4)):
         return f"pose has shape {m.shape}, expected 4 x 4 or 3 x 4"
-    if not np.isfinite(m).all():
+    rows = m.tolist()
+    if not all(math.isfinite(v) for row in rows for v in row):
         return "pose contains NaN or infinite values"
-    m = as_pose(m)
-    if not np.allclose(m[3], [0, 0, 0, 1], atol=tol):
+    if len(rows) == 4 and max(abs(a - b) for a, b in zip(rows[3], (0.0, 0.0, 0.0, 1.0),
+                                                         strict=True)) > tol:
         return "pose last row is not (0, 0, 0, 1)"
-    r = m[:3, :3]
-    dev = float(np.abs(r.T @ r - np.eye(3)).max())
-    if dev > tol or np.linalg.det(r) < 0:
-        return f"pose rotation is not rigid (orthonormality error {dev:.2g}, det " \
-               f"{np.linalg.det(r):.3g})"
+    r = [row[:3] for row in rows[:3]]
+    cols = list(zip(*r, strict=True))  # R^T R - I: dot products of the columns
+    dev = max(abs(sum(a * b for a, b in zip(cols[i], cols[j], strict=True)) - (i == j))
+              for i in range(3) for j in range(i, 3))
+    det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+           - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+           + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
+    if dev > tol or det < 0:
+        return f"pose rotation is not rigid (orthonormality error {dev:.2g}, det {det:.3g})"
     return ""
 
 
@@ -94,16 +104,19 @@ class Tracker:
         self.envelope_margin = case.cfg.tracker.envelope_margin
 
     @classmethod
-    def load(cls, case_dir: str | Path, engine: str | None = None) -> Tracker:
+    def load(cls, case_dir: str | Path, engine: str | None = None,
+             threads: int | None = None) -> Tracker:
         """Load a case and its engine: ``"net"`` (trained model, fingerprint-checked) or
-        ``"fem"`` (finite elements with prescribed contact displacements)."""
+        ``"fem"`` (finite elements with prescribed contact displacements). ``threads``: CPU
+        threads of the network (None: ``[network] threads``; 0: the idle cores)."""
         case = Case.load(case_dir)
         engine = engine or case.cfg.tracker.engine
         if engine == "net":
             from ..network.infer import Surrogate
 
             sur = Surrogate.load(case.dir / "model", case.fingerprint(),
-                                 threads=case.cfg.network.threads)
+                                 threads=case.cfg.network.threads if threads is None
+                                 else threads)
             return cls(case, engine, surrogate=sur)
         if engine == "fem":
             from ..fem import FEModel, SolverSettings
