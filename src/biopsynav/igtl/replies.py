@@ -1,6 +1,7 @@
 """Encode a :class:`~biopsynav.tracker.result.TrackingResult` as the OpenIGTLink reply to a pose.
 
-One reply, packed into one buffer:
+One reply, sent in two buffers: the status STRING (when due) and the POINT go out as soon as
+they are packed, the TRANSFORMs after them (the POINT is what a client waits for first):
 
 * ``POINT`` ``Lesions``: one point per lesion with a finite centre, named ``Lesion<id>``; the
   point's group holds the lesion status, its colour is green when reliable, red otherwise;
@@ -65,17 +66,29 @@ def _finite_lesions(result: TrackingResult) -> list[tuple[int, np.ndarray, str]]
 def encode_lesions(result: TrackingResult, timestamp: float | None = None,
                    transforms: bool = True) -> bytes:
     """The POINT message and (``transforms``) the per-lesion TRANSFORMs; b"" when no lesion."""
+    head = encode_lesion_point(result, timestamp)
+    return head + encode_lesion_transforms(result, timestamp) if head and transforms else head
+
+
+def encode_lesion_point(result: TrackingResult, timestamp: float | None = None) -> bytes:
+    """The POINT message of the lesions with a finite centre; b"" when there is none."""
     lesions = _finite_lesions(result)
     if not lesions:
         return b""
     reliable = result.status in RELIABLE
     rgba = [RELIABLE_RGBA if reliable and status in RELIABLE else UNRELIABLE_RGBA
             for _, _, status in lesions]
-    parts = [encode_points(POINT_DEVICE, np.array([c for _, c, _ in lesions]),
-                           [lesion_point_name(i) for i, _, _ in lesions], rgba=rgba,
-                           diameters=[POINT_DIAMETER_MM] * len(lesions),
-                           groups=[s[:32] for _, _, s in lesions], timestamp=timestamp)]
-    for lesion_id, center, _ in lesions if transforms else []:
+    return encode_points(POINT_DEVICE, np.array([c for _, c, _ in lesions]),
+                         [lesion_point_name(i) for i, _, _ in lesions], rgba=rgba,
+                         diameters=[POINT_DIAMETER_MM] * len(lesions),
+                         groups=[s[:32] for _, _, s in lesions], timestamp=timestamp)
+
+
+def encode_lesion_transforms(result: TrackingResult, timestamp: float | None = None) -> bytes:
+    """One TRANSFORM ``Lesion<id>ToReference`` per lesion with a finite centre (identity
+    rotation, translation = centre in mm); ids too long for a device name are skipped."""
+    parts = []
+    for lesion_id, center, _ in _finite_lesions(result):
         name = lesion_transform_name(lesion_id)
         if len(name) > DEVICE_NAME_BYTES:
             log.warning("lesion id %d is too long for a TRANSFORM device name; point only",

@@ -31,7 +31,7 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -47,7 +47,8 @@ from .replies import (
     COMMAND_DEVICE,
     COMMAND_REPLY_DEVICE,
     TRACKER_ERROR,
-    encode_lesions,
+    encode_lesion_point,
+    encode_lesion_transforms,
     encode_status,
     error_result,
 )
@@ -546,9 +547,9 @@ class IgtlServer:
         if self._provisional_rest and result.status != NO_CONTACT:
             self._provisional_rest = False
             log.info("rest pose taken automatically at first contact (%s)", result.status)
-        payload = self._reply_bytes(result, timestamp)
-        for conn in list(self._clients):
-            self._send(conn, payload)
+        for payload in self._reply_parts(result, timestamp):
+            for conn in list(self._clients):
+                self._send(conn, payload)
         self._stats.replies_sent += len(self._clients)
 
     def _auto_rest_pose(self, T: np.ndarray) -> None:
@@ -583,22 +584,25 @@ class IgtlServer:
         self._stats.last_update_ms = (time.perf_counter() - t0) * 1e3
         return result
 
-    def _reply_bytes(self, result: TrackingResult, timestamp: float) -> bytes:
-        """Status STRING (when due) then, if reliable, the POINT and lesion TRANSFORMs."""
+    def _reply_parts(self, result: TrackingResult, timestamp: float) -> Iterator[bytes]:
+        """The reply in the order it is sent: the status STRING (when due) with the POINT, then,
+        if reliable, the lesion TRANSFORMs, packed only after the POINT went out."""
         reliable = result.status in RELIABLE
-        parts = []
+        head = []
         if not reliable or not self._last_reliable:
-            parts.append(encode_status(result, timestamp))
+            head.append(encode_status(result, timestamp))
         self._last_reliable = reliable
         try:
-            parts.append(encode_lesions(result, timestamp, transforms=reliable))
+            head.append(encode_lesion_point(result, timestamp))
+            yield b"".join(head)
+            if reliable:
+                yield encode_lesion_transforms(result, timestamp)
         except Exception as exc:
             self._stats.tracker_failures += 1
             log.error("cannot encode the tracking result: %r", exc)
-            parts = [encode_status(error_result(TRACKER_ERROR, f"unusable result: {exc}"),
-                                   timestamp)]
             self._last_reliable = False
-        return b"".join(parts)
+            yield encode_status(error_result(TRACKER_ERROR, f"unusable result: {exc}"),
+                                timestamp)
 
 
 # --------------------------------------------------------------------------- entry points
