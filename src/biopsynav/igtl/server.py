@@ -9,9 +9,10 @@ One thread, non-blocking sockets with TCP_NODELAY, no polling sleeps: the loop b
 ``select`` until a socket is ready, the next tracker reconnection is due, or :meth:`stop` writes
 to a wake-up socket. Every probe pose (from the tracker server or from any listening client) goes
 to ``tracker.update``; the reply (see :mod:`.replies`) is packed once and written to every
-listening client with one ``send`` of one buffer. When more than ``max_poses_per_read`` poses
-arrive in one read only the newest ones are tracked (the others count as ``poses_coalesced``),
-so a backlog (a stall, a flood) never delays the newest pose by more than that many updates.
+listening client in two sends: status and POINT first, then the lesion TRANSFORMs. When more
+than ``max_poses_per_read`` poses arrive in one read only the newest ones are tracked (the
+others count as ``poses_coalesced``), so a backlog (a stall, a flood) never delays the newest
+pose by more than that many updates.
 
 Faults are logged and cost only the connection (or message) they come from: malformed headers
 and oversized bodies drop the connection; a wrong CRC or an undecodable body drops the message;
