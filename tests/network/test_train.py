@@ -143,3 +143,24 @@ def test_validation_is_the_same_in_either_memory_layout():
     net.to(memory_format=torch.channels_last_3d)
     last = validate(net, x, y, active, batch=2, memory_format=torch.channels_last_3d)
     assert plain.shape == (5,) and torch.allclose(plain, last, rtol=1e-5, atol=1e-6)
+
+
+def test_weight_decay_shrinks_the_weights_and_is_part_of_the_signature(synth_case, tmp_path):
+    """``weight_decay`` > 0 trains with AdamW (decoupled decay): the same run ends with
+    smaller weights, and a checkpoint made with another decay is not resumed."""
+    def norm_after(decay: float, out: Path):
+        s = tiny_settings(iterations=30, val_interval=10, weight_decay=decay)
+        r = train(synth_case, settings=s, model_dir=out, progress=False)
+        state = torch.load(out / CHECKPOINT, weights_only=False)["model"]
+        weights = [v for k, v in state.items() if k.startswith("unet.") and k.endswith("weight")]
+        return r, float(torch.sqrt(sum((w ** 2).sum() for w in weights)))
+
+    plain, n_plain = norm_after(0.0, tmp_path / "adam")
+    decayed, n_decayed = norm_after(5.0, tmp_path / "adamw")
+    assert plain.finished and decayed.finished and n_decayed < 0.98 * n_plain
+    s = tiny_settings(iterations=30, val_interval=10, weight_decay=0.0)
+    train(synth_case, settings=s, model_dir=tmp_path / "x", progress=False, stop_after=10)
+    again = train(synth_case, settings=tiny_settings(iterations=30, val_interval=10,
+                                                     weight_decay=5.0),
+                  model_dir=tmp_path / "x", progress=False)
+    assert again.resumed_from == 0

@@ -147,9 +147,10 @@ def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset) -> dict:
     """Settings that must match for a checkpoint to be resumed."""
     keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
             "val_interval", "baseline")
+    extra = {"weight_decay": s.weight_decay} if s.weight_decay > 0 else {}  # old checkpoints
     return {"spec": spec.to_dict(), "fingerprint": data.fingerprint,
             "n_train": int(data.train_idx.numel()), "n_test": int(data.test_idx.numel()),
-            **{k: getattr(s, k) for k in keys}}
+            **{k: getattr(s, k) for k in keys}, **extra}
 
 
 def _save_torch(obj: dict, path: Path) -> None:
@@ -229,7 +230,9 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
         # residual net starts as exactly zero: the model starts as the physics baseline
         torch.nn.init.zeros_(net.unet.head.weight)
         torch.nn.init.zeros_(net.unet.head.bias)
-    opt = torch.optim.Adam(net.unet.parameters(), lr=s.learning_rate)
+    opt = (torch.optim.AdamW(net.unet.parameters(), lr=s.learning_rate,
+                             weight_decay=s.weight_decay) if s.weight_decay > 0
+           else torch.optim.Adam(net.unet.parameters(), lr=s.learning_rate))
     state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
     ckpt = _load_checkpoint(out / CHECKPOINT, signature)
