@@ -175,9 +175,9 @@ class LinearElasticBaseline:
 
 
 def _weighted_row_sum(zt: torch.Tensor, sel: np.ndarray, a: torch.Tensor) -> torch.Tensor:
-    """``a @ zt[sel]`` (n_eq,) in ``zt``'s dtype without copying the rows ``zt[sel]``
-    (k, n_eq) first: one pass over the selected rows (``embedding_bag``), a third of the
-    memory traffic of gather-then-multiply."""
+    """``a @ zt[sel]`` (n_eq,) in ``zt``'s dtype in one pass over the selected rows
+    (``embedding_bag``) instead of copying the rows ``zt[sel]`` (k, n_eq) first; 0.24 ms for
+    k = 210 on the phantom, about what the copy-then-multiply took there."""
     bag = torch.nn.functional.embedding_bag(torch.from_numpy(sel)[None], zt, mode="sum",
                                             per_sample_weights=a.to(zt.dtype)[None])
     return bag[0]
