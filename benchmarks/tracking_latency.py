@@ -158,20 +158,17 @@ def _service_main(case_dir, plus_port: int, queue) -> None:
     """Child process: the OpenIGTLink service with the case tracker or the stand-in."""
     import logging
 
-    from biopsynav.igtl.server import run_service
+    from biopsynav.igtl.server import run_service, service_tracker
 
     logging.basicConfig(level=logging.WARNING, format="service: %(levelname)s %(message)s")
     tracker = None
     if case_dir is not None:
         try:
-            from biopsynav.config import load_config
-            from biopsynav.tracker import Tracker
-
-            # as `biopsynav serve` loads it: [igtl] inference_threads
-            tracker = Tracker.load(case_dir,
-                                   threads=load_config(case_dir).igtl.inference_threads)
+            import biopsynav.tracker  # noqa: F401  (absent: the stand-in below)
         except ImportError:
-            tracker = None
+            pass
+        else:
+            tracker = service_tracker(case_dir)  # as `biopsynav serve` loads it
     if tracker is None:
         tracker = stand_in_tracker()
     stats = run_service(tracker, (HOST, plus_port), (HOST, 0), PROBE_DEVICE,

@@ -34,6 +34,10 @@ def test_defaults_round_trip(tmp_path):
     ({"dataset": {"contact_input": "nearest"}}, "must be one of"),
     ({"dataset": {"newton_budget": -1}}, "below its minimum"),
     ({"igtl": {"stall_timeout_s": 0.0}}, "below its minimum"),
+    ({"network": {"weight_decay": -0.1}}, "below its minimum"),
+    ({"network": {"weight_decay": "strong"}}, "weight_decay"),
+    ({"igtl": {"inference_threads": -1}}, "below its minimum"),
+    ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:

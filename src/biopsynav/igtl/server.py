@@ -660,15 +660,22 @@ def serve(case_dir: str | Path, tracker_addr: str | Address | None = None,
     from ..config import load_config
 
     cfg = load_config(case_dir).igtl
+    return run_service(service_tracker(case_dir), tracker_addr or cfg.tracker,
+                       listen_addr or cfg.listen, device or cfg.probe_device, settings=cfg)
+
+
+def service_tracker(case_dir: str | Path) -> TrackerLike:
+    """The case's tracker as the service runs it: ``[igtl] inference_threads`` network
+    threads."""
+    from ..config import load_config
+
     try:
         from ..tracker import Tracker
     except ImportError:
         raise BiopsynavError("the tracker (biopsynav.tracker.Tracker) is not available in "
                              "this installation", str(case_dir)) from None
-    tracker = Tracker.load(case_dir, threads=cfg.inference_threads)
-    return run_service(tracker, tracker_addr or cfg.tracker, listen_addr or cfg.listen,
-                       device or cfg.probe_device, settings=cfg)
+    return Tracker.load(case_dir, threads=load_config(case_dir).igtl.inference_threads)
 
 
 __all__ = ["IgtlServer", "ServerStats", "TrackerLike", "install_signal_handlers", "run_service",
-           "serve", "to_address"]
+           "serve", "service_tracker", "to_address"]
