@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from biopsynav.network.data import load_dataset, normalisation_stats
@@ -21,14 +22,46 @@ def test_masked_loss_ignores_inactive_nodes():
     torch.manual_seed(0)
     mask = _mask()
     pred, target = torch.randn(2, 3, 4, 4, 2), torch.randn(2, 3, 4, 4, 2)
-    base = masked_loss(pred, target, mask)
+    base = masked_loss(pred, target, mask, "mse")
     pred2 = pred.clone()
     pred2[:, :, ~mask] = 1e6
-    assert torch.equal(masked_loss(pred2, target, mask), base)
+    assert torch.equal(masked_loss(pred2, target, mask, "mse"), base)
     expected = ((pred - target)[:, :, mask] ** 2).mean()  # mean over active values only
     assert torch.allclose(base, expected)
     l1 = masked_loss(pred, target, mask, "l1")
     assert torch.allclose(l1, (pred - target)[:, :, mask].abs().mean())
+
+
+def test_norm_loss_is_the_batch_mean_of_e_in_mm():
+    """The 'norm' loss on normalised values, scaled back to mm, is the paper's e (eq. 3)."""
+    torch.manual_seed(1)
+    mask = _mask()
+    scale = torch.tensor([0.2, 0.5, 3.0])
+    pred, target = torch.randn(3, 3, 4, 4, 2), torch.randn(3, 3, 4, 4, 2)
+    loss = masked_loss(pred, target, mask, "norm", scale)
+    mm = scale.view(1, 3, 1, 1, 1)
+    e = mean_norm_error(pred * mm, target * mm, mask)  # (3,) mm
+    assert torch.allclose(loss, e.mean(), rtol=1e-5)
+    pred2 = pred.clone()
+    pred2[:, :, ~mask] = 1e6  # inactive nodes neither count nor dilute
+    assert torch.equal(masked_loss(pred2, target, mask, "norm", scale), loss)
+
+
+def test_norm_loss_gradient_is_finite_where_the_error_is_zero():
+    mask = _mask()
+    target = torch.randn(2, 3, 4, 4, 2)
+    pred = target.clone()
+    pred[0, :, 0, 0, 0] += 1.0  # one node off, every other node exact
+    pred.requires_grad_(True)
+    masked_loss(pred, target, mask, "norm").backward()
+    assert torch.isfinite(pred.grad).all()
+    assert pred.grad[0, 0, 0, 0, 0] > 0 and pred.grad[1].abs().max() < 1e-5
+
+
+def test_unknown_loss_is_refused():
+    mask = _mask()
+    with pytest.raises(ValueError, match="unknown loss"):
+        masked_loss(torch.zeros(1, 3, 4, 4, 2), torch.zeros(1, 3, 4, 4, 2), mask, "huber")
 
 
 def test_mean_norm_error_is_mean_over_active_nodes():

@@ -22,16 +22,34 @@ def mean_norm_error_np(pred: np.ndarray, target: np.ndarray, active: np.ndarray)
     return norm[:, active].mean(axis=1)
 
 
-def masked_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                kind: str = "mse") -> torch.Tensor:
-    """Loss over active nodes only: mean of the squared (``mse``) or absolute (``l1``) error.
+LOSSES = ("norm", "mse", "l1")
 
-    ``pred``/``target`` (B, C, nx, ny, nz); ``mask`` (nx, ny, nz) float 0/1 or bool. The mean is
-    taken over B * C * n_active values, so inactive nodes do not dilute it.
+
+def masked_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+                kind: str = "norm", scale: torch.Tensor | None = None) -> torch.Tensor:
+    """Loss over active nodes only, on normalised displacements.
+
+    ``pred``/``target`` (B, C, nx, ny, nz); ``mask`` (nx, ny, nz) float 0/1 or bool.
+
+    * ``norm``: the batch mean of e (the paper's eq. 3, mm): the Euclidean norm of each node's
+      error, back in mm through ``scale`` (C,) (mm per normalised unit; ones when None),
+      averaged over B * n_active nodes;
+    * ``mse`` / ``l1``: the mean squared / absolute normalised error over B * C * n_active
+      values.
+
+    Inactive nodes neither count nor dilute the mean.
     """
     diff = pred - target
+    m = mask.to(diff.dtype)
+    if kind == "norm":
+        if scale is not None:
+            diff = diff * scale.to(diff.dtype).view(1, -1, *([1] * (diff.dim() - 2)))
+        # sqrt(|d|^2 + eps): the norm's gradient stays finite where a node's error is exactly 0
+        err = torch.sqrt((diff * diff).sum(dim=1) + 1e-12)  # (B, nx, ny, nz) mm
+        return (err * m).sum() / (m.sum() * pred.shape[0])
+    if kind not in ("mse", "l1"):
+        raise ValueError(f"unknown loss {kind!r}; known: {', '.join(LOSSES)}")
     err = diff * diff if kind == "mse" else diff.abs()
-    m = mask.to(err.dtype)
     denom = m.sum() * pred.shape[0] * pred.shape[1]
     return (err * m).sum() / denom
 

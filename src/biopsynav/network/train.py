@@ -331,6 +331,7 @@ class _Runner:
         self.active = data.active.to(dev)
         self.mask = self.active.to(torch.float32)
         scale = net.out_scale.to(dev)
+        self.out_scale = scale.reshape(-1)  # (3,) mm per normalised unit, for the norm loss
         self.x_train = data.inputs[data.train_idx].to(dev)
         self.y_train = data.targets[data.train_idx].to(dev) / scale  # normalised targets
         self.x_test = data.inputs[data.test_idx].to(dev)
@@ -350,7 +351,7 @@ class _Runner:
         x = self.x_train[idx].contiguous(memory_format=self.memory_format)
         with torch.autocast(self.dev.type, dtype=torch.bfloat16, enabled=self.amp):
             pred = self.net.forward_normalised(x)
-        loss = masked_loss(pred.float(), self.y_train[idx], self.mask, s.loss)
+        loss = masked_loss(pred.float(), self.y_train[idx], self.mask, s.loss, self.out_scale)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
