@@ -220,8 +220,8 @@ class NetworkSection:
                                      "decay to 1 % of it).", lo=1e-7, hi=1.0)
     warmup_iterations: int = opt(300, "Linear learning-rate warm-up steps.", lo=0, hi=10**7)
     weight_decay: float = opt(0.05, "Decoupled weight decay (AdamW) per unit learning rate; "
-                                    "0: plain Adam (the paper). 0.05 measured on the phantom: "
-                                    "mean e 0.0697 against 0.0745 mm (docs/network.md).",
+                                    "0: plain Adam (the paper). 0.05 measured on the phantom (mse "
+                                    "loss): mean e 0.0697 against 0.0745 mm (docs/network.md).",
                               lo=0.0, hi=10.0)
     loss: str = opt("norm", "Training loss over active nodes: 'norm' (the batch mean of the "
                             "paper's e, eq. 3, in mm; measured on the phantom: mean e 0.0599 "
