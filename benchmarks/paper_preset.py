@@ -34,25 +34,35 @@ import numpy as np
 PAPER_ITERATIONS = 100_000  # the paper's training length (section 3)
 
 
-def time_steps(case_dir: Path, preset: str, steps: int, threads: int) -> float:
-    """Median seconds of one training step of ``preset`` on the case's data."""
+def load_case_data(case_dir: Path):
+    """The case's data set and its normalisation scales, loaded once for every measurement."""
+    from biopsynav.network.data import load_dataset, normalisation_stats
+
+    data = load_dataset(case_dir)
+    return data, *normalisation_stats(data)
+
+
+def build_net(preset: str, data, in_scale: np.ndarray, out_scale: np.ndarray):
+    """The deployable network of ``preset`` with its initial weights (seed 0)."""
     import torch
 
-    from biopsynav.config import load_config
-    from biopsynav.network.data import load_dataset, normalisation_stats
     from biopsynav.network.export import SurrogateNet
-    from biopsynav.network.train import _Runner, resolve_device, set_threads
     from biopsynav.network.unet import preset_spec
+
+    torch.manual_seed(0)
+    return SurrogateNet(preset_spec(preset), in_scale, out_scale, data.active.numpy())
+
+
+def time_steps(case_dir: Path, case_data, preset: str, steps: int, threads: int) -> float:
+    """Median seconds of one training step of ``preset`` on the case's data."""
+    from biopsynav.config import load_config
+    from biopsynav.network.train import _Runner, build_optimizer, resolve_device, set_threads
 
     s = dataclasses.replace(load_config(case_dir).network, preset=preset, threads=threads)
     set_threads(s.threads)
-    data = load_dataset(case_dir)
-    in_scale, out_scale = normalisation_stats(data)
-    spec = preset_spec(preset)
-    torch.manual_seed(0)
-    net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy())
-    opt = torch.optim.AdamW(net.unet.parameters(), lr=s.learning_rate,
-                            weight_decay=s.weight_decay)
+    data = case_data[0]
+    net = build_net(preset, *case_data)
+    opt = build_optimizer(net.unet.parameters(), s)
     runner = _Runner(net, opt, data, s, resolve_device("cpu"), case_dir, {}, {})
     times = []
     for it in range(steps + 1):
@@ -62,21 +72,15 @@ def time_steps(case_dir: Path, preset: str, steps: int, threads: int) -> float:
     return float(np.median(times[1:]))
 
 
-def time_predictions(case_dir: Path, preset: str, n: int, threads: int) -> tuple[float, float]:
+def time_predictions(case_data, preset: str, n: int, threads: int) -> tuple[float, float]:
     """Median and 99th percentile (ms) of one batch-1 prediction of ``preset``'s network."""
-    import torch
-
-    from biopsynav.network.data import load_dataset, normalisation_stats
-    from biopsynav.network.export import SurrogateNet, save_onnx, save_torchscript
+    from biopsynav.network.export import save_onnx, save_torchscript
     from biopsynav.network.infer import OpenVinoRunner, TorchScriptRunner, resolve_runtime
     from biopsynav.network.train import set_threads
-    from biopsynav.network.unet import preset_spec
 
     n_threads = set_threads(threads)
-    data = load_dataset(case_dir)
-    in_scale, out_scale = normalisation_stats(data)
-    torch.manual_seed(0)
-    net = SurrogateNet(preset_spec(preset), in_scale, out_scale, data.active.numpy()).eval()
+    data = case_data[0]
+    net = build_net(preset, *case_data).eval()
     x = np.ascontiguousarray(data.inputs[data.test_idx[:1]].numpy())
     with tempfile.TemporaryDirectory() as tmp:
         if resolve_runtime("auto") == "openvino":
@@ -108,10 +112,11 @@ def main(argv: list[str] | None = None) -> dict:
 
     iterations = load_config(case_dir).network.iterations
     out = {"paper_params": count_parameters(preset_spec("paper"))}
+    case_data = load_case_data(case_dir)
     for preset in ("paper", "default"):
-        step_s = time_steps(case_dir, preset, args.steps, args.threads)
+        step_s = time_steps(case_dir, case_data, preset, args.steps, args.threads)
         n_pred = args.predictions if preset == "paper" else 20 * args.predictions
-        p50, p99 = time_predictions(case_dir, preset, n_pred, args.threads)
+        p50, p99 = time_predictions(case_data, preset, n_pred, args.threads)
         print(f"{preset:8s} step {step_s:.3f} s -> {iterations} iterations "
               f"{step_s * iterations / 3600:.2f} h, {PAPER_ITERATIONS} iterations "
               f"{step_s * PAPER_ITERATIONS / 3600:.2f} h; prediction p50 {p50:.2f} ms, "

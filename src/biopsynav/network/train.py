@@ -23,6 +23,7 @@ import io
 import math
 import os
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -143,6 +144,15 @@ def batch_indices(it: int, batch: int, n: int, seed: int) -> torch.Tensor:
     return torch.tensor(out, dtype=torch.int64)
 
 
+def build_optimizer(params: Iterable[torch.nn.Parameter],
+                    s: NetworkSection) -> torch.optim.Optimizer:
+    """AdamW with ``s.weight_decay`` when it is > 0 (decoupled decay), else plain Adam (the
+    paper); peak learning rate ``s.learning_rate`` (:func:`lr_at` sets it per step)."""
+    if s.weight_decay > 0:
+        return torch.optim.AdamW(params, lr=s.learning_rate, weight_decay=s.weight_decay)
+    return torch.optim.Adam(params, lr=s.learning_rate)
+
+
 def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset) -> dict:
     """Settings that must match for a checkpoint to be resumed."""
     keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
@@ -230,9 +240,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
         # residual net starts as exactly zero: the model starts as the physics baseline
         torch.nn.init.zeros_(net.unet.head.weight)
         torch.nn.init.zeros_(net.unet.head.bias)
-    opt = (torch.optim.AdamW(net.unet.parameters(), lr=s.learning_rate,
-                             weight_decay=s.weight_decay) if s.weight_decay > 0
-           else torch.optim.Adam(net.unet.parameters(), lr=s.learning_rate))
+    opt = build_optimizer(net.unet.parameters(), s)
     state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
     ckpt = _load_checkpoint(out / CHECKPOINT, signature)
@@ -427,4 +435,4 @@ def train_case(case_dir: str | Path, preset: str | None = None, iterations: int 
 
 
 __all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",
-           "resolve_device", "set_threads"]
+           "resolve_device", "set_threads", "build_optimizer"]
