@@ -35,6 +35,7 @@ def test_defaults_round_trip(tmp_path):
     ({"dataset": {"newton_budget": -1}}, "below its minimum"),
     ({"igtl": {"stall_timeout_s": 0.0}}, "below its minimum"),
     ({"network": {"weight_decay": -0.1}}, "below its minimum"),
+    ({"network": {"loss": "huber"}}, "must be one of"),
     ({"network": {"weight_decay": "strong"}}, "weight_decay"),
     ({"igtl": {"inference_threads": -1}}, "below its minimum"),
     ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
