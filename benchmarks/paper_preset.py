@@ -46,11 +46,14 @@ def build_net(preset: str, data, in_scale: np.ndarray, out_scale: np.ndarray):
     """The deployable network of ``preset`` with its initial weights (seed 0)."""
     import torch
 
+    from biopsynav.network.data import quadratic_scale
     from biopsynav.network.export import SurrogateNet
     from biopsynav.network.unet import preset_spec
 
     torch.manual_seed(0)
-    return SurrogateNet(preset_spec(preset), in_scale, out_scale, data.active.numpy())
+    spec = preset_spec(preset)
+    quad = quadratic_scale(data, in_scale) if spec.features == "quadratic" else None
+    return SurrogateNet(spec, in_scale, out_scale, data.active.numpy(), quad)
 
 
 def time_steps(case_dir: Path, case_data, preset: str, steps: int, threads: int) -> float:

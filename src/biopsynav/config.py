@@ -200,10 +200,11 @@ class DatasetSection:
 @dataclass
 class NetworkSection:
     preset: str = opt("default", "Architecture preset: 'default' (8 first-level channels, 3 "
-                                 "levels, 0.35 M parameters: sized for real-time CPU inference, "
-                                 "see docs/network.md), 'paper' (128 first-level channels, "
-                                 "1024 in the bottleneck, ~90 M parameters) or 'custom' "
-                                 "(levels, base_channels, norm, activation below).",
+                                 "levels, SiLU, quadratic input features, 0.35 M parameters: "
+                                 "sized for real-time CPU inference, see docs/network.md), "
+                                 "'paper' (128 first-level channels, 1024 in the bottleneck, "
+                                 "ReLU, ~90 M parameters) or 'custom' (levels, base_channels, "
+                                 "norm, activation, features below).",
                      choices=("default", "paper", "custom"))
     levels: int = opt(3, "U-Net levels k of the custom preset; grid node counts must be "
                          "multiples of 2^k.", lo=1, hi=6)
@@ -211,10 +212,15 @@ class NetworkSection:
                                  "per level.", lo=1, hi=512)
     norm: str = opt("none", "Normalisation layer (custom preset).",
                     choices=("none", "batch", "instance", "group"))
-    activation: str = opt("relu", "Activation (custom preset).",
+    activation: str = opt("relu", "Activation (custom preset; the default preset uses SiLU).",
                           choices=("relu", "leaky_relu", "gelu", "silu"))
-    iterations: int = opt(45000, "Training iterations (optimizer steps); the default trains "
-                                 "the phantom in about 20 min on 2 CPU cores.", lo=1, hi=10**8)
+    features: str = opt("linear", "Network input features (custom preset): 'linear' (the 4 "
+                                  "input channels, as in the paper) or 'quadratic' (plus the 6 "
+                                  "products of the displacement channels; the default preset "
+                                  "uses them, docs/network.md).",
+                        choices=("linear", "quadratic"))
+    iterations: int = opt(60000, "Training iterations (optimizer steps); the default trains "
+                                 "the phantom in about 25 min on 2 CPU cores.", lo=1, hi=10**8)
     batch_size: int = opt(4, "Batch size (the paper: 4).", lo=1, hi=1024)
     learning_rate: float = opt(1e-3, "Peak Adam learning rate (linear warm-up, then cosine "
                                      "decay to 1 % of it).", lo=1e-7, hi=1.0)

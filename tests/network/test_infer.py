@@ -22,9 +22,10 @@ from .synth import FINGERPRINT
 def _eager(model_dir) -> SurrogateNet:
     meta = json.loads((model_dir / "meta.json").read_text())
     data_active = np.zeros(meta["node_shape"], bool)
-    net = SurrogateNet(UNetSpec.from_dict(meta["architecture"]),
-                       np.array(meta["normalisation"]["in_scale"]),
-                       np.array(meta["normalisation"]["out_scale"]), data_active)
+    norm = meta["normalisation"]
+    quad = np.array(norm["quad_scale"]) if "quad_scale" in norm else None
+    net = SurrogateNet(UNetSpec.from_dict(meta["architecture"]), np.array(norm["in_scale"]),
+                       np.array(norm["out_scale"]), data_active, quad)
     best = torch.load(model_dir / "best.pt", weights_only=False)["model"]
     net.unet.load_state_dict(best)
     return net.eval()

@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from biopsynav.network.data import load_dataset, normalisation_stats
+from biopsynav.network.data import load_dataset, normalisation_stats, quadratic_scale
+from biopsynav.network.export import SurrogateNet
 from biopsynav.network.metrics import masked_loss, mean_norm_error, mean_norm_error_np
+from biopsynav.network.unet import QUADRATIC_PAIRS, UNetSpec
 
 from .synth import write_synthetic_dataset
 
@@ -104,3 +106,38 @@ def test_incomplete_samples_are_skipped(tmp_path):
     data = load_dataset(tmp_path)
     assert data.train_idx.tolist() == [0, 2, 3, 4, 5]
     assert data.test_idx.tolist() == [6, 8]
+
+
+def test_quadratic_scale_is_the_rms_of_products_over_contact_nodes(tmp_path):
+    import zarr
+
+    path = write_synthetic_dataset(tmp_path, shape=(8, 8, 8), n_train=6, n_test=2)
+    data = load_dataset(tmp_path)
+    s_in, _ = normalisation_stats(data)
+    scale = quadratic_scale(data, s_in)
+    x = data.inputs[data.train_idx].double()
+    contact = (x[:, 3] > 0) & data.active
+    u = x[:, :3].permute(1, 0, 2, 3, 4)[:, contact] / torch.from_numpy(s_in[:3]).double()[:, None]
+    for k, (i, j) in enumerate(QUADRATIC_PAIRS):
+        assert scale[k] == pytest.approx(float((u[i] * u[j]).pow(2).mean().sqrt()), rel=1e-5)
+    g = zarr.open_group(str(path), mode="r+")
+    xs = g["inputs"][:]
+    xs[:, :3, ~g["active_nodes"][:]] = 1e4  # garbage at inactive nodes changes nothing
+    g["inputs"][:] = xs
+    np.testing.assert_allclose(quadratic_scale(load_dataset(tmp_path), s_in), scale, rtol=1e-6)
+
+
+def test_surrogate_net_appends_scaled_products_of_the_displacement_channels():
+    spec = UNetSpec(base_channels=2, levels=1, features="quadratic")
+    in_scale, quad = np.array([2.0, 4.0, 5.0, 0.5]), np.arange(1.0, 7.0)
+    net = SurrogateNet(spec, in_scale, np.ones(3), np.ones((4, 4, 2), bool), quad)
+    x = torch.randn(2, 4, 4, 4, 2)
+    f = net.features(x)
+    xn = x / torch.tensor(in_scale, dtype=torch.float32).view(1, 4, 1, 1, 1)
+    assert f.shape == (2, 10, 4, 4, 2)
+    torch.testing.assert_close(f[:, :4], xn)
+    for k, (i, j) in enumerate(QUADRATIC_PAIRS):
+        torch.testing.assert_close(f[:, 4 + k], xn[:, i] * xn[:, j] / quad[k])
+    linear = SurrogateNet(UNetSpec(base_channels=2, levels=1), in_scale, np.ones(3),
+                          np.ones((4, 4, 2), bool))
+    torch.testing.assert_close(linear.features(x), xn)

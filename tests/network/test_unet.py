@@ -36,7 +36,14 @@ def test_paper_preset_about_90m_parameters_without_allocating():
 
 
 def test_default_preset_small():
-    assert count_parameters(PRESETS["default"]) == 351_123
+    spec = PRESETS["default"]
+    assert (spec.activation, spec.features, spec.feature_channels()) == ("silu", "quadratic", 10)
+    assert count_parameters(spec) == 352_419  # 351,123 + 6 * 8 * 27 first-layer weights
+
+
+def test_unknown_features_refused():
+    with pytest.raises(InputError, match="\\[network\\] features"):
+        preset_spec("custom", features="cubic")
 
 
 @pytest.mark.parametrize("norm", ["batch", "instance", "group"])

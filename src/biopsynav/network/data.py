@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from .unet import QUADRATIC_PAIRS
 
 DATASET_NAME = "dataset.zarr"
 
@@ -108,6 +109,19 @@ def normalisation_stats(data: Dataset) -> tuple[np.ndarray, np.ndarray]:
         xin = x.permute(1, 0, 2, 3, 4)[:, :, act].reshape(4, -1)
     in_scale = _rms(xin)
     return in_scale, in_scale[:3].copy()
+
+
+def quadratic_scale(data: Dataset, in_scale: np.ndarray) -> np.ndarray:
+    """Scales (6,) of the quadratic input features: the RMS over the training samples' contact
+    nodes (weight sum > 0, active) of each product ``(x_i / s_i) (x_j / s_j)`` of the scaled
+    displacement channels, pairs in :data:`~biopsynav.network.unet.QUADRATIC_PAIRS` order."""
+    x = data.inputs[data.train_idx]
+    contact = (x[:, 3] > 0) & data.active
+    u = x[:, :3].permute(1, 0, 2, 3, 4)[:, contact].double()  # (3, n_contact_nodes)
+    u = u / torch.from_numpy(np.asarray(in_scale[:3], np.float64))[:, None]
+    if u.shape[1] == 0:
+        return np.ones(len(QUADRATIC_PAIRS), np.float32)
+    return _rms(torch.stack([u[i] * u[j] for i, j in QUADRATIC_PAIRS]))
 
 
 def target_rms(data: Dataset) -> np.ndarray:

@@ -33,7 +33,8 @@ def sha256(path: Path) -> str:
 
 def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
                 in_scale: np.ndarray, out_scale: np.ndarray, envelope: dict, training: dict,
-                runtime: str = "auto", baseline: dict | None = None) -> dict:
+                runtime: str = "auto", baseline: dict | None = None,
+                quad_scale: np.ndarray | None = None) -> dict:
     """Export ``net`` (TorchScript and ONNX), check the export against eager, write meta.json."""
     net = net.cpu().eval()
     save_torchscript(net, out / TORCHSCRIPT)
@@ -51,6 +52,8 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
         "n_parameters": count_parameters(spec),
         "normalisation": {"in_scale": np.asarray(in_scale).tolist(),
                           "out_scale": np.asarray(out_scale).tolist(),
+                          **({} if quad_scale is None else
+                             {"quad_scale": np.asarray(quad_scale).tolist()}),
                           "kind": "per-channel RMS over active nodes of the training set "
                                   "(inputs: over contact nodes; outputs: of the residual when "
                                   "a baseline is used); x/in_scale in, "

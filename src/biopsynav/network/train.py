@@ -32,7 +32,7 @@ import torch
 from ..config import NetworkSection, load_config
 from ..errors import InputError
 from ..fileio import write_bytes_atomic
-from .data import Dataset, envelope, load_dataset, normalisation_stats, target_rms
+from .data import Dataset, envelope, load_dataset, normalisation_stats, quadratic_scale, target_rms
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
@@ -220,7 +220,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     case_dir = Path(case_dir)
     out = Path(model_dir) if model_dir is not None else case_dir / MODEL_DIR
     spec = preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
-                       activation=s.activation)
+                       activation=s.activation, features=s.features)
     dev = resolve_device(s.device)
     threads = set_threads(s.threads)
 
@@ -230,12 +230,13 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     in_scale, out_scale = normalisation_stats(data)
     if baseline_meta["kind"] != "none":
         out_scale = target_rms(data)  # the residual's RMS over active nodes
+    quad_scale = quadratic_scale(data, in_scale) if spec.features == "quadratic" else None
     signature = _signature(s, spec, data)
     signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
                                   if not k.endswith("_s")}  # not its timings
 
     torch.manual_seed(s.seed)
-    net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy()).to(dev)
+    net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy(), quad_scale).to(dev)
     if baseline_meta["kind"] != "none":
         # residual net starts as exactly zero: the model starts as the physics baseline
         torch.nn.init.zeros_(net.unet.head.weight)
@@ -267,6 +268,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
             net.unet.load_state_dict(state["best_state"])
         net.to(memory_format=torch.contiguous_format)
         write_model(out, net.cpu(), spec, data, in_scale, out_scale, envelope(full),
+                    quad_scale=quad_scale,
                     training={"iterations": s.iterations, "batch_size": s.batch_size,
                               "learning_rate": s.learning_rate, "loss": s.loss,
                               "seed": s.seed, "device": dev.type, "threads": threads,

@@ -7,6 +7,11 @@ concatenation with the matching encoder features (skip connection) and two padde
 convolutions; a final 1x1x1 convolution maps to the output channels. Channels double per level
 (``base_channels * 2**level``), so the paper preset (128, 3 levels) has a 1024-channel bottleneck.
 Node counts must be multiples of ``2**levels`` (the grid stage pads them so).
+
+``features = "quadratic"`` widens the first convolution by the 6 pairwise products of the three
+displacement channels (built by :class:`~biopsynav.network.export.SurrogateNet`): the residual
+that the network learns on top of the linear-elastic baseline is, to leading order, quadratic
+in the displacement, and ReLU/SiLU stacks approximate products poorly (docs/network.md).
 """
 
 from __future__ import annotations
@@ -20,6 +25,9 @@ from ..errors import InputError
 
 NORMS = ("none", "batch", "instance", "group")
 ACTIVATIONS = ("relu", "leaky_relu", "gelu", "silu")
+FEATURES = ("linear", "quadratic")
+#: Channel pairs (i, j), i <= j, of the quadratic input features, in channel order.
+QUADRATIC_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 @dataclass(frozen=True)
@@ -32,6 +40,7 @@ class UNetSpec:
     levels: int = 3
     norm: str = "none"
     activation: str = "relu"
+    features: str = "linear"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -39,6 +48,11 @@ class UNetSpec:
     @classmethod
     def from_dict(cls, data: dict) -> UNetSpec:
         return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
+
+    def feature_channels(self) -> int:
+        """Channels entering the first convolution: the raw inputs, plus the 6 products of
+        the displacement channels with ``features = "quadratic"``."""
+        return self.in_channels + (len(QUADRATIC_PAIRS) if self.features == "quadratic" else 0)
 
     def channels(self) -> list[int]:
         """Feature channels per encoder level, then the bottleneck (``levels + 1`` values)."""
@@ -49,16 +63,20 @@ class UNetSpec:
 #: that meets the accuracy target while predicting in <= 3 ms on 2 CPU cores.
 PRESETS: dict[str, UNetSpec] = {
     "paper": UNetSpec(base_channels=128, levels=3),
-    "default": UNetSpec(base_channels=8, levels=3),
+    "default": UNetSpec(base_channels=8, levels=3, activation="silu", features="quadratic"),
 }
 
 
 def preset_spec(name: str, *, levels: int = 3, base_channels: int = 16, norm: str = "none",
-                activation: str = "relu") -> UNetSpec:
-    """Spec of preset ``name``; ``custom`` takes the given width, depth, norm and activation."""
+                activation: str = "relu", features: str = "linear") -> UNetSpec:
+    """Spec of preset ``name``; ``custom`` takes the given width, depth, norm, activation and
+    input features."""
     if name == "custom":
+        if features not in FEATURES:
+            raise InputError(f"unknown input features {features!r}; known: "
+                             f"{', '.join(FEATURES)}", "[network] features")
         return UNetSpec(base_channels=base_channels, levels=levels, norm=norm,
-                        activation=activation)
+                        activation=activation, features=features)
     if name not in PRESETS:
         raise InputError(f"unknown network preset {name!r}; known: "
                          f"{', '.join([*PRESETS, 'custom'])}", "[network] preset")
@@ -103,7 +121,7 @@ class UNet3d(nn.Module):
         self.spec = spec
         ch = spec.channels()
         self.down = nn.ModuleList()
-        c_prev = spec.in_channels
+        c_prev = spec.feature_channels()
         for c in ch[:-1]:
             self.down.append(double_conv(c_prev, c, spec.norm, spec.activation))
             c_prev = c
