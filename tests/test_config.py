@@ -36,6 +36,7 @@ def test_defaults_round_trip(tmp_path):
     ({"igtl": {"stall_timeout_s": 0.0}}, "below its minimum"),
     ({"network": {"weight_decay": -0.1}}, "below its minimum"),
     ({"network": {"loss": "huber"}}, "must be one of"),
+    ({"network": {"features": "cubic"}}, "must be one of"),
     ({"network": {"weight_decay": "strong"}}, "weight_decay"),
     ({"igtl": {"inference_threads": -1}}, "below its minimum"),
     ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
