@@ -6,6 +6,7 @@ import io
 import json
 import os
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +38,19 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def remove_partial_writes(folder: str | os.PathLike, names: Iterable[str]) -> list[Path]:
+    """Delete the temporary files that :func:`write_bytes_atomic` leaves in ``folder`` when its
+    process is killed mid-write (``.NAME.*.tmp`` for each file name in ``names``); the files
+    themselves are untouched. Returns the deleted paths."""
+    folder = Path(folder)
+    removed = []
+    for name in names:
+        for tmp in folder.glob(f".{name}.*.tmp"):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:

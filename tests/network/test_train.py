@@ -102,6 +102,8 @@ def test_kill_9_then_rerun_continues(synth_case, tmp_path):
     assert ckpt.exists(), "no checkpoint within 60 s"
     done = torch.load(ckpt, weights_only=False)["state"]["iteration"]
     assert done >= 5
+    # a kill during an atomic write leaves its temporary file; the rerun removes it
+    (tmp_path / f".{CHECKPOINT}.killed.tmp").write_bytes(b"half a checkpoint")
     # same run with the same settings would go on for 100000 iterations: check it resumes by
     # continuing the same signature for a few more steps through stop_after
     r = train(synth_case, settings=tiny_settings(iterations=100000, val_interval=5),
@@ -109,6 +111,13 @@ def test_kill_9_then_rerun_continues(synth_case, tmp_path):
     assert r.resumed_from == done and r.iterations_done == done + 5
     assert not list(tmp_path.glob(".*.tmp")), "temporary files left behind"
     assert np.isfinite(r.best_val_e_mm)
+
+
+def test_model_files_name_every_export():
+    from biopsynav.network import model_io
+    from biopsynav.network.train import MODEL_FILES
+
+    assert {model_io.META, model_io.TORCHSCRIPT, model_io.ONNX} <= set(MODEL_FILES)
 
 
 @pytest.mark.skipif(not Path("/proc/stat").exists(), reason="needs Linux /proc/stat")

@@ -31,7 +31,7 @@ import torch
 
 from ..config import NetworkSection, load_config
 from ..errors import InputError
-from ..fileio import write_bytes_atomic
+from ..fileio import remove_partial_writes, write_bytes_atomic
 from .data import Dataset, envelope, load_dataset, normalisation_stats, quadratic_scale, target_rms
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
@@ -40,6 +40,9 @@ from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
 MODEL_DIR = "model"
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
+#: Every file training writes into the model folder (all atomically).
+MODEL_FILES = (CHECKPOINT, BEST, "loss_curve.png", "model.ts", "model.onnx", "meta.json",
+               "history.json")
 
 
 @dataclass
@@ -244,6 +247,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     opt = build_optimizer(net.unet.parameters(), s)
     state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
+    remove_partial_writes(out, MODEL_FILES)  # debris of a run killed mid-write
     ckpt = _load_checkpoint(out / CHECKPOINT, signature)
     if ckpt is not None:
         net.load_state_dict(ckpt["model"])
