@@ -113,11 +113,12 @@ def test_kill_9_then_rerun_continues(synth_case, tmp_path):
     assert np.isfinite(r.best_val_e_mm)
 
 
-def test_model_files_name_every_export():
-    from biopsynav.network import model_io
+def test_model_files_name_every_file_training_writes(trained):
     from biopsynav.network.train import MODEL_FILES
 
-    assert {model_io.META, model_io.TORCHSCRIPT, model_io.ONNX} <= set(MODEL_FILES)
+    case, _ = trained
+    written = {p.name for p in (case / "model").iterdir()}
+    assert written == set(MODEL_FILES)
 
 
 @pytest.mark.skipif(not Path("/proc/stat").exists(), reason="needs Linux /proc/stat")

@@ -19,6 +19,7 @@ from .unet import UNetSpec, count_parameters
 META = "meta.json"
 TORCHSCRIPT = "model.ts"
 ONNX = "model.onnx"
+HISTORY = "history.json"
 FORMAT = "biopsynav-unet/1"
 
 
@@ -69,7 +70,7 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
         "units": "inputs: mm (channels 0-2) and weight sum (channel 3); outputs: mm",
     }
     write_json_atomic(out / META, meta)
-    write_json_atomic(out / "history.json", training.get("history", []))
+    write_json_atomic(out / HISTORY, training.get("history", []))
     return meta
 
 

@@ -35,14 +35,15 @@ from ..fileio import remove_partial_writes, write_bytes_atomic
 from .data import Dataset, envelope, load_dataset, normalisation_stats, quadratic_scale, target_rms
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
+from .model_io import HISTORY, META, ONNX, TORCHSCRIPT, write_model
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
 
 MODEL_DIR = "model"
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
+LOSS_CURVE = "loss_curve.png"
 #: Every file training writes into the model folder (all atomically).
-MODEL_FILES = (CHECKPOINT, BEST, "loss_curve.png", "model.ts", "model.onnx", "meta.json",
-               "history.json")
+MODEL_FILES = (CHECKPOINT, BEST, LOSS_CURVE, TORCHSCRIPT, ONNX, META, HISTORY)
 
 
 @dataclass
@@ -266,8 +267,6 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
         torch.use_deterministic_algorithms(was_deterministic)
     finished = state["iteration"] >= s.iterations
     if finished:
-        from .model_io import write_model  # local import: model_io imports this module
-
         if state["best_state"] is not None:
             net.unet.load_state_dict(state["best_state"])
         net.to(memory_format=torch.contiguous_format)
@@ -426,7 +425,7 @@ class _Runner:
                          "val_mean_e_mm": mean_e}, self.out / BEST)
         from .plots import plot_loss_curve
 
-        plot_loss_curve(st["history"], self.out / "loss_curve.png")
+        plot_loss_curve(st["history"], self.out / LOSS_CURVE)
 
     def save_checkpoint(self) -> None:
         _save_torch({"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
