@@ -101,12 +101,10 @@ def normalisation_stats(data: Dataset) -> tuple[np.ndarray, np.ndarray]:
     makes normalised targets of ~30 near the probe from inputs of ~1, which trains far
     slower.) Only scales, no shifts: a zero input stays zero.
     """
-    x = data.inputs[data.train_idx]  # (n, 4, nx, ny, nz)
-    act = data.active
-    contact = (x[:, 3] > 0) & act  # (n, nx, ny, nz)
-    xin = x.permute(1, 0, 2, 3, 4)[:, contact]  # (4, n_contact_nodes)
+    xin = _contact_node_inputs(data)
     if xin.shape[1] == 0:
-        xin = x.permute(1, 0, 2, 3, 4)[:, :, act].reshape(4, -1)
+        x = data.inputs[data.train_idx]
+        xin = x.permute(1, 0, 2, 3, 4)[:, :, data.active].reshape(4, -1)
     in_scale = _rms(xin)
     return in_scale, in_scale[:3].copy()
 
@@ -115,13 +113,19 @@ def quadratic_scale(data: Dataset, in_scale: np.ndarray) -> np.ndarray:
     """Scales (6,) of the quadratic input features: the RMS over the training samples' contact
     nodes (weight sum > 0, active) of each product ``(x_i / s_i) (x_j / s_j)`` of the scaled
     displacement channels, pairs in :data:`~biopsynav.network.unet.QUADRATIC_PAIRS` order."""
-    x = data.inputs[data.train_idx]
-    contact = (x[:, 3] > 0) & data.active
-    u = x[:, :3].permute(1, 0, 2, 3, 4)[:, contact].double()  # (3, n_contact_nodes)
+    u = _contact_node_inputs(data)[:3].double()  # (3, n_contact_nodes)
     u = u / torch.from_numpy(np.asarray(in_scale[:3], np.float64))[:, None]
     if u.shape[1] == 0:
         return np.ones(len(QUADRATIC_PAIRS), np.float32)
     return _rms(torch.stack([u[i] * u[j] for i, j in QUADRATIC_PAIRS]))
+
+
+def _contact_node_inputs(data: Dataset) -> torch.Tensor:
+    """Input channels (4, n) at the training samples' active nodes touched by the contact
+    (weight sum > 0): the values the input scales are measured over."""
+    x = data.inputs[data.train_idx]  # (n_samples, 4, nx, ny, nz)
+    contact = (x[:, 3] > 0) & data.active
+    return x.permute(1, 0, 2, 3, 4)[:, contact]
 
 
 def target_rms(data: Dataset) -> np.ndarray:
