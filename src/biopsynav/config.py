@@ -227,8 +227,9 @@ class NetworkSection:
     warmup_iterations: int = opt(300, "Linear learning-rate warm-up steps.", lo=0, hi=10**7)
     weight_decay: float = opt(0.2, "Decoupled weight decay (AdamW) per unit learning rate; "
                                    "0: plain Adam (the paper). Measured on the phantom with the "
-                                   "default network: mean e 0.0509 mm with 0.2 against 0.0521 "
-                                   "with 0.05 (docs/network.md).",
+                                   "default network: mean e 0.0509 and 0.0503 mm (two seeds) "
+                                   "with 0.2 against 0.0521 and 0.0540 with 0.05 "
+                                   "(docs/network.md).",
                               lo=0.0, hi=10.0)
     loss: str = opt("norm", "Training loss over active nodes: 'norm' (the batch mean of the "
                             "paper's e, eq. 3, in mm; measured on the phantom: mean e 0.0599 "
