@@ -40,6 +40,10 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     assert 0 < t1["mean_e_mm"] < t1["max_e_mm"] < 5.0
     assert t1["max_disp_mm"] > 10.0
     assert 0 < t1["predict_p50_ms"] < 1000
+    # the deployed prediction honours the contact points (the tracker's contact projection);
+    # the network's own figures are kept beside
+    assert t1["contact_projection"] is True
+    assert 0 < t1["mean_e_unprojected_mm"] <= t1["max_e_unprojected_mm"]
 
 
 def test_demo_table2_network_matches_fe(quick_demo):

@@ -143,7 +143,8 @@ def phantom(tmp_path_factory):
     g.create_array("done", data=np.ones(n, bool))
     g.create_array("active_nodes", data=np.asarray(case.grid.active_nodes, bool))
     g.attrs.update({"n_train": n_train, "n_test": n_test, "fingerprint": case.fingerprint(),
-                    "node_shape": list(shape), "spacing_mm": 24.0})
+                    "node_shape": list(shape), "spacing_mm": 24.0,
+                    "protocol": {"dataset": {"contact_input": "elastic"}}})
     return case_dir, case, x
 
 
@@ -227,20 +228,25 @@ def test_baseline_none_keeps_the_old_behaviour(phantom, tmp_path):
     assert sur.baseline is None and sur.predict(x[0]).shape == (3, *case.grid.node_shape)
 
 
-def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(phantom,
-                                                                             trained_le):
-    """Tracker.update (network residual at the lesions + precomputed baseline operator) gives
-    the lesion positions of the full-grid path (``with_surface``: Surrogate.predict)."""
+@pytest.mark.parametrize("projection", [True, False])
+def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
+        phantom, trained_le, projection, monkeypatch):
+    """Tracker.update (network residual at the lesions + precomputed baseline operators)
+    gives the lesion positions of the full-grid path (``with_surface``: Surrogate.predict),
+    with the contact projection and without."""
     from biopsynav.network.infer import Surrogate
     from biopsynav.tracker import Tracker
 
     _, case, _ = phantom
     model_dir, _ = trained_le
+    monkeypatch.setattr(case.cfg.network, "contact_projection", projection)
     sur = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
                          warmup=0, case=case)
+    assert sur.can_project
     tracker = Tracker(case, "net", surrogate=sur)
     top = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
     assert tracker.set_rest_pose(top) > 0 and tracker._lesion_base is not None
+    assert tracker.projects_contact == projection
     for depth, angle in ((3.0, 0.0), (8.0, 0.1)):
         pose = top.copy()
         pose[2, 3] -= depth
@@ -282,3 +288,37 @@ def test_tracker_load_takes_the_network_thread_count(phantom, trained_le):
 
     served = service_tracker(case_dir)._surrogate._run  # [igtl] inference_threads = 1
     assert served.name == "openvino" and served.threads == 1
+
+
+def test_surrogate_predict_with_the_contact_projection(phantom, trained_le):
+    """``Surrogate.predict(x, projection, g)`` is the projected residual net (TorchScript and
+    OpenVINO's asynchronous path alike) and moves three contact points by ``g``."""
+    from biopsynav.errors import InputError
+    from biopsynav.grid.embedding import Embedding
+    from biopsynav.grid.index import field_to_tensor
+    from biopsynav.network.infer import Surrogate, openvino_available
+
+    _, case, x = phantom
+    model_dir, _ = trained_le
+    sur = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
+                         warmup=0, case=case)
+    a = case.anatomy
+    top = np.argsort(a.vertices[:, 2])[-400:][[0, 150, 399]]
+    contact = Embedding.build(case.grid, a.vertices[top], where="contact").matrix
+    proj = sur.contact_projection(contact)
+    g = np.array([[0.0, 0, -3], [0.5, 0, -4], [0, 0.2, -3.5]])
+    xin = field_to_tensor(proj.input_op.field(g), case.grid.node_shape).astype(np.float32)
+    expect = proj.project(xin, g, sur.predict_network(xin))
+    out = sur.predict(xin, proj, g)
+    assert np.abs(out - expect).max() < 1e-5
+    assert np.abs(proj.point_displacement(out) - g).max() < 5e-3
+    with pytest.raises(InputError, match="both the contact projection"):
+        sur.predict(xin, proj)
+    with pytest.raises(InputError, match="one input at a time"):
+        sur.predict(x[:2], proj, g)
+    if openvino_available():
+        ov = Surrogate.load(model_dir, case.fingerprint(), runtime="openvino", threads=1,
+                            warmup=1, case=case)
+        with pytest.raises(InputError, match="another model"):
+            ov.predict(xin, proj, g)
+        assert np.abs(ov.predict(xin, ov.contact_projection(contact), g) - expect).max() < 1e-3

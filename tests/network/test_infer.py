@@ -92,6 +92,8 @@ def test_evaluate_writes_table1(trained, tmp_path):
         assert np.isfinite(r[key]), key
     assert r["n_samples"] == 10 and r["max_e_mm"] >= r["mean_e_mm"]
     assert abs(r["mean_e_mm"] - summary.best_val_e_mm) < 1e-4  # deployed == validated
+    assert r["contact_projection"] is False  # no baseline: nothing to project with
+    assert r["mean_e_unprojected_mm"] == r["mean_e_mm"]
     for name in ("table1.json", "error_histogram.png", "worst_sample.png",
                  "largest_deformation.png"):
         assert (tmp_path / name).is_file(), name

@@ -11,31 +11,75 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FingerprintError
+from ..case import Case
+from ..dataset.contacts import sample_contact_matrices
+from ..errors import FingerprintError, InputError
 from ..fileio import write_json_atomic
-from .data import load_dataset
+from .data import Dataset, load_dataset
 from .infer import Surrogate, case_fingerprint
 from .metrics import mean_norm_error_np, summarize
 from .plots import plot_error_histogram, plot_sample
+from .projection import ContactProjection
 
 EVAL_DIR = "eval"
 
 
-def predict_all(sur: Surrogate, x: np.ndarray, batch: int = 8) -> np.ndarray:
-    """Predictions (n, 3, nx, ny, nz) mm of inputs (n, 4, nx, ny, nz), in batches."""
+#: A test input must equal its redrawn contact displacement's input to this (mm, plus this
+#: share of the input's largest value): float32 storage and the solve's rounding only.
+INPUT_MATCH_MM = 1e-3
+INPUT_MATCH_REL = 1e-4
+
+Contacts = list[tuple[ContactProjection, np.ndarray]]
+
+
+def predict_all(sur: Surrogate, x: np.ndarray, batch: int = 8,
+                contacts: Contacts | None = None) -> np.ndarray:
+    """Predictions (n, 3, nx, ny, nz) mm of inputs (n, 4, nx, ny, nz), in batches; with
+    ``contacts`` (one (projection, contact displacement) per input, :func:`test_contacts`)
+    one by one, projected."""
+    if contacts is not None:
+        return np.stack([sur.predict(x[i], *contacts[i]) for i in range(x.shape[0])])
     return np.concatenate([np.array(sur.predict(x[i:i + batch]))
                            for i in range(0, x.shape[0], batch)])
 
 
-def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000) -> dict:
-    """Batch-1 prediction times (ms) over ``n`` calls cycling through the samples ``x``."""
-    samples = [np.ascontiguousarray(x[i]) for i in range(min(len(x), 64))]
+def test_contacts(sur: Surrogate, case: Case, data: Dataset, x: np.ndarray,
+                  y: np.ndarray) -> Contacts:
+    """For each held-out sample: the contact projection of its probe's contact points
+    (redrawn from the data set's protocol) and their displacement ``W_P u_FE`` (n, 3) mm,
+    from which the dataset stage built the input. InputError when the redrawn points do not
+    give the stored input (the data set belongs to another protocol or code version)."""
+    matrices = sample_contact_matrices(case, data.path, data.test_idx.numpy())
+    out = []
+    for i, w in enumerate(matrices):
+        proj = sur.contact_projection(w)
+        g = proj.point_displacement(y[i])
+        op = proj.input_op
+        rebuilt = op.matrix @ g.ravel()
+        stored = x[i].reshape(-1)[op.positions]
+        off = float(np.abs(rebuilt - stored).max(initial=0.0))
+        if off > INPUT_MATCH_MM + INPUT_MATCH_REL * float(np.abs(stored).max(initial=0.0)):
+            raise InputError(f"test sample {int(data.test_idx[i])}: its redrawn contact "
+                             f"points give an input {off:.3g} mm off the stored one; the data "
+                             "set was made by another version: regenerate it", str(data.path))
+        out.append((proj, g))
+    return out
+
+
+def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000,
+                     contacts: Contacts | None = None) -> dict:
+    """Batch-1 prediction times (ms) over ``n`` calls cycling through the samples ``x`` (and
+    their ``contacts``: projected, each contact set prepared beforehand as the tracker does at
+    its rest pose)."""
+    k = min(len(x), 64)
+    samples = [np.ascontiguousarray(x[i]) for i in range(k)]
+    extra = [contacts[i] if contacts is not None else () for i in range(k)]
     sur.warm_up(20)
     t = np.empty(n)
     for i in range(n):
-        s = samples[i % len(samples)]
+        s, c = samples[i % k], extra[i % k]
         t0 = time.perf_counter()
-        sur.predict(s)
+        sur.predict(s, *c)
         t[i] = time.perf_counter() - t0
     t *= 1e3
     return {"predict_p50_ms": float(np.median(t)), "predict_p99_ms": float(np.percentile(t, 99)),
@@ -45,23 +89,39 @@ def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000) -> dict:
 
 def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
              expected_fingerprint: str, *, runtime: str | None = None, threads: int = 0,
-             n_timing: int = 1000, spacing_mm: float | None = None) -> dict:
+             n_timing: int = 1000, spacing_mm: float | None = None,
+             contact_projection: bool = True, case: Case | None = None) -> dict:
     """Table 1 of the model in ``model_dir`` on the test samples of ``dataset``; see module doc.
 
-    ``spacing_mm``: grid cell size for the figures (node units when unknown)."""
+    ``spacing_mm``: grid cell size for the figures (node units when unknown).
+    ``contact_projection``: project the predictions onto the measured contact
+    (:mod:`~biopsynav.network.projection`) when the model allows it, as the tracker does;
+    the figures without it are kept as ``*_unprojected_mm``. ``case``: the loaded case
+    (default: ``model_dir``'s parent folder)."""
     data = load_dataset(dataset)
     if data.fingerprint != expected_fingerprint:
         raise FingerprintError("the data set was generated for another anatomy or grid than "
                                "this case; regenerate it", str(data.path))
-    sur = Surrogate.load(model_dir, expected_fingerprint, runtime=runtime, threads=threads)
+    sur = Surrogate.load(model_dir, expected_fingerprint, runtime=runtime, threads=threads,
+                         case=case)
     x = data.inputs[data.test_idx].numpy()
     y = data.targets[data.test_idx].numpy()
     active = data.active.numpy()
     pred = predict_all(sur, x)
+    e_plain = mean_norm_error_np(pred, y, active)
+    contacts = None
+    if contact_projection and sur.can_project:
+        if case is None:
+            case = Case.load(Path(model_dir).parent)
+        contacts = test_contacts(sur, case, data, x, y)
+        pred = predict_all(sur, x, contacts=contacts)
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
     result = summarize(e)
-    result.update(time_predictions(sur, x, n_timing))
+    result.update(time_predictions(sur, x, n_timing, contacts))
+    result.update({"contact_projection": contacts is not None,
+                   "mean_e_unprojected_mm": float(e_plain.mean()),
+                   "max_e_unprojected_mm": float(e_plain.max())})
     meta = sur.meta
     result.update({
         "train_min": float(meta["training"]["train_time_s"]) / 60.0,
@@ -95,7 +155,8 @@ def format_table1(r: dict) -> str:
     """Table 1 as text (mm, ms, min)."""
     return (f"mean e {r['mean_e_mm']:.4f} mm | std e {r['std_e_mm']:.4f} mm | "
             f"max e {r['max_e_mm']:.4f} mm | prediction {r['predict_p50_ms']:.2f} ms median, "
-            f"{r['predict_p99_ms']:.2f} ms p99 ({r['runtime']}, {r['precision']}) | training "
+            f"{r['predict_p99_ms']:.2f} ms p99 ({r['runtime']}, {r['precision']}"
+            f"{', contact projection' if r.get('contact_projection') else ''}) | training "
             f"{r['train_min']:.1f} min | max nodal displacement {r['max_disp_mm']:.2f} mm | "
             f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes")
 
@@ -110,4 +171,5 @@ def evaluate_case(case_dir: str | Path) -> dict:
 
     return evaluate(case_dir / "model", case_dir, case_dir / EVAL_DIR, case_fingerprint(case_dir),
                     runtime=cfg.network.runtime, threads=cfg.network.threads,
-                    spacing_mm=Grid.load(case_dir / GRID_FILE).spacing)
+                    spacing_mm=Grid.load(case_dir / GRID_FILE).spacing,
+                    contact_projection=cfg.network.contact_projection)

@@ -17,12 +17,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from ..errors import InputError
+from ..probe import ContactInputOperator
 from .baseline import LinearElasticBaseline
 from .export import load_torchscript
 from .model_io import ONNX, TORCHSCRIPT, check_file, check_fingerprint, read_meta
+from .projection import ContactProjection
 from .train import auto_threads
 
 if TYPE_CHECKING:
@@ -190,13 +193,46 @@ class Surrogate:
         for _ in range(n):
             self.predict(x)
 
-    def predict(self, inputs: np.ndarray) -> np.ndarray:
+    @property
+    def can_project(self) -> bool:
+        """Whether :meth:`contact_projection` applies: a hard linear-elastic baseline on the
+        elastic contact input."""
+        return (self.baseline is not None and self.baseline.spring is None
+                and self.contact_input == "elastic")
+
+    def contact_projection(self, contact: sp.spmatrix,
+                           input_op: ContactInputOperator | None = None) -> ContactProjection:
+        """The :class:`~biopsynav.network.projection.ContactProjection` of the contact points
+        of trilinear weights ``contact`` (n, n_nodes), for :meth:`predict`; InputError when
+        this model has no hard baseline on the elastic input (retrain it)."""
+        if not self.can_project:
+            raise InputError("this model cannot honour the contact points exactly (it needs "
+                             "the elastic contact input and the hard linear-elastic baseline); "
+                             "retrain it", str(self.model_dir))
+        return ContactProjection.build(self.baseline, contact, input_op)
+
+    def predict(self, inputs: np.ndarray, contact: ContactProjection | None = None,
+                contact_disp: np.ndarray | None = None) -> np.ndarray:
         """Displacement (3, nx, ny, nz) mm of input (4, nx, ny, nz); batched (B, ...) too.
 
         ``inputs`` float32, channels 0-2 the contact displacement (mm), channel 3 the weight sum
         (see the dataset contract). Zero-copy for C-contiguous float32 input.
+
+        ``contact`` and ``contact_disp`` (one input only): the :meth:`contact_projection` of
+        the input's contact points and their measured displacement (n, 3) mm, from which the
+        input was built; the prediction then moves the points exactly by ``contact_disp``
+        (docs/network.md).
         """
         x, single = self._checked(inputs)
+        if (contact is None) != (contact_disp is None):
+            raise InputError("give both the contact projection and the contact displacement, "
+                             "or neither", "predict")
+        if contact is not None:
+            if x.shape[0] != 1:
+                raise InputError("a contact projection applies to one input at a time, not a "
+                                 f"batch of {x.shape[0]}", "predict")
+            y = self._predict_projected(x, contact, contact_disp)
+            return y[0] if single else y
         if self.baseline is None:
             y = self._run(x)
         elif hasattr(self._run, "start"):
@@ -208,6 +244,20 @@ class Surrogate:
         else:
             y = self._run(x) + self.baseline.predict(x)
         return y[0] if single else y
+
+    def _predict_projected(self, x: np.ndarray, contact: ContactProjection,
+                           contact_disp: np.ndarray) -> np.ndarray:
+        """The projected prediction (1, 3, nx, ny, nz) of one checked input (1, 4, ...)."""
+        if contact.baseline is not self.baseline:
+            raise InputError("the contact projection was built for another model", "predict")
+        if hasattr(self._run, "start"):
+            pending = self._run.start(x)  # network on OpenVINO's threads meanwhile
+            a0 = contact.input_forces(x[0], contact_disp)
+            r = self._run.finish(pending)
+        else:
+            a0 = contact.input_forces(x[0], contact_disp)
+            r = self._run(x)
+        return (r[0] + contact.baseline_field(x[0], contact_disp, r[0], a0))[None]
 
     def predict_network(self, inputs: np.ndarray) -> np.ndarray:
         """The exported network's part of :meth:`predict` only (the residual on top of the

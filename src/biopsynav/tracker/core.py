@@ -9,7 +9,9 @@ the footprint (|x| <= L/2, |y| <= W/2 in the probe frame) within ``[probe]
 contact_tolerance_mm`` of the face plane, facing the probe. They then follow the rigid motion of
 the probe from the rest pose (the paper's assumption); their displacement, spread on the grid,
 drives the network (or the FE model with prescribed displacements), and lesions are read off
-the predicted grid displacement by trilinear interpolation.
+the predicted grid displacement by trilinear interpolation. The network's prediction is
+projected onto the contact (:mod:`biopsynav.network.projection`, ``[network]
+contact_projection``): it moves the contact points exactly as the probe does.
 """
 
 from __future__ import annotations
@@ -98,6 +100,8 @@ class Tracker:
         self._surface_emb: Embedding | None = None
         self._lesion_base: tuple[np.ndarray, np.ndarray] | None = None
         self._input_op: ContactInputOperator | None = None
+        self._projection = None  # ContactProjection of the rest pose's contact set
+        self._lesion_proj: np.ndarray | None = None  # its u_lin at the lesions (3 n_les, 3 n)
         self._compliance = None
         env = surrogate.envelope if surrogate is not None else {}
         self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
@@ -155,6 +159,7 @@ class Tracker:
         self._contact_normals = self.case.anatomy.normals[idx]
         self._input_op = None
         self._lesion_base = None
+        self._projection = self._lesion_proj = None
         self._input[:] = 0.0
         if len(idx):
             emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
@@ -163,7 +168,27 @@ class Tracker:
                 self._input_op = self.input_operator()
                 self._input_flat[3] = self._input_op.weights
                 self._lesion_base = self._lesion_baseline(self._input_op.weights)
+                self._set_projection(emb.matrix)
         return len(idx)
+
+    def _set_projection(self, contact) -> None:
+        """The net engine's contact projection for this contact set (``[network]
+        contact_projection``, when the model allows it) and its operator at the lesions."""
+        sur = self._surrogate
+        if not (self.case.cfg.network.contact_projection and sur.can_project):
+            return
+        self._projection = sur.contact_projection(contact, self._input_op)
+        if len(self._lesion_ids):
+            import scipy.sparse as sp
+
+            rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
+            self._lesion_proj = self._projection.lesion_operator(rows)
+
+    @property
+    def projects_contact(self) -> bool:
+        """Whether the net engine's predictions honour the contact points exactly (the
+        contact projection, docs/network.md) for the current rest pose."""
+        return self._projection is not None
 
     @property
     def contact_input_kind(self) -> str:
@@ -252,16 +277,23 @@ class Tracker:
         lesions plus the physics baseline's precomputed lesion operator (no full-grid
         baseline: the hot path of :meth:`update`)."""
         self._set_input(u_c)
-        residual = self._surrogate.predict_network(self._input).reshape(3, -1).T
+        net = self._surrogate.predict_network(self._input)
         positions, operator = self._lesion_base
         base = operator @ self._input.ravel()[positions]  # (3 * n_lesions,), axis-major
-        return self._lesion_emb.interpolate(residual) + base.reshape(3, -1).T
+        if self._lesion_proj is not None:  # u_lin(g - W_P (u_lin(x) + r)) at the lesions
+            proj = self._projection
+            misfit = u_c - proj.point_displacement(self._input) - proj.point_displacement(net)
+            base += self._lesion_proj @ misfit.ravel()
+        return self._lesion_emb.interpolate(net.reshape(3, -1).T) + base.reshape(3, -1).T
 
     def _predict(self, u_c: np.ndarray) -> np.ndarray:
         """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
         if self.engine == "net":
             self._set_input(u_c)
-            out = self._surrogate.predict(self._input)
+            if self._projection is not None:
+                out = self._surrogate.predict(self._input, self._projection, u_c)
+            else:
+                out = self._surrogate.predict(self._input)
             return out.reshape(3, -1).T
         from ..fem import Loads, solve
 

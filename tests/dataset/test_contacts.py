@@ -1,0 +1,47 @@
+"""Redrawing the contact points of stored samples (for the contact projection of Table 1)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import zarr
+
+from biopsynav.case import Case
+from biopsynav.dataset.contacts import sample_contact_matrices
+from biopsynav.errors import InputError
+from biopsynav.fem.greens import ContactCompliance
+from biopsynav.grid.index import tensor_to_field
+from biopsynav.probe import contact_input
+
+
+def test_redrawn_contacts_rebuild_the_stored_inputs(reference):
+    """Each redrawn contact matrix, applied to the stored FE field, gives the contact
+    displacement from which the stored input was built."""
+    case = Case.load(reference)
+    g = zarr.open_group(str(reference / "dataset.zarr"), mode="r")
+    done = np.flatnonzero(g["done"][:])
+    matrices = sample_contact_matrices(case, reference, done)
+    compliance = ContactCompliance.from_case(case)
+    for i, w in zip(done, matrices, strict=True):
+        assert w.shape == (int(g["n_contact"][i]), case.grid.n_nodes)
+        u = tensor_to_field(g["targets"][i]).astype(np.float64)
+        rebuilt = contact_input(w, w @ u, "elastic", compliance)
+        stored = tensor_to_field(g["inputs"][i])
+        assert np.allclose(rebuilt, stored, atol=1e-4 + 1e-5 * np.abs(stored).max())
+
+
+def test_a_store_drawn_otherwise_is_refused(reference, tmp_path):
+    case = Case.load(reference)
+    other = tmp_path / "dataset.zarr"
+    shutil.copytree(reference / "dataset.zarr", other)
+    g = zarr.open_group(str(other), mode="r+")
+    vertex = g["vertex"][:]
+    vertex[1] += 1
+    g["vertex"][:] = vertex
+    with pytest.raises(InputError, match="sample 1: the redrawn push"):
+        sample_contact_matrices(case, other, np.array([0, 1]))
+    del g.attrs["protocol"]
+    with pytest.raises(InputError, match="no readable probe protocol"):
+        sample_contact_matrices(case, other, np.array([0]))
