@@ -255,7 +255,7 @@ class NetworkSection:
                                          "linear-elastic field of the rest (tracker and Table "
                                          "1; needs the linear-elastic baseline and the elastic "
                                          "contact input). Measured on the phantom: mean / max "
-                                         "e 0.0478 / 0.576 mm against 0.0521 / 0.665 without "
+                                         "e 0.0475 / 0.619 mm against 0.0509 / 0.668 without "
                                          "(docs/network.md).")
     runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
                                "(frozen, optimize_for_inference), 'openvino' (fp32 forced) or "

@@ -14,10 +14,10 @@ unchanged: the projection, orthogonal in the linear-elastic energy, onto the fie
 the measured contact. ``u_lin`` is the elastic contact input followed by the hard baseline, a
 regularised least-squares fit of the points (:data:`biopsynav.probe.ELASTIC_REGULARISATION`),
 so ``g - W_P u`` also holds what the baseline of the (float32) input left of ``g`` (about
-1e-3 mm); fitting it too is part of the measured gain. It costs one more
-gather of the Green's functions per prediction (about 0.3 ms on the phantom, 2 cores) and,
-measured on the phantom's 200 held-out samples, lowers mean e by about 8 % and max e by about
-13 % (docs/network.md).
+1e-3 mm); fitting it too is part of the measured gain. A prediction costs what the baseline
+alone did: one weighted sum of the Green's functions, everything else precomputed per contact
+set. Measured on the phantom's 200 held-out samples it lowers mean e by
+7 % and max e by 7-16 % (two models, docs/network.md).
 
 It needs the contact points themselves, not only the network input: the tracker has them (the
 skin under the probe at the rest pose) and Table 1 redraws them from the data set's protocol
