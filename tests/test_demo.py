@@ -43,6 +43,9 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     # the deployed prediction honours the contact points (the tracker's contact projection);
     # the network's own figures are kept beside
     assert t1["contact_projection"] is True
+    meta = json.loads((case / "model" / "meta.json").read_text())
+    assert meta["baseline"]["projection"] is True  # trained through it too
+    assert meta["training"]["setup_s"] > 0 and t1["train_min"] * 60 > meta["training"]["setup_s"]
     assert 0 < t1["mean_e_unprojected_mm"] <= t1["max_e_unprojected_mm"]
 
 

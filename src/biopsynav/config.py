@@ -252,11 +252,12 @@ class NetworkSection:
     contact_projection: bool = opt(True, "Predictions move the contact points exactly by "
                                          "their measured displacement: the part of the "
                                          "network's residual the points see is replaced by the "
-                                         "linear-elastic field of the rest (tracker and Table "
-                                         "1; needs the linear-elastic baseline and the elastic "
-                                         "contact input). Measured on the phantom: mean / max "
-                                         "e 0.0475 / 0.619 mm against 0.0509 / 0.668 without "
-                                         "(docs/network.md).")
+                                         "linear-elastic field of the rest (training, tracker "
+                                         "and Table 1; needs the linear-elastic baseline and "
+                                         "the elastic contact input; a model trained through "
+                                         "it is always projected). Measured on the phantom: "
+                                         "mean / max e 0.0475 / 0.619 mm against 0.0509 / "
+                                         "0.668 without (docs/network.md).")
     runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
                                "(frozen, optimize_for_inference), 'openvino' (fp32 forced) or "
                                "'auto' (the fastest installed; see docs/network.md). Always "

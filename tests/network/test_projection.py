@@ -82,3 +82,26 @@ def test_bad_arguments_are_named(setup):
     soft = LinearElasticBaseline(base.compliance, spring=0.3)
     with pytest.raises(InputError, match="hard linear-elastic baseline"):
         ContactProjection.build(soft, proj.contact)
+
+
+def test_batch_projection_matches_the_per_sample_projection(setup):
+    """Training's padded, batched ``u_lin(W_P r)`` equals each contact set's own projection
+    (two sets of different sizes)."""
+    import torch
+
+    from biopsynav.network.projection import BatchProjection
+
+    case, base, proj = setup
+    a = case.anatomy
+    top = np.argsort(a.vertices[:, 2])[-400:]
+    other = ContactProjection.build(base, Embedding.build(case.grid, a.vertices[top[::40]],
+                                                          where="contact").matrix)
+    batch = BatchProjection(base, [proj, other])
+    rng = np.random.default_rng(3)
+    r = (rng.normal(size=(3, 3, *base.node_shape)) * 0.3).astype(np.float32)
+    seen = batch.seen(torch.from_numpy(r), torch.tensor([1, 0, 1])).numpy()
+    zeros = np.zeros((4, *base.node_shape), np.float32)
+    for row, (p, i) in enumerate(((other, 0), (proj, 1), (other, 2))):
+        g = np.zeros((p.n_points, 3))
+        expect = -(p.project(zeros, g, r[i]) - r[i])  # u_lin(W_P r)
+        assert np.abs(seen[row] - expect).max() < 1e-4 * max(1.0, np.abs(expect).max())

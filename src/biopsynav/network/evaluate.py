@@ -95,7 +95,8 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
 
     ``spacing_mm``: grid cell size for the figures (node units when unknown).
     ``contact_projection``: project the predictions onto the measured contact
-    (:mod:`~biopsynav.network.projection`) when the model allows it, as the tracker does;
+    (:mod:`~biopsynav.network.projection`) when the model allows it, as the tracker does
+    (always for a model trained through the projection);
     the figures without it are kept as ``*_unprojected_mm``. ``case``: the loaded case
     (default: ``model_dir``'s parent folder)."""
     data = load_dataset(dataset)
@@ -110,7 +111,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     pred = predict_all(sur, x)
     e_plain = mean_norm_error_np(pred, y, active)
     contacts = None
-    if contact_projection and sur.can_project:
+    if (contact_projection or sur.requires_projection) and sur.can_project:
         if case is None:
             case = Case.load(Path(model_dir).parent)
         contacts = test_contacts(sur, case, data, x, y)
@@ -124,7 +125,9 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
                    "max_e_unprojected_mm": float(e_plain.max())})
     meta = sur.meta
     result.update({
-        "train_min": float(meta["training"]["train_time_s"]) / 60.0,
+        # the optimisation loop plus the per-sample set-up before it (baseline, projections)
+        "train_min": (float(meta["training"]["train_time_s"])
+                      + float(meta["training"].get("setup_s", 0.0))) / 60.0,
         "max_disp_mm": float(disp.max()),
         "largest_deformation_index": int(disp.argmax()),
         "worst_sample": int(data.test_idx[result["worst_index"]]),

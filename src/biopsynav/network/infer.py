@@ -200,6 +200,12 @@ class Surrogate:
         return (self.baseline is not None and self.baseline.spring is None
                 and self.contact_input == "elastic")
 
+    @property
+    def requires_projection(self) -> bool:
+        """Whether the model was trained through the contact projection (``meta.json``
+        ``baseline.projection``): its predictions are meant to be projected."""
+        return bool((self.meta.get("baseline") or {}).get("projection", False))
+
     def contact_projection(self, contact: sp.spmatrix,
                            input_op: ContactInputOperator | None = None) -> ContactProjection:
         """The :class:`~biopsynav.network.projection.ContactProjection` of the contact points

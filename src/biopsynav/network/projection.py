@@ -155,4 +155,74 @@ class ContactProjection:
         at_rows = np.asarray(out_rows[:, self.baseline.out_pos] @ rows.T)  # (r, k)
         return at_rows @ self.forces_of_points.numpy()
 
-__all__ = ["ContactProjection"]
+class BatchProjection:
+    """Training through the projection: what the contact points see of a batch of residuals,
+    each sample with its own contact set (padded, so that a batch is a few batched products).
+
+    ``seen(r, idx)`` is ``u_lin(W_P r)`` (B, 3, nx, ny, nz) mm for residuals ``r`` (same shape,
+    mm) of the samples ``idx`` (B,): the projected residual is ``r - seen(r, idx)`` (see the
+    module doc). float32, differentiable in ``r``.
+    """
+
+    def __init__(self, baseline: LinearElasticBaseline, projections: list[ContactProjection],
+                 device: torch.device | str = "cpu") -> None:
+        n_max = max(p.n_points for p in projections)
+        k_max = max(len(p.sel) for p in projections)
+        count = len(projections)
+        self.node_shape = baseline.node_shape
+        self.n_points = n_max
+        self.nodes = torch.zeros((count, n_max * 8), dtype=torch.int64)
+        self.weights = torch.zeros((count, n_max * 8), dtype=torch.float32)
+        self.sel = torch.zeros((count, k_max), dtype=torch.int64)
+        self.forces = torch.zeros((count, k_max, 3 * n_max), dtype=torch.float32)
+        for i, p in enumerate(projections):  # set-up, once per sample
+            nodes, weights = _padded_rows(p.contact)
+            self.nodes[i, :nodes.size] = torch.from_numpy(nodes.ravel())
+            self.weights[i, :nodes.size] = torch.from_numpy(weights.ravel())
+            k, n = len(p.sel), p.n_points
+            self.sel[i, :k] = torch.from_numpy(p.sel)
+            # point-major flat columns (point, axis) -> padded (point, axis) layout
+            self.forces[i, :k].view(k, n_max, 3)[:, :n] = \
+                p.forces_of_points.to(torch.float32).view(k, n, 3)
+        self.zt = baseline._zt.to(torch.float32)
+        self.out_pos = torch.from_numpy(baseline.out_pos)
+        self.n_nodes = baseline.n_nodes
+        self.to(device)
+
+    def to(self, device: torch.device | str) -> BatchProjection:
+        for name in ("nodes", "weights", "sel", "forces", "zt", "out_pos"):
+            setattr(self, name, getattr(self, name).to(device))
+        return self
+
+    def seen(self, residual: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """``u_lin(W_P r)`` (B, 3, nx, ny, nz) mm of residuals (B, 3, nx, ny, nz) mm of the
+        samples ``idx`` (B,)."""
+        b = residual.shape[0]
+        flat = residual.float().reshape(b, 3, -1)
+        nodes = self.nodes[idx][:, None, :].expand(b, 3, -1)
+        at_points = (torch.gather(flat, 2, nodes) * self.weights[idx][:, None, :])
+        at_points = at_points.reshape(b, 3, self.n_points, 8).sum(-1)  # (B, 3, n)
+        point_major = at_points.transpose(1, 2).reshape(b, -1, 1)  # (B, 3n, 1)
+        forces = torch.bmm(self.forces[idx], point_major)  # (B, k, 1)
+        rows = self.zt[self.sel[idx]]  # (B, k, n_eq)
+        field = torch.bmm(forces.transpose(1, 2), rows)[:, 0]  # (B, n_eq)
+        out = torch.zeros((b, 3 * self.n_nodes), dtype=field.dtype, device=field.device)
+        return out.index_copy(1, self.out_pos, field).reshape(b, 3, *self.node_shape)
+
+
+def _padded_rows(contact: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """Node ids and trilinear weights (n, 8) of each row of ``contact`` (at most 8 entries per
+    row; padded with node 0 and weight 0)."""
+    count = np.diff(contact.indptr)
+    if count.max(initial=0) > 8:
+        raise InputError("a contact point with more than 8 trilinear weights", "projection")
+    slot = np.arange(contact.nnz) - np.repeat(contact.indptr[:-1], count)
+    row = np.repeat(np.arange(contact.shape[0]), count)
+    nodes = np.zeros((contact.shape[0], 8), dtype=np.int64)
+    weights = np.zeros((contact.shape[0], 8), dtype=np.float32)
+    nodes[row, slot] = contact.indices
+    weights[row, slot] = contact.data
+    return nodes, weights
+
+
+__all__ = ["BatchProjection", "ContactProjection"]

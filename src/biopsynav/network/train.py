@@ -27,6 +27,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..config import NetworkSection, load_config
@@ -36,6 +37,7 @@ from .data import Dataset, envelope, load_dataset, normalisation_stats, quadrati
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import HISTORY, META, ONNX, TORCHSCRIPT, write_model
+from .projection import BatchProjection, ContactProjection
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
 
 MODEL_DIR = "model"
@@ -190,15 +192,20 @@ def _load_checkpoint(path: Path, signature: dict) -> dict | None:
 
 @torch.no_grad()
 def validate(net: SurrogateNet, x: torch.Tensor, y: torch.Tensor, active: torch.Tensor,
-             batch: int = 8, memory_format: torch.memory_format = torch.contiguous_format
-             ) -> torch.Tensor:
+             batch: int = 8, memory_format: torch.memory_format = torch.contiguous_format,
+             projection: BatchProjection | None = None) -> torch.Tensor:
     """Per-sample e (n,) in mm of the eager fp32 model on inputs ``x`` against targets ``y``
-    (batches passed in ``memory_format``, the layout of the network's weights)."""
+    (batches passed in ``memory_format``, the layout of the network's weights); with
+    ``projection`` (of these samples, in order) the projected residual is compared."""
     was_training = net.training
     net.eval()
-    errs = [mean_norm_error(net(x[i:i + batch].contiguous(memory_format=memory_format)).float(),
-                            y[i:i + batch], active)
-            for i in range(0, x.shape[0], batch)]
+    errs = []
+    for i in range(0, x.shape[0], batch):
+        pred = net(x[i:i + batch].contiguous(memory_format=memory_format)).float()
+        if projection is not None:
+            idx = torch.arange(i, i + pred.shape[0], device=pred.device)
+            pred = pred - projection.seen(pred, idx)
+        errs.append(mean_norm_error(pred, y[i:i + batch], active))
     net.train(was_training)
     return torch.cat(errs).cpu()
 
@@ -230,7 +237,8 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
 
     full = load_dataset(dataset if dataset is not None else case_dir)
     check_node_shape(full.node_shape, spec.levels)
-    data, baseline_meta = residual_dataset(full, s.baseline, case_dir)
+    data, baseline_meta, projections = residual_dataset(full, s.baseline, case_dir,
+                                                        s.contact_projection)
     in_scale, out_scale = normalisation_stats(data)
     if baseline_meta["kind"] != "none":
         out_scale = target_rms(data)  # the residual's RMS over active nodes
@@ -238,6 +246,8 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     signature = _signature(s, spec, data)
     signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
                                   if not k.endswith("_s")}  # not its timings
+    if projections is not None:
+        projections = tuple(p.to(dev) for p in projections)
 
     torch.manual_seed(s.seed)
     net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy(), quad_scale).to(dev)
@@ -256,7 +266,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
         state.update(ckpt["state"])
     resumed_from = state["iteration"]
 
-    runner = _Runner(net, opt, data, s, dev, out, signature, state)
+    runner = _Runner(net, opt, data, s, dev, out, signature, state, projections)
     if ckpt is None and baseline_meta["kind"] != "none":
         runner.keep_initial()  # the baseline alone is the model to beat
     was_deterministic = torch.are_deterministic_algorithms_enabled()
@@ -276,6 +286,9 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
                               "learning_rate": s.learning_rate, "loss": s.loss,
                               "seed": s.seed, "device": dev.type, "threads": threads,
                               "train_time_s": state["elapsed_s"],
+                              # the baseline and projections of every sample, before the loop
+                              "setup_s": float(baseline_meta.get("setup_s", 0.0)
+                                               + baseline_meta.get("all_samples_s", 0.0)),
                               "best_val_e_mm": state["best_val"],
                               "best_iteration": state["best_iteration"],
                               "history": state["history"]},
@@ -286,16 +299,23 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
                         finished, spec.to_dict(), count_parameters(spec))
 
 
-def residual_dataset(data: Dataset, kind: str, case_dir: str | Path) -> tuple[Dataset, dict]:
-    """The data set the network trains on and the ``baseline`` entry of meta.json.
+def residual_dataset(data: Dataset, kind: str, case_dir: str | Path,
+                     contact_projection: bool = False
+                     ) -> tuple[Dataset, dict, tuple[BatchProjection, BatchProjection] | None]:
+    """The data set the network trains on, the ``baseline`` entry of meta.json and, when it
+    trains through the contact projection, the (training, held-out) :class:`BatchProjection`.
 
     ``kind`` 'none': ``data`` itself. 'linear-elastic': targets replaced by the residual
     ``target - baseline(input)`` of :class:`~biopsynav.network.baseline.LinearElasticBaseline`
     of the case in ``case_dir`` (computed once for every sample); the case must be the one the
-    data were generated for (fingerprint).
+    data were generated for (fingerprint). With ``contact_projection`` (and the elastic contact
+    input) the network is trained on what the tracker deploys, the projected prediction
+    (:mod:`~biopsynav.network.projection`): the target is ``target - u_lin(x) - u_lin(g -
+    W_P x)``, ``g = W_P target`` the contact points' displacement (their weights redrawn from
+    the data set's protocol), and the loss sees ``r - u_lin(W_P r)``.
     """
     if kind == "none":
-        return data, {"kind": "none"}
+        return data, {"kind": "none"}, None
     if kind != "linear-elastic":
         raise InputError(f"unknown baseline {kind!r}; use linear-elastic or none",
                          "[network] baseline")
@@ -317,13 +337,45 @@ def residual_dataset(data: Dataset, kind: str, case_dir: str | Path) -> tuple[Da
     setup_s = time.perf_counter() - start
     idx = torch.cat([data.train_idx, data.test_idx])
     targets = data.targets.clone()
-    pred = base.predict(data.inputs[idx].numpy())
-    targets[idx] -= torch.from_numpy(pred)
+    projections = None
+    if contact_projection and contact == "elastic" and not _has_pushes(data):
+        print("[network] the data set records no probe pushes (probe protocol): training "
+              "without the contact projection")
+    elif contact_projection and contact == "elastic":
+        baseline, projections = _projected_baselines(base, case, data, idx)
+        targets[idx] -= torch.from_numpy(baseline)
+    else:
+        targets[idx] -= torch.from_numpy(base.predict(data.inputs[idx].numpy()))
     meta = {"kind": kind, "contact_input": contact, "spring": base.spring,
             "spring_power": base.power,
+            **({"projection": True} if projections is not None else {}),
             "n_candidate_dofs": base.n_candidate_dofs, "setup_s": setup_s,
             "all_samples_s": time.perf_counter() - start - setup_s}
-    return dataclasses.replace(data, targets=targets), meta
+    return dataclasses.replace(data, targets=targets), meta, projections
+
+
+def _has_pushes(data: Dataset) -> bool:
+    """Whether the data set records its probe protocol (to redraw the contact points)."""
+    return "probe" in (data.attrs.get("protocol") or {})
+
+
+def _projected_baselines(base, case, data: Dataset, idx: torch.Tensor
+                         ) -> tuple[np.ndarray, tuple[BatchProjection, BatchProjection]]:
+    """``u_lin(x) + u_lin(g - W_P x)`` (n, 3, nx, ny, nz) of the samples ``idx`` (training
+    then held-out) and their batch projections (training, held-out)."""
+    from ..dataset.contacts import sample_contact_matrices
+
+    matrices = sample_contact_matrices(case, data.path, idx.numpy())
+    zero = np.zeros((3, *data.node_shape), np.float32)
+    projections, fields = [], []
+    for i, w in zip(idx.tolist(), matrices, strict=True):  # set-up, once per sample
+        proj = ContactProjection.build(base, w)
+        g = proj.point_displacement(data.targets[i].numpy())
+        fields.append(proj.baseline_field(data.inputs[i].numpy(), g, zero))
+        projections.append(proj)
+    n_train = int(data.train_idx.numel())
+    return np.stack(fields), (BatchProjection(base, projections[:n_train]),
+                              BatchProjection(base, projections[n_train:]))
 
 
 def dataset_contact_input(data: Dataset) -> str:
@@ -338,8 +390,10 @@ class _Runner:
 
     def __init__(self, net: SurrogateNet, opt: torch.optim.Optimizer, data: Dataset,
                  s: NetworkSection, dev: torch.device, out: Path, signature: dict,
-                 state: dict) -> None:
+                 state: dict,
+                 projections: tuple[BatchProjection, BatchProjection] | None = None) -> None:
         self.net, self.opt, self.s, self.dev, self.out = net, opt, s, dev, out
+        self.train_proj, self.test_proj = projections or (None, None)
         self.signature, self.state = signature, state
         self.active = data.active.to(dev)
         self.mask = self.active.to(torch.float32)
@@ -364,7 +418,11 @@ class _Runner:
         x = self.x_train[idx].contiguous(memory_format=self.memory_format)
         with torch.autocast(self.dev.type, dtype=torch.bfloat16, enabled=self.amp):
             pred = self.net.forward_normalised(x)
-        loss = masked_loss(pred.float(), self.y_train[idx], self.mask, s.loss, self.out_scale)
+        pred = pred.float()
+        if self.train_proj is not None:  # the loss sees the projected residual
+            scale = self.out_scale.view(1, 3, 1, 1, 1)
+            pred = pred - self.train_proj.seen(pred * scale, idx) / scale
+        loss = masked_loss(pred, self.y_train[idx], self.mask, s.loss, self.out_scale)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -401,7 +459,7 @@ class _Runner:
         """Take the initial weights as the best so far (validated, not logged)."""
         st = self.state
         e = validate(self.net, self.x_test, self.y_test, self.active,
-                     memory_format=self.memory_format)
+                     memory_format=self.memory_format, projection=self.test_proj)
         st["best_val"], st["best_iteration"] = float(e.mean()), 0
         st["best_state"] = copy.deepcopy({k: v.cpu() for k, v in
                                           self.net.unet.state_dict().items()})
@@ -409,7 +467,7 @@ class _Runner:
     def validate_and_log(self) -> None:
         st = self.state
         e = validate(self.net, self.x_test, self.y_test, self.active,
-                     memory_format=self.memory_format)
+                     memory_format=self.memory_format, projection=self.test_proj)
         mean_e = float(e.mean())
         st["history"].append({"iteration": st["iteration"],
                               "train_loss": st["loss_sum"] / max(1, st["loss_n"]),

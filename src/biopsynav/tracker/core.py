@@ -173,9 +173,11 @@ class Tracker:
 
     def _set_projection(self, contact) -> None:
         """The net engine's contact projection for this contact set (``[network]
-        contact_projection``, when the model allows it) and its operator at the lesions."""
+        contact_projection``, or a model trained through it) and its operator at the
+        lesions."""
         sur = self._surrogate
-        if not (self.case.cfg.network.contact_projection and sur.can_project):
+        wanted = self.case.cfg.network.contact_projection or sur.requires_projection
+        if not (wanted and sur.can_project):
             return
         self._projection = sur.contact_projection(contact, self._input_op)
         if len(self._lesion_ids):
