@@ -203,9 +203,13 @@ class BatchProjection:
         at_points = (torch.gather(flat, 2, nodes) * self.weights[idx][:, None, :])
         at_points = at_points.reshape(b, 3, self.n_points, 8).sum(-1)  # (B, 3, n)
         point_major = at_points.transpose(1, 2).reshape(b, -1, 1)  # (B, 3n, 1)
-        forces = torch.bmm(self.forces[idx], point_major)  # (B, k, 1)
-        rows = self.zt[self.sel[idx]]  # (B, k, n_eq)
-        field = torch.bmm(forces.transpose(1, 2), rows)[:, 0]  # (B, n_eq)
+        forces = torch.bmm(self.forces[idx], point_major)[:, :, 0]  # (B, k)
+        # sum_k forces[b, k] * zt[sel[b, k]] without copying the rows (B, k, n_eq) first
+        k = forces.shape[1]
+        offsets = torch.arange(0, b * k, k, device=forces.device)
+        field = torch.nn.functional.embedding_bag(
+            self.sel[idx].reshape(-1), self.zt, offsets, mode="sum",
+            per_sample_weights=forces.reshape(-1))  # (B, n_eq)
         out = torch.zeros((b, 3 * self.n_nodes), dtype=field.dtype, device=field.device)
         return out.index_copy(1, self.out_pos, field).reshape(b, 3, *self.node_shape)
 
