@@ -45,3 +45,23 @@ def test_a_store_drawn_otherwise_is_refused(reference, tmp_path):
     del g.attrs["protocol"]
     with pytest.raises(InputError, match="no readable probe protocol"):
         sample_contact_matrices(case, other, np.array([0]))
+
+
+def test_projections_refuse_an_input_their_points_do_not_rebuild(reference):
+    """The redrawn points' displacement must rebuild the stored input (training and Table 1
+    check it before projecting)."""
+    from biopsynav.network.baseline import LinearElasticBaseline
+    from biopsynav.network.projection import sample_projections
+
+    case = Case.load(reference)
+    g = zarr.open_group(str(reference / "dataset.zarr"), mode="r")
+    x, y = np.asarray(g["inputs"][:2]), np.asarray(g["targets"][:2])
+    samples = np.array([0, 1])
+    matrices = sample_contact_matrices(case, reference, samples)
+    base = LinearElasticBaseline.from_case(case, spring=None)
+    pairs = sample_projections(base, matrices, x, y, samples, "here")
+    assert [p.n_points for p, _ in pairs] == [m.shape[0] for m in matrices]
+    assert np.allclose(pairs[1][1], matrices[1] @ y[1].reshape(3, -1).T)
+    x[1, :3] += np.float32(0.5) * (x[1, 3] > 0)  # every contact node moved by 0.5 mm
+    with pytest.raises(InputError, match="sample 1: its redrawn contact points give an input"):
+        sample_projections(base, matrices, x, y, samples, "here")

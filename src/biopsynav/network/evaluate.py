@@ -13,21 +13,16 @@ import numpy as np
 
 from ..case import Case
 from ..dataset.contacts import sample_contact_matrices
-from ..errors import FingerprintError, InputError
+from ..errors import FingerprintError
 from ..fileio import write_json_atomic
 from .data import Dataset, load_dataset
 from .infer import Surrogate, case_fingerprint
 from .metrics import mean_norm_error_np, summarize
 from .plots import plot_error_histogram, plot_sample
-from .projection import ContactProjection
+from .projection import ContactProjection, sample_projections
 
 EVAL_DIR = "eval"
 
-
-#: A test input must equal its redrawn contact displacement's input to this (mm, plus this
-#: share of the input's largest value): float32 storage and the solve's rounding only.
-INPUT_MATCH_MM = 1e-3
-INPUT_MATCH_REL = 1e-4
 
 Contacts = list[tuple[ContactProjection, np.ndarray]]
 
@@ -43,27 +38,15 @@ def predict_all(sur: Surrogate, x: np.ndarray, batch: int = 8,
                            for i in range(0, x.shape[0], batch)])
 
 
-def test_contacts(sur: Surrogate, case: Case, data: Dataset, x: np.ndarray,
-                  y: np.ndarray) -> Contacts:
-    """For each held-out sample: the contact projection of its probe's contact points
-    (redrawn from the data set's protocol) and their displacement ``W_P u_FE`` (n, 3) mm,
-    from which the dataset stage built the input. InputError when the redrawn points do not
-    give the stored input (the data set belongs to another protocol or code version)."""
-    matrices = sample_contact_matrices(case, data.path, data.test_idx.numpy())
-    out = []
-    for i, w in enumerate(matrices):
-        proj = sur.contact_projection(w)
-        g = proj.point_displacement(y[i])
-        op = proj.input_op
-        rebuilt = op.matrix @ g.ravel()
-        stored = x[i].reshape(-1)[op.positions]
-        off = float(np.abs(rebuilt - stored).max(initial=0.0))
-        if off > INPUT_MATCH_MM + INPUT_MATCH_REL * float(np.abs(stored).max(initial=0.0)):
-            raise InputError(f"test sample {int(data.test_idx[i])}: its redrawn contact "
-                             f"points give an input {off:.3g} mm off the stored one; the data "
-                             "set was made by another version: regenerate it", str(data.path))
-        out.append((proj, g))
-    return out
+def test_contacts(sur: Surrogate, case: Case, data: Dataset) -> Contacts:
+    """For each held-out sample, for a model that can project (``sur.can_project``): the
+    contact projection of its probe's contact points (redrawn from the data set's protocol)
+    and their displacement ``W_P u_FE`` (n, 3) mm, from which the dataset stage built the
+    input (:func:`~biopsynav.network.projection.sample_projections`; InputError when they do
+    not give the stored input)."""
+    test = data.test_idx.numpy()
+    return sample_projections(sur.baseline, sample_contact_matrices(case, data.path, test),
+                              data.inputs.numpy(), data.targets.numpy(), test, str(data.path))
 
 
 def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000,
@@ -114,7 +97,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     if (contact_projection or sur.requires_projection) and sur.can_project:
         if case is None:
             case = Case.load(Path(model_dir).parent)
-        contacts = test_contacts(sur, case, data, x, y)
+        contacts = test_contacts(sur, case, data)
         pred = predict_all(sur, x, contacts=contacts)
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement

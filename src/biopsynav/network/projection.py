@@ -155,6 +155,41 @@ class ContactProjection:
         at_rows = np.asarray(out_rows[:, self.baseline.out_pos] @ rows.T)  # (r, k)
         return at_rows @ self.forces_of_points.numpy()
 
+#: A stored input must equal the input rebuilt from its redrawn contact points' displacement
+#: to this (mm, plus this share of the input's largest value): float32 storage and the solve's
+#: rounding only.
+INPUT_MATCH_MM = 1e-3
+INPUT_MATCH_REL = 1e-4
+
+
+def sample_projections(baseline: LinearElasticBaseline, contacts: list[sp.spmatrix],
+                       inputs: np.ndarray, targets: np.ndarray, samples: np.ndarray,
+                       where: str) -> list[tuple[ContactProjection, np.ndarray]]:
+    """For stored samples: the projection of each one's contact points ``contacts[i]`` (from
+    :func:`biopsynav.dataset.contacts.sample_contact_matrices`) and their displacement ``g =
+    W_P u_FE`` (n, 3) mm, from which the dataset stage built the input.
+
+    ``inputs`` (N, 4, nx, ny, nz) and ``targets`` (N, 3, nx, ny, nz) are the data set's stored
+    arrays, ``samples`` (m,) the ids of the samples (one per contact matrix), ``where`` the
+    data set's path. Raises
+    InputError when ``g`` does not rebuild the stored input: the data set was made by another
+    version.
+    """
+    out = []
+    for i, w in zip(samples, contacts, strict=True):  # set-up, once per sample
+        proj = ContactProjection.build(baseline, w)
+        g = proj.point_displacement(targets[i])
+        op = proj.input_op
+        stored = np.asarray(inputs[i]).reshape(-1)[op.positions]
+        off = float(np.abs(op.matrix @ g.ravel() - stored).max(initial=0.0))
+        if off > INPUT_MATCH_MM + INPUT_MATCH_REL * float(np.abs(stored).max(initial=0.0)):
+            raise InputError(f"sample {int(i)}: its redrawn contact points give an "
+                             f"input {off:.3g} mm off the stored one; the data set was made by "
+                             "another version: regenerate it", where)
+        out.append((proj, g))
+    return out
+
+
 class BatchProjection:
     """Training through the projection: what the contact points see of a batch of residuals,
     each sample with its own contact set (padded, so that a batch is a few batched products).
@@ -229,4 +264,4 @@ def _padded_rows(contact: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     return nodes, weights
 
 
-__all__ = ["BatchProjection", "ContactProjection"]
+__all__ = ["BatchProjection", "ContactProjection", "sample_projections"]

@@ -37,7 +37,7 @@ from .data import Dataset, envelope, load_dataset, normalisation_stats, quadrati
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import HISTORY, META, ONNX, TORCHSCRIPT, write_model
-from .projection import BatchProjection, ContactProjection
+from .projection import BatchProjection, sample_projections
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
 
 MODEL_DIR = "model"
@@ -365,14 +365,14 @@ def _projected_baselines(base, case, data: Dataset, idx: torch.Tensor
     then held-out) and their batch projections (training, held-out)."""
     from ..dataset.contacts import sample_contact_matrices
 
-    matrices = sample_contact_matrices(case, data.path, idx.numpy())
+    samples = idx.numpy()
+    x = data.inputs.numpy()
+    contacts = sample_projections(base, sample_contact_matrices(case, data.path, samples), x,
+                                  data.targets.numpy(), samples, str(data.path))
     zero = np.zeros((3, *data.node_shape), np.float32)
-    projections, fields = [], []
-    for i, w in zip(idx.tolist(), matrices, strict=True):  # set-up, once per sample
-        proj = ContactProjection.build(base, w)
-        g = proj.point_displacement(data.targets[i].numpy())
-        fields.append(proj.baseline_field(data.inputs[i].numpy(), g, zero))
-        projections.append(proj)
+    fields = [proj.baseline_field(x[i], g, zero)
+              for i, (proj, g) in zip(samples, contacts, strict=True)]
+    projections = [proj for proj, _ in contacts]
     n_train = int(data.train_idx.numel())
     return np.stack(fields), (BatchProjection(base, projections[:n_train]),
                               BatchProjection(base, projections[n_train:]))
