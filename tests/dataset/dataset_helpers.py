@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from biopsynav.config import load_config, save_config
+from tests.conftest import DATASET_N_TEST as N_TEST  # noqa: F401  (the base case's counts)
+from tests.conftest import DATASET_N_TRAIN as N_TRAIN  # noqa: F401
 
-N_TRAIN, N_TEST = 14, 2
+from biopsynav.config import load_config, save_config
 
 
 def edit_config(case_dir: Path, **sections: dict) -> None:

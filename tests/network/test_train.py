@@ -174,3 +174,23 @@ def test_weight_decay_shrinks_the_weights_and_is_part_of_the_signature(synth_cas
                                                      weight_decay=5.0),
                   model_dir=tmp_path / "x", progress=False)
     assert again.resumed_from == 0
+
+
+def test_training_through_the_projection_resumes_exactly(reference, tmp_path):
+    """A run through the contact projection (real pushes of the generated coarse phantom),
+    stopped and run again, continues from its checkpoint and ends with the weights of an
+    uninterrupted run; validation is the projected e, and meta.json says it."""
+    s = tiny_settings(levels=2, iterations=12, val_interval=4, warmup_iterations=2,
+                      baseline="linear-elastic", contact_projection=True)
+    full = train(reference, settings=s, model_dir=tmp_path / "a", progress=False)
+    part = train(reference, settings=s, model_dir=tmp_path / "b", progress=False,
+                 stop_after=5)
+    assert not part.finished and part.iterations_done == 5
+    rest = train(reference, settings=s, model_dir=tmp_path / "b", progress=False)
+    assert rest.resumed_from == 5 and rest.finished
+    wa, wb = _weights(tmp_path / "a"), _weights(tmp_path / "b")
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    assert rest.best_val_e_mm == full.best_val_e_mm
+    meta = json.loads((tmp_path / "b" / "meta.json").read_text())
+    assert meta["baseline"]["projection"] is True
