@@ -21,6 +21,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from ..errors import InputError
@@ -61,7 +62,7 @@ class LinearElasticBaseline:
         self.node_shape, self.n_nodes = c.node_shape, c.n_nodes
         self.cols, self.col_of, self.out_pos, self.zt = c.cols, c.col_of, c.out_pos, c.zt
         self.z_ref = c.z_ref
-        self._zt = torch.from_numpy(self.zt)  # shares memory
+        self.zt_torch = torch.from_numpy(self.zt)  # the same rows (n_cand, n_eq), shared memory
         self.spring = None if spring is None else float(spring)
         self.power = float(power)
 
@@ -92,10 +93,10 @@ class LinearElasticBaseline:
     def contact_columns(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Columns of Z (k,), prescribed values (k,) mm and weight sums (k,) of one input."""
         flat = x.reshape(4, -1)
-        positions, sel, w = self._contact_dofs(flat[3])
+        positions, sel, w = self.contact_dofs(flat[3])
         return sel, flat[:3].reshape(-1)[positions].astype(np.float64), w
 
-    def _contact_dofs(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def contact_dofs(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For weight sums (n_nodes,) (input channel 3): the free candidate dofs of the nodes
         with weight, node-major: their positions (k,) in the channel-major flat displacement
         channels, their columns of Z (k,), and their nodes' weight sums (k,) float64."""
@@ -122,8 +123,31 @@ class LinearElasticBaseline:
             with torch.inference_mode():
                 a = self._contact_forces(self._block(sel), sel, w,
                                          torch.from_numpy(g)[:, None])[:, 0]
-                out[self.out_pos] = _weighted_row_sum(self._zt, sel, a).numpy()
+                out = self.response(sel, a)
         return out.reshape(3, *self.node_shape)
+
+    def force_matrix(self, sel: np.ndarray, w: np.ndarray) -> torch.Tensor:
+        """Forces (k, k) float64 N on the contact dofs ``sel`` (k,) per mm prescribed on each
+        (their nodes' weight sums ``w`` (k,), for springs): ``Z[c, c]^-1`` for hard
+        constraints, ``D (I + D Z[c, c] D)^-1 D`` for springs."""
+        with torch.inference_mode():
+            return self._contact_forces(self._block(sel), sel, w,
+                                        torch.eye(len(sel), dtype=torch.float64))
+
+    def response(self, sel: np.ndarray, forces: torch.Tensor) -> np.ndarray:
+        """The displacement (3 n_nodes,) float32 mm, channel-major flat, of ``forces`` (k,) N
+        on the candidate dofs ``sel`` (k,): one weighted sum of Green's function rows."""
+        out = np.zeros(3 * self.n_nodes, dtype=np.float32)
+        with torch.inference_mode():
+            out[self.out_pos] = _weighted_row_sum(self.zt_torch, sel, forces).numpy()
+        return out
+
+    def response_at(self, sel: np.ndarray, out_rows: sp.spmatrix) -> np.ndarray:
+        """``out_rows`` (r, 3 n_nodes) applied to the response of a unit force on each
+        candidate dof ``sel`` (k,): (r, k) float64, mm per N (e.g. at the lesion centres)."""
+        with torch.inference_mode():
+            rows = self.zt_torch.index_select(0, torch.from_numpy(sel)).double()  # (k, n_eq)
+        return np.asarray(out_rows[:, self.out_pos] @ rows.numpy().T)
 
     def _block(self, sel: np.ndarray) -> torch.Tensor:
         """``Z[c, c]`` (k, k) float64, symmetrised, of the candidate dofs ``sel`` (k,)."""
@@ -158,20 +182,18 @@ class LinearElasticBaseline:
             ``operator @ x[:3].ravel()[positions]`` equals ``out_rows @ predict(x).ravel()``
             (or ``predict(x).ravel()``) for every input ``x`` with these weight sums.
         """
-        positions, sel, w = self._contact_dofs(np.asarray(weights, dtype=np.float64).ravel())
+        positions, sel, w = self.contact_dofs(np.asarray(weights, dtype=np.float64).ravel())
         n_out = 3 * self.n_nodes if out_rows is None else out_rows.shape[0]
         if not sel.size:
             return positions, np.zeros((n_out, 0))
-        with torch.inference_mode():
-            rows = self._zt.index_select(0, torch.from_numpy(sel)).double()  # (k, n_eq)
-            a = self._contact_forces(self._block(sel), sel, w,
-                                     torch.eye(len(sel), dtype=torch.float64))
-            z_full = (rows.T @ a).numpy()  # (n_eq, k): free equations
+        forces = self.force_matrix(sel, w).numpy()
         if out_rows is None:
+            with torch.inference_mode():
+                rows = self.zt_torch.index_select(0, torch.from_numpy(sel)).double()
             operator = np.zeros((n_out, len(sel)))
-            operator[self.out_pos] = z_full
+            operator[self.out_pos] = rows.numpy().T @ forces  # (n_eq, k): free equations
             return positions, operator
-        return positions, np.asarray(out_rows[:, self.out_pos] @ z_full)
+        return positions, self.response_at(sel, out_rows) @ forces
 
 
 def _weighted_row_sum(zt: torch.Tensor, sel: np.ndarray, a: torch.Tensor) -> torch.Tensor:
