@@ -165,10 +165,13 @@ class Tracker:
             emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
             self._contact_emb = emb
             if self.engine == "net":
-                self._input_op = self.input_operator()
-                self._input_flat[3] = self._input_op.weights
-                self._lesion_base = self._lesion_baseline(self._input_op.weights)
-                self._set_projection(emb.matrix)
+                from ..network.projection import one_thread
+
+                with one_thread():  # many small dense solves (docs/igtl.md, rest pose)
+                    self._input_op = self.input_operator()
+                    self._input_flat[3] = self._input_op.weights
+                    self._lesion_base = self._lesion_baseline(self._input_op.weights)
+                    self._set_projection(emb.matrix)
         return len(idx)
 
     def _set_projection(self, contact) -> None:
