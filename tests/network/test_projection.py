@@ -105,3 +105,24 @@ def test_batch_projection_matches_the_per_sample_projection(setup):
         g = np.zeros((p.n_points, 3))
         expect = -(p.project(zeros, g, r[i]) - r[i])  # u_lin(W_P r)
         assert np.abs(seen[row] - expect).max() < 1e-4 * max(1.0, np.abs(expect).max())
+
+
+def test_one_thread_limits_blas_and_torch_and_restores_them():
+    """The set-up's small solves run on one thread; the caller's thread counts come back, also
+    after an error inside."""
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from biopsynav.network.projection import one_thread
+
+    before_torch = torch.get_num_threads()
+    before = sorted((i["prefix"], i["num_threads"]) for i in threadpool_info())
+    torch.set_num_threads(2)
+    with pytest.raises(RuntimeError, match="inside"):
+        with one_thread():
+            assert torch.get_num_threads() == 1
+            assert all(i["num_threads"] == 1 for i in threadpool_info())
+            raise RuntimeError("inside")
+    assert torch.get_num_threads() == 2
+    torch.set_num_threads(before_torch)
+    assert sorted((i["prefix"], i["num_threads"]) for i in threadpool_info()) == before
