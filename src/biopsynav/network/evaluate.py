@@ -94,7 +94,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     pred = predict_all(sur, x)
     e_plain = mean_norm_error_np(pred, y, active)
     contacts = None
-    if (contact_projection or sur.requires_projection) and sur.can_project:
+    if sur.projects(contact_projection):
         if case is None:
             case = Case.load(Path(model_dir).parent)
         contacts = test_contacts(sur, case, data)

@@ -206,6 +206,12 @@ class Surrogate:
         ``baseline.projection``): its predictions are meant to be projected."""
         return bool((self.meta.get("baseline") or {}).get("projection", False))
 
+    def projects(self, enabled: bool) -> bool:
+        """Whether predictions are projected onto the contact, given the case's ``[network]
+        contact_projection`` switch ``enabled``: when the model allows it, and always for a
+        model trained through the projection."""
+        return (enabled or self.requires_projection) and self.can_project
+
     def contact_projection(self, contact: sp.spmatrix,
                            input_op: ContactInputOperator | None = None) -> ContactProjection:
         """The :class:`~biopsynav.network.projection.ContactProjection` of the contact points

@@ -179,8 +179,7 @@ class Tracker:
         contact_projection``, or a model trained through it) and its operator at the
         lesions."""
         sur = self._surrogate
-        wanted = self.case.cfg.network.contact_projection or sur.requires_projection
-        if not (wanted and sur.can_project):
+        if not sur.projects(self.case.cfg.network.contact_projection):
             return
         self._projection = sur.contact_projection(contact, self._input_op)
         if len(self._lesion_ids):
