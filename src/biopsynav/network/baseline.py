@@ -114,17 +114,15 @@ class LinearElasticBaseline:
             return np.stack([self.predict(xi) for xi in x])
         if x.shape != (4, *self.node_shape):
             raise InputError(f"input shape {x.shape} is not (4, {self.node_shape})", "baseline")
-        out = np.zeros(3 * self.n_nodes, dtype=np.float32)
         sel, g, w = self.contact_columns(x)
-        if sel.size:
-            # torch, not NumPy: its kernels follow torch.set_num_threads (the Surrogate's idle
-            # cores); NumPy's multi-threaded BLAS took 90 ms instead of 1 ms on the loaded
-            # 2-core machine (docs/network.md)
-            with torch.inference_mode():
-                a = self._contact_forces(self._block(sel), sel, w,
-                                         torch.from_numpy(g)[:, None])[:, 0]
-                out = self.response(sel, a)
-        return out.reshape(3, *self.node_shape)
+        if not sel.size:
+            return np.zeros((3, *self.node_shape), dtype=np.float32)
+        # torch, not NumPy: its kernels follow torch.set_num_threads (the Surrogate's idle
+        # cores); NumPy's multi-threaded BLAS took 90 ms instead of 1 ms on the loaded 2-core
+        # machine (docs/network.md)
+        with torch.inference_mode():
+            a = self._contact_forces(self._block(sel), sel, w, torch.from_numpy(g)[:, None])[:, 0]
+        return self.response(sel, a).reshape(3, *self.node_shape)
 
     def force_matrix(self, sel: np.ndarray, w: np.ndarray) -> torch.Tensor:
         """Forces (k, k) float64 N on the contact dofs ``sel`` (k,) per mm prescribed on each

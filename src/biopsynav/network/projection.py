@@ -151,6 +151,7 @@ class ContactProjection:
         ``out_rows @ u_lin(d).ravel() == matrix @ d.ravel()``."""
         return self.baseline.response_at(self.sel, out_rows) @ self.forces_of_points.numpy()
 
+
 #: A stored input must equal the input rebuilt from its redrawn contact points' displacement
 #: to this (mm, plus this share of the input's largest value): float32 storage and the solve's
 #: rounding only.
@@ -192,8 +193,8 @@ def one_thread() -> Iterator[None]:
     """Run the enclosed NumPy/SciPy BLAS, OpenMP and PyTorch work on one thread, then restore
     the thread counts. For many small (hundreds of rows) dense products and solves in turn:
     there, extra threads only wait on each other, and PyTorch's spinning OpenMP workers
-    starve BLAS's. Measured for the per-sample projections of the phantom, 2-core VM: 0.15 s
-    against 0.01 s per sample."""
+    starve BLAS's. Measured for the per-sample projections of the phantom, 2-core VM, beside a
+    running training: 0.15 s against 0.01 s per sample (BENCHMARKS.md)."""
     from threadpoolctl import threadpool_limits
 
     torch_threads = torch.get_num_threads()

@@ -338,10 +338,12 @@ def residual_dataset(data: Dataset, kind: str, case_dir: str | Path,
     idx = torch.cat([data.train_idx, data.test_idx])
     targets = data.targets.clone()
     projections = None
-    if contact_projection and contact == "elastic" and not _has_pushes(data):
+    project = contact_projection and contact == "elastic"
+    if project and not _has_pushes(data):
         print("[network] the data set records no probe pushes (probe protocol): training "
               "without the contact projection")
-    elif contact_projection and contact == "elastic":
+        project = False
+    if project:
         baseline, projections = _projected_baselines(base, case, data, idx)
         targets[idx] -= torch.from_numpy(baseline)
     else:
