@@ -98,7 +98,8 @@ class Tracker:
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
-        self._lesion_base: tuple[np.ndarray, np.ndarray] | None = None
+        # the net engine's lesion displacement, linear part: (3 n_les, 3 n) on u_c (rest pose)
+        self._lesion_of_contact: np.ndarray | None = None
         self._input_op: ContactInputOperator | None = None
         self._projection = None  # ContactProjection of the rest pose's contact set
         self._lesion_proj: np.ndarray | None = None  # its u_lin at the lesions (3 n_les, 3 n)
@@ -158,7 +159,7 @@ class Tracker:
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
         self._input_op = None
-        self._lesion_base = None
+        self._lesion_of_contact = None
         self._projection = self._lesion_proj = None
         self._input[:] = 0.0
         if len(idx):
@@ -170,8 +171,8 @@ class Tracker:
                 with one_thread():  # many small dense solves (docs/igtl.md, rest pose)
                     self._input_op = self.input_operator()
                     self._input_flat[3] = self._input_op.weights
-                    self._lesion_base = self._lesion_baseline(self._input_op.weights)
                     self._set_projection(emb.matrix)
+                    self._lesion_of_contact = self._lesion_contact_operator()
         return len(idx)
 
     def _set_projection(self, contact) -> None:
@@ -224,16 +225,35 @@ class Tracker:
             self._compliance = ContactCompliance.from_case(self.case)
         return self._compliance
 
-    def _lesion_baseline(self, wsum: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The network engine's physics baseline at the lesion centres as one matrix for this
-        contact set (see :meth:`LinearElasticBaseline.contact_operator`); None without one."""
+    def _lesion_contact_operator(self) -> np.ndarray | None:
+        """For the net engine with a physics baseline: the lesion displacement's part that is
+        linear in the contact displacement, one matrix ``A`` (3 n_lesions axis-major, 3 n
+        point-major), so that the lesions move by ``A @ u_c.ravel()`` plus the network's
+        residual at the lesions (minus, with the projection, ``u_lin`` of the residual's
+        own point displacement). ``A`` folds the input operator ``x = M u_c`` into the
+        baseline's lesion rows (:meth:`LinearElasticBaseline.contact_operator`) and, with the
+        projection, into ``u_lin(u_c - W_P x)``; None without a baseline or lesions."""
         baseline = getattr(self._surrogate, "baseline", None)
-        if self.engine != "net" or baseline is None or not len(self._lesion_ids):
+        if baseline is None or not len(self._lesion_ids):
             return None
         import scipy.sparse as sp
 
+        op, n_nodes = self._input_op, baseline.n_nodes
         rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
-        return baseline.contact_operator(wsum, rows)
+        positions, operator = baseline.contact_operator(op.weights, rows)
+        row_of = np.full(3 * n_nodes, -1, dtype=np.int64)
+        row_of[op.positions] = np.arange(len(op.positions))
+        at = row_of[positions]  # the input operator's row of each baseline dof (-1: none)
+        written = np.where((at >= 0)[:, None], op.matrix[np.maximum(at, 0)], 0.0)
+        a = operator @ written
+        if self._lesion_proj is not None:
+            comp, node = np.divmod(op.positions, n_nodes)
+            w = self._projection.contact[:, node].toarray()  # (n, q) weights of written dofs
+            points_of_input = np.zeros((w.shape[0], 3, len(node)))
+            points_of_input[:, comp, np.arange(len(node))] = w
+            points = points_of_input.reshape(-1, len(node)) @ op.matrix  # W_P x, (3n, 3n)
+            a += self._lesion_proj @ (np.eye(points.shape[0]) - points)
+        return a
 
     def contact_displacement(self, pose: np.ndarray) -> np.ndarray:
         """Displacement (n_contact, 3) mm of the contact points moved rigidly with the probe."""
@@ -261,7 +281,7 @@ class Tracker:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"contact displacement {largest:.1f} mm "
                                     f"beyond the trained {self.max_contact_mm:.1f} mm", start)
         try:
-            if self._lesion_base is not None and not with_surface:
+            if self._lesion_of_contact is not None and not with_surface:
                 field, disp = None, self._net_lesion_displacement(u_c)
             else:
                 field = self._predict(u_c)
@@ -278,16 +298,13 @@ class Tracker:
 
     def _net_lesion_displacement(self, u_c: np.ndarray) -> np.ndarray:
         """Lesion displacements (n_lesions, 3) mm: the network's residual interpolated at the
-        lesions plus the physics baseline's precomputed lesion operator (no full-grid
-        baseline: the hot path of :meth:`update`)."""
+        lesions plus the precomputed linear part (:meth:`_lesion_contact_operator`; no
+        full-grid baseline: the hot path of :meth:`update`)."""
         self._set_input(u_c)
         net = self._surrogate.predict_network(self._input)
-        positions, operator = self._lesion_base
-        base = operator @ self._input.ravel()[positions]  # (3 * n_lesions,), axis-major
-        if self._lesion_proj is not None:  # u_lin(g - W_P (u_lin(x) + r)) at the lesions
-            proj = self._projection
-            misfit = u_c - proj.point_displacement(self._input) - proj.point_displacement(net)
-            base += self._lesion_proj @ misfit.ravel()
+        base = self._lesion_of_contact @ u_c.ravel()  # (3 * n_lesions,), axis-major
+        if self._lesion_proj is not None:  # - u_lin(W_P r) at the lesions
+            base -= self._lesion_proj @ self._projection.point_displacement(net).ravel()
         return self._lesion_emb.interpolate(net.reshape(3, -1).T) + base.reshape(3, -1).T
 
     def _predict(self, u_c: np.ndarray) -> np.ndarray:
