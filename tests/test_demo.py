@@ -47,6 +47,10 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     assert meta["baseline"]["projection"] is True  # trained through it too
     assert meta["training"]["setup_s"] > 0 and t1["train_min"] * 60 > meta["training"]["setup_s"]
     assert 0 < t1["mean_e_unprojected_mm"] <= t1["max_e_unprojected_mm"]
+    # physical admissibility of the predicted fields, against the FE targets (never inverted)
+    assert t1["inverted_samples_fe"] == 0
+    assert 0 <= t1["inverted_samples"] <= t1["n_samples"]
+    assert t1["inverted_cells_max"] <= t1["inverted_cells_total"]
 
 
 def test_demo_table2_network_matches_fe(quick_demo):

@@ -242,3 +242,24 @@ def test_every_installed_backend_gives_the_same_answer(backend):
     u, report = solve(model, Loads(forces=forces), settings)
     assert report.backend == backend
     assert np.abs(u - reference).max() < 1e-8 * np.abs(reference).max()
+
+
+def test_smallest_det_f_finds_the_inverted_element():
+    """A homogeneous stretch gives det F = its volume ratio in every element; moving one node
+    through its element's opposite face inverts that element (det F < 0 there), and only the
+    elements that share the node change."""
+    from biopsynav.fem import smallest_det_f
+
+    n, size = 2, 10.0
+    nodes, hexes = box_mesh((n, n, n), (size, size, size))
+    model = FEModel(nodes, hexes, np.ones(len(hexes)), E_MPA, NU, nodes[:, 2] < 1e-9)
+    stretch = np.diag([1.2, 0.9, 1.0])
+    np.testing.assert_allclose(smallest_det_f(model, nodes @ (stretch - np.eye(3)).T),
+                               np.linalg.det(stretch), rtol=1e-12)
+    corner = int(np.argmin(np.linalg.norm(nodes - size, axis=1)))  # (10, 10, 10): one element
+    u = np.zeros_like(nodes)
+    u[corner] = [-8.0, -8.0, -8.0]  # past the element's far corner at (5, 5, 5)
+    det = smallest_det_f(model, u)
+    owner = np.flatnonzero((hexes == corner).any(axis=1))
+    assert len(owner) == 1 and det[owner[0]] < 0
+    assert np.all(np.delete(det, owner) == 1.0)

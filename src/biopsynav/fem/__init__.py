@@ -6,7 +6,14 @@
 
 from .loads import Loads
 from .model import FEModel, lame_constants
-from .solver import SolveReport, SolverSettings, internal_forces, solve, tangent_matrix
+from .solver import (
+    SolveReport,
+    SolverSettings,
+    internal_forces,
+    smallest_det_f,
+    solve,
+    tangent_matrix,
+)
 
 __all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "internal_forces", "lame_constants",
-           "solve", "tangent_matrix"]
+           "smallest_det_f", "solve", "tangent_matrix"]

@@ -463,6 +463,18 @@ def internal_forces(model: FEModel, u: np.ndarray) -> np.ndarray:
     return out
 
 
+def smallest_det_f(model: FEModel, u: np.ndarray) -> np.ndarray:
+    """Smallest ``det F`` (n_el,) over each element's Gauss points at displacement ``u``
+    (n_nodes, 3) mm: at or below 0 the element is inverted there (its energy undefined)."""
+    n_el = model.n_elements
+    min_det = np.empty(n_el)
+    kernels.element_kernel(np.ascontiguousarray(u, dtype=np.float64), model.hexes,
+                           model.elem_set, model.grads, model.jw, model.weight, model.mu,
+                           model.lam, model.material_id, False, np.empty((n_el, 24)),
+                           np.empty((1, 24, 24)), min_det, np.empty(n_el))
+    return min_det
+
+
 def tangent_matrix(model: FEModel, u: np.ndarray):
     """The full symmetric tangent (n_eq, n_eq) N/mm (CSR) at displacement ``u`` (n_nodes, 3)."""
     from .linsolve import full_matrix

@@ -15,6 +15,7 @@ from ..case import Case
 from ..dataset.contacts import sample_contact_matrices
 from ..errors import FingerprintError
 from ..fileio import write_json_atomic
+from ..grid.index import tensor_to_field
 from .data import Dataset, load_dataset
 from .infer import Surrogate, case_fingerprint
 from .metrics import mean_norm_error_np, summarize
@@ -101,6 +102,8 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
         pred = predict_all(sur, x, contacts=contacts)
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
+    if case is None and (Path(model_dir).parent / "case.toml").is_file():
+        case = Case.load(Path(model_dir).parent)
     result = summarize(e)
     result.update(time_predictions(sur, x, n_timing, contacts))
     result.update({"contact_projection": contacts is not None,
@@ -120,10 +123,35 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
         "architecture": meta["architecture"], "n_parameters": meta["n_parameters"],
         "e_per_sample_mm": e.tolist(),
     })
+    if case is not None:
+        result.update(inverted_cell_figures(case, pred, y))
     _figures(Path(out_dir), pred, y, active, e, disp,
              spacing_mm or meta.get("spacing_mm") or 1.0)
     write_json_atomic(Path(out_dir) / "table1.json", result)
     return result
+
+
+def inverted_cell_figures(case: Case, pred: np.ndarray, target: np.ndarray) -> dict:
+    """How often the predicted fields (n, 3, nx, ny, nz) mm invert a cell of the case's FE
+    model (det F <= 0 at a Gauss point: no physical deformation), against the FE targets.
+
+    Returns ``inverted_samples`` (predictions with at least one inverted cell),
+    ``inverted_cells_max`` (the most in one prediction), ``inverted_cells_total`` and
+    ``inverted_samples_fe`` (the same count for the targets: 0 for a converged data set)."""
+    from ..fem import FEModel, smallest_det_f
+
+    model = FEModel.from_case(case)
+    shape = case.grid.node_shape
+
+    def counts(fields: np.ndarray) -> np.ndarray:
+        return np.array([int((smallest_det_f(model, tensor_to_field(f.reshape(3, *shape)))
+                              <= 0.0).sum()) for f in fields])  # evaluation, not a hot path
+
+    pred_counts, fe_counts = counts(pred), counts(target)
+    return {"inverted_samples": int((pred_counts > 0).sum()),
+            "inverted_cells_max": int(pred_counts.max(initial=0)),
+            "inverted_cells_total": int(pred_counts.sum()),
+            "inverted_samples_fe": int((fe_counts > 0).sum())}
 
 
 def _figures(out: Path, pred: np.ndarray, y: np.ndarray, active: np.ndarray, e: np.ndarray,
@@ -144,7 +172,10 @@ def format_table1(r: dict) -> str:
             f"{r['predict_p99_ms']:.2f} ms p99 ({r['runtime']}, {r['precision']}"
             f"{', contact projection' if r.get('contact_projection') else ''}) | training "
             f"{r['train_min']:.1f} min | max nodal displacement {r['max_disp_mm']:.2f} mm | "
-            f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes")
+            f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes"
+            + (f" | {r['inverted_samples']} predictions invert a cell (at most "
+               f"{r['inverted_cells_max']}; FE {r['inverted_samples_fe']})"
+               if "inverted_samples" in r else ""))
 
 
 def evaluate_case(case_dir: str | Path) -> dict:

@@ -130,6 +130,11 @@ def table1_section(case_dir: Path) -> Section:
         ["runtime / precision", f"{t1.get('runtime', '-')} / {t1.get('precision', '-')}",
          "PyTorch, GPU"],
     ]
+    if "inverted_samples" in t1:  # det F <= 0 somewhere: the predicted field is not physical
+        rows.append(["predictions that invert a cell (FE targets)",
+                     f"{t1['inverted_samples']} of {_num(t1.get('n_samples'))}, at most "
+                     f"{t1['inverted_cells_max']} cells ({t1['inverted_samples_fe']})",
+                     "not reported"])
     s.blocks.append(Grid(["", "this case", "the paper"], rows))
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
                                        "samples."),
