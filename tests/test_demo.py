@@ -51,6 +51,9 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     assert t1["inverted_samples_fe"] == 0
     assert 0 <= t1["inverted_samples"] <= t1["n_samples"]
     assert t1["inverted_cells_max"] <= t1["inverted_cells_total"]
+    per_sample = t1["inverted_cells_per_sample"]
+    assert len(per_sample) == t1["n_samples"] and sum(per_sample) == t1["inverted_cells_total"]
+    assert sum(k > 0 for k in per_sample) == t1["inverted_samples"]
 
 
 def test_demo_table2_network_matches_fe(quick_demo):

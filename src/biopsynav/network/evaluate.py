@@ -136,8 +136,9 @@ def inverted_cell_figures(case: Case, pred: np.ndarray, target: np.ndarray) -> d
     model (det F <= 0 at a Gauss point: no physical deformation), against the FE targets.
 
     Returns ``inverted_samples`` (predictions with at least one inverted cell),
-    ``inverted_cells_max`` (the most in one prediction), ``inverted_cells_total`` and
-    ``inverted_samples_fe`` (the same count for the targets: 0 for a converged data set)."""
+    ``inverted_cells_max`` (the most in one prediction), ``inverted_cells_total``,
+    ``inverted_cells_per_sample`` (n,) and ``inverted_samples_fe`` (the same count for the
+    targets: 0 for a converged data set)."""
     from ..fem import FEModel, smallest_det_f
 
     model = FEModel.from_case(case)
@@ -151,6 +152,7 @@ def inverted_cell_figures(case: Case, pred: np.ndarray, target: np.ndarray) -> d
     return {"inverted_samples": int((pred_counts > 0).sum()),
             "inverted_cells_max": int(pred_counts.max(initial=0)),
             "inverted_cells_total": int(pred_counts.sum()),
+            "inverted_cells_per_sample": pred_counts.tolist(),
             "inverted_samples_fe": int((fe_counts > 0).sum())}
 
 
