@@ -238,6 +238,13 @@ class ContactInputOperator:
         values[self.positions] = self.matrix @ np.asarray(contact_u, dtype=np.float64).ravel()
         return np.hstack([values.reshape(3, n_nodes).T, self.weights[:, None]])
 
+    def rows_at(self, positions: np.ndarray) -> np.ndarray:
+        """The row of :attr:`matrix` that writes each channel-major flat input position
+        (k,), or -1 where the operator writes none."""
+        row_of = np.full(3 * self.weights.shape[0], -1, dtype=np.int64)
+        row_of[self.positions] = np.arange(len(self.positions))
+        return row_of[positions]
+
 
 def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
                            compliance=None) -> ContactInputOperator:

@@ -84,9 +84,7 @@ class ContactProjection:
         if input_op is None:
             input_op = contact_input_operator(contact, "elastic", baseline.compliance)
         positions, sel, w = baseline.contact_dofs(input_op.weights)
-        row_of = np.full(3 * baseline.n_nodes, -1, dtype=np.int64)
-        row_of[input_op.positions] = np.arange(len(input_op.positions))
-        rows = row_of[positions]
+        rows = input_op.rows_at(positions)
         if len(rows) != len(input_op.positions) or (rows < 0).any():
             raise InputError("the input operator and the baseline disagree on the contact dofs",
                              "projection")

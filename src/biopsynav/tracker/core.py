@@ -236,24 +236,23 @@ class Tracker:
         baseline = getattr(self._surrogate, "baseline", None)
         if baseline is None or not len(self._lesion_ids):
             return None
-        import scipy.sparse as sp
-
-        op, n_nodes = self._input_op, baseline.n_nodes
-        rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
-        positions, operator = baseline.contact_operator(op.weights, rows)
-        row_of = np.full(3 * n_nodes, -1, dtype=np.int64)
-        row_of[op.positions] = np.arange(len(op.positions))
-        at = row_of[positions]  # the input operator's row of each baseline dof (-1: none)
-        written = np.where((at >= 0)[:, None], op.matrix[np.maximum(at, 0)], 0.0)
-        a = operator @ written
+        op = self._input_op
         if self._lesion_proj is not None:
-            comp, node = np.divmod(op.positions, n_nodes)
+            # the baseline's contact forces for the input x = M u_c are the projection's
+            # ``forces_of_points @ u_c``, so at the lesions u_lin(x) = L u_c (L =
+            # ``_lesion_proj``) and u_lin(x) + u_lin(u_c - W_P x) = L (2 u_c - W_P M u_c)
+            comp, node = np.divmod(op.positions, baseline.n_nodes)
             w = self._projection.contact[:, node].toarray()  # (n, q) weights of written dofs
             points_of_input = np.zeros((w.shape[0], 3, len(node)))
             points_of_input[:, comp, np.arange(len(node))] = w
-            points = points_of_input.reshape(-1, len(node)) @ op.matrix  # W_P x, (3n, 3n)
-            a += self._lesion_proj @ (np.eye(points.shape[0]) - points)
-        return a
+            points = points_of_input.reshape(-1, len(node)) @ op.matrix  # W_P M, (3n, 3n)
+            return self._lesion_proj @ (2.0 * np.eye(points.shape[0]) - points)
+        import scipy.sparse as sp
+
+        rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
+        positions, operator = baseline.contact_operator(op.weights, rows)
+        at = op.rows_at(positions)  # the input operator's row of each baseline dof (-1: none)
+        return operator @ np.where((at >= 0)[:, None], op.matrix[np.maximum(at, 0)], 0.0)
 
     def contact_displacement(self, pose: np.ndarray) -> np.ndarray:
         """Displacement (n_contact, 3) mm of the contact points moved rigidly with the probe."""
