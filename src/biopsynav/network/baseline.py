@@ -143,9 +143,12 @@ class LinearElasticBaseline:
     def response_at(self, sel: np.ndarray, out_rows: sp.spmatrix) -> np.ndarray:
         """``out_rows`` (r, 3 n_nodes) applied to the response of a unit force on each
         candidate dof ``sel`` (k,): (r, k) float64, mm per N (e.g. at the lesion centres)."""
+        return np.asarray(out_rows[:, self.out_pos] @ self._rows(sel).T)
+
+    def _rows(self, sel: np.ndarray) -> np.ndarray:
+        """The Green's function rows ``zt[sel]`` (k, n_eq) as float64."""
         with torch.inference_mode():
-            rows = self.zt_torch.index_select(0, torch.from_numpy(sel)).double()  # (k, n_eq)
-        return np.asarray(out_rows[:, self.out_pos] @ rows.numpy().T)
+            return self.zt_torch.index_select(0, torch.from_numpy(sel)).double().numpy()
 
     def _block(self, sel: np.ndarray) -> torch.Tensor:
         """``Z[c, c]`` (k, k) float64, symmetrised, of the candidate dofs ``sel`` (k,)."""
@@ -186,10 +189,8 @@ class LinearElasticBaseline:
             return positions, np.zeros((n_out, 0))
         forces = self.force_matrix(sel, w).numpy()
         if out_rows is None:
-            with torch.inference_mode():
-                rows = self.zt_torch.index_select(0, torch.from_numpy(sel)).double()
             operator = np.zeros((n_out, len(sel)))
-            operator[self.out_pos] = rows.numpy().T @ forces  # (n_eq, k): free equations
+            operator[self.out_pos] = self._rows(sel).T @ forces  # (n_eq, k): free equations
             return positions, operator
         return positions, self.response_at(sel, out_rows) @ forces
 

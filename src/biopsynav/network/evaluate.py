@@ -94,16 +94,16 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     active = data.active.numpy()
     pred = predict_all(sur, x)
     e_plain = mean_norm_error_np(pred, y, active)
+    project = sur.projects(contact_projection)
+    home = Path(model_dir).parent
+    if case is None and (project or (home / "case.toml").is_file()):
+        case = Case.load(home)  # needed to project; else for the inverted-cell count
     contacts = None
-    if sur.projects(contact_projection):
-        if case is None:
-            case = Case.load(Path(model_dir).parent)
+    if project:
         contacts = test_contacts(sur, case, data)
         pred = predict_all(sur, x, contacts=contacts)
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
-    if case is None and (Path(model_dir).parent / "case.toml").is_file():
-        case = Case.load(Path(model_dir).parent)
     result = summarize(e)
     result.update(time_predictions(sur, x, n_timing, contacts))
     result.update({"contact_projection": contacts is not None,
