@@ -155,9 +155,16 @@ class ProbeSection:
     f_max_n: float = opt(4.0, "Largest total probe force (N), shared equally by the contact "
                               "points; drawn uniformly in [0, f_max_n]. A total force keeps the "
                               "load independent of the skin-mesh density; the default pushes the "
-                              "5 kPa phantom up to ~35-40 mm probe displacement "
-                              "(docs/dataset.md).",
+                              "5 kPa phantom up to ~46 mm probe displacement, of which [probe] "
+                              "max_push_mm keeps up to 35 mm (docs/dataset.md).",
                          lo=0.0, hi=1e4)
+    max_push_mm: float = opt(35.0, "Deepest training push (mm of probe displacement, the mean "
+                                   "norm of the contact points' displacement): a draw that "
+                                   "goes deeper is recorded and redrawn, like a failed solve, so "
+                                   "the data set stays in the clinical range the paper trains "
+                                   "for ('up to about 35 mm') whatever the breast's local "
+                                   "compliance. 0: keep every push (docs/dataset.md).",
+                             lo=0.0, hi=1000.0)
     min_chest_distance_mm: float = opt(5.0, "Training pushes are centred on skin vertices at "
                                             "least this far in front of the chest-wall plane.",
                                        lo=0.0, hi=1000.0)
@@ -176,8 +183,9 @@ class DatasetSection:
     seed: int = opt(0, "Seed: the same seed gives the same samples whatever the worker count.",
                     lo=0, hi=2**63 - 1)
     max_failure_share: float = opt(0.25, "Stop the job when more than this share of the draws "
-                                         "fails to converge (checked once 20 draws, or all "
-                                         "requested if fewer, have been made).",
+                                         "fails to converge, or goes deeper than [probe] "
+                                         "max_push_mm (each judged on its own, once 20 draws, "
+                                         "or all requested if fewer, have been made).",
                                    lo=0.0, hi=1.0)
     contact_input: str = opt("elastic", "How the contact displacement becomes the network "
                                         "input on the contact nodes: 'elastic' (the nodal "

@@ -190,6 +190,7 @@ def test_failed_solves_are_logged_and_replaced(fresh_case):
     failed = {(f["index"], f["attempt"]) for f in g.attrs["failures"]}
     assert len(failed) == summary["failures"]
     for f in g.attrs["failures"]:
+        assert f["kind"] == "not_converged"
         assert "converge" in f["error"] or "Newton" in f["error"]
         assert f["last_iterations"] and f["newton_iters"] >= 1
     for i in range(N):  # every earlier attempt of a sample failed; the kept one is its own
@@ -201,6 +202,35 @@ def test_failed_solves_are_logged_and_replaced(fresh_case):
         push = push_for_sample(case.anatomy, case.cfg.probe, case.cfg.dataset.seed, i,
                                int(attempts[i]))
         assert g["force_n"][i] == push.force_n
+
+
+def test_pushes_deeper_than_the_limit_are_logged_and_redrawn(fresh_case, reference):
+    ref = open_data(reference)
+    ref_disp = ref["probe_disp_mm"][:]
+    limit = float(np.median(ref_disp))  # about half the reference's pushes go deeper
+    edit_config(fresh_case, probe={"max_push_mm": limit}, dataset={"max_failure_share": 1.0})
+    summary = generate_case(fresh_case, workers=2, progress=False)
+    g = open_data(fresh_case)
+    disp, attempts = g["probe_disp_mm"][:], g["attempt"][:]
+    assert summary["count"] == N and disp.max() <= limit
+    deep = [f for f in g.attrs["failures"] if f["kind"] == "too_deep"]
+    assert len(deep) == summary["too_deep"] == summary["too_deep_total"] >= (ref_disp > limit).sum()
+    assert all(f["probe_disp_mm"] > limit and "max_push_mm" in f["error"] for f in deep)
+    logged = {(f["index"], f["attempt"]) for f in g.attrs["failures"]}
+    for i in range(N):  # every earlier draw of a sample is logged; a kept shallow push unchanged
+        assert {(i, a) for a in range(attempts[i])} <= logged
+        if ref_disp[i] <= limit:
+            assert attempts[i] == ref["attempt"][i]
+            assert np.array_equal(g["targets"][i], ref["targets"][i])
+    assert (attempts > ref["attempt"][:]).any()
+    # the summary's max probe displacement, and the histogram, are of the kept pushes
+    assert summary["max_probe_disp_mm"] <= round(limit, 4) + 1e-4
+
+
+def test_too_many_deep_pushes_stop_the_job(fresh_case):
+    edit_config(fresh_case, probe={"max_push_mm": 0.5}, dataset={"max_failure_share": 0.25})
+    with pytest.raises(BiopsynavError, match=r"deeper than \[probe\] max_push_mm.*lower f_max_n"):
+        generate_case(fresh_case, workers=1, progress=False)
 
 
 def test_too_many_failures_stop_the_job(fresh_case):

@@ -4,8 +4,9 @@ Workers (local processes, or a Dask cluster given a scheduler address) compute s
 return arrays; the main process alone writes them to ``dataset.zarr`` (:mod:`.store`), with at
 most two samples in flight per worker. A kill of anything loses only the samples in flight;
 running again computes just the missing ones. Sample ``i`` depends only on ``(seed, i, attempt)``
-(:func:`biopsynav.probe.sample_rng`), and a draw whose solve does not converge is recorded
-and replaced by the next attempt of the same index, so the result is bit-identical whatever
+(:func:`biopsynav.probe.sample_rng`), and a draw whose solve does not converge, or that pushes
+deeper than ``[probe] max_push_mm``, is recorded and replaced by the next attempt of the same
+index, so the result is bit-identical whatever
 the worker count, order or interruptions.
 """
 
@@ -33,7 +34,15 @@ from .store import (
     protocol_fingerprint,
     remove_store,
 )
-from .worker import SINGLE_THREAD_ENV, WorkerSpec, dask_sample, init_process, process_sample
+from .worker import (
+    NOT_CONVERGED,
+    SINGLE_THREAD_ENV,
+    TOO_DEEP,
+    WorkerSpec,
+    dask_sample,
+    init_process,
+    process_sample,
+)
 
 SUMMARY_FILE = "dataset_summary.json"
 PLOT_FILE = "dataset.png"
@@ -60,13 +69,15 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
         progress: show a tqdm progress bar (rate, ETA) on stderr.
 
     Returns the summary (also written to ``CASE_DIR/dataset_summary.json``; histograms in
-    ``CASE_DIR/dataset.png``): count, failures (this run and total), minutes, samples/min,
+    ``CASE_DIR/dataset.png``): count, failures (non-converged draws, this run and total),
+    too_deep (draws beyond ``[probe] max_push_mm``, this run and total), minutes, samples/min,
     max and mean nodal displacement, max probe displacement.
 
     Raises:
         FingerprintError: the existing data set belongs to another anatomy, grid or protocol.
         InputError: a bad option, or an unreadable/foreign dataset.zarr.
-        BiopsynavError: more than ``[dataset] max_failure_share`` of the draws did not converge.
+        BiopsynavError: more than ``[dataset] max_failure_share`` of the draws did not converge,
+            or went deeper than ``[probe] max_push_mm``.
     """
     from ..case import Case
 
@@ -294,8 +305,9 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     bar.update(1)
                 else:
                     store.add_failures([_failure_record(result)])
-                    stats["failures"] += 1
-                    bar.set_postfix(failed=stats["failures"], refresh=False)
+                    stats["too_deep" if result["kind"] == TOO_DEEP else "failures"] += 1
+                    bar.set_postfix(failed=stats["failures"], too_deep=stats["too_deep"],
+                                    refresh=False)
                     queue.appendleft((index, attempt + 1))
                     _check_failure_share(store, max_failure_share, n_total)
     finally:
@@ -326,8 +338,11 @@ def _next_attempts(failures: list[dict]) -> dict[int, int]:
 
 
 def _failure_record(result: dict) -> dict:
-    """What the failures log keeps of a non-converged draw."""
-    return {"index": result["index"], "attempt": result["attempt"], "error": result["error"],
+    """What the failures log keeps of a draw that was not kept (``kind``: why)."""
+    extra = {"probe_disp_mm": round(result["probe_disp_mm"], 3)} if "probe_disp_mm" in result \
+        else {}
+    return {"index": result["index"], "attempt": result["attempt"], "kind": result["kind"],
+            "error": result["error"], **extra,
             "force_n": result["force_n"], "tilt_deg": result["tilt_deg"],
             "vertex": result["vertex"], "newton_iters": result["newton_iters"],
             "solve_s": round(float(result["solve_s"]), 3),
@@ -347,17 +362,33 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
+def failure_kind(record: dict) -> str:
+    """Why a logged draw was not kept (records written before ``kind`` existed were all
+    non-converged solves)."""
+    return str(record.get("kind", NOT_CONVERGED))
+
+
 def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> None:
-    """Stop when more than ``share`` of all draws so far failed (after enough draws)."""
-    failures = len(store.failures())
-    draws = failures + int(store.done_mask().sum())
-    if draws >= min(MIN_DRAWS_FOR_SHARE, n_total) and failures > share * draws:
+    """Stop when more than ``share`` of all draws so far failed to converge, or went deeper
+    than ``[probe] max_push_mm`` (each on its own; after enough draws)."""
+    records = store.failures()
+    draws = len(records) + int(store.done_mask().sum())
+    if draws < min(MIN_DRAWS_FOR_SHARE, n_total):
+        return
+    kinds = Counter(failure_kind(r) for r in records)
+    if kinds[NOT_CONVERGED] > share * draws:
         raise BiopsynavError(
-            f"{failures} of {draws} probe pushes did not converge, more than "
+            f"{kinds[NOT_CONVERGED]} of {draws} probe pushes did not converge, more than "
             f"[dataset] max_failure_share = {share:g}; the FE solve cannot follow these "
             "pushes: lower [probe] f_max_n or max_tilt_deg, or raise the tissue stiffness or "
             "[solver] max_iterations (failures are logged in dataset.zarr attrs 'failures')",
             "generate")
+    if kinds[TOO_DEEP] > share * draws:
+        raise BiopsynavError(
+            f"{kinds[TOO_DEEP]} of {draws} probe pushes went deeper than [probe] max_push_mm, "
+            f"more than [dataset] max_failure_share = {share:g}: this breast is softer than "
+            "[probe] f_max_n assumes; lower f_max_n (dataset.png and dataset_summary.json show "
+            "the probe displacements kept)", "generate")
 
 
 # ----- summary and plot ---------------------------------------------------------------------
@@ -365,6 +396,7 @@ def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> Non
 def summarize(store: DatasetStore, stats: Counter, seconds: float) -> dict:
     """Summary of the whole data set plus the figures of this run."""
     meta = store.read_meta()
+    failures = store.failures()
     count = int(meta["index"].size)
     minutes = seconds / 60.0
     computed = int(stats["computed"])
@@ -380,7 +412,9 @@ def summarize(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "n_test": int(store.group.attrs["n_test"]),
         "computed_this_run": computed,
         "failures": int(stats["failures"]),
-        "failures_total": len(store.failures()),
+        "failures_total": sum(failure_kind(r) == NOT_CONVERGED for r in failures),
+        "too_deep": int(stats["too_deep"]),
+        "too_deep_total": sum(failure_kind(r) == TOO_DEEP for r in failures),
         "pool_restarts": int(stats["pool_restarts"]),
         "minutes": round(minutes, 3),
         "samples_per_min": round(computed / minutes, 2) if computed and minutes > 0 else 0.0,
@@ -412,7 +446,9 @@ def plot_distributions(store: DatasetStore, path: Path) -> Path:
         ax.hist(meta[name], bins=30, color="tab:blue", alpha=0.8)
         ax.set_xlabel(label)
         ax.set_ylabel("samples")
-    fig.suptitle(f"{meta['index'].size} samples, {len(store.failures())} failed draws")
+    kinds = Counter(failure_kind(r) for r in store.failures())
+    fig.suptitle(f"{meta['index'].size} samples; redrawn: {kinds[NOT_CONVERGED]} not converged, "
+                 f"{kinds[TOO_DEEP]} too deep")
     fig.tight_layout()
     return save_figure_atomic(fig, path)
 

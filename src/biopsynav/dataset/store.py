@@ -12,8 +12,8 @@ Layout (a Zarr v3 group; N = n_train + n_test; node arrays follow
 * ``active_nodes`` (nx, ny, nz) bool;
 * per-sample metadata (N,) or (N, 3): see :data:`META_FIELDS`;
 * attrs: ``n_train``, ``n_test``, ``fingerprint`` (anatomy + grid), ``protocol_fingerprint``,
-  ``protocol`` (what it hashes), ``node_shape``, ``format``, ``failures`` (solver failures:
-  index, attempt, message, last Newton iterations).
+  ``protocol`` (what it hashes), ``node_shape``, ``format``, ``failures`` (the draws not kept:
+  index, attempt, ``kind`` ``not_converged`` or ``too_deep``, message, last Newton iterations).
 
 Samples ``[0, n_train)`` are for training, ``[n_train, N)`` held out.
 Zarr's local store writes every chunk and metadata document through a temporary file and a
@@ -121,7 +121,7 @@ class DatasetStore:
         self.arrays["done"][i] = True
 
     def add_failures(self, records: list[dict]) -> None:
-        """Append solver-failure records (deduplicated on index and attempt)."""
+        """Append records of draws not kept (deduplicated on index and attempt)."""
         known = self.failures()
         seen = {(f["index"], f["attempt"]) for f in known}
         new = [r for r in records if (r["index"], r["attempt"]) not in seen]

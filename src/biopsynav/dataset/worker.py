@@ -19,6 +19,10 @@ from typing import Any
 
 import numpy as np
 
+#: Why a draw was not kept (``kind`` of its failure record): its solve did not converge, or
+#: it pushed deeper than ``[probe] max_push_mm``.
+NOT_CONVERGED, TOO_DEEP = "not_converged", "too_deep"
+
 #: Environment of a worker process: one MKL/OpenMP thread keeps Pardiso's results
 #: bit-identical whatever the number of workers.
 SINGLE_THREAD_ENV = {"MKL_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
@@ -70,8 +74,9 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     """Draw, solve and package sample ``index`` (draw ``attempt``).
 
     Returns a dict with ``index``, ``attempt``, ``ok``; when ok: ``inputs`` (4, nx, ny, nz)
-    float32, ``targets`` (3, nx, ny, nz) float32 and the per-sample metadata; when the solve
-    did not converge: ``error`` (message) and ``diagnostics`` (last Newton iterations).
+    float32, ``targets`` (3, nx, ny, nz) float32 and the per-sample metadata; when the draw
+    was not kept: ``kind`` (:data:`NOT_CONVERGED` or :data:`TOO_DEEP`), ``error`` (message)
+    and ``diagnostics`` (last Newton iterations; empty for a push that was too deep).
     """
     from ..errors import SolverError
     from ..fem import Loads, solve
@@ -89,10 +94,19 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         u, report = solve(ctx.model, Loads(forces=nodal_forces(contact, push.force)),
                           ctx.settings)
     except SolverError as exc:
-        result.update(ok=False, error=exc.what, solve_s=time.perf_counter() - start,
-                      diagnostics=exc.log[-5:], newton_iters=len(exc.log))
+        result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
+                      solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
+                      newton_iters=len(exc.log))
         return result
     contact_u = np.asarray(contact @ u)
+    probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
+    if too_deep(probe_disp, cfg.probe.max_push_mm):
+        result.update(ok=False, kind=TOO_DEEP, probe_disp_mm=probe_disp,
+                      error=f"probe displacement {probe_disp:.1f} mm is beyond [probe] "
+                            f"max_push_mm = {cfg.probe.max_push_mm:g} mm",
+                      solve_s=time.perf_counter() - start, diagnostics=[],
+                      newton_iters=int(report.iterations))
+        return result
     node_disp = np.linalg.norm(u, axis=1)
     result.update(
         ok=True,
@@ -102,12 +116,18 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         targets=field_to_tensor(u, ctx.node_shape).astype(np.float32),
         max_disp_mm=float(node_disp.max()),
         mean_disp_mm=float(node_disp[ctx.active].mean()),
-        probe_disp_mm=float(np.linalg.norm(contact_u, axis=1).mean()),
+        probe_disp_mm=probe_disp,
         newton_iters=int(report.iterations),
         residual=float(report.residual_rel),
         solve_s=float(time.perf_counter() - start),
     )
     return result
+
+
+def too_deep(probe_disp_mm: float, max_push_mm: float) -> bool:
+    """Whether a solved push (mean contact-point displacement norm, mm) goes beyond the
+    data set's deepest push ``[probe] max_push_mm`` (0: no limit)."""
+    return max_push_mm > 0 and probe_disp_mm > max_push_mm
 
 
 def push_metadata(push: Any) -> dict:
