@@ -279,7 +279,10 @@ class TrackerSection:
     engine: str = opt("net", "Default engine: 'net' (U-Net) or 'fem' (finite elements).",
                       choices=("net", "fem"))
     envelope_margin: float = opt(1.1, "Contact displacements up to this factor of the largest "
-                                      "trained one are accepted.", lo=1.0, hi=10.0)
+                                      "trained one, and probe displacements (their mean norm) "
+                                      "up to this factor of the deepest trained push, are "
+                                      "accepted; beyond, the answer is out_of_envelope.",
+                                 lo=1.0, hi=10.0)
     rigid_tolerance: float = opt(1e-3, "Largest deviation of a pose rotation from orthonormal.",
                                  lo=1e-9, hi=1.0)
 

@@ -259,6 +259,34 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
         assert np.abs(np.array([les.displacement for les in fast.lesions]) - moved).max() < 1e-4
 
 
+def test_tracker_refuses_pushes_deeper_than_the_deepest_trained_one(phantom, trained_le):
+    """A probe displacement beyond ``envelope_margin`` x the envelope's ``max_probe_disp_mm``
+    gives out_of_envelope and no numbers; within it, lesion positions; a model without the
+    figure (trained before it was recorded) has only the contact bound."""
+    from biopsynav.network.infer import Surrogate
+    from biopsynav.tracker import Tracker
+
+    _, case, _ = phantom
+    model_dir, _ = trained_le
+    sur = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
+                         warmup=0, case=case)
+    tracker = Tracker(case, "net", surrogate=sur)
+    assert tracker.max_probe_mm == np.inf  # the synthetic store has no probe displacements
+    top = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
+    tracker.set_rest_pose(top)
+    tracker.max_contact_mm = np.inf
+    pose = top.copy()
+    pose[2, 3] -= 8.0
+    depth = float(np.linalg.norm(tracker.contact_displacement(pose), axis=1).mean())
+    assert 6.0 < depth < 10.0
+    tracker.max_probe_mm = 1.01 * depth / tracker.envelope_margin
+    assert tracker.update(pose).status == "ok"
+    tracker.max_probe_mm = 0.99 * depth / tracker.envelope_margin
+    deep = tracker.update(pose)
+    assert deep.status == "out_of_envelope" and "deepest trained push" in deep.reason
+    assert all(not np.all(np.isfinite(les.center)) for les in deep.lesions or [])
+
+
 def test_training_with_the_baseline_resumes_from_its_checkpoint(phantom, tmp_path):
     """The baseline's set-up timings must not enter the checkpoint signature (they did: every
     run with a baseline trained afresh)."""

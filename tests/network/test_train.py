@@ -194,3 +194,9 @@ def test_training_through_the_projection_resumes_exactly(reference, tmp_path):
     assert rest.best_val_e_mm == full.best_val_e_mm
     meta = json.loads((tmp_path / "b" / "meta.json").read_text())
     assert meta["baseline"]["projection"] is True
+    # the envelope records the deepest training push (not a held-out one)
+    import zarr
+
+    g = zarr.open_group(str(reference / "dataset.zarr"), mode="r")
+    n_train = int(g.attrs["n_train"])
+    assert meta["envelope"]["max_probe_disp_mm"] == float(g["probe_disp_mm"][:n_train].max())

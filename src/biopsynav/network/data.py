@@ -33,6 +33,7 @@ class Dataset:
     node_shape: tuple[int, int, int]
     path: Path
     attrs: dict
+    probe_disp_mm: np.ndarray | None = None  # (N,) mean contact-point displacement norm, mm
 
     @property
     def n_active(self) -> int:
@@ -62,6 +63,8 @@ def load_dataset(case_or_zarr: str | Path) -> Dataset:
         n_train, n_test = int(attrs["n_train"]), int(attrs["n_test"])
         node_shape = tuple(int(n) for n in attrs["node_shape"])
         fingerprint = str(attrs["fingerprint"])
+        probe = (np.asarray(g["probe_disp_mm"][:], dtype=np.float64)
+                 if "probe_disp_mm" in g else None)
     except (KeyError, ValueError, OSError) as exc:
         raise InputError(f"not a complete dataset.zarr ({type(exc).__name__}: {exc})",
                          str(path)) from None
@@ -74,7 +77,7 @@ def load_dataset(case_or_zarr: str | Path) -> Dataset:
                          "test samples; both must be > 0", str(path))
     return Dataset(torch.from_numpy(inputs), torch.from_numpy(targets), torch.from_numpy(active),
                    torch.from_numpy(train), torch.from_numpy(test), fingerprint,
-                   node_shape, path, attrs)  # type: ignore[arg-type]
+                   node_shape, path, attrs, probe)  # type: ignore[arg-type]
 
 
 def _check_shapes(inputs: np.ndarray, targets: np.ndarray, done: np.ndarray,
@@ -140,10 +143,15 @@ def _rms(values: torch.Tensor) -> np.ndarray:
 
 
 def envelope(data: Dataset) -> dict:
-    """The training envelope in mm: largest contact displacement norm and target displacement."""
+    """The training envelope in mm: largest contact input and target displacement norms, and
+    (when the store has it) the deepest training push, ``max_probe_disp_mm`` (the mean norm
+    of the contact points' displacement, ``[probe] max_push_mm``'s measure)."""
     x = data.inputs[data.train_idx]
     y = data.targets[data.train_idx]
     contact = torch.linalg.vector_norm(x[:, :3], dim=1)
     disp = torch.linalg.vector_norm(y, dim=1)
-    return {"max_contact_disp_mm": float(contact.max()), "max_target_disp_mm": float(disp.max()),
-            "max_weight_sum": float(x[:, 3].max())}
+    out = {"max_contact_disp_mm": float(contact.max()), "max_target_disp_mm": float(disp.max()),
+           "max_weight_sum": float(x[:, 3].max())}
+    if data.probe_disp_mm is not None:
+        out["max_probe_disp_mm"] = float(data.probe_disp_mm[data.train_idx.numpy()].max())
+    return out

@@ -106,6 +106,9 @@ class Tracker:
         self._compliance = None
         env = surrogate.envelope if surrogate is not None else {}
         self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
+        # the deepest training push (mean contact-point displacement); models trained before
+        # it was recorded have only the contact bound
+        self.max_probe_mm = float(env.get("max_probe_disp_mm", np.inf))
         self.envelope_margin = case.cfg.tracker.envelope_margin
 
     @classmethod
@@ -275,10 +278,15 @@ class Tracker:
         push = -np.einsum("ij,ij->i", u_c, self._contact_normals)  # into the tissue
         if np.median(push) < -LIFT_OFF_MM:
             return self._rest_result(st.NO_CONTACT, "probe lifted off the skin", start)
-        largest = float(np.linalg.norm(u_c, axis=1).max())
+        norms = np.linalg.norm(u_c, axis=1)
+        largest, depth = float(norms.max()), float(norms.mean())
         if largest > self.max_contact_mm * self.envelope_margin:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"contact displacement {largest:.1f} mm "
                                     f"beyond the trained {self.max_contact_mm:.1f} mm", start)
+        if depth > self.max_probe_mm * self.envelope_margin:
+            return self._unreliable(st.OUT_OF_ENVELOPE, f"probe displacement {depth:.1f} mm "
+                                    f"beyond the deepest trained push, {self.max_probe_mm:.1f} "
+                                    "mm", start)
         try:
             if self._lesion_of_contact is not None and not with_surface:
                 field, disp = None, self._net_lesion_displacement(u_c)
