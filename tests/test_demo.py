@@ -63,9 +63,11 @@ def test_demo_table2_network_matches_fe(quick_demo):
     assert all(np.isfinite(v) and v >= 0 for v in means.values()), means
     # the rigid model ignores the deformation: far worse than both physics-based methods
     assert means["rigid"] > 2 * means["fem"], means
-    # the network tracks the deformation as well as the FE model of the same grid: average
-    # TRE within a few tenths of a millimetre (measured: 1.77 mm against 1.76 mm)
-    assert abs(means["net"] - means["fem"]) <= 0.3, means
+    # the network tracks the deformation at least as well as the FE model of the same grid it
+    # learnt from: average TRE no more than a few tenths of a millimetre above it (measured:
+    # 1.77 against 1.76 mm before the data set's depth limit, 1.20 against 1.76 mm with it;
+    # at full size the network is closer to the fine-grid truth too, BENCHMARKS.md)
+    assert means["net"] <= means["fem"] + 0.3, means
     agreement = t2["tables"]["net_vs_fem"]["overall_mean"]
     assert agreement is not None and 0 <= agreement < means["rigid"], agreement
     assert means["net"] < 0.5 * means["rigid"], means
