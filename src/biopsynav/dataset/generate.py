@@ -362,10 +362,10 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
-def failure_kind(record: dict) -> str:
-    """Why a logged draw was not kept (records written before ``kind`` existed were all
-    non-converged solves)."""
-    return str(record.get("kind", NOT_CONVERGED))
+def failure_counts(records: list[dict]) -> Counter:
+    """How many logged draws were not kept for each reason (``NOT_CONVERGED``, ``TOO_DEEP``;
+    records written before ``kind`` existed were all non-converged solves)."""
+    return Counter(str(r.get("kind", NOT_CONVERGED)) for r in records)
 
 
 def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> None:
@@ -375,7 +375,7 @@ def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> Non
     draws = len(records) + int(store.done_mask().sum())
     if draws < min(MIN_DRAWS_FOR_SHARE, n_total):
         return
-    kinds = Counter(failure_kind(r) for r in records)
+    kinds = failure_counts(records)
     if kinds[NOT_CONVERGED] > share * draws:
         raise BiopsynavError(
             f"{kinds[NOT_CONVERGED]} of {draws} probe pushes did not converge, more than "
@@ -396,7 +396,7 @@ def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> Non
 def summarize(store: DatasetStore, stats: Counter, seconds: float) -> dict:
     """Summary of the whole data set plus the figures of this run."""
     meta = store.read_meta()
-    failures = store.failures()
+    kinds = failure_counts(store.failures())
     count = int(meta["index"].size)
     minutes = seconds / 60.0
     computed = int(stats["computed"])
@@ -412,9 +412,9 @@ def summarize(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "n_test": int(store.group.attrs["n_test"]),
         "computed_this_run": computed,
         "failures": int(stats["failures"]),
-        "failures_total": sum(failure_kind(r) == NOT_CONVERGED for r in failures),
+        "failures_total": kinds[NOT_CONVERGED],
         "too_deep": int(stats["too_deep"]),
-        "too_deep_total": sum(failure_kind(r) == TOO_DEEP for r in failures),
+        "too_deep_total": kinds[TOO_DEEP],
         "pool_restarts": int(stats["pool_restarts"]),
         "minutes": round(minutes, 3),
         "samples_per_min": round(computed / minutes, 2) if computed and minutes > 0 else 0.0,
@@ -446,7 +446,7 @@ def plot_distributions(store: DatasetStore, path: Path) -> Path:
         ax.hist(meta[name], bins=30, color="tab:blue", alpha=0.8)
         ax.set_xlabel(label)
         ax.set_ylabel("samples")
-    kinds = Counter(failure_kind(r) for r in store.failures())
+    kinds = failure_counts(store.failures())
     fig.suptitle(f"{meta['index'].size} samples; redrawn: {kinds[NOT_CONVERGED]} not converged, "
                  f"{kinds[TOO_DEEP]} too deep")
     fig.tight_layout()
