@@ -40,6 +40,8 @@ def test_defaults_round_trip(tmp_path):
     ({"network": {"weight_decay": "strong"}}, "weight_decay"),
     ({"igtl": {"inference_threads": -1}}, "below its minimum"),
     ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
+    ({"probe": {"max_push_mm": -5.0}}, "below its minimum"),
+    ({"probe": {"max_push_mm": "deep"}}, "max_push_mm"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:
