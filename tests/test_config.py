@@ -42,6 +42,14 @@ def test_defaults_round_trip(tmp_path):
     ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
     ({"probe": {"max_push_mm": -5.0}}, "below its minimum"),
     ({"probe": {"max_push_mm": "deep"}}, "max_push_mm"),
+    ({"probe": {"footprint_mm": [float("inf"), 10.0]}}, "two positive lengths"),
+    ({"probe": {"footprint_mm": [True, 10.0]}}, "two positive lengths"),
+    ({"material": {"tissues": {"fat": {"E_mpa": True, "nu": 0.45}}}}, "not a boolean"),
+    ({"material": {"tissues": {"fat": {"E_mpa": float("inf"), "nu": 0.45}}}}, "E_mpa must be"),
+    ({"material": {"tissues": {"fat": {"E_mpa": 1e-3, "nu": float("nan")}}}}, "nu must be"),
+    ({"probe": {"f_max_n": float("inf")}}, "must be a finite number"),
+    ({"grid": {"cell_size_mm": float("nan")}}, "must be a finite number"),
+    ({"igtl": {"listen": "::1:18945"}}, "needs brackets"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:

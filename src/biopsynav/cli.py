@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -77,8 +78,11 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 def cmd_show(args: argparse.Namespace) -> int:
     from .case import Case
+    from .fileio import check_output_path
     from .show import render_case
 
+    if args.out:
+        check_output_path(args.out, "--out")
     out = render_case(Case.load(args.case_dir), args.out)
     print(f"picture written to {out}")
     return 0
@@ -105,9 +109,12 @@ def cmd_generate(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from .network.train import train_case
 
-    summary = train_case(args.case_dir, preset=args.preset, iterations=args.iterations,
-                         device=args.device)
-    print(summary)
+    s = train_case(args.case_dir, preset=args.preset, iterations=args.iterations,
+                   device=args.device)
+    state = "finished" if s.finished else "stopped; run again to resume"
+    print(f"training {state}: {s.iterations_done} of {s.iterations} iterations, best held-out "
+          f"mean e {s.best_val_e_mm:.4f} mm at iteration {s.best_iteration}, "
+          f"{s.n_parameters:,} parameters; model in {s.model_dir}")
     return 0
 
 
@@ -122,8 +129,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_track(args: argparse.Namespace) -> int:
     from .tracker.csvtrack import track_csv
 
-    n = track_csv(args.case_dir, args.poses, args.out, engine=args.engine)
-    print(f"{n} poses tracked, lesion positions written to {args.out}")
+    counts = track_csv(args.case_dir, args.poses, args.out, engine=args.engine)
+    per_status = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    print(f"{sum(counts.values())} poses tracked ({per_status}); lesion positions and the "
+          f"reason of every unreliable one written to {args.out}")
     return 0
 
 
@@ -252,17 +261,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Commands that write into the case folder: each holds the case's lock while it runs.
+WRITING_COMMANDS = ("init", "show", "simulate", "generate", "train", "evaluate", "report",
+                    "run", "demo")
+
+
+def _run_command(args: argparse.Namespace) -> int:
+    """Run the command, holding the case's write lock when it writes into an existing case."""
+    from .caselock import case_lock
+
+    case_dir = getattr(args, "case_dir", None)
+    if args.command not in WRITING_COMMANDS or case_dir is None or not case_dir.is_dir():
+        return int(args.func(args) or 0)
+    with case_lock(case_dir, args.command):
+        return int(args.func(args) or 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        return _run_command(args)
     except BiopsynavError as exc:
         print(f"biopsynav: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("biopsynav: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
+    except OSError as exc:  # the system refused (permissions, full disk): name the file
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"biopsynav: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: one line, the traceback on request
+        if os.environ.get("BIOPSYNAV_DEBUG"):
+            raise
+        print(f"biopsynav: internal error: {type(exc).__name__}: {exc} (set BIOPSYNAV_DEBUG=1 "
+              "for the traceback, and please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

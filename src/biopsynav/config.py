@@ -9,6 +9,7 @@ one place (:func:`reference_markdown`).
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -295,8 +296,11 @@ class IgtlSection:
                                          "other clients.")
     probe_device: str = opt("ProbeToReference", "Device name of the probe TRANSFORM.")
     max_body_bytes: int = opt(1 << 20, "Largest accepted message body.", lo=64, hi=1 << 30)
-    max_clients: int = opt(32, "Most listening clients at once; more are refused.",
-                           lo=1, hi=4096)
+    max_clients: int = opt(32, "Most listening clients at once. When full, a new client "
+                               "takes the slot of the client idle longest (no complete "
+                               "message from it and no reply taken by it for the longest "
+                               "time), so idle or trickling connections never lock a real "
+                               "client out.", lo=1, hi=4096)
     client_backlog_bytes: int = opt(4 << 20, "Unsent reply bytes held for one client; a "
                                              "client that does not read beyond this is "
                                              "dropped.", lo=1024, hi=1 << 30)
@@ -307,9 +311,10 @@ class IgtlSection:
     reconnect_max_s: float = opt(2.0, "Longest wait between attempts to reach the tracker "
                                       "server (exponential backoff from 0.05 s).",
                                  lo=0.05, hi=60.0)
-    stall_timeout_s: float = opt(5.0, "A connection that has sent part of a message and then "
-                                      "nothing for this long is dropped (a stalled or "
-                                      "half-dead peer never holds a partial message forever).",
+    stall_timeout_s: float = opt(5.0, "A message must arrive whole within this long of its "
+                                      "first byte, or its connection is dropped (a stalled, "
+                                      "half-dead or trickling peer never holds a partial "
+                                      "message for longer, however it paces its bytes).",
                                  lo=0.1, hi=3600.0)
     inference_threads: int = opt(1, "CPU threads of the served tracker's network (0: the idle "
                                     "cores, as [network] threads). One by default: at 100 Hz "
@@ -392,8 +397,8 @@ def _check_value(section: str, f: dataclasses.Field, value: Any, where: str) -> 
         raise InputError(f"{key} must be one of {', '.join(meta['choices'])}; got {value!r}",
                          where)
     if isinstance(value, (int, float)) and not isinstance(value, bool):
-        if value != value:
-            raise InputError(f"{key} is NaN", where)
+        if not math.isfinite(value):
+            raise InputError(f"{key} must be a finite number, got {value!r}", where)
         if meta.get("lo") is not None and value < meta["lo"]:
             raise InputError(f"{key} = {value} is below its minimum {meta['lo']}", where)
         if meta.get("hi") is not None and value > meta["hi"]:
@@ -401,18 +406,25 @@ def _check_value(section: str, f: dataclasses.Field, value: Any, where: str) -> 
     return value
 
 
+def _is_number(value: Any) -> bool:
+    """A finite int or float, not a boolean."""
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
 def _check_special(cfg: CaseConfig, where: str) -> None:
     fp = cfg.probe.footprint_mm
-    if len(fp) != 2 or not all(isinstance(v, (int, float)) and v > 0 for v in fp):
-        raise InputError(f"[probe] footprint_mm must be two positive lengths, got {fp!r}", where)
+    if len(fp) != 2 or not all(_is_number(v) and 0 < v < 1e3 for v in fp):
+        raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
+                         f"{fp!r}", where)
     for name, tissue in cfg.material.tissues.items():
         if not isinstance(tissue, dict) or set(tissue) != {"E_mpa", "nu"}:
             raise InputError(f"[material.tissues.{name}] needs exactly E_mpa and nu", where)
         e, nu = tissue["E_mpa"], tissue["nu"]
-        if not isinstance(e, (int, float)) or not 0 < e < 1e3:
-            raise InputError(f"[material.tissues.{name}] E_mpa must be in (0, 1000) MPa, "
-                             f"got {e!r}", where)
-        if not isinstance(nu, (int, float)) or not -1 < nu < 0.5:
+        if not _is_number(e) or not 0 < e < 1e3:
+            raise InputError(f"[material.tissues.{name}] E_mpa must be in (0, 1000) MPa (a "
+                             f"number, not a boolean), got {e!r}", where)
+        if not _is_number(nu) or not -1 < nu < 0.5:
             raise InputError(f"[material.tissues.{name}] nu must be in (-1, 0.5), got {nu!r}",
                              where)
     if cfg.material.default_tissue not in cfg.material.tissues:
@@ -443,8 +455,13 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
 
 
 def parse_address(text: str, where: str = "address") -> tuple[str, int]:
-    """Parse ``HOST:PORT`` into a tuple; raise InputError naming ``where`` when malformed."""
+    """Parse ``HOST:PORT`` (an IPv6 host in brackets: ``[::1]:18945``) into a tuple; raise
+    InputError naming ``where`` when malformed."""
     host, sep, port = text.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    elif ":" in host:
+        raise InputError(f"an IPv6 address needs brackets, [HOST]:PORT; got {text!r}", where)
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise InputError(f"expected HOST:PORT with a port in 1..65535, got {text!r}", where)
     return host, int(port)

@@ -26,3 +26,11 @@ class SolverError(BiopsynavError):
 
 class FingerprintError(BiopsynavError):
     """Data or a model made for another anatomy or grid than the case at hand."""
+
+
+class WriteError(BiopsynavError):
+    """A file that cannot be written (read-only folder, full disk); nothing was replaced."""
+
+
+class CaseBusyError(BiopsynavError):
+    """Another biopsynav command is writing to the same case folder."""

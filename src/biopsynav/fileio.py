@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import InputError, WriteError
+
 
 def _current_umask() -> int:
     mask = os.umask(0)
@@ -25,8 +27,11 @@ _UMASK = _current_umask()
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise WriteError(f"cannot write here: {exc.strerror}", str(path)) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -34,9 +39,33 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual permissions
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise WriteError(f"cannot write: {exc.strerror}; the previous file, if any, is "
+                         "unchanged", str(path)) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return path
+
+
+def check_output_path(path: str | os.PathLike, option: str) -> Path:
+    """Refuse (InputError) an output file a user named that is not a regular file or a new
+    path in an existing, writable folder: a symbolic link, a folder, a device or a FIFO is
+    never replaced."""
+    path = Path(path)
+    where = f"{option} {path}"
+    if path.is_symlink():
+        raise InputError("is a symbolic link; name a regular file or a new path", where)
+    if path.exists() and not path.is_file():
+        kind = "a folder" if path.is_dir() else "a device, FIFO or socket"
+        raise InputError(f"is {kind}, not a regular file; name a regular file or a new path",
+                         where)
+    parent = path.parent
+    if not parent.is_dir():
+        raise InputError(f"folder {parent} does not exist", where)
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"folder {parent} is not writable", where)
     return path
 
 

@@ -14,6 +14,7 @@ import pyigtl
 import pytest
 
 from biopsynav.config import IgtlSection
+from biopsynav.errors import InputError
 from biopsynav.igtl.protocol import HEADER_SIZE, encode_string, encode_transform
 from biopsynav.igtl.rigid import RigidLesionTracker
 from biopsynav.igtl.server import IgtlServer, run_service
@@ -434,3 +435,65 @@ def test_bad_listen_address_is_an_input_error(tracker):
 
     with pytest.raises(InputError):
         IgtlServer(tracker, "nonsense", None)
+
+
+def test_idle_connections_never_lock_a_real_client_out(tracker):
+    run = Running(tracker, settings=IgtlSection(max_clients=32))
+    idle = []
+    try:
+        for _ in range(40):  # more than max_clients idle connections, none sends or reads
+            idle.append(RawClient(run.port))
+        wait_until(lambda: run.server.stats().clients_total == 40, what="40 accepted")
+        assert run.server.stats().clients == 32
+        assert run.server.stats().clients_evicted == 8
+        real = RawClient(run.port)  # a well-behaved client still gets in and is served
+        wait_until(lambda: run.server.stats().clients_total == 41, what="real client accepted")
+        real.send(raw_pose(translation(0, 0, 1.0)))
+        assert real.read_until("POINT", "Lesions") is not None
+        assert run.server.stats().clients == 32
+        # the evicted are the oldest idle ones, not the client that just got its reply
+        assert not real.closed_by_peer(timeout=0.2)
+        real.close()
+    finally:
+        for conn in idle:
+            conn.close()
+        run.stop()
+
+
+def test_trickling_client_is_dropped_after_stall_timeout_from_its_first_byte(tracker):
+    run = Running(tracker, settings=IgtlSection(stall_timeout_s=0.5))
+    try:
+        message = raw_pose(translation(0, 0, 1.0))
+        trickler = RawClient(run.port)
+        start = time.monotonic()
+        for i in range(len(message)):  # one byte every 50 ms: each resets no timer
+            if run.server.stats().stalled:
+                break
+            trickler.send(message[i:i + 1])
+            time.sleep(0.05)
+        wait_until(lambda: run.server.stats().stalled == 1, what="trickler dropped")
+        assert time.monotonic() - start < 0.5 + WAIT_S
+        assert trickler.closed_by_peer()
+        assert run.server.stats().poses_received == 0
+    finally:
+        run.stop()
+
+
+def test_ipv6_listen_address(tracker):
+    from biopsynav.config import parse_address
+
+    assert parse_address("[::1]:18945") == ("::1", 18945)
+    with pytest.raises(InputError, match="brackets"):
+        parse_address("::1:18945", "--listen")
+    if not socket.has_ipv6:
+        pytest.skip("no IPv6 in this Python")
+    server = IgtlServer(tracker, ("::1", 0), None)
+    try:
+        try:
+            host, port = server.start()
+        except InputError as exc:  # a machine without IPv6 loopback: one clear line
+            assert "--listen" in str(exc)
+            pytest.skip(f"no IPv6 loopback here: {exc}")
+        assert host == "::1" and port > 0
+    finally:
+        server._close_all()

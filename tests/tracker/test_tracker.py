@@ -99,6 +99,35 @@ def test_unreliable_poses_give_no_numbers(fem_tracker):
         fem_tracker.set_rest_pose(nan_pose)
 
 
+def test_rest_pose_answers_at_once_without_a_solve(fem_tracker, monkeypatch):
+    import biopsynav.fem
+
+    fem_tracker.set_rest_pose(TOP)
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("a pose with zero displacement must not solve")
+
+    monkeypatch.setattr(biopsynav.fem, "solve", no_solve)
+    r = fem_tracker.update(TOP)
+    assert r.status == st.OK and r.reliable
+    np.testing.assert_array_equal([les.displacement for les in r.lesions], 0.0)
+    np.testing.assert_array_equal([les.center for les in r.lesions],
+                                  [les.center for les in fem_tracker.case.anatomy.lesions])
+
+
+def test_solver_failure_is_solver_failed_not_out_of_envelope(fem_tracker, monkeypatch):
+    import dataclasses
+
+    fem_tracker.set_rest_pose(TOP)
+    starved = dataclasses.replace(fem_tracker._fem_settings, max_total_iterations=1,
+                                  max_iterations=1, initial_load_step=1.0, min_load_step=1.0)
+    monkeypatch.setattr(fem_tracker, "_fem_settings", starved)
+    r = fem_tracker.update(pushed(10.0))
+    assert r.status == st.SOLVER_FAILED and not r.reliable
+    assert "converge" in r.reason or "iteration" in r.reason
+    assert all(np.isnan(les.center).all() for les in r.lesions)
+
+
 def _poses_csv(path, poses):
     lines = ["frame,sequence," + ",".join(MATRIX_COLUMNS)]
     for i, (seq, pose) in enumerate(poses):
@@ -111,11 +140,11 @@ def test_track_csv_fem(coarse_case, tmp_path):
     poses = _poses_csv(tmp_path / "poses.csv", [("a", TOP), ("a", pushed(8.0)),
                                                  ("b", TOP), ("b", pushed(4.0))])
     out = tmp_path / "lesions.csv"
-    assert track_csv(coarse_case.dir, poses, out, engine="fem") == 4
+    assert track_csv(coarse_case.dir, poses, out, engine="fem") == {"ok": 4}
     rows = out.read_text().splitlines()
-    assert rows[0] == "frame,lesion_id,x,y,z,status"
+    assert rows[0] == "frame,lesion_id,x,y,z,status,reason"
     assert len(rows) == 1 + 4 * len(coarse_case.anatomy.lesions)
-    assert all(r.endswith(",ok") for r in rows[1:])
+    assert all(r.endswith(",ok,") for r in rows[1:])
 
 
 def test_bad_poses_csv(tmp_path):

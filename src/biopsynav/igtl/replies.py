@@ -31,8 +31,6 @@ STATUS_DEVICE = "TrackingStatus"
 COMMAND_DEVICE = "biopsynavCommand"
 COMMAND_REPLY_DEVICE = "biopsynavReply"
 CMD_SET_REST_POSE = "SetRestPose"
-TRACKER_ERROR = "tracker_error"
-"""Status sent when ``tracker.update`` raised or returned something unusable."""
 
 RELIABLE_RGBA = [0, 200, 0, 255]
 UNRELIABLE_RGBA = [230, 0, 0, 255]

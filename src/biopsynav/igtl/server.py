@@ -41,13 +41,12 @@ import numpy as np
 
 from ..config import IgtlSection, parse_address
 from ..errors import BiopsynavError, InputError
-from ..tracker.result import NO_CONTACT, RELIABLE, TrackingResult
+from ..tracker.result import NO_CONTACT, RELIABLE, TRACKER_ERROR, TrackingResult
 from .protocol import IgtlProtocolError, Message, MessageReader, encode_string
 from .replies import (
     CMD_SET_REST_POSE,
     COMMAND_DEVICE,
     COMMAND_REPLY_DEVICE,
-    TRACKER_ERROR,
     encode_lesion_point,
     encode_lesion_transforms,
     encode_status,
@@ -89,7 +88,7 @@ class ServerStats:
     clients: int = 0
     clients_total: int = 0
     clients_dropped: int = 0
-    clients_refused: int = 0
+    clients_evicted: int = 0
     disconnects_mid_message: int = 0
     protocol_errors: int = 0
     messages_dropped: int = 0
@@ -114,7 +113,8 @@ class _Conn:
     connecting: bool = False
     closed: bool = False
     seen_skipped: set = field(default_factory=set)
-    partial_since: float = math.inf  # monotonic time of the last bytes of an incomplete message
+    partial_since: float = math.inf  # monotonic time of the first byte of an incomplete message
+    last_active: float = field(default_factory=time.monotonic)  # last whole message or reply
 
 
 def to_address(value: str | Address | None, where: str) -> Address | None:
@@ -164,6 +164,7 @@ class IgtlServer:
         self._last_reliable = True
         self._provisional_rest = False
         self._stop_requested = False
+        self._state_lock = threading.RLock()  # held while the loop changes state; stats() too
         self.address: Address | None = None
 
     # ----------------------------------------------------------------------------- lifecycle
@@ -212,24 +213,33 @@ class IgtlServer:
         self.start()
         try:
             while not self._stop_requested:
-                self._maybe_connect_tracker()
-                for key, mask in self._sel.select(self._timeout()):
-                    self._dispatch(key, mask)
-                self._check_connect_timeout()
-                self._check_stalled()
+                events = self._sel.select(self._timeout())
+                with self._state_lock:
+                    self._handle_events(events)
         finally:
-            self._close_all()
+            with self._state_lock:
+                self._close_all()
+
+    def _handle_events(self, events: list) -> None:
+        """One turn of the loop after ``select``: reconnect, dispatch, timeouts."""
+        self._maybe_connect_tracker()
+        for key, mask in events:
+            self._dispatch(key, mask)
+        self._check_connect_timeout()
+        self._check_stalled()
 
     def serve_forever(self) -> None:
         """Alias of :meth:`run`."""
         self.run()
 
     def stats(self) -> ServerStats:
-        """A snapshot of the counters."""
-        snap = dataclasses.replace(self._stats)
-        snap.clients = len(self._clients)
-        snap.tracker_connected = (self._tracker_conn is not None
-                                  and not self._tracker_conn.connecting)
+        """A consistent snapshot of the counters (safe from other threads: taken between two
+        turns of the loop, never in the middle of one)."""
+        with self._state_lock:
+            snap = dataclasses.replace(self._stats)
+            snap.clients = len(self._clients)
+            snap.tracker_connected = (self._tracker_conn is not None
+                                      and not self._tracker_conn.connecting)
         return snap
 
     def _close_all(self) -> None:
@@ -267,14 +277,13 @@ class IgtlServer:
                 if c.partial_since < math.inf]
 
     def _check_stalled(self) -> None:
-        """Drop connections that stopped in the middle of a message."""
+        """Drop connections whose message did not arrive whole in ``stall_timeout_s``."""
         now = time.monotonic()
         for conn in self._connections():
             if conn.partial_since + self.settings.stall_timeout_s <= now:
                 self._stats.stalled += 1
                 self._drop(conn, f"stalled in the middle of a message ({conn.reader.pending} "
-                                 f"bytes of it received, nothing for "
-                                 f"{now - conn.partial_since:.1f} s)")
+                                 f"bytes of it received in {now - conn.partial_since:.1f} s)")
 
     def _dispatch(self, key: selectors.SelectorKey, mask: int) -> None:
         if key.data == "listener":
@@ -310,10 +319,7 @@ class IgtlServer:
                 return
             name = f"client {peer[0]}:{peer[1]}"
             if len(self._clients) >= self.settings.max_clients:
-                log.warning("refusing %s: already %d clients", name, len(self._clients))
-                self._stats.clients_refused += 1
-                sock.close()
-                continue
+                self._evict_idlest(name)
             sock.setblocking(False)
             _nodelay(sock)
             conn = _Conn(sock, name, False, MessageReader(self.settings.max_body_bytes))
@@ -321,6 +327,15 @@ class IgtlServer:
             self._sel.register(sock, selectors.EVENT_READ, conn)
             self._stats.clients_total += 1
             log.info("%s connected (%d clients)", name, len(self._clients))
+
+    def _evict_idlest(self, newcomer: str) -> None:
+        """Make room for ``newcomer``: close the client idle longest (oldest ``last_active``)."""
+        idlest = min(self._clients, key=lambda c: c.last_active)
+        idle_s = time.monotonic() - idlest.last_active
+        self._stats.clients_evicted += 1
+        self._close(idlest, f"evicted after {idle_s:.1f} s idle: all "
+                            f"{self.settings.max_clients} client slots were taken and "
+                            f"{newcomer} arrived", logging.WARNING)
 
     # ------------------------------------------------------------------- tracker connection
     def _maybe_connect_tracker(self) -> None:
@@ -399,6 +414,7 @@ class IgtlServer:
             return
         del conn.out[:sent]
         if not conn.out:
+            conn.last_active = time.monotonic()
             self._sel.modify(conn.sock, selectors.EVENT_READ, conn)
 
     def _on_readable(self, conn: _Conn) -> None:
@@ -412,8 +428,15 @@ class IgtlServer:
         if not data:
             self._on_eof(conn)
             return
+        was_partial = conn.reader.pending > 0
         items = conn.reader.feed(data)
-        conn.partial_since = time.monotonic() if conn.reader.pending else math.inf
+        now = time.monotonic()
+        if items:
+            conn.last_active = now
+        if not conn.reader.pending:
+            conn.partial_since = math.inf
+        elif items or not was_partial:  # a new message began in this read
+            conn.partial_since = now
         self._handle_items(conn, items)
 
     def _on_eof(self, conn: _Conn) -> None:
@@ -443,6 +466,8 @@ class IgtlServer:
         except OSError as exc:
             self._drop(conn, f"send failed: {exc}")
             return
+        if sent == len(data):
+            conn.last_active = time.monotonic()
         if sent < len(data):
             if len(data) - sent > limit:
                 self._drop(conn, f"not reading: {len(data) - sent} bytes of replies unsent")
@@ -454,9 +479,9 @@ class IgtlServer:
         """Close a connection because of a fault."""
         if conn.closed:
             return
+        self._close(conn, f"dropped: {reason}", logging.WARNING)
         if not conn.is_tracker:
             self._stats.clients_dropped += 1
-        self._close(conn, f"dropped: {reason}", logging.WARNING)
 
     def _close(self, conn: _Conn, reason: str, level: int) -> None:
         if conn.closed:

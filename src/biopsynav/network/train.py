@@ -22,6 +22,7 @@ import dataclasses
 import io
 import math
 import os
+import sys
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -176,18 +177,56 @@ def _save_torch(obj: dict, path: Path) -> None:
 
 
 def _load_checkpoint(path: Path, signature: dict) -> dict | None:
-    """The checkpoint at ``path`` if it exists, is readable and matches ``signature``."""
+    """The checkpoint at ``path`` if it exists, is readable and matches ``signature``.
+
+    A damaged or incompatible checkpoint is reported in one warning line (on stderr) naming
+    it and why, and renamed to ``checkpoint.pt.damaged-<time>`` (or ``.incompatible-<time>``)
+    so that the restart never overwrites it; None is returned (train from iteration 0)."""
     if not path.is_file():
         return None
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file means: start afresh
-        print(f"[network] ignoring unreadable checkpoint {path}: {type(exc).__name__}")
+        if not isinstance(ckpt, dict) or not {"model", "optimizer", "state",
+                                              "signature"} <= set(ckpt):
+            raise ValueError("not a biopsynav training checkpoint")
+    except Exception as exc:  # noqa: BLE001 - any unreadable file: report, keep, start afresh
+        _set_aside(path, "damaged", f"unreadable ({type(exc).__name__}: {str(exc)[:120]})")
         return None
     if ckpt.get("signature") != signature:
-        print(f"[network] settings or data changed since {path} was written: training afresh")
+        _set_aside(path, "incompatible", "written with other settings or data")
         return None
     return ckpt
+
+
+def _resume(ckpt: dict, net: SurrogateNet, opt: torch.optim.Optimizer, state: dict,
+            path: Path) -> bool:
+    """Load a checkpoint's weights, optimiser state and loop state; False (the checkpoint set
+    aside, ``net``, ``opt`` and ``state`` as they were) when they do not fit."""
+    before = (copy.deepcopy(net.state_dict()), copy.deepcopy(opt.state_dict()), dict(state))
+    try:
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        if not isinstance(ckpt["state"], dict) or not set(state) <= set(ckpt["state"]):
+            raise ValueError("its loop state lacks keys")
+        state.update(ckpt["state"])
+        return True
+    except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+        net.load_state_dict(before[0])
+        opt.load_state_dict(before[1])
+        state.clear()
+        state.update(before[2])
+        _set_aside(path, "damaged", f"does not fit the network ({str(exc)[:120]})")
+        return False
+
+
+def _set_aside(path: Path, kind: str, why: str) -> Path:
+    """Rename a checkpoint that cannot be resumed out of the way, with a warning line."""
+    aside = path.with_name(f"{path.name}.{kind}-{time.strftime('%Y%m%dT%H%M%S')}")
+    path.replace(aside)
+    print(f"biopsynav: warning: {path}: {why}; the training progress it held is not used and "
+          f"training restarts from iteration 0; the file is kept as {aside.name}",
+          file=sys.stderr)
+    return aside
 
 
 @torch.no_grad()
@@ -260,10 +299,8 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
     remove_partial_writes(out, MODEL_FILES)  # debris of a run killed mid-write
     ckpt = _load_checkpoint(out / CHECKPOINT, signature)
-    if ckpt is not None:
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        state.update(ckpt["state"])
+    if ckpt is not None and not _resume(ckpt, net, opt, state, out / CHECKPOINT):
+        ckpt = None
     resumed_from = state["iteration"]
 
     runner = _Runner(net, opt, data, s, dev, out, signature, state, projections)

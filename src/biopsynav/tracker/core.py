@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..case import Case
-from ..errors import InputError
+from ..errors import InputError, SolverError
 from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
 from ..probe import ContactInputOperator, contact_input_operator, skin_in_box
@@ -280,6 +280,8 @@ class Tracker:
             return self._rest_result(st.NO_CONTACT, "probe lifted off the skin", start)
         norms = np.linalg.norm(u_c, axis=1)
         largest, depth = float(norms.max()), float(norms.mean())
+        if largest == 0.0:  # the rest pose itself: nothing moved, no solve or prediction
+            return self._rest_result(st.OK, "", start)
         if largest > self.max_contact_mm * self.envelope_margin:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"contact displacement {largest:.1f} mm "
                                     f"beyond the trained {self.max_contact_mm:.1f} mm", start)
@@ -293,8 +295,10 @@ class Tracker:
             else:
                 field = self._predict(u_c)
                 disp = self._lesion_emb.interpolate(field)
-        except Exception as exc:  # FE non-convergence and similar: never a confident number
-            return self._unreliable(st.OUT_OF_ENVELOPE, f"{type(exc).__name__}: {exc}", start)
+        except SolverError as exc:  # the FE engine did not converge: say so, not "unusual pose"
+            return self._unreliable(st.SOLVER_FAILED, exc.what, start)
+        except Exception as exc:  # never a confident number from a failed prediction
+            return self._unreliable(st.TRACKER_ERROR, f"{type(exc).__name__}: {exc}", start)
         lesions = [LesionResult(i, c + d, d, st.OK) for i, c, d in
                    zip(self._lesion_ids, self._lesion_centres, disp, strict=True)]
         res = TrackingResult(lesions, st.OK, "", 0.0)

@@ -2,13 +2,15 @@
 
 Input columns ``frame, sequence, m00 ... m23`` (top 3 x 4 of the probe-to-anatomy transform,
 mm); the first frame of each sequence is its rest pose. Output columns
-``frame, lesion_id, x, y, z, status`` (NaN coordinates when the status is not reliable).
+``frame, lesion_id, x, y, z, status, reason`` (NaN coordinates when the status is not
+reliable; ``reason`` says why, empty when reliable).
 """
 
 from __future__ import annotations
 
 import csv
 import io
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,14 @@ def read_poses(path: str | Path) -> list[tuple[int, str, np.ndarray]]:
     path = Path(path)
     if not path.is_file():
         raise InputError("file not found", str(path))
-    with path.open(newline="", encoding="utf-8") as fh:
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                         f"{exc.start}); save the CSV as UTF-8", str(path)) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", str(path)) from None
+    with io.StringIO(text, newline="") as fh:
         reader = csv.DictReader(fh)
         cols = {c.strip() for c in reader.fieldnames or []}
         missing = [c for c in ["frame", "sequence", *MATRIX_COLUMNS] if c not in cols]
@@ -46,7 +55,8 @@ def read_poses(path: str | Path) -> list[tuple[int, str, np.ndarray]]:
 
 
 def track_rows(tracker, rows: list[tuple[int, str, np.ndarray]]) -> list[tuple]:
-    """Track every row; the first row of each sequence sets the rest pose."""
+    """Track every row; the first row of each sequence sets the rest pose. Returns
+    (frame, TrackingResult) per row."""
     out = []
     seen: set[str] = set()
     for frame, sequence, pose in rows:
@@ -57,24 +67,33 @@ def track_rows(tracker, rows: list[tuple[int, str, np.ndarray]]) -> list[tuple]:
             except InputError as exc:
                 raise InputError(f"frame {frame}: rest pose of sequence {sequence!r}: "
                                  f"{exc.what}", "poses") from None
-        result = tracker.update(pose)
-        for les in result.lesions:
-            out.append((frame, les.id, *les.center, les.status))
+        out.append((frame, tracker.update(pose)))
     return out
 
 
-def track_csv(case_dir: str | Path, poses: str | Path, out: str | Path,
-              engine: str = "net") -> int:
-    """Track all poses of ``poses`` with the case's tracker; write ``out``; return pose count."""
-    from .core import Tracker
-
-    rows = read_poses(poses)
-    tracker = Tracker.load(case_dir, engine=engine)
-    lines = track_rows(tracker, rows)
+def lesions_csv(tracked: list[tuple]) -> str:
+    """The output CSV text of :func:`track_rows`' results, one row per lesion and pose."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["frame", "lesion_id", "x", "y", "z", "status"])
-    for frame, lid, x, y, z, status in lines:
-        writer.writerow([frame, lid, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", status])
-    write_text_atomic(out, buf.getvalue())
-    return len(rows)
+    writer.writerow(["frame", "lesion_id", "x", "y", "z", "status", "reason"])
+    for frame, result in tracked:
+        for les in result.lesions:
+            x, y, z = les.center
+            writer.writerow([frame, les.id, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", les.status,
+                             result.reason])
+    return buf.getvalue()
+
+
+def track_csv(case_dir: str | Path, poses: str | Path, out: str | Path,
+              engine: str = "net") -> dict[str, int]:
+    """Track all poses of ``poses`` with the case's tracker; write ``out``; return the number
+    of poses per status."""
+    from ..fileio import check_output_path
+    from .core import Tracker
+
+    check_output_path(out, "--out")
+    rows = read_poses(poses)
+    tracker = Tracker.load(case_dir, engine=engine)
+    tracked = track_rows(tracker, rows)
+    write_text_atomic(out, lesions_csv(tracked))
+    return dict(Counter(result.status for _, result in tracked))

@@ -12,6 +12,8 @@ NO_CONTACT = "no_contact"
 OUT_OF_ENVELOPE = "out_of_envelope"
 INVALID_POSE = "invalid_pose"
 NO_REST_POSE = "no_rest_pose"
+SOLVER_FAILED = "solver_failed"  # the FE engine's solve did not converge; not a pose problem
+TRACKER_ERROR = "tracker_error"  # the prediction itself failed (a bug or a broken model)
 RELIABLE = (OK, REST)
 
 
