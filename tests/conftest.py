@@ -87,3 +87,34 @@ def reference(base_case: Path, tmp_path_factory) -> Path:
     shutil.copytree(base_case, dst)
     generate_case(dst, workers=2, progress=False)
     return dst
+
+
+# --- the reference data set trained for a few iterations: damage and CLI safety tests ---
+
+@pytest.fixture(scope="session")
+def trained_case(reference: Path, tmp_path_factory) -> Path:
+    """The 16-sample coarse phantom data set, trained for 20 iterations, evaluated, reported."""
+    from biopsynav.cli import main
+    from biopsynav.config import load_config, save_config
+
+    case = tmp_path_factory.mktemp("damage") / "case"
+    shutil.copytree(reference, case)
+    cfg = load_config(case)
+    cfg.network.iterations, cfg.network.val_interval = 20, 10
+    cfg.network.warmup_iterations, cfg.network.threads = 5, 1
+    cfg.evaluate.timed_predictions = 20
+    save_config(case, cfg)
+    for argv in (["show", str(case)], ["train", str(case)],
+                 ["evaluate", str(case), "--table1-only"], ["report", str(case)]):
+        assert main(argv) == 0, argv
+    return case
+
+
+@pytest.fixture(scope="session")
+def poses_csv(tmp_path_factory) -> Path:
+    """Rest pose over the phantom's top, then a 6 mm push."""
+    path = tmp_path_factory.mktemp("poses") / "poses.csv"
+    head = "frame,sequence," + ",".join(f"m{r}{c}" for r in range(3) for c in range(4))
+    rows = [f"{i},a,1,0,0,0,0,-1,0,0,0,0,-1,{z}" for i, z in enumerate((76.0, 70.0))]
+    path.write_text("\n".join([head, *rows]) + "\n")
+    return path

@@ -61,8 +61,11 @@ class Case:
 def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     """Build anatomy and grid from ``cfg`` and write ``case.toml``, ``anatomy.npz``,
     ``grid.npz`` (each atomically; nothing is written if the inputs are bad)."""
+    from .fem.model import cell_tissues
+
     anatomy, facts = build_anatomy(cfg, case_dir)
     grid = build_grid(anatomy, cfg.grid, cfg.network.levels)
+    cell_tissues(grid.active_label(), cfg)  # every label mapped to a material, or refused now
     save_config(case_dir, cfg)
     anatomy.save(case_dir / ANATOMY_FILE)
     grid.save(case_dir / GRID_FILE)

@@ -326,6 +326,8 @@ class IgtlSection:
 
 @dataclass
 class EvaluateSection:
+    timed_predictions: int = opt(1000, "Batch-1 predictions timed for Table 1's prediction "
+                                       "time (median, p99).", lo=10, hi=10**6)
     deformations_per_lesion: int = opt(4, "Probe pushes per lesion in Table 2 by simulation "
                                           "(the paper: four of increasing extent).", lo=1, hi=50)
     max_push_mm: float = opt(32.0, "Deepest probe push in Table 2 by simulation: the push "
@@ -492,26 +494,48 @@ def config_from_dict(data: dict, where: str = CASE_FILE) -> CaseConfig:
     return cfg
 
 
+#: First line of a case.toml written by biopsynav; such a file must end with :data:`END_LINE`.
+HEADER_LINE = "# biopsynav case. Units: mm, N, MPa (1 kPa = 1e-3 MPa), s."
+END_LINE = "# end of case.toml: biopsynav checks this line to detect a truncated file"
+
+
 def load_config(case_dir: str | Path) -> CaseConfig:
-    """Read and validate ``CASE_DIR/case.toml``."""
+    """Read and validate ``CASE_DIR/case.toml``.
+
+    A file written by biopsynav (its first line is :data:`HEADER_LINE`) must still end with
+    :data:`END_LINE`: a truncated case.toml is refused rather than read with defaults for
+    what it lost. A file without that header (written by hand) is read as it is."""
     path = Path(case_dir) / CASE_FILE
     if not Path(case_dir).is_dir():
         raise InputError("case folder does not exist", str(case_dir))
     if not path.is_file():
         raise InputError("no case.toml here; create the case with `biopsynav init`", str(path))
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid TOML: {exc}", str(path)) from None
+    _check_whole(text, str(path))
     return config_from_dict(data, str(path))
 
 
+def _check_whole(text: str, where: str) -> None:
+    """Refuse an empty case.toml, and one written by biopsynav that lost its end."""
+    if not text.strip():
+        raise InputError("case.toml is empty; restore it, or rebuild the case with "
+                         "`biopsynav init --overwrite`", where)
+    lines = text.rstrip().splitlines()
+    if lines[0].strip() == HEADER_LINE and lines[-1].strip() != END_LINE:
+        raise InputError(f"case.toml is truncated (its last line, {END_LINE!r}, is missing); "
+                         "restore it, or rebuild the case with `biopsynav init --overwrite`",
+                         where)
+
+
 def save_config(case_dir: str | Path, cfg: CaseConfig) -> Path:
-    """Write ``case.toml`` atomically, with a header naming the units."""
-    header = ("# biopsynav case. Units: mm, N, MPa (1 kPa = 1e-3 MPa), s.\n"
-              "# Every key is documented in docs/case_toml.md.\n\n")
+    """Write ``case.toml`` atomically, with a header naming the units and an end line."""
+    header = f"{HEADER_LINE}\n# Every key is documented in docs/case_toml.md.\n\n"
     body = tomli_w.dumps(_drop_none(cfg.to_dict()))
-    return write_text_atomic(Path(case_dir) / CASE_FILE, header + body)
+    return write_text_atomic(Path(case_dir) / CASE_FILE, f"{header}{body}\n{END_LINE}\n")
 
 
 def _drop_none(obj: Any) -> Any:

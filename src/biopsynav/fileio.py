@@ -99,6 +99,44 @@ def save_npz_atomic(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
     return write_bytes_atomic(path, buf.getvalue())
 
 
+def load_npz(path: str | os.PathLike, keys: Iterable[str], rebuild: str) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` of an ``.npz`` written by :func:`save_npz_atomic`, read eagerly.
+
+    A missing, truncated, damaged (zip CRC) or incomplete file is one InputError naming it and
+    ``rebuild``, the command that writes it again."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"missing; {rebuild}", str(path))
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [k for k in keys if k not in data.files]
+            if missing:
+                raise InputError(f"damaged: lacks {', '.join(missing)}; {rebuild}", str(path))
+            return {k: data[k] for k in data.files}
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - zipfile, zlib, numpy and the OS raise many kinds
+        raise InputError(f"damaged ({type(exc).__name__}: {str(exc)[:120]}); {rebuild}",
+                         str(path)) from None
+
+
+def read_json(path: str | os.PathLike, rebuild: str, missing_ok: bool = False) -> Any:
+    """The JSON document at ``path``; None when missing and ``missing_ok``. A missing (unless
+    ``missing_ok``), unreadable or damaged file is one InputError naming it and ``rebuild``."""
+    path = Path(path)
+    if not path.is_file():
+        if missing_ok:
+            return None
+        raise InputError(f"missing; {rebuild}", str(path))
+    try:
+        return json.loads(path.read_bytes().decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"damaged, not valid JSON ({str(exc)[:80]}); {rebuild}",
+                         str(path)) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", str(path)) from None
+
+
 def save_figure_atomic(fig: Any, path: str | os.PathLike, dpi: int = 120) -> Path:
     """Save a matplotlib figure as PNG atomically."""
     buf = io.BytesIO()

@@ -2,20 +2,20 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from .case import Case
+from .fileio import read_json
 
 
 def case_summary(case_dir: str | Path) -> dict:
     """Anatomy, lesions, chest wall, grid and stage status of a case as a plain dict (mm, mL)."""
     case = Case.load(case_dir)
     a, g = case.anatomy, case.grid
-    facts_path = case.dir / "inputs" / "facts.json"
-    facts = json.loads(facts_path.read_text()) if facts_path.is_file() else {}
+    facts = read_json(case.dir / "inputs" / "facts.json", "rebuild the case with `biopsynav "
+                      "init CASE --overwrite`", missing_ok=True) or {}
     return {
         "case": case.cfg.case.name,
         "case_dir": str(case.dir),

@@ -9,11 +9,11 @@ stopped, so running again after an interruption continues rather than restarts.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 from .config import load_config
+from .fileio import read_json
 
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
@@ -86,7 +86,8 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     summary_file = case_dir / "dataset_summary.json"
     if dataset_complete(case_dir):
         print("  up to date")
-        data_summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
+        data_summary = read_json(summary_file, "run `biopsynav generate CASE` to rewrite it",
+                                 missing_ok=True) or {}
     else:
         data_summary = generate_case(case_dir, workers=workers)
     timings["generate_s"] = time.perf_counter() - t

@@ -8,10 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import save_npz_atomic
+from ..fileio import load_npz, save_npz_atomic
 
 ANATOMY_FILE = "anatomy.npz"
+REBUILD = "rebuild the case with `biopsynav init CASE --overwrite` (same inputs)"
+ANATOMY_KEYS = ("vertices", "faces", "normals", "fixed_vertices", "chest_point", "chest_normal",
+                "lesion_ids", "lesion_centers", "lesion_radii", "lesion_points",
+                "lesion_counts", "label_points", "label_values")
 
 
 @dataclass
@@ -96,11 +99,7 @@ class Anatomy:
     @classmethod
     def load(cls, path: str | Path) -> Anatomy:
         """Read an anatomy written by :meth:`save`."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputError("anatomy file is missing; run `biopsynav init` again", str(path))
-        with np.load(path) as d:
-            a = {k: d[k] for k in d.files}
+        a = load_npz(path, ANATOMY_KEYS, REBUILD)
         splits = np.cumsum(a["lesion_counts"])[:-1]
         lesions = [Lesion(int(i), c, float(r), p) for i, c, r, p in zip(
             a["lesion_ids"], a["lesion_centers"], a["lesion_radii"],

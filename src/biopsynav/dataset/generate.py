@@ -111,9 +111,11 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
 def preflight(case: Any) -> None:
     """Raise here, in the main process, what every worker would raise while setting up (a skin
     vertex outside the active cells, no push centre), instead of a pool that keeps crashing."""
+    from ..fem.model import cell_tissues
     from ..grid.embedding import surface_embedding
     from ..probe import eligible_centers
 
+    cell_tissues(case.grid.active_label(), case.cfg)
     surface_embedding(case.grid, case.anatomy)
     eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
 
@@ -290,9 +292,13 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     _recover_pool(runner, queue, in_flight, crashes, (index, attempt))
                     stats["pool_restarts"] += 1
                     break
+                except BiopsynavError:
+                    raise  # an input error found in a worker: its own one line
                 except Exception as exc:
                     if type(exc).__name__ != "KilledWorker":
-                        raise
+                        raise BiopsynavError(f"sample {index} (attempt {attempt}) failed in "
+                                             f"its worker: {type(exc).__name__}: {exc}",
+                                             "generate") from None
                     raise BiopsynavError(
                         f"the Dask cluster lost the workers running sample {index} (attempt "
                         f"{attempt}) several times ({exc}); the samples written so far are "
@@ -323,8 +329,11 @@ def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
         crashes[item] += 1
         if crashes[item] >= MAX_POOL_CRASHES:
             raise BiopsynavError(f"sample {item[0]} (attempt {item[1]}) was in flight in "
-                                 f"{MAX_POOL_CRASHES} worker crashes; stopping (out of "
-                                 "memory, or a crash in a native library?)", "generate")
+                                 f"{MAX_POOL_CRASHES} crashes of its worker process "
+                                 "(the process died: killed by the system, for instance "
+                                 "out of memory, or a crash in a native library; input "
+                                 "errors are checked before the workers start); stopping",
+                                 "generate")
     runner.restart()
     queue.extendleft(sorted(lost_all, reverse=True))
 

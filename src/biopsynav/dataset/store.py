@@ -15,7 +15,8 @@ Layout (a Zarr v3 group; N = n_train + n_test; node arrays follow
   ``protocol`` (what it hashes), ``node_shape``, ``format``, ``failures`` (the draws not kept:
   index, attempt, ``kind`` ``not_converged`` or ``too_deep``, message, last Newton iterations).
 
-Samples ``[0, n_train)`` are for training, ``[n_train, N)`` held out.
+Samples ``[0, n_train)`` are for training, ``[n_train, N)`` held out. Every chunk carries a
+CRC-32C (:func:`checked_compressors`; stores written before it have none and are read unchecked).
 Zarr's local store writes every chunk and metadata document through a temporary file and a
 rename, so a kill leaves no torn chunk; the group itself is created in a temporary folder and
 renamed into place.
@@ -145,18 +146,21 @@ def create_store(path: Path, cfg: CaseConfig, fingerprint: str, protocol: dict,
     n = int(n_train) + int(n_test)
     chunk = int(min(cfg.dataset.chunk_samples, n))
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    checked = {"compressors": checked_compressors()}
     try:
         group = zarr.open_group(str(tmp), mode="w")
         for name, channels in (("inputs", 4), ("targets", 3)):
             group.create_array(name, shape=(n, channels, *node_shape),
                                chunks=(chunk, channels, *node_shape), dtype="float32",
-                               fill_value=0.0)
-        group.create_array("done", shape=(n,), chunks=(1,), dtype="bool", fill_value=False)
+                               fill_value=0.0, **checked)
+        group.create_array("done", shape=(n,), chunks=(1,), dtype="bool", fill_value=False,
+                           **checked)
         for name, (tail, dtype) in META_FIELDS.items():
             group.create_array(name, shape=(n, *tail), chunks=(chunk, *tail), dtype=dtype,
-                               fill_value=0)
+                               fill_value=0, **checked)
         active = group.create_array("active_nodes", shape=tuple(node_shape),
-                                    chunks=tuple(node_shape), dtype="bool", fill_value=False)
+                                    chunks=tuple(node_shape), dtype="bool", fill_value=False,
+                                    **checked)
         active[...] = np.asarray(active_nodes, dtype=bool)
         group.attrs.update({
             "format": FORMAT, "n_train": int(n_train), "n_test": int(n_test),
@@ -171,6 +175,14 @@ def create_store(path: Path, cfg: CaseConfig, fingerprint: str, protocol: dict,
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return open_store(path)
+
+
+def checked_compressors() -> list:
+    """Zstandard, then a CRC-32C of each compressed chunk (Zarr v3's ``crc32c`` codec): a
+    damaged chunk fails to read instead of decoding to wrong numbers."""
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    return [ZstdCodec(), Crc32cCodec()]
 
 
 def open_store(path: Path, mode: str = "r+") -> DatasetStore:

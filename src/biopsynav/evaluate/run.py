@@ -20,9 +20,9 @@ TABLE2_MEASURED = "table2_measured"  # from user data: eval/table2_measured.json
 def require_model(case_dir: Path) -> None:
     """Raise InputError unless the case has a trained model."""
     if not (case_dir / "model" / "meta.json").is_file():
-        raise InputError("no trained model in this case; run `biopsynav train "
+        raise InputError("missing: no trained model in this case; run `biopsynav train "
                          f"{case_dir}` first (and `biopsynav generate` before it)",
-                         str(case_dir / "model"))
+                         str(case_dir / "model" / "meta.json"))
 
 
 def evaluate_case(case_dir: str | Path, table2: bool = True, measured: str | Path | None = None,

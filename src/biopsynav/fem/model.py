@@ -19,6 +19,7 @@ from . import kernels
 
 if TYPE_CHECKING:
     from ..case import Case
+    from ..config import CaseConfig
 
 MATERIALS = {"svk": kernels.SVK, "neo-hookean": kernels.NEO_HOOKEAN}
 
@@ -111,20 +112,29 @@ class FEModel:
     def from_case(cls, case: Case) -> FEModel:
         """The model of a case: active grid cells, tissue per cell label, chest wall fixed."""
         cfg, grid = case.cfg, case.grid
-        labels = np.asarray(grid.active_label())
         tissues = cfg.material.tissues
-        names = np.full(labels.shape, cfg.material.default_tissue, dtype=object)
-        for label in np.unique(labels[labels >= 0]):
-            tissue = cfg.anatomy.tissue_labels.get(str(int(label)))
-            if tissue is None:
-                raise InputError(f"grid cell label {int(label)} has no entry in [anatomy] "
-                                 "tissue_labels", "case.toml")
-            names[labels == label] = tissue
+        names = cell_tissues(np.asarray(grid.active_label()), cfg)
         e_mpa = np.array([tissues[n]["E_mpa"] for n in names], dtype=np.float64)
         nu = np.array([tissues[n]["nu"] for n in names], dtype=np.float64)
         weight = np.clip(grid.active_fraction(), cfg.grid.min_fraction, 1.0)
         return cls(grid.node_coords(), grid.active_hexes(), weight, e_mpa, nu,
                    np.asarray(grid.fixed_nodes).ravel(), cfg.material.model)
+
+
+def cell_tissues(labels: np.ndarray, cfg: CaseConfig) -> np.ndarray:
+    """Tissue name (object array, shape of ``labels``) of each active cell from its label
+    (-1: unlabelled, ``[material] default_tissue``); InputError listing every label that
+    ``[anatomy] tissue_labels`` does not map (checked at ``init`` and before generation)."""
+    names = np.full(labels.shape, cfg.material.default_tissue, dtype=object)
+    present = [int(v) for v in np.unique(labels[labels >= 0])]
+    unmapped = [v for v in present if str(v) not in cfg.anatomy.tissue_labels]
+    if unmapped:
+        raise InputError(f"the anatomy has cell labels {', '.join(map(str, unmapped))} with no "
+                         "entry in [anatomy] tissue_labels (init --tissue-labels "
+                         f"{','.join(f'{v}=fat' for v in unmapped)}, for example)", "case.toml")
+    for value in present:
+        names[labels == value] = cfg.anatomy.tissue_labels[str(value)]
+    return names
 
 
 def _per_element(values: np.ndarray, n_el: int, name: str) -> np.ndarray:

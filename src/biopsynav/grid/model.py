@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import save_npz_atomic
+from ..fileio import load_npz, save_npz_atomic
 from . import index
 
 GRID_FILE = "grid.npz"
+REBUILD = "rebuild the case with `biopsynav init CASE --overwrite` (same inputs)"
 
 
 @dataclass
@@ -89,10 +89,7 @@ class Grid:
     @classmethod
     def load(cls, path: str | Path) -> Grid:
         """Read a grid written by :meth:`save`."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputError("grid file is missing; run `biopsynav init` again", str(path))
-        with np.load(path) as data:
-            kwargs = {f.name: data[f.name] for f in fields(cls)}
+        data = load_npz(path, [f.name for f in fields(cls)], REBUILD)
+        kwargs = {f.name: data[f.name] for f in fields(cls)}
         kwargs["spacing"] = float(kwargs["spacing"])
         return cls(**kwargs)

@@ -46,38 +46,86 @@ def dataset_path(case_or_zarr: str | Path) -> Path:
     return p if p.suffix == ".zarr" else p / DATASET_NAME
 
 
+REGENERATE = "regenerate it with `biopsynav generate CASE --overwrite`"
+
+
 def load_dataset(case_or_zarr: str | Path) -> Dataset:
-    """Load the arrays once; only samples flagged ``done`` are kept in the index lists."""
+    """Load the arrays once; only samples flagged ``done`` are kept in the index lists.
+
+    Every failure (an unreadable group, a damaged or missing chunk, wrong attributes or
+    shapes) is one InputError naming the store and the array."""
     import zarr
 
     path = dataset_path(case_or_zarr)
+    where = str(path)
     if not path.exists():
-        raise InputError("no training data; run `biopsynav generate` first", str(path))
+        raise InputError("no training data; run `biopsynav generate` first", where)
     try:
         g = zarr.open_group(str(path), mode="r")
         attrs = dict(g.attrs)
-        inputs = np.asarray(g["inputs"][:], dtype=np.float32)
-        targets = np.asarray(g["targets"][:], dtype=np.float32)
-        done = np.asarray(g["done"][:], dtype=bool)
-        active = np.asarray(g["active_nodes"][:], dtype=bool)
         n_train, n_test = int(attrs["n_train"]), int(attrs["n_test"])
         node_shape = tuple(int(n) for n in attrs["node_shape"])
         fingerprint = str(attrs["fingerprint"])
-        probe = (np.asarray(g["probe_disp_mm"][:], dtype=np.float64)
-                 if "probe_disp_mm" in g else None)
-    except (KeyError, ValueError, OSError) as exc:
-        raise InputError(f"not a complete dataset.zarr ({type(exc).__name__}: {exc})",
-                         str(path)) from None
-    _check_shapes(inputs, targets, done, active, node_shape, str(path))
+    except Exception as exc:  # noqa: BLE001 - any failure here: the store is unusable
+        raise InputError(f"not a readable dataset.zarr ({type(exc).__name__}: {exc}); "
+                         f"{REGENERATE}", where) from None
+    done = _read_array(g, "done", bool, where)
+    inputs = _read_array(g, "inputs", np.float32, where)
+    targets = _read_array(g, "targets", np.float32, where)
+    active = _read_array(g, "active_nodes", bool, where)
+    probe = _read_array(g, "probe_disp_mm", np.float64, where, optional=True)
+    _check_shapes(inputs, targets, done, active, node_shape, where)
+    _check_chunks_present(g, done, where)
+    for name, values in (("inputs", inputs), ("targets", targets)):
+        if not np.isfinite(values[done]).all():
+            raise InputError(f"array {name!r} holds NaN or infinite values; {REGENERATE}", where)
     idx = np.flatnonzero(done)
     train = idx[idx < n_train]
     test = idx[(idx >= n_train) & (idx < n_train + n_test)]
     if train.size == 0 or test.size == 0:
         raise InputError(f"dataset has {train.size} complete training and {test.size} complete "
-                         "test samples; both must be > 0", str(path))
+                         "test samples; both must be > 0", where)
     return Dataset(torch.from_numpy(inputs), torch.from_numpy(targets), torch.from_numpy(active),
                    torch.from_numpy(train), torch.from_numpy(test), fingerprint,
                    node_shape, path, attrs, probe)  # type: ignore[arg-type]
+
+
+def _read_array(group, name: str, dtype: type, where: str,
+                optional: bool = False) -> np.ndarray | None:
+    """Array ``name`` of the store (None when ``optional`` and absent); damaged metadata, a
+    missing array or a chunk that fails its checksum or does not decompress is an InputError
+    naming it."""
+    try:
+        return np.asarray(group[name][:], dtype=dtype)
+    except KeyError:
+        if optional:
+            return None
+        raise InputError(f"array {name!r} is missing; {REGENERATE}", where) from None
+    except Exception as exc:  # noqa: BLE001 - zarr, codecs and the OS raise many kinds
+        raise InputError(f"array {name!r} is damaged or missing ({type(exc).__name__}: "
+                         f"{str(exc)[:160]}); {REGENERATE}", where) from None
+
+
+def _check_chunks_present(group, done: np.ndarray, where: str) -> None:
+    """Refuse a store whose data chunks are missing for complete samples (Zarr reads a missing
+    chunk as zeros: a deleted ``targets`` chunk would train on a zero field)."""
+    for name in ("inputs", "targets", "active_nodes"):
+        arr = group[name]
+        rows = arr.chunks[0] if name != "active_nodes" else None
+        expected = 1 if rows is None else len(np.unique(np.flatnonzero(done) // rows))
+        if arr.nchunks_initialized < expected:
+            raise InputError(f"array {name!r} lacks {expected - arr.nchunks_initialized} of its "
+                             f"{expected} chunks; {REGENERATE}", where)
+
+
+def require_complete(data: Dataset) -> None:
+    """Refuse (InputError) to train on a data set with samples still to generate."""
+    n = int(data.attrs["n_train"]) + int(data.attrs["n_test"])
+    have = int(data.train_idx.numel() + data.test_idx.numel())
+    if have < n:
+        raise InputError(f"the data set is incomplete: {have} of {n} samples (was `generate` "
+                         "stopped?); run `biopsynav generate CASE` to finish it before "
+                         "training", str(data.path))
 
 
 def _check_shapes(inputs: np.ndarray, targets: np.ndarray, done: np.ndarray,

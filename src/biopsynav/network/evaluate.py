@@ -191,4 +191,5 @@ def evaluate_case(case_dir: str | Path) -> dict:
     return evaluate(case_dir / "model", case_dir, case_dir / EVAL_DIR, case_fingerprint(case_dir),
                     runtime=cfg.network.runtime, threads=cfg.network.threads,
                     spacing_mm=Grid.load(case_dir / GRID_FILE).spacing,
-                    contact_projection=cfg.network.contact_projection)
+                    contact_projection=cfg.network.contact_projection,
+                    n_timing=cfg.evaluate.timed_predictions)

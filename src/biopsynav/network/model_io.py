@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import FingerprintError, InputError
-from ..fileio import write_json_atomic
+from ..fileio import json_default, write_json_atomic
 from .data import Dataset
 from .export import SurrogateNet, load_torchscript, save_onnx, save_torchscript
 from .unet import UNetSpec, count_parameters
@@ -69,9 +69,18 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
                                 ONNX: sha256(out / ONNX)}},
         "units": "inputs: mm (channels 0-2) and weight sum (channel 3); outputs: mm",
     }
+    meta = json.loads(json.dumps(meta, default=json_default))  # plain JSON values, as read
+    meta["checksum"] = meta_checksum(meta)
     write_json_atomic(out / META, meta)
     write_json_atomic(out / HISTORY, training.get("history", []))
     return meta
+
+
+def meta_checksum(meta: dict) -> str:
+    """``sha256:`` + SHA-256 of the canonical JSON of ``meta`` without its ``checksum`` key."""
+    body = {k: v for k, v in meta.items() if k != "checksum"}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
 
 
 def _contact_input(data: Dataset) -> str:
@@ -89,20 +98,67 @@ def _export_parity(net: SurrogateNet, ts_path: Path, x: torch.Tensor) -> float:
     return float((y - net(x)).abs().max())
 
 
+RETRAIN = "retrain with `biopsynav train CASE` (after removing the model folder)"
+
+
 def read_meta(model_dir: str | Path) -> dict:
-    """``meta.json`` of a model folder; InputError with the reason when missing or corrupt."""
+    """``meta.json`` of a model folder, checked: its checksum (models written before it have
+    none and are read unchecked) and the type and finiteness of every value the inference and
+    the tracker use. InputError naming the file and what is wrong otherwise."""
     path = Path(model_dir) / META
+    where = str(path)
     if not path.is_file():
         raise InputError("no trained model here (meta.json missing); run `biopsynav train`",
-                         str(path))
+                         where)
     try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
+        meta = json.loads(path.read_bytes().decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"meta.json is corrupt ({exc}); retrain with `biopsynav train`",
-                         str(path)) from None
+        raise InputError(f"meta.json is corrupt ({exc}); {RETRAIN}", where) from None
+    except OSError as exc:
+        raise InputError(f"cannot read meta.json: {exc.strerror}", where) from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise InputError(f"meta.json is not a {FORMAT} model description", str(path))
+        raise InputError(f"meta.json is not a {FORMAT} model description; {RETRAIN}", where)
+    if "checksum" in meta and meta["checksum"] != meta_checksum(meta):
+        raise InputError(f"meta.json does not match its checksum (damaged or edited by hand: "
+                         f"the safety envelope it holds cannot be trusted); {RETRAIN}", where)
+    problem = _meta_problem(meta)
+    if problem:
+        raise InputError(f"meta.json is damaged: {problem}; {RETRAIN}", where)
     return meta
+
+
+def _finite(value: object, positive: bool = False) -> bool:
+    ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
+          and bool(np.isfinite(value)))
+    return ok and (not positive or value > 0)
+
+
+def _meta_problem(meta: dict) -> str:
+    """What is wrong with the values of ``meta`` ("" when nothing)."""
+    shape = meta.get("node_shape")
+    if not (isinstance(shape, list) and len(shape) == 3
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 1 for n in shape)):
+        return f"node_shape must be three node counts > 1, got {shape!r}"
+    if not isinstance(meta.get("fingerprint"), str):
+        return "fingerprint is missing"
+    env = meta.get("envelope")
+    if not isinstance(env, dict) or not env:
+        return "the safety envelope is missing"
+    bad = [k for k, v in env.items() if not _finite(v, positive=True)]
+    if bad or "max_contact_disp_mm" not in env:
+        return f"envelope values must be finite positive numbers ({', '.join(bad) or env})"
+    norm = meta.get("normalisation")
+    if not isinstance(norm, dict):
+        return "normalisation is missing"
+    for key, size in (("in_scale", 4), ("out_scale", 3)):
+        values = norm.get(key)
+        if not (isinstance(values, list) and len(values) == size
+                and all(_finite(v, positive=True) for v in values)):
+            return f"normalisation {key} must be {size} finite positive numbers"
+    for key in ("architecture", "inference", "training", "baseline"):
+        if not isinstance(meta.get(key, {}), dict):
+            return f"{key} must be a table"
+    return ""
 
 
 def check_fingerprint(meta: dict, expected: str, where: str) -> None:

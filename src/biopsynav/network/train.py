@@ -34,7 +34,15 @@ import torch
 from ..config import NetworkSection, load_config
 from ..errors import InputError
 from ..fileio import remove_partial_writes, write_bytes_atomic
-from .data import Dataset, envelope, load_dataset, normalisation_stats, quadratic_scale, target_rms
+from .data import (
+    Dataset,
+    envelope,
+    load_dataset,
+    normalisation_stats,
+    quadratic_scale,
+    require_complete,
+    target_rms,
+)
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import HISTORY, META, ONNX, TORCHSCRIPT, write_model
@@ -275,6 +283,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     threads = set_threads(s.threads)
 
     full = load_dataset(dataset if dataset is not None else case_dir)
+    require_complete(full)
     check_node_shape(full.node_shape, spec.levels)
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case_dir,
                                                         s.contact_projection)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from .. import fileio
 from ..config import CaseConfig
-from ..errors import BiopsynavError
+from ..errors import BiopsynavError, InputError
 from ..evaluate.paper import PAPER_TABLE1
 from ..evaluate.run import TABLE2, TABLE2_MEASURED, shown_tables, table2_text
 from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
@@ -23,11 +24,19 @@ def not_run(stage: str, case_dir: Path, what: str) -> Note:
 
 
 def read_json(path: Path) -> dict | None:
-    """The JSON object at ``path``, or None if missing or unreadable."""
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
+    """The JSON object at ``path``, or None if missing; InputError naming a damaged one."""
+    doc = fileio.read_json(path, f"rebuild it with the stage that writes it "
+                                 f"({_WRITER.get(path.name, 'biopsynav run')})", missing_ok=True)
+    if doc is not None and not isinstance(doc, dict):
+        raise InputError(f"damaged: not a JSON object; rebuild it with "
+                         f"{_WRITER.get(path.name, 'biopsynav run')}", str(path))
+    return doc
+
+
+#: The command that writes each JSON file the report reads.
+_WRITER = {"table1.json": "`biopsynav evaluate`", "table2.json": "`biopsynav evaluate`",
+           "meta.json": "`biopsynav train`", "dataset_summary.json": "`biopsynav generate`",
+           "facts.json": "`biopsynav init --overwrite`"}
 
 
 def _num(v, fmt: str = ".4g") -> str:
