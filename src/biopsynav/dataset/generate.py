@@ -90,13 +90,13 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
                          "generate")
     if workers < 0:
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
+    preflight(case)  # input errors here, before a store or a worker exists
     store = prepare_store(case, n_train, n_test, overwrite)
     spec = WorkerSpec(case, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
     done = store.done_mask()
     todo = np.flatnonzero(~done)
     stats = Counter()
     if todo.size:
-        preflight(case)
         runner = make_runner(spec, workers, scheduler)
         try:
             _run(runner, store, todo, stats, case.cfg.dataset.max_failure_share, progress)
