@@ -198,6 +198,7 @@ def test_fingerprint_refusal_with_baseline(phantom, trained_le, tmp_path):
     import shutil
 
     from biopsynav.network.infer import Surrogate
+    from biopsynav.network.model_io import meta_checksum
 
     _, case, _ = phantom
     model_dir, _ = trained_le
@@ -208,6 +209,7 @@ def test_fingerprint_refusal_with_baseline(phantom, trained_le, tmp_path):
     shutil.copytree(model_dir, other)
     meta = json.loads((other / "meta.json").read_text())
     meta["fingerprint"] = "another-patient"
+    meta["checksum"] = meta_checksum(meta)  # a whole model of another patient, not a damaged one
     (other / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(FingerprintError):
         Surrogate.load(other, "another-patient", runtime="torchscript", threads=1, case=case)
