@@ -97,3 +97,19 @@ def test_atomic_writes_leave_readable_files_and_no_temporaries(tmp_path):
     os.umask(mask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~mask
     assert [p.name for p in path.parent.iterdir()] == ["x.txt"]
+
+
+def test_truncated_case_toml_is_refused_and_an_older_one_still_loads(tmp_path):
+    save_config(tmp_path, CaseConfig())
+    path = tmp_path / "case.toml"
+    text = path.read_text()
+    path.write_text(text[: len(text) // 2])
+    with pytest.raises(InputError, match="truncated"):
+        load_config(tmp_path)
+    path.write_text("")
+    with pytest.raises(InputError, match="empty"):
+        load_config(tmp_path)
+    # a case.toml written before the end line existed (old second line, no end line) loads
+    old = text.replace(text.splitlines()[1], "# Every key is documented in docs/case_toml.md.")
+    path.write_text(old[: old.rindex("# end of case.toml")])
+    assert load_config(tmp_path) == CaseConfig()

@@ -494,17 +494,21 @@ def config_from_dict(data: dict, where: str = CASE_FILE) -> CaseConfig:
     return cfg
 
 
-#: First line of a case.toml written by biopsynav; such a file must end with :data:`END_LINE`.
 HEADER_LINE = "# biopsynav case. Units: mm, N, MPa (1 kPa = 1e-3 MPa), s."
+#: Second line of a case.toml written by biopsynav since the end line exists; such a file must
+#: end with :data:`END_LINE` (files written before it are read as they are).
+ENDED_LINE = ("# Every key is documented in docs/case_toml.md. This file ends with an end line "
+              "(a truncation check).")
 END_LINE = "# end of case.toml: biopsynav checks this line to detect a truncated file"
 
 
 def load_config(case_dir: str | Path) -> CaseConfig:
     """Read and validate ``CASE_DIR/case.toml``.
 
-    A file written by biopsynav (its first line is :data:`HEADER_LINE`) must still end with
+    A file written by biopsynav (its second line is :data:`ENDED_LINE`) must still end with
     :data:`END_LINE`: a truncated case.toml is refused rather than read with defaults for
-    what it lost. A file without that header (written by hand) is read as it is."""
+    what it lost. Other files (written by hand, or before the end line) are read as they
+    are."""
     path = Path(case_dir) / CASE_FILE
     if not Path(case_dir).is_dir():
         raise InputError("case folder does not exist", str(case_dir))
@@ -525,7 +529,7 @@ def _check_whole(text: str, where: str) -> None:
         raise InputError("case.toml is empty; restore it, or rebuild the case with "
                          "`biopsynav init --overwrite`", where)
     lines = text.rstrip().splitlines()
-    if lines[0].strip() == HEADER_LINE and lines[-1].strip() != END_LINE:
+    if len(lines) > 1 and lines[1].strip() == ENDED_LINE and lines[-1].strip() != END_LINE:
         raise InputError(f"case.toml is truncated (its last line, {END_LINE!r}, is missing); "
                          "restore it, or rebuild the case with `biopsynav init --overwrite`",
                          where)
@@ -533,7 +537,7 @@ def _check_whole(text: str, where: str) -> None:
 
 def save_config(case_dir: str | Path, cfg: CaseConfig) -> Path:
     """Write ``case.toml`` atomically, with a header naming the units and an end line."""
-    header = f"{HEADER_LINE}\n# Every key is documented in docs/case_toml.md.\n\n"
+    header = f"{HEADER_LINE}\n{ENDED_LINE}\n\n"
     body = tomli_w.dumps(_drop_none(cfg.to_dict()))
     return write_text_atomic(Path(case_dir) / CASE_FILE, f"{header}{body}\n{END_LINE}\n")
 
