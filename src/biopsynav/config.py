@@ -408,7 +408,7 @@ def _check_value(section: str, f: dataclasses.Field, value: Any, where: str) -> 
     return value
 
 
-def _is_number(value: Any) -> bool:
+def is_finite_number(value: Any) -> bool:
     """A finite int or float, not a boolean."""
     return (isinstance(value, (int, float)) and not isinstance(value, bool)
             and math.isfinite(value))
@@ -416,17 +416,17 @@ def _is_number(value: Any) -> bool:
 
 def _check_special(cfg: CaseConfig, where: str) -> None:
     fp = cfg.probe.footprint_mm
-    if len(fp) != 2 or not all(_is_number(v) and 0 < v < 1e3 for v in fp):
+    if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
         raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
                          f"{fp!r}", where)
     for name, tissue in cfg.material.tissues.items():
         if not isinstance(tissue, dict) or set(tissue) != {"E_mpa", "nu"}:
             raise InputError(f"[material.tissues.{name}] needs exactly E_mpa and nu", where)
         e, nu = tissue["E_mpa"], tissue["nu"]
-        if not _is_number(e) or not 0 < e < 1e3:
+        if not is_finite_number(e) or not 0 < e < 1e3:
             raise InputError(f"[material.tissues.{name}] E_mpa must be in (0, 1000) MPa (a "
                              f"number, not a boolean), got {e!r}", where)
-        if not _is_number(nu) or not -1 < nu < 0.5:
+        if not is_finite_number(nu) or not -1 < nu < 0.5:
             raise InputError(f"[material.tissues.{name}] nu must be in (-1, 0.5), got {nu!r}",
                              where)
     if cfg.material.default_tissue not in cfg.material.tissues:

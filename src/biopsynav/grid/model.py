@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..anatomy.model import REBUILD
 from ..fileio import load_npz, save_npz_atomic
 from . import index
 
 GRID_FILE = "grid.npz"
-REBUILD = "rebuild the case with `biopsynav init CASE --overwrite` (same inputs)"
 
 
 @dataclass

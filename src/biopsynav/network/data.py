@@ -109,10 +109,10 @@ def _read_array(group, name: str, dtype: type, where: str,
 def _check_chunks_present(group, done: np.ndarray, where: str) -> None:
     """Refuse a store whose data chunks are missing for complete samples (Zarr reads a missing
     chunk as zeros: a deleted ``targets`` chunk would train on a zero field)."""
-    for name in ("inputs", "targets", "active_nodes"):
+    sample_chunks = {name: len(np.unique(np.flatnonzero(done) // group[name].chunks[0]))
+                     for name in ("inputs", "targets")}
+    for name, expected in {**sample_chunks, "active_nodes": 1}.items():
         arr = group[name]
-        rows = arr.chunks[0] if name != "active_nodes" else None
-        expected = 1 if rows is None else len(np.unique(np.flatnonzero(done) // rows))
         if arr.nchunks_initialized < expected:
             raise InputError(f"array {name!r} lacks {expected - arr.nchunks_initialized} of its "
                              f"{expected} chunks; {REGENERATE}", where)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config import is_finite_number
 from ..errors import FingerprintError, InputError
 from ..fileio import json_default, write_json_atomic
 from .data import Dataset
@@ -128,9 +129,7 @@ def read_meta(model_dir: str | Path) -> dict:
 
 
 def _finite(value: object, positive: bool = False) -> bool:
-    ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
-          and bool(np.isfinite(value)))
-    return ok and (not positive or value > 0)
+    return is_finite_number(value) and (not positive or value > 0)
 
 
 def _meta_problem(meta: dict) -> str:
