@@ -158,7 +158,7 @@ def _service_main(case_dir, plus_port: int, queue) -> None:
     """Child process: the OpenIGTLink service with the case tracker or the stand-in."""
     import logging
 
-    from biopsynav.igtl.server import run_service, service_tracker
+    from biopsynav.igtl.service import run_service, service_tracker
 
     logging.basicConfig(level=logging.WARNING, format="service: %(levelname)s %(message)s")
     tracker = None

@@ -137,8 +137,12 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from .igtl.server import serve
+    import logging
 
+    from .igtl.service import configure_logging, serve
+
+    configure_logging(logging.WARNING if args.quiet else logging.DEBUG if args.verbose
+                      else logging.INFO)
     serve(args.case_dir, tracker_addr=args.tracker, listen_addr=args.listen, device=args.device)
     return 0
 
@@ -246,6 +250,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", help="listen for clients on HOST:PORT (default "
                    "127.0.0.1:18945)")
     p.add_argument("--device", help="probe TRANSFORM device name (default ProbeToReference)")
+    level = p.add_mutually_exclusive_group()
+    level.add_argument("--quiet", action="store_true", help="log warnings and errors only")
+    level.add_argument("--verbose", action="store_true", help="log every decision (debug)")
 
     p = add("report", cmd_report, "Write report.html and report.md.")
     p.add_argument("case_dir", type=Path)

@@ -316,6 +316,30 @@ class IgtlSection:
                                       "half-dead or trickling peer never holds a partial "
                                       "message for longer, however it paces its bytes).",
                                  lo=0.1, hi=3600.0)
+    reply_header_version: str = opt("auto", "OpenIGTLink header version of the replies: "
+                                             "'auto' answers each client in version 1 until it "
+                                             "sends a version-2 message (then in version 2, with "
+                                             "status metadata), '1' or '2' for every client.",
+                                     choices=("auto", "1", "2"))
+    probe_timeout_s: float = opt(0.5, "A probe pose not received for this long (after the "
+                                      "first) gives the status probe_not_tracked.",
+                                 lo=0.02, hi=600.0)
+    status_keepalive_s: float = opt(1.0, "TrackingStatus is sent when the status changes, and "
+                                         "again after this long while it stays the same.",
+                                    lo=0.05, hi=3600.0)
+    lesion_model_rate_hz: float = opt(20.0, "Rate of the lesion surface POLYDATA models (at "
+                                            "most one per tracked pose; 0: never).",
+                                      lo=0.0, hi=1000.0)
+    skin_model_rate_hz: float = opt(2.0, "Rate of the deformed breast skin POLYDATA "
+                                         "(BreastSkin; each costs one full-field prediction, "
+                                         "made after the lesion reply went out; 0: never).",
+                                    lo=0.0, hi=100.0)
+    skin_model_triangles: int = opt(2000, "Most triangles of the decimated skin model sent to "
+                                          "clients.", lo=50, hi=10**6)
+    rest_pose_on_reconnect: str = opt("clear", "What a lost tracker-server connection does to "
+                                               "the rest pose: 'clear' (taken again at the next "
+                                               "contact; the tracker's frame may have changed) "
+                                               "or 'keep'.", choices=("clear", "keep"))
     inference_threads: int = opt(1, "CPU threads of the served tracker's network (0: the idle "
                                     "cores, as [network] threads). One by default: at 100 Hz "
                                     "on 2 cores a second thread has to be woken for every pose "

@@ -112,12 +112,18 @@ class RawClient:
         self.sock.close()
 
 
+def quiet_settings(**kw) -> IgtlSection:
+    """Test settings: fast reconnection, and a probe timeout far beyond any test step (a pause
+    of the test would otherwise turn the status it waits for into probe_not_tracked)."""
+    return IgtlSection(**{"reconnect_max_s": 0.2, "probe_timeout_s": 600.0, **kw})
+
+
 class Running:
     """An :class:`IgtlServer` running in a thread, stopped and joined on exit."""
 
     def __init__(self, tracker, tracker_addr=None, settings: IgtlSection | None = None) -> None:
         self.server = IgtlServer(tracker, (HOST, 0), tracker_addr, "ProbeToReference",
-                                 settings or IgtlSection(reconnect_max_s=0.2))
+                                 settings or quiet_settings())
         self.port = self.server.start()[1]
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()

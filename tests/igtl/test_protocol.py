@@ -15,10 +15,11 @@ from biopsynav.igtl.protocol import (
     ConnectionClosed,
     IgtlProtocolError,
     MessageReader,
-    encode_points,
     encode_string,
     encode_transform,
+    pack,
     parse_header,
+    points_message,
     read_message,
 )
 
@@ -39,8 +40,8 @@ def test_transform_round_trip_byte_by_byte():
 
 
 def test_several_messages_in_one_feed_and_point_lists():
-    data = (encode_points("Lesions", np.zeros((2, 3)), ["Lesion1", "Lesion2"],
-                          rgba=[[0, 200, 0, 255]] * 2, diameters=[5.0, 5.0])
+    data = (pack(points_message("Lesions", np.zeros((2, 3)), ["Lesion1", "Lesion2"],
+                                rgba=[[0, 200, 0, 255]] * 2, diameters=[5.0, 5.0]))
             + encode_string("TrackingStatus", "ok"))
     got = MessageReader().feed(data)
     assert [m.type for m in got] == ["POINT", "STRING"]

@@ -314,7 +314,7 @@ def test_tracker_load_takes_the_network_thread_count(phantom, trained_le):
     for threads in (1, 2):
         run = Tracker.load(case_dir, threads=threads)._surrogate._run
         assert run.name == "openvino" and run.threads == threads
-    from biopsynav.igtl.server import service_tracker
+    from biopsynav.igtl.service import service_tracker
 
     served = service_tracker(case_dir)._surrogate._run  # [igtl] inference_threads = 1
     assert served.name == "openvino" and served.threads == 1

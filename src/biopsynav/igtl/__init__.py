@@ -1,8 +1,16 @@
-"""OpenIGTLink service: probe TRANSFORM in, lesion POINT/TRANSFORM/STRING out (docs/igtl.md)."""
+"""OpenIGTLink service: probe TRANSFORM in; lesion POINT, TRANSFORM, POLYDATA, STRING out.
+
+``protocol`` frames bytes, ``messages`` registers the message types, ``replies`` and
+``commands`` build what is sent, ``session`` decides it (no sockets), ``server`` moves the bytes
+and ``service`` runs ``biopsynav serve`` (docs/igtl.md).
+"""
 
 from .protocol import IgtlProtocolError, MessageReader, read_message
 from .rigid import RigidLesionTracker
-from .server import IgtlServer, ServerStats, TrackerLike, run_service, serve
+from .server import IgtlServer
+from .service import run_service, serve
+from .session import IgtlSession, ServerStats, TrackerLike
 
-__all__ = ["IgtlProtocolError", "IgtlServer", "MessageReader", "RigidLesionTracker",
-           "ServerStats", "TrackerLike", "read_message", "run_service", "serve"]
+__all__ = ["IgtlProtocolError", "IgtlServer", "IgtlSession", "MessageReader",
+           "RigidLesionTracker", "ServerStats", "TrackerLike", "read_message", "run_service",
+           "serve"]

@@ -1,6 +1,7 @@
 """OpenIGTLink framing: header validation, exact body reads, CRC-64, pyigtl (de)coding.
 
-Wire format (OpenIGTLink, header version 1; version 2 bodies are accepted on input)::
+Wire format (OpenIGTLink header; version 2 bodies start with a 12-byte extended header and end
+with the metadata, both read and written here through pyigtl)::
 
     offset size field
     0      2    header version (big-endian uint16; 1 or 2)
@@ -11,9 +12,10 @@ Wire format (OpenIGTLink, header version 1; version 2 bodies are accepted on inp
     50     8    CRC-64 (ECMA-182) of the body
     58     ...  body
 
-Only pyigtl's message classes pack and unpack content; its transport (threads with sleeps) is
-not used. :class:`MessageReader` is an incremental parser for non-blocking sockets;
-:func:`read_message` reads one message from a blocking socket.
+Only message classes (pyigtl's and those of :mod:`.messages`, one registry) pack and unpack
+content; pyigtl's transport (threads with sleeps) is not used. :class:`MessageReader` is an
+incremental parser for non-blocking sockets; :func:`read_message` reads one message from a
+blocking socket.
 
 Errors are :class:`IgtlProtocolError`. Its ``resync`` flag says whether the byte stream is
 still framed correctly after the error (a wrong CRC or an undecodable body of a known size:
@@ -33,25 +35,17 @@ import pyigtl
 from pyigtl.messages import CRC64
 
 from ..errors import BiopsynavError
+from .messages import MESSAGE_TYPES
 
 HEADER_SIZE = 58
 HEADER_STRUCT = struct.Struct(">H12s20sIIQQ")
 ACCEPTED_HEADER_VERSIONS = (1, 2)
-OUTGOING_HEADER_VERSION = 1
 DEVICE_NAME_BYTES = 20
 DEFAULT_MAX_BODY_BYTES = 1 << 20
 
 _TYPE_CHARS = frozenset((string.ascii_uppercase + string.ascii_lowercase + string.digits
                          + "_").encode())
 _DEVICE_CHARS = frozenset(range(0x20, 0x7F))
-
-#: Types decoded with pyigtl; other (valid) types are skipped by the reader.
-DECODED_TYPES: dict[str, type[pyigtl.MessageBase]] = {
-    "TRANSFORM": pyigtl.TransformMessage,
-    "STRING": pyigtl.StringMessage,
-    "POINT": pyigtl.PointMessage,
-    "POSITION": pyigtl.PositionMessage,
-}
 
 
 class IgtlProtocolError(BiopsynavError):
@@ -141,7 +135,7 @@ def decode_body(header: Header, body: bytes) -> Message:
     if len(body) != header.body_size:
         raise IgtlProtocolError(f"body is {len(body)} bytes, header says {header.body_size}",
                                 resync=True)
-    cls = DECODED_TYPES.get(header.type)
+    cls = MESSAGE_TYPES.get(header.type)
     if cls is None:
         return Message(header, None)
     crc = CRC64(body)
@@ -231,42 +225,84 @@ def read_message(sock: socket.socket, max_body_bytes: int = DEFAULT_MAX_BODY_BYT
     return decode_body(header, body)
 
 
-def _v1(msg: pyigtl.MessageBase) -> bytes:
-    """Pack with header version 1, checking the device name fits its 20 bytes."""
+def pack(msg: pyigtl.MessageBase, version: int = 1, metadata: dict | None = None) -> bytes:
+    """Pack ``msg`` with header ``version`` (1, or 2 with ``metadata``: str keys and values),
+    checking that the device name fits its 20 bytes."""
     if len(msg.device_name.encode("utf-8")) > DEVICE_NAME_BYTES:
         raise ValueError(f"device name {msg.device_name!r} is longer than "
                          f"{DEVICE_NAME_BYTES} bytes")
-    msg.header_version = OUTGOING_HEADER_VERSION
+    msg.header_version = version
+    msg.metadata = dict(metadata or {}) if version >= 2 else {}
     return msg.pack()
 
 
-def encode_transform(device: str, matrix: np.ndarray, timestamp: float | None = None) -> bytes:
-    """A TRANSFORM message (4 x 4 homogeneous matrix, mm)."""
-    return _v1(pyigtl.TransformMessage(np.asarray(matrix, dtype=np.float64),
-                                       timestamp=timestamp, device_name=device))
+def transform_message(device: str, matrix: np.ndarray,
+                      timestamp: float | None = None) -> pyigtl.TransformMessage:
+    """A TRANSFORM (4 x 4 homogeneous matrix, mm)."""
+    return pyigtl.TransformMessage(np.asarray(matrix, dtype=np.float64), timestamp=timestamp,
+                                   device_name=device)
 
 
-def encode_string(device: str, text: str, timestamp: float | None = None) -> bytes:
-    """A STRING message (ASCII, or UTF-8 when needed; at most 65,535 bytes)."""
+def string_message(device: str, text: str, timestamp: float | None = None
+                   ) -> pyigtl.StringMessage:
+    """A STRING (ASCII, or UTF-8 when needed; cut to 65,535 bytes)."""
     data = text.encode("utf-8")
     if len(data) > 0xFFFF:
         text = data[:0xFFFF].decode("utf-8", errors="ignore")
-    return _v1(pyigtl.StringMessage(text, timestamp=timestamp, device_name=device))
+    return pyigtl.StringMessage(text, timestamp=timestamp, device_name=device)
 
 
-def encode_points(device: str, positions: np.ndarray, names: list[str],
-                  rgba: list[list[int]] | None = None, diameters: list[float] | None = None,
-                  groups: list[str] | None = None, timestamp: float | None = None) -> bytes:
-    """A POINT message; colours and diameters as plain lists (pyigtl rejects numpy arrays)."""
+def points_message(device: str, positions: np.ndarray, names: list[str],
+                   rgba: list[list[int]] | None = None, diameters: list[float] | None = None,
+                   groups: list[str] | None = None, timestamp: float | None = None
+                   ) -> pyigtl.PointMessage:
+    """A POINT list; colours and diameters as plain lists (pyigtl rejects numpy arrays)."""
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    msg = pyigtl.PointMessage(positions=pos, names=list(names),
-                              rgba_colors=[list(map(int, c)) for c in rgba] if rgba else None,
-                              diameters=[float(d) for d in diameters] if diameters else None,
-                              groups=list(groups) if groups else None,
-                              timestamp=timestamp, device_name=device)
-    return _v1(msg)
+    return pyigtl.PointMessage(positions=pos, names=list(names),
+                               rgba_colors=[list(map(int, c)) for c in rgba] if rgba else None,
+                               diameters=[float(d) for d in diameters] if diameters else None,
+                               groups=list(groups) if groups else None,
+                               timestamp=timestamp, device_name=device)
 
 
-def encode_message(msg: pyigtl.MessageBase) -> bytes:
-    """Pack any pyigtl message with header version 1."""
-    return _v1(msg)
+def encode_transform(device: str, matrix: np.ndarray, timestamp: float | None = None) -> bytes:
+    """A TRANSFORM message, header version 1."""
+    return pack(transform_message(device, matrix, timestamp))
+
+
+def encode_string(device: str, text: str, timestamp: float | None = None) -> bytes:
+    """A STRING message, header version 1."""
+    return pack(string_message(device, text, timestamp))
+
+
+class Outgoing:
+    """One message to send, packed at most once per header version (on first demand).
+
+    ``metadata`` goes out with version 2 only; ``min_version`` 2 for messages that exist only
+    in OpenIGTLink v3 (RTS_COMMAND).
+    """
+
+    __slots__ = ("msg", "metadata", "min_version", "_packed")
+
+    def __init__(self, msg: pyigtl.MessageBase, metadata: dict | None = None,
+                 min_version: int = 1) -> None:
+        self.msg = msg
+        self.metadata = metadata or {}
+        self.min_version = min_version
+        self._packed: dict[int, bytes] = {}
+
+    @property
+    def type(self) -> str:
+        return self.msg._message_type
+
+    @property
+    def device(self) -> str:
+        return self.msg.device_name
+
+    def packed(self, version: int) -> bytes:
+        """The message with header ``version`` (raised to ``min_version``)."""
+        version = max(version, self.min_version)
+        data = self._packed.get(version)
+        if data is None:
+            data = self._packed[version] = pack(self.msg, version, self.metadata)
+        return data

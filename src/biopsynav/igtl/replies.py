@@ -1,17 +1,17 @@
-"""Encode a :class:`~biopsynav.tracker.result.TrackingResult` as the OpenIGTLink reply to a pose.
+"""The OpenIGTLink messages that answer a probe pose (docs/igtl.md: what Slicer makes of them).
 
-One reply, sent in two buffers: the status STRING (when due) and the POINT go out as soon as
-they are packed, the TRANSFORMs after them (the POINT is what a client waits for first):
+* ``POINT`` ``Lesions``: every lesion in a stable slot, always in the same order, named
+  ``Lesion<id>``; its group holds the lesion status, its colour is green when reliable and red
+  otherwise. An unreliable lesion keeps its slot at its last reliable position (its rest
+  position before any), so a client that matches points by index never mixes lesions up.
+* ``TRANSFORM`` ``Lesion<id>ToReference`` per lesion (identity rotation, translation = predicted
+  centre, mm), for reliable results only: a model under it stays at its last reliable place.
+* ``POLYDATA`` ``Lesion<id>``: the lesion's surface mesh where the prediction moved it, and
+  ``BreastSkin``: the deformed skin, decimated (both at their own rates, reliable results only).
+* ``STRING`` ``TrackingStatus``: ``"<status>: <reason>"``.
 
-* ``POINT`` ``Lesions``: one point per lesion with a finite centre, named ``Lesion<id>``; the
-  point's group holds the lesion status, its colour is green when reliable, red otherwise;
-* ``TRANSFORM`` ``Lesion<id>ToReference`` per such lesion: identity rotation, translation =
-  predicted centre (mm, the frame of the probe pose); sent only for reliable results, so that
-  a model attached to it in Slicer never moves to an unreliable position;
-* ``STRING`` ``TrackingStatus`` (``"<status>: <reason>"``) when the result is not reliable, and
-  once (``"ok"``/``"rest"``) on the first reliable result after an unreliable one.
-
-Every message carries the timestamp of the probe pose it answers.
+With header version 2 every message carries the metadata ``TrackingStatus`` (the status), the
+lesion TRANSFORMs ``TransformStatus`` (``OK``, as PLUS writes it) and the POINT the reason.
 """
 
 from __future__ import annotations
@@ -22,23 +22,27 @@ import math
 import numpy as np
 
 from ..tracker.result import RELIABLE, TrackingResult
-from .protocol import DEVICE_NAME_BYTES, encode_points, encode_string, encode_transform
+from .messages import TriangleMesh
+from .protocol import (
+    DEVICE_NAME_BYTES,
+    Outgoing,
+    points_message,
+    string_message,
+    transform_message,
+)
 
 log = logging.getLogger(__name__)
 
 POINT_DEVICE = "Lesions"
 STATUS_DEVICE = "TrackingStatus"
-COMMAND_DEVICE = "biopsynavCommand"
-COMMAND_REPLY_DEVICE = "biopsynavReply"
-CMD_SET_REST_POSE = "SetRestPose"
-
+SKIN_DEVICE = "BreastSkin"
 RELIABLE_RGBA = [0, 200, 0, 255]
 UNRELIABLE_RGBA = [230, 0, 0, 255]
-POINT_DIAMETER_MM = 5.0
+DEFAULT_DIAMETER_MM = 5.0
 
 
 def lesion_point_name(lesion_id: int) -> str:
-    """Name of a lesion in the POINT message."""
+    """Name of a lesion in the POINT message, and device name of its POLYDATA model."""
     return f"Lesion{lesion_id}"
 
 
@@ -47,55 +51,103 @@ def lesion_transform_name(lesion_id: int) -> str:
     return f"Lesion{lesion_id}ToReference"
 
 
-def _finite_lesions(result: TrackingResult) -> list[tuple[int, np.ndarray, str]]:
-    """(id, centre, status) of the lesions whose centre is three finite numbers."""
+def _finite_centre(lesion) -> tuple[int, np.ndarray] | None:
+    """(id, centre) of a lesion whose centre is three finite numbers, else None."""
+    try:
+        center = np.asarray(lesion.center, dtype=np.float64).reshape(3)
+        lesion_id = int(lesion.id)
+    except (TypeError, ValueError):
+        return None
+    return (lesion_id, center) if np.all(np.isfinite(center)) else None
+
+
+class LesionSlots:
+    """The stable POINT slots: lesion ids in a fixed order with their last reliable centres.
+
+    Slots are the lesions of the tracker's ``lesion_meshes`` (or of the first result that names
+    lesions); a lesion first seen later gets a new slot at the end.
+    """
+
+    def __init__(self, diameters: dict[int, float] | None = None) -> None:
+        self.ids: list[int] = []
+        self.last: dict[int, np.ndarray] = {}
+        self.diameters = diameters or {}
+
+    def add(self, lesion_id: int, center: np.ndarray) -> None:
+        """A slot for ``lesion_id`` with ``center`` as its last known position."""
+        if lesion_id not in self.last:
+            self.ids.append(lesion_id)
+        self.last[lesion_id] = np.asarray(center, dtype=np.float64).reshape(3)
+
+    def rows(self, result: TrackingResult) -> list[tuple[int, np.ndarray, str]]:
+        """(id, centre, status) per slot for ``result``: reliable lesions at their prediction
+        (remembered), the others at their last reliable centre with their status."""
+        reliable = result.status in RELIABLE
+        status_of = {}
+        for lesion in result.lesions or []:
+            found = _finite_centre(lesion)
+            if found is None:
+                continue
+            lesion_id, centre = found
+            status_of[lesion_id] = str(getattr(lesion, "status", "") or result.status)
+            if lesion_id not in self.last or (reliable and status_of[lesion_id] in RELIABLE):
+                self.add(lesion_id, centre)
+        return [(i, self.last[i], status_of.get(i, result.status) if reliable
+                 else result.status) for i in self.ids]
+
+
+def point_message(rows: list[tuple[int, np.ndarray, str]], slots: LesionSlots,
+                  result: TrackingResult, timestamp: float | None = None) -> Outgoing:
+    """The ``Lesions`` POINT of ``rows`` from :meth:`LesionSlots.rows`."""
+    rgba = [RELIABLE_RGBA if status in RELIABLE else UNRELIABLE_RGBA for _, _, status in rows]
+    msg = points_message(POINT_DEVICE, np.array([c for _, c, _ in rows]),
+                         [lesion_point_name(i) for i, _, _ in rows], rgba=rgba,
+                         diameters=[slots.diameters.get(i, DEFAULT_DIAMETER_MM)
+                                    for i, _, _ in rows],
+                         groups=[s[:32] for _, _, s in rows], timestamp=timestamp)
+    return Outgoing(msg, {"TrackingStatus": result.status, "Reason": result.reason[:200]})
+
+
+def transform_messages(result: TrackingResult, timestamp: float | None = None
+                       ) -> list[Outgoing]:
+    """One TRANSFORM ``Lesion<id>ToReference`` per lesion with a finite centre (identity
+    rotation, translation = centre in mm); ids too long for a device name are skipped."""
     out = []
     for lesion in result.lesions or []:
-        try:
-            center = np.asarray(lesion.center, dtype=np.float64).reshape(3)
-            lesion_id = int(lesion.id)
-        except (TypeError, ValueError):
+        found = _finite_centre(lesion)
+        if found is None:
             continue
-        if np.all(np.isfinite(center)):
-            out.append((lesion_id, center, str(getattr(lesion, "status", ""))))
+        name = lesion_transform_name(found[0])
+        if len(name) > DEVICE_NAME_BYTES:
+            log.warning("lesion id %d is too long for a TRANSFORM device name; point only",
+                        found[0])
+            continue
+        matrix = np.eye(4)
+        matrix[:3, 3] = found[1]
+        out.append(Outgoing(transform_message(name, matrix, timestamp),
+                            {"TransformStatus": "OK", "TrackingStatus": result.status}))
     return out
 
 
-def encode_lesions(result: TrackingResult, timestamp: float | None = None,
-                   transforms: bool = True) -> bytes:
-    """The POINT message and (``transforms``) the per-lesion TRANSFORMs; b"" when no lesion."""
-    head = encode_lesion_point(result, timestamp)
-    return head + encode_lesion_transforms(result, timestamp) if head and transforms else head
-
-
-def encode_lesion_point(result: TrackingResult, timestamp: float | None = None) -> bytes:
-    """The POINT message of the lesions with a finite centre; b"" when there is none."""
-    lesions = _finite_lesions(result)
-    if not lesions:
-        return b""
-    reliable = result.status in RELIABLE
-    rgba = [RELIABLE_RGBA if reliable and status in RELIABLE else UNRELIABLE_RGBA
-            for _, _, status in lesions]
-    return encode_points(POINT_DEVICE, np.array([c for _, c, _ in lesions]),
-                         [lesion_point_name(i) for i, _, _ in lesions], rgba=rgba,
-                         diameters=[POINT_DIAMETER_MM] * len(lesions),
-                         groups=[s[:32] for _, _, s in lesions], timestamp=timestamp)
-
-
-def encode_lesion_transforms(result: TrackingResult, timestamp: float | None = None) -> bytes:
-    """One TRANSFORM ``Lesion<id>ToReference`` per lesion with a finite centre (identity
-    rotation, translation = centre in mm); ids too long for a device name are skipped."""
-    parts = []
-    for lesion_id, center, _ in _finite_lesions(result):
-        name = lesion_transform_name(lesion_id)
-        if len(name) > DEVICE_NAME_BYTES:
-            log.warning("lesion id %d is too long for a TRANSFORM device name; point only",
-                        lesion_id)
+def lesion_model_messages(result: TrackingResult, faces: dict[int, np.ndarray],
+                          timestamp: float | None = None) -> list[Outgoing]:
+    """One POLYDATA ``Lesion<id>`` per lesion with a finite moved surface and known faces."""
+    out = []
+    for lesion in result.lesions or []:
+        lesion_id = getattr(lesion, "id", None)
+        surface = getattr(lesion, "surface", None)
+        tri = faces.get(lesion_id)
+        if surface is None or tri is None or not np.all(np.isfinite(surface)):
             continue
-        matrix = np.eye(4)
-        matrix[:3, 3] = center
-        parts.append(encode_transform(name, matrix, timestamp))
-    return b"".join(parts)
+        out.append(mesh_message(lesion_point_name(lesion_id), surface, tri, result, timestamp))
+    return out
+
+
+def mesh_message(device: str, vertices: np.ndarray, faces: np.ndarray, result: TrackingResult,
+                 timestamp: float | None = None) -> Outgoing:
+    """A POLYDATA triangle mesh (vertices (k, 3) mm, faces (m, 3))."""
+    return Outgoing(TriangleMesh(vertices, faces, timestamp=timestamp, device_name=device),
+                    {"TrackingStatus": result.status})
 
 
 def status_text(result: TrackingResult) -> str:
@@ -104,11 +156,29 @@ def status_text(result: TrackingResult) -> str:
     return f"{result.status}: {reason}" if reason else str(result.status)
 
 
-def encode_status(result: TrackingResult, timestamp: float | None = None) -> bytes:
-    """The ``TrackingStatus`` STRING message."""
-    return encode_string(STATUS_DEVICE, status_text(result), timestamp)
+def status_message(result: TrackingResult, timestamp: float | None = None) -> Outgoing:
+    """The ``TrackingStatus`` STRING."""
+    return Outgoing(string_message(STATUS_DEVICE, status_text(result), timestamp),
+                    {"TrackingStatus": result.status})
 
 
 def error_result(status: str, reason: str) -> TrackingResult:
-    """A result with no lesions, for a tracker that failed."""
+    """A result with no lesions, for a tracker that failed (or a probe not tracked)."""
     return TrackingResult(lesions=[], status=status, reason=reason, latency_ms=math.nan)
+
+
+def rest_slots(tracker) -> LesionSlots:
+    """Slots of the tracker's lesions at their rest centres (the mesh vertex mean), with their
+    diameters, when it has ``lesion_meshes``; empty slots otherwise."""
+    meshes = getattr(tracker, "lesion_meshes", None) or {}
+    slots = LesionSlots()
+    for lesion_id, (vertices, _) in meshes.items():
+        centre = vertices.mean(axis=0)
+        slots.add(int(lesion_id), centre)
+        slots.diameters[int(lesion_id)] = float(2 * np.linalg.norm(vertices - centre,
+                                                                   axis=1).mean())
+    return slots
+
+
+__all__ = ["LesionSlots", "error_result", "lesion_model_messages", "mesh_message",
+           "point_message", "rest_slots", "status_message", "status_text", "transform_messages"]

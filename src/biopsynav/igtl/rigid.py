@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import trimesh
 
 from ..tracker.result import (
     INVALID_POSE,
@@ -44,22 +45,36 @@ def pose_problem(T: np.ndarray, rigid_tolerance: float = 1e-3) -> str:
 
 
 class RigidLesionTracker:
-    """Lesions at ``centers`` (N, 3) mm in the rest pose, moved rigidly by the probe motion."""
+    """Lesions at ``centers`` (N, 3) mm in the rest pose, moved rigidly by the probe motion.
+
+    Each lesion is a sphere of ``radius_mm`` (a 42-vertex mesh, ``lesion_meshes``); ``skin``
+    (vertices, faces), when given, is a surface moved the same way (``skin_mesh``).
+    """
 
     def __init__(self, centers: np.ndarray, ids: list[int] | None = None,
                  max_push_mm: float = 40.0, rigid_tolerance: float = 1e-3,
-                 skin_z: float | None = None) -> None:
+                 skin_z: float | None = None, radius_mm: float = 5.0,
+                 skin: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         self.ids = list(ids) if ids is not None else list(range(1, len(self.centers) + 1))
         self.max_push_mm = max_push_mm
         self.rigid_tolerance = rigid_tolerance
         self.skin_z = skin_z
+        sphere = trimesh.creation.icosphere(subdivisions=1, radius=radius_mm)
+        self.lesion_meshes = {i: (np.asarray(sphere.vertices) + c, np.asarray(sphere.faces))
+                              for i, c in zip(self.ids, self.centers, strict=True)}
+        if skin is not None:
+            self.skin_mesh = (np.asarray(skin[0], dtype=np.float64), np.asarray(skin[1]))
         self._rest: np.ndarray | None = None
         self._rest_inv: np.ndarray | None = None
 
     @property
     def has_rest_pose(self) -> bool:
         return self._rest is not None
+
+    def clear_rest_pose(self) -> None:
+        """Forget the rest pose."""
+        self._rest = self._rest_inv = None
 
     def set_rest_pose(self, T: np.ndarray) -> None:
         """Take ``T`` as the rest pose; ValueError for an unusable pose."""
@@ -69,7 +84,7 @@ class RigidLesionTracker:
         self._rest = np.asarray(T, dtype=np.float64).copy()
         self._rest_inv = np.linalg.inv(self._rest)
 
-    def update(self, T: np.ndarray) -> TrackingResult:
+    def update(self, T: np.ndarray, with_surface: bool = False) -> TrackingResult:
         """Lesion centres for pose ``T``; a status instead of numbers when the pose is unusable."""
         t0 = time.perf_counter()
         problem = pose_problem(T, self.rigid_tolerance)
@@ -85,11 +100,20 @@ class RigidLesionTracker:
         if push > self.max_push_mm:
             return self._empty(OUT_OF_ENVELOPE, f"probe pushed {push:.1f} mm, beyond the "
                                f"{self.max_push_mm:.1f} mm envelope", t0)
-        moved = self.centers @ motion[:3, :3].T + motion[:3, 3]
+        move = _rigid(motion)
+        moved = move(self.centers)
         status = REST if np.allclose(motion, np.eye(4), atol=1e-9) else OK
-        lesions = [LesionResult(i, c, c - c0, status)
+        lesions = [LesionResult(i, c, c - c0, status, move(self.lesion_meshes[i][0]))
                    for i, c, c0 in zip(self.ids, moved, self.centers, strict=True)]
-        return TrackingResult(lesions, status, "", (time.perf_counter() - t0) * 1e3)
+        result = TrackingResult(lesions, status, "", (time.perf_counter() - t0) * 1e3)
+        if with_surface and hasattr(self, "skin_mesh"):
+            result.surface = move(self.skin_mesh[0])
+        return result
 
     def _empty(self, status: str, reason: str, t0: float) -> TrackingResult:
         return TrackingResult([], status, reason, (time.perf_counter() - t0) * 1e3)
+
+
+def _rigid(motion: np.ndarray):
+    """The function moving (n, 3) points by the 4 x 4 ``motion``."""
+    return lambda p: p @ motion[:3, :3].T + motion[:3, 3]

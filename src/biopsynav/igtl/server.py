@@ -1,24 +1,20 @@
-"""The OpenIGTLink service: probe pose in, lesion positions out, in one ``selectors`` loop.
+"""The OpenIGTLink transport: sockets in one ``selectors`` loop, bytes in and out.
 
 Topology (see ``docs/igtl.md``)::
 
     PlusServer :18944  --TRANSFORM ProbeToReference-->  biopsynav (client connection)
-    3D Slicer OpenIGTLinkIF (client) <--POINT, TRANSFORM, STRING--  biopsynav :18945 (server)
+    3D Slicer OpenIGTLinkIF (client) <--POINT, TRANSFORM, POLYDATA, STRING--  biopsynav :18945
 
 One thread, non-blocking sockets with TCP_NODELAY, no polling sleeps: the loop blocks in
-``select`` until a socket is ready, the next tracker reconnection is due, or :meth:`stop` writes
-to a wake-up socket. Every probe pose (from the tracker server or from any listening client) goes
-to ``tracker.update``; the reply (see :mod:`.replies`) is packed once and written to every
-listening client in two sends: status and POINT first, then the lesion TRANSFORMs. When more
-than ``max_poses_per_read`` poses arrive in one read only the newest ones are tracked (the
-others count as ``poses_coalesced``), so a backlog (a stall, a flood) never delays the newest
-pose by more than that many updates.
+``select`` until a socket is ready, a timed event is due (tracker reconnection, a stalled
+message, the session's probe timeout), or :meth:`IgtlServer.stop` writes to a wake-up socket.
+What to answer is decided by the session (:class:`~.session.IgtlSession`, no sockets): the
+transport hands it each read's decoded messages and sends the batches it yields, each as soon as
+it is yielded, packed once per header version in use.
 
-Faults are logged and cost only the connection (or message) they come from: malformed headers
-and oversized bodies drop the connection; a wrong CRC or an undecodable body drops the message;
-unknown types are skipped; a client whose unsent replies exceed ``client_backlog_bytes`` (it does
-not read) is dropped; whatever ``tracker.update`` raises or returns becomes a ``tracker_error``
-status.
+Faults cost only the connection (or message) they come from: malformed headers and oversized
+bodies drop the connection; a wrong CRC or an undecodable body drops the message; a client whose
+unsent replies exceed ``client_backlog_bytes`` (it does not read) is dropped.
 """
 
 from __future__ import annotations
@@ -28,30 +24,16 @@ import errno
 import logging
 import math
 import selectors
-import signal
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Protocol, runtime_checkable
-
-import numpy as np
 
 from ..config import IgtlSection, parse_address
-from ..errors import BiopsynavError, InputError
-from ..tracker.result import NO_CONTACT, RELIABLE, TRACKER_ERROR, TrackingResult
-from .protocol import IgtlProtocolError, Message, MessageReader, encode_string
-from .replies import (
-    CMD_SET_REST_POSE,
-    COMMAND_DEVICE,
-    COMMAND_REPLY_DEVICE,
-    encode_lesion_point,
-    encode_lesion_transforms,
-    encode_status,
-    error_result,
-)
+from ..errors import InputError
+from .protocol import IgtlProtocolError, Message, MessageReader
+from .session import Batch, IgtlSession, Peer, ServerStats, TrackerLike
 
 log = logging.getLogger(__name__)
 
@@ -63,44 +45,6 @@ CONNECT_TIMEOUT_S = 2.0
 _CONNECT_PENDING = (errno.EINPROGRESS, errno.EWOULDBLOCK, errno.EALREADY, errno.EINTR)
 
 
-@runtime_checkable
-class TrackerLike(Protocol):
-    """What the service needs from a tracker (``biopsynav.tracker.Tracker`` provides it)."""
-
-    @property
-    def has_rest_pose(self) -> bool: ...
-
-    def set_rest_pose(self, T: np.ndarray) -> None: ...
-
-    def update(self, T: np.ndarray) -> TrackingResult: ...
-
-
-@dataclass
-class ServerStats:
-    """Counters of one service run (a snapshot from :meth:`IgtlServer.stats`)."""
-
-    poses_received: int = 0
-    poses_handled: int = 0
-    poses_coalesced: int = 0
-    replies_sent: int = 0
-    rest_poses_set: int = 0
-    tracker_failures: int = 0
-    clients: int = 0
-    clients_total: int = 0
-    clients_dropped: int = 0
-    clients_evicted: int = 0
-    disconnects_mid_message: int = 0
-    protocol_errors: int = 0
-    messages_dropped: int = 0
-    messages_skipped: int = 0
-    commands: int = 0
-    tracker_connected: bool = False
-    tracker_connects: int = 0
-    tracker_disconnects: int = 0
-    last_update_ms: float = math.nan
-    stalled: int = 0
-
-
 @dataclass(eq=False)
 class _Conn:
     """One socket of the loop: a listening client or the tracker-server connection."""
@@ -109,10 +53,10 @@ class _Conn:
     name: str
     is_tracker: bool
     reader: MessageReader
+    peer: Peer
     out: bytearray = field(default_factory=bytearray)
     connecting: bool = False
     closed: bool = False
-    seen_skipped: set = field(default_factory=set)
     partial_since: float = math.inf  # monotonic time of the first byte of an incomplete message
     last_active: float = field(default_factory=time.monotonic)  # last whole message or reply
 
@@ -133,9 +77,8 @@ def _nodelay(sock: socket.socket) -> None:
 
 
 class IgtlServer:
-    """The service. No side effects until :meth:`start`; :meth:`run` loops until :meth:`stop`.
-
-    One use: once :meth:`run` has returned, make a new server to serve again.
+    """The service's transport. No side effects until :meth:`start`; :meth:`run` loops until
+    :meth:`stop`. One use: once :meth:`run` has returned, make a new server to serve again.
 
     ``tracker_addr`` None: no tracker-server connection (poses only from listening clients).
     """
@@ -144,12 +87,11 @@ class IgtlServer:
                  tracker_addr: str | Address | None = "127.0.0.1:18944",
                  probe_device: str = "ProbeToReference",
                  settings: IgtlSection | None = None) -> None:
-        self.tracker = tracker
+        self.settings = settings or IgtlSection()
+        self.session = IgtlSession(tracker, probe_device, self.settings)
         self.listen_addr = to_address(listen_addr, "--listen")
         self.tracker_addr = to_address(tracker_addr, "--tracker")
-        self.probe_device = probe_device
-        self.settings = settings or IgtlSection()
-        self._stats = ServerStats()
+        self._stats = self.session.stats
         self._sel: selectors.BaseSelector | None = None
         self._listener: socket.socket | None = None
         self._wake_r: socket.socket | None = None
@@ -160,12 +102,18 @@ class IgtlServer:
         self._connect_deadline = math.inf
         self._backoff = RECONNECT_MIN_S
         self._tracker_warned = False
-        self._latest_pose: np.ndarray | None = None
-        self._last_reliable = True
-        self._provisional_rest = False
         self._stop_requested = False
         self._state_lock = threading.RLock()  # held while the loop changes state; stats() too
         self.address: Address | None = None
+        self.started_at = math.nan
+
+    @property
+    def tracker(self) -> TrackerLike:
+        return self.session.tracker
+
+    @property
+    def probe_device(self) -> str:
+        return self.session.probe_device
 
     # ----------------------------------------------------------------------------- lifecycle
     def start(self) -> Address:
@@ -195,6 +143,7 @@ class IgtlServer:
         self._wake_w.setblocking(False)
         self._sel.register(listener, selectors.EVENT_READ, "listener")
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self.started_at = time.monotonic()
         log.info("listening for OpenIGTLink clients on %s:%d", *self.address)
         return self.address
 
@@ -227,6 +176,7 @@ class IgtlServer:
             self._dispatch(key, mask)
         self._check_connect_timeout()
         self._check_stalled()
+        self._deliver(self.session.on_timer())
 
     def serve_forever(self) -> None:
         """Alias of :meth:`run`."""
@@ -254,14 +204,14 @@ class IgtlServer:
         self._wake_w = None
         if self._sel is not None:
             self._sel.close()
-        log.info("OpenIGTLink service stopped: %s", self.stats())
+        log.debug("OpenIGTLink service stopped: %s", self.stats())
 
     # ------------------------------------------------------------------------------ the loop
     def _timeout(self) -> float | None:
         """Seconds until the next timed event (reconnect, connect timeout, a stalled partial
         message), None for none."""
         now = time.monotonic()
-        deadline = min(self._stall_deadlines(), default=math.inf)
+        deadline = min([*self._stall_deadlines(), self.session.deadline()])
         if self.tracker_addr is not None:
             if self._tracker_conn is None:
                 deadline = min(deadline, self._next_attempt)
@@ -322,7 +272,8 @@ class IgtlServer:
                 self._evict_idlest(name)
             sock.setblocking(False)
             _nodelay(sock)
-            conn = _Conn(sock, name, False, MessageReader(self.settings.max_body_bytes))
+            conn = _Conn(sock, name, False, MessageReader(self.settings.max_body_bytes),
+                         self.session.add_peer(name))
             self._clients.append(conn)
             self._sel.register(sock, selectors.EVENT_READ, conn)
             self._stats.clients_total += 1
@@ -354,7 +305,8 @@ class IgtlServer:
         sock.setblocking(False)
         _nodelay(sock)
         err = sock.connect_ex(sockaddr)
-        conn = _Conn(sock, name, True, MessageReader(self.settings.max_body_bytes))
+        conn = _Conn(sock, name, True, MessageReader(self.settings.max_body_bytes),
+                     self.session.add_peer(name, is_tracker=True))
         self._tracker_conn = conn
         if err == 0:
             self._sel.register(sock, selectors.EVENT_READ, conn)
@@ -387,7 +339,9 @@ class IgtlServer:
     def _tracker_connected(self) -> None:
         self._stats.tracker_connects += 1
         self._tracker_warned = False
-        log.info("connected to %s; waiting for TRANSFORM %r", self._tracker_conn.name,
+        self.session.tracker_up()
+        again = " again" if self._stats.tracker_connects > 1 else ""
+        log.info("connected%s to %s; waiting for TRANSFORM %r", again, self._tracker_conn.name,
                  self.probe_device)
 
     def _tracker_unavailable(self, reason: str) -> None:
@@ -500,207 +454,46 @@ class IgtlServer:
             if was_connected and not self._stop_requested:
                 self._stats.tracker_disconnects += 1
                 self._tracker_unavailable("connection lost")
+                self._deliver(self.session.tracker_down())
         elif conn in self._clients:
             self._clients.remove(conn)
+            self.session.remove_peer(conn.peer)
 
     # ------------------------------------------------------------------------- messages
     def _handle_items(self, conn: _Conn, items: list) -> None:
-        """Act on the messages of one read in order; poses are handled in runs (see below)."""
-        poses: list[Message] = []
+        """Hand the messages of one read to the session in order; protocol errors cost the
+        message (resyncable) or the connection."""
+        run: list[Message] = []
         for item in items:
-            if isinstance(item, IgtlProtocolError):
-                self._stats.protocol_errors += 1
-                if not item.resync:
-                    self._handle_poses(poses)
-                    self._drop(conn, str(item))
-                    return
-                self._stats.messages_dropped += 1
-                log.warning("%s: message dropped: %s", conn.name, item)
+            if not isinstance(item, IgtlProtocolError):
+                run.append(item)
                 continue
-            if conn.is_tracker:
-                self._backoff = RECONNECT_MIN_S  # a valid message: the outage is over
-            if item.type == "TRANSFORM" and item.device == self.probe_device:
-                self._stats.poses_received += 1
-                poses.append(item)
-            elif item.type == "STRING" and item.device == COMMAND_DEVICE:
-                self._handle_poses(poses)
-                poses = []
-                self._command(conn, item.body.string)
-            else:
-                self._skip(conn, item)
-        self._handle_poses(poses)
-
-    def _handle_poses(self, poses: list[Message]) -> None:
-        """Handle the newest ``max_poses_per_read`` of a run of poses; skip (coalesce) older."""
-        keep = self.settings.max_poses_per_read
-        self._stats.poses_coalesced += max(0, len(poses) - keep)
-        for msg in poses[-keep:]:
-            self._latest_pose = np.array(msg.body.matrix, dtype=np.float64)
-            self._handle_pose(self._latest_pose, msg.header.timestamp)
-
-    def _skip(self, conn: _Conn, item: Message) -> None:
-        self._stats.messages_skipped += 1
-        key = (item.type, item.device)
-        if key not in conn.seen_skipped and len(conn.seen_skipped) < 64:
-            conn.seen_skipped.add(key)
-            known = "" if item.body is not None else " (unknown type)"
-            log.info("%s: skipping %s %r%s", conn.name, item.type, item.device, known)
-
-    def _command(self, conn: _Conn, text: str) -> None:
-        self._stats.commands += 1
-        command = text.strip()
-        if command != CMD_SET_REST_POSE:
-            reply = f"error: unknown command {command[:64]!r}; known: {CMD_SET_REST_POSE}"
-        elif self._latest_pose is None:
-            reply = f"{CMD_SET_REST_POSE}: failed: no probe pose received yet"
-        else:
-            try:
-                self.tracker.set_rest_pose(self._latest_pose.copy())
-                self._stats.rest_poses_set += 1
-                self._provisional_rest = False
-                reply = f"{CMD_SET_REST_POSE}: ok"
-            except Exception as exc:
-                reply = f"{CMD_SET_REST_POSE}: failed: {exc}"
-        log.info("%s: command %r -> %s", conn.name, command[:64], reply)
-        if not conn.is_tracker:
-            self._send(conn, encode_string(COMMAND_REPLY_DEVICE, reply))
-
-    def _handle_pose(self, T: np.ndarray, timestamp: float) -> None:
-        """Auto rest pose, ``tracker.update``, reply to every client."""
-        self._stats.poses_handled += 1
-        self._auto_rest_pose(T)
-        result = self._safe_update(T)
-        if self._provisional_rest and result.status != NO_CONTACT:
-            self._provisional_rest = False
-            log.info("rest pose taken automatically at first contact (%s)", result.status)
-        for payload in self._reply_parts(result, timestamp):
-            for conn in list(self._clients):
-                self._send(conn, payload)
-        self._stats.replies_sent += len(self._clients)
-
-    def _auto_rest_pose(self, T: np.ndarray) -> None:
-        """Rest pose at first contact when none was set.
-
-        The first finite pose is taken; while the tracker answers ``no_contact`` to that rest
-        pose (the probe is not on the skin yet) it is re-taken at every pose.
-        """
-        try:
-            if not np.all(np.isfinite(T)):
+            self._stats.protocol_errors += 1
+            self._deliver(self.session.on_messages(conn.peer, run))
+            run = []
+            if not item.resync:
+                self._drop(conn, str(item))
                 return
-            if self.tracker.has_rest_pose and not self._provisional_rest:
-                return
-            self.tracker.set_rest_pose(T.copy())
-        except Exception as exc:
-            log.warning("automatic rest pose not taken: %s", exc)
-            return
-        self._stats.rest_poses_set += 1
-        self._provisional_rest = True
+            self._stats.messages_dropped += 1
+            log.warning("%s: message dropped: %s", conn.name, item)
+        if run and conn.is_tracker:
+            self._backoff = RECONNECT_MIN_S  # a valid message: the outage is over
+        self._deliver(self.session.on_messages(conn.peer, run))
 
-    def _safe_update(self, T: np.ndarray) -> TrackingResult:
-        t0 = time.perf_counter()
-        try:
-            result = self.tracker.update(T.copy())
-            if not isinstance(getattr(result, "status", None), str):
-                raise TypeError(f"update returned {type(result).__name__}, not a "
-                                "TrackingResult")
-        except Exception as exc:
-            self._stats.tracker_failures += 1
-            log.error("tracker.update failed: %r", exc)
-            result = error_result(TRACKER_ERROR, f"tracker failed: {exc}")
-        self._stats.last_update_ms = (time.perf_counter() - t0) * 1e3
-        return result
-
-    def _reply_parts(self, result: TrackingResult, timestamp: float) -> Iterator[bytes]:
-        """The reply in the order it is sent: the status STRING (when due) with the POINT, then,
-        if reliable, the lesion TRANSFORMs, packed only after the POINT went out."""
-        reliable = result.status in RELIABLE
-        head = []
-        if not reliable or not self._last_reliable:
-            head.append(encode_status(result, timestamp))
-        self._last_reliable = reliable
-        try:
-            head.append(encode_lesion_point(result, timestamp))
-            yield b"".join(head)
-            if reliable:
-                yield encode_lesion_transforms(result, timestamp)
-        except Exception as exc:
-            self._stats.tracker_failures += 1
-            log.error("cannot encode the tracking result: %r", exc)
-            self._last_reliable = False
-            yield encode_status(error_result(TRACKER_ERROR, f"unusable result: {exc}"),
-                                timestamp)
+    def _deliver(self, batches: Iterable[Batch]) -> None:
+        """Send each batch as soon as the session yields it: to one peer, or (None) to every
+        client, packed once per header version in use."""
+        for peer, msgs in batches:
+            if not msgs:
+                continue
+            targets = self._clients if peer is None else [c for c in self._connections()
+                                                          if c.peer is peer]
+            packed: dict[int, bytes] = {}
+            for conn in list(targets):
+                version = conn.peer.version
+                if version not in packed:
+                    packed[version] = b"".join(m.packed(version) for m in msgs)
+                self._send(conn, packed[version])
 
 
-# --------------------------------------------------------------------------- entry points
-def install_signal_handlers(server: IgtlServer) -> Callable[[], None]:
-    """SIGINT/SIGTERM stop ``server`` (main thread only); returns a function that restores."""
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-    previous = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, lambda signum, frame: server.stop())
-
-    def restore() -> None:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-    return restore
-
-
-def _watch(stop_event: threading.Event, server: IgtlServer) -> None:
-    stop_event.wait()
-    server.stop()
-
-
-def run_service(tracker: TrackerLike, tracker_addr: str | Address | None,
-                listen_addr: str | Address, probe_device: str = "ProbeToReference",
-                stop_event: threading.Event | None = None, *,
-                settings: IgtlSection | None = None, handle_signals: bool = True,
-                on_started: Callable[[IgtlServer], None] | None = None) -> ServerStats:
-    """Run the service until SIGINT/SIGTERM (main thread) or ``stop_event``; return the stats.
-
-    ``stop_event`` is set on return. ``on_started(server)`` is called once listening (the
-    bound address is ``server.address``).
-    """
-    server = IgtlServer(tracker, listen_addr, tracker_addr, probe_device, settings)
-    server.start()
-    restore = install_signal_handlers(server) if handle_signals else (lambda: None)
-    if stop_event is not None:
-        threading.Thread(target=_watch, args=(stop_event, server), daemon=True,
-                         name="igtl-stop-watch").start()
-    try:
-        if on_started is not None:
-            on_started(server)
-        server.run()
-    finally:
-        restore()
-        if stop_event is not None:
-            stop_event.set()
-    return server.stats()
-
-
-def serve(case_dir: str | Path, tracker_addr: str | Address | None = None,
-          listen_addr: str | Address | None = None, device: str | None = None) -> ServerStats:
-    """``biopsynav serve``: load the case's tracker and run the service (None: case.toml)."""
-    from ..config import load_config
-
-    cfg = load_config(case_dir).igtl
-    return run_service(service_tracker(case_dir), tracker_addr or cfg.tracker,
-                       listen_addr or cfg.listen, device or cfg.probe_device, settings=cfg)
-
-
-def service_tracker(case_dir: str | Path) -> TrackerLike:
-    """The case's tracker as the service runs it: ``[igtl] inference_threads`` network
-    threads."""
-    from ..config import load_config
-
-    try:
-        from ..tracker import Tracker
-    except ImportError:
-        raise BiopsynavError("the tracker (biopsynav.tracker.Tracker) is not available in "
-                             "this installation", str(case_dir)) from None
-    return Tracker.load(case_dir, threads=load_config(case_dir).igtl.inference_threads)
-
-
-__all__ = ["IgtlServer", "ServerStats", "TrackerLike", "install_signal_handlers", "run_service",
-           "serve", "service_tracker", "to_address"]
+__all__ = ["IgtlServer", "ServerStats", "TrackerLike", "to_address"]

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..anatomy.display import lesion_mesh
 from ..case import Case
 from ..errors import InputError, SolverError
 from ..grid.embedding import Embedding, surface_embedding
@@ -78,6 +79,19 @@ def contact_indices(anatomy, pose: np.ndarray, footprint: tuple[float, float],
     return skin_in_box(anatomy, pose[:3, 3], r, half, -r[:, 2])
 
 
+def lesion_meshes(lesions) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Lesion id -> (vertices (k, 3) mm, faces (m, 3)) of a closed mesh of its surface points
+    (:func:`biopsynav.anatomy.display.lesion_mesh`); lesions whose points span no volume get
+    none."""
+    out = {}
+    for les in lesions:
+        try:
+            out[les.id] = lesion_mesh(les.points)
+        except ValueError:
+            continue
+    return out
+
+
 class Tracker:
     """Lesion tracker of one case, backed by the U-Net (``engine="net"``) or the FE model."""
 
@@ -91,7 +105,8 @@ class Tracker:
         a = case.anatomy
         self._lesion_ids = [les.id for les in a.lesions]
         self._lesion_centres = np.array([les.center for les in a.lesions]).reshape(-1, 3)
-        self._lesion_emb = Embedding.build(case.grid, self._lesion_centres, where="lesions")
+        self.lesion_meshes = lesion_meshes(a.lesions)
+        self._lesion_points, self._lesion_emb = self._lesion_embedding()
         self._rest: np.ndarray | None = None
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
@@ -110,6 +125,20 @@ class Tracker:
         # it was recorded have only the contact bound
         self.max_probe_mm = float(env.get("max_probe_disp_mm", np.inf))
         self.envelope_margin = case.cfg.tracker.envelope_margin
+
+    def _lesion_embedding(self) -> tuple[np.ndarray, Embedding]:
+        """The points read off the displacement field: lesion centres first, then the vertices
+        of each lesion mesh (one embedding, so the hot path moves the lesion surfaces with the
+        same operators as the centres). Centres only, and no meshes, when a mesh vertex lies
+        outside the grid."""
+        grid = self.case.grid
+        points = np.vstack([self._lesion_centres] + [v for v, _ in self.lesion_meshes.values()])
+        try:
+            return points, Embedding.build(grid, points, where="lesion surfaces")
+        except InputError:
+            self.lesion_meshes = {}
+            return self._lesion_centres, Embedding.build(grid, self._lesion_centres,
+                                                         where="lesions")
 
     @classmethod
     def load(cls, case_dir: str | Path, engine: str | None = None,
@@ -177,6 +206,13 @@ class Tracker:
                     self._set_projection(emb.matrix)
                     self._lesion_of_contact = self._lesion_contact_operator()
         return len(idx)
+
+    def clear_rest_pose(self) -> None:
+        """Forget the rest pose (and its contact set); ``update`` answers ``no_rest_pose``."""
+        self._rest = None
+        self._contact = np.zeros(0, dtype=np.int64)
+        self._contact_emb = self._input_op = self._lesion_of_contact = None
+        self._projection = self._lesion_proj = None
 
     def _set_projection(self, contact) -> None:
         """The net engine's contact projection for this contact set (``[network]
@@ -299,9 +335,7 @@ class Tracker:
             return self._unreliable(st.SOLVER_FAILED, exc.what, start)
         except Exception as exc:  # never a confident number from a failed prediction
             return self._unreliable(st.TRACKER_ERROR, f"{type(exc).__name__}: {exc}", start)
-        lesions = [LesionResult(i, c + d, d, st.OK) for i, c, d in
-                   zip(self._lesion_ids, self._lesion_centres, disp, strict=True)]
-        res = TrackingResult(lesions, st.OK, "", 0.0)
+        res = TrackingResult(self._lesion_results(disp, st.OK), st.OK, "", 0.0)
         if with_surface:
             res.surface = self.case.anatomy.vertices + self._surface_embedding().interpolate(field)
         res.latency_ms = (time.perf_counter() - start) * 1e3
@@ -351,9 +385,28 @@ class Tracker:
             self._surface_emb = surface_embedding(self.case.grid, self.case.anatomy)
         return self._surface_emb
 
+    def _lesion_results(self, disp: np.ndarray, status: str) -> list[LesionResult]:
+        """Lesions moved by ``disp`` (n_points, 3) mm at ``_lesion_points``: centres and, when
+        meshed, surfaces."""
+        n = len(self._lesion_ids)
+        moved = self._lesion_points + disp
+        out, at = [], n
+        for k, i in enumerate(self._lesion_ids):
+            res = LesionResult(i, moved[k], disp[k], status)
+            if i in self.lesion_meshes:
+                size = len(self.lesion_meshes[i][0])
+                res.surface, at = moved[at:at + size], at + size
+            out.append(res)
+        return out
+
+    @property
+    def skin_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The breast surface at rest: vertices (nv, 3) mm and faces (nf, 3); ``update(pose,
+        with_surface=True).surface`` gives the vertices where they moved to."""
+        return self.case.anatomy.vertices, self.case.anatomy.faces
+
     def _rest_result(self, status: str, reason: str, start: float) -> TrackingResult:
-        lesions = [LesionResult(i, c.copy(), np.zeros(3), status) for i, c in
-                   zip(self._lesion_ids, self._lesion_centres, strict=True)]
+        lesions = self._lesion_results(np.zeros_like(self._lesion_points), status)
         return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
 
     def _unreliable(self, status: str, reason: str, start: float) -> TrackingResult:

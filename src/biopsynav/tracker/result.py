@@ -14,17 +14,21 @@ INVALID_POSE = "invalid_pose"
 NO_REST_POSE = "no_rest_pose"
 SOLVER_FAILED = "solver_failed"  # the FE engine's solve did not converge; not a pose problem
 TRACKER_ERROR = "tracker_error"  # the prediction itself failed (a bug or a broken model)
+PROBE_NOT_TRACKED = "probe_not_tracked"  # the tracking system lost the probe (or went silent)
 RELIABLE = (OK, REST)
 
 
 @dataclass
 class LesionResult:
-    """One lesion: ``center`` (3,) predicted position, ``displacement`` (3,) from rest, mm."""
+    """One lesion: ``center`` (3,) predicted position, ``displacement`` (3,) from rest, mm;
+    ``surface`` (k, 3) its surface mesh's vertices where they moved to (the tracker's
+    ``lesion_meshes`` give the faces), None when not computed."""
 
     id: int
     center: np.ndarray
     displacement: np.ndarray
     status: str = OK
+    surface: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
