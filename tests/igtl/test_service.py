@@ -13,7 +13,6 @@ import numpy as np
 import pyigtl
 import pytest
 
-from biopsynav.config import IgtlSection
 from biopsynav.errors import InputError
 from biopsynav.igtl.protocol import HEADER_SIZE, encode_string, encode_transform
 from biopsynav.igtl.rigid import RigidLesionTracker

@@ -259,6 +259,8 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
         moved = np.array([les.displacement for les in full.lesions])
         assert np.abs(moved).max() > 0.1
         assert np.abs(np.array([les.displacement for les in fast.lesions]) - moved).max() < 1e-4
+        for a, b in zip(fast.lesions, full.lesions, strict=True):  # the surfaces too
+            assert a.surface is not None and np.abs(a.surface - b.surface).max() < 1e-4
 
 
 def test_tracker_refuses_pushes_deeper_than_the_deepest_trained_one(phantom, trained_le):

@@ -74,6 +74,12 @@ def test_rest_pose_and_push(fem_tracker):
     assert -10.0 < central.displacement[2] < -1.0
     assert abs(central.displacement[0]) < 0.5 and abs(central.displacement[1]) < 0.5
     assert r.surface.shape == fem_tracker.case.anatomy.vertices.shape
+    # the lesion's closed surface mesh moves with it, read off the same field
+    rest_vertices, faces = fem_tracker.lesion_meshes[3]
+    assert central.surface.shape == rest_vertices.shape and len(faces) == 2 * len(rest_vertices) - 4
+    np.testing.assert_allclose((central.surface - rest_vertices).mean(axis=0),
+                               central.displacement, atol=1.0)
+    np.testing.assert_array_equal(r0.lesions[2].surface, rest_vertices)  # at rest: unmoved
     # skin at the probe centre moves with the probe
     top = np.argmax(fem_tracker.case.anatomy.vertices[:, 2])
     assert r.surface[top, 2] == pytest.approx(65.0, abs=1.0)

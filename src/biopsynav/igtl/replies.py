@@ -85,12 +85,15 @@ class LesionSlots:
         reliable = result.status in RELIABLE
         status_of = {}
         for lesion in result.lesions or []:
+            status = str(getattr(lesion, "status", "") or result.status)
             found = _finite_centre(lesion)
             if found is None:
+                if isinstance(getattr(lesion, "id", None), int):
+                    status_of[lesion.id] = status
                 continue
             lesion_id, centre = found
-            status_of[lesion_id] = str(getattr(lesion, "status", "") or result.status)
-            if lesion_id not in self.last or (reliable and status_of[lesion_id] in RELIABLE):
+            status_of[lesion_id] = status
+            if lesion_id not in self.last or (reliable and status in RELIABLE):
                 self.add(lesion_id, centre)
         return [(i, self.last[i], status_of.get(i, result.status) if reliable
                  else result.status) for i in self.ids]

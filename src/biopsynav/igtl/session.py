@@ -308,9 +308,11 @@ class IgtlSession:
                 yield None, [skin]
 
     def _due(self, what: str, rate_hz: float, now: float) -> bool:
-        if rate_hz <= 0 or now < self._next_model[what]:
+        due = self._next_model[what]
+        if rate_hz <= 0 or now < due:
             return False
-        self._next_model[what] = max(self._next_model[what] + 1.0 / rate_hz, now)
+        period = 1.0 / rate_hz
+        self._next_model[what] = due + period if due + period > now else now + period
         return True
 
     def _skin_message(self, T: np.ndarray, timestamp: float) -> Outgoing | None:
