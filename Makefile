@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean venv
+.PHONY: demo test interop lint bench clean venv
 
 venv: $(STAMP)
 
@@ -19,6 +19,17 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# `biopsynav serve` against the OpenIGTLink C++ library (tests/interop): installs Debian's
+# libopenigtlink-dev, cmake and g++ when missing.
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+IGTL_CMAKE := /usr/lib/openigtlink/OpenIGTLinkConfig.cmake
+
+interop: $(STAMP)
+	@test -f $(IGTL_CMAKE) && command -v cmake >/dev/null && command -v g++ >/dev/null || \
+		$(SUDO) apt-get install -y libopenigtlink-dev cmake g++ || \
+		($(SUDO) apt-get update && $(SUDO) apt-get install -y libopenigtlink-dev cmake g++)
+	BIOPSYNAV_INTEROP=1 $(PY) -m pytest -q -m interop tests/interop
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

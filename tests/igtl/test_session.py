@@ -97,9 +97,10 @@ def test_skin_model_is_decimated_and_moved():
     clock.t += 0.2
     batches = sent(session.on_messages(plus, [pose(translation(0, 2, 0))]))
     (skin_msg,) = [m for b in batches for m in b if m.device == "BreastSkin"]
-    assert 100 < len(skin_msg.body.triangles) <= 500
+    assert 400 < len(skin_msg.body.triangles) <= 500
+    assert trimesh.Trimesh(skin_msg.body.points, skin_msg.body.triangles).is_watertight
     radii = np.linalg.norm(skin_msg.body.points - [0, 2, 0], axis=1)
-    np.testing.assert_allclose(radii, 60.0, rtol=1e-3)  # kept skin vertices, moved rigidly
+    np.testing.assert_allclose(radii, 60.0, rtol=5e-3)  # on the skin, moved rigidly
 
 
 def test_unreliable_lesion_keeps_its_slot_at_its_last_reliable_place():

@@ -7,6 +7,7 @@ displacement at the same points (the tracker) or a subset of the skin vertices.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import ConvexHull, QhullError
 
 MAX_LESION_VERTICES = 162  # an icosphere of two subdivisions
@@ -51,42 +52,41 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def decimate(vertices: np.ndarray, faces: np.ndarray, max_triangles: int
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex clustering of a triangle surface to at most ``max_triangles`` faces.
+             ) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Quadric decimation of a closed triangle surface to at most ``max_triangles`` faces
+    (fast-simplification, through trimesh), which keeps it closed.
 
-    Returns ``keep`` (k,) indices of the kept vertices (one per occupied cube of a grid, the
-    vertex nearest the cube's mean) and ``faces`` (m, 3) indexing ``keep``; faces that collapse
-    are dropped, and the cube grows by 20 % until the count fits. The deformed decimated
-    surface is ``deformed_vertices[keep]`` with the same faces.
+    Returns ``weights`` (k, nv) sparse, each decimated vertex as the barycentric combination of
+    the original triangle it lies on (nearest point), and ``faces`` (m, 3) indexing the k
+    decimated vertices. The deformed decimated surface is ``weights @ deformed_vertices``.
     """
+    vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if len(faces) <= max_triangles:
-        return np.arange(len(vertices)), faces
-    extent = np.ptp(vertices, axis=0).max()
-    cube = extent * np.sqrt(2.0 / max_triangles)
-    while True:
-        keep, new_faces = _cluster(vertices, faces, cube)
-        if len(new_faces) <= max_triangles:
-            return keep, new_faces
-        cube *= 1.2
+        return sp.identity(len(vertices), format="csr"), faces
+    import trimesh
+
+    small = trimesh.Trimesh(vertices, faces, process=False).simplify_quadric_decimation(
+        face_count=max_triangles)
+    return on_surface_weights(vertices, faces, np.asarray(small.vertices)), \
+        np.asarray(small.faces, dtype=np.int64)
 
 
-def _cluster(vertices: np.ndarray, faces: np.ndarray, cube: float
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """One clustering pass with cubes of edge ``cube`` mm."""
-    cell = np.floor((vertices - vertices.min(axis=0)) / cube).astype(np.int64)
-    _, label = np.unique(cell, axis=0, return_inverse=True)
-    label = label.ravel()
-    n = label.max() + 1
-    mean = np.zeros((n, 3))
-    np.add.at(mean, label, vertices)
-    mean /= np.bincount(label, minlength=n)[:, None]
-    dist = np.linalg.norm(vertices - mean[label], axis=1)
-    order = np.lexsort((dist, label))
-    first = order[np.r_[True, label[order][1:] != label[order][:-1]]]  # nearest per cluster
-    keep = first[np.argsort(label[first])]
-    new = label[faces]
-    ok = (new[:, 0] != new[:, 1]) & (new[:, 1] != new[:, 2]) & (new[:, 0] != new[:, 2])
-    new = new[ok]
-    _, unique_rows = np.unique(np.sort(new, axis=1), axis=0, return_index=True)
-    return keep, new[np.sort(unique_rows)]
+def on_surface_weights(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
+                       candidates: int = 8) -> sp.csr_matrix:
+    """(p, nv) barycentric weights of the nearest point of the surface to each of ``points``
+    (p, 3) mm, searched among the ``candidates`` triangles with the nearest centroids."""
+    from scipy.spatial import cKDTree
+    from trimesh.triangles import closest_point, points_to_barycentric
+
+    tri = vertices[faces]
+    k = min(candidates, len(faces))
+    _, near = cKDTree(tri.mean(axis=1)).query(points, k=k)
+    near = near.reshape(len(points), k)
+    found = np.stack([closest_point(tri[near[:, j]], points) for j in range(k)], axis=1)
+    best = np.argmin(np.linalg.norm(found - points[:, None], axis=2), axis=1)
+    rows = np.arange(len(points))
+    chosen = near[rows, best]
+    bary = points_to_barycentric(tri[chosen], found[rows, best])
+    return sp.csr_matrix((bary.ravel(), (np.repeat(rows, 3), faces[chosen].ravel())),
+                         shape=(len(points), len(vertices)))

@@ -207,8 +207,9 @@ class IgtlSession:
     def _note_version(self, peer: Peer, msg: Message) -> None:
         if peer.auto_version and msg.header.version > peer.version:
             peer.version = msg.header.version
-            log.info("%s speaks OpenIGTLink header version %d: replies in version %d, with "
-                     "status metadata", peer.name, peer.version, peer.version)
+            if not peer.is_tracker:
+                log.info("%s speaks OpenIGTLink header version %d: replies in version %d, "
+                         "with status metadata", peer.name, peer.version, peer.version)
 
     def _skip(self, peer: Peer, msg: Message) -> None:
         self.stats.messages_skipped += 1
@@ -326,8 +327,8 @@ class IgtlSession:
         result = self.tracker.update(T.copy(), with_surface=True)
         if result.status not in RELIABLE or result.surface is None:
             return None
-        keep, faces = self._skin
-        return mesh_message(SKIN_DEVICE, result.surface[keep], faces, result, timestamp)
+        weights, faces = self._skin
+        return mesh_message(SKIN_DEVICE, weights @ result.surface, faces, result, timestamp)
 
     def _auto_rest_pose(self, T: np.ndarray) -> None:
         """Rest pose at first contact when none was set.
