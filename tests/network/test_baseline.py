@@ -259,8 +259,11 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
         moved = np.array([les.displacement for les in full.lesions])
         assert np.abs(moved).max() > 0.1
         assert np.abs(np.array([les.displacement for les in fast.lesions]) - moved).max() < 1e-4
-        for a, b in zip(fast.lesions, full.lesions, strict=True):  # the surfaces too
+        fast_s = tracker.update(pose, lesion_surfaces=True)  # the lesion meshes too
+        full_s = tracker.update(pose, with_surface=True, lesion_surfaces=True)
+        for a, b, c in zip(fast_s.lesions, full_s.lesions, fast.lesions, strict=True):
             assert a.surface is not None and np.abs(a.surface - b.surface).max() < 1e-4
+            assert c.surface is None and np.abs(a.center - c.center).max() < 1e-9
 
 
 def test_tracker_refuses_pushes_deeper_than_the_deepest_trained_one(phantom, trained_le):

@@ -68,7 +68,7 @@ def test_rest_pose_and_push(fem_tracker):
     r0 = fem_tracker.update(TOP)
     assert r0.status == st.OK
     np.testing.assert_allclose([les.displacement for les in r0.lesions], 0.0, atol=1e-9)
-    r = fem_tracker.update(pushed(10.0), with_surface=True)
+    r = fem_tracker.update(pushed(10.0), with_surface=True, lesion_surfaces=True)
     assert r.status == st.OK, r.reason
     central = {les.id: les for les in r.lesions}[3]  # lesion 3 at (0, 0, 45), under the probe
     assert -10.0 < central.displacement[2] < -1.0

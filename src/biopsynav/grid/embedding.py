@@ -53,6 +53,11 @@ class Embedding:
                                shape=(len(points), grid.n_nodes))
         return cls(index.flat_index(ijk, grid.cell_shape), nodes, weights, matrix)
 
+    def subset(self, rows: np.ndarray) -> Embedding:
+        """The embedding of the points ``rows`` only (in that order)."""
+        return Embedding(self.cells[rows], self.nodes[rows], self.weights[rows],
+                         self.matrix[rows])
+
     def interpolate(self, field: np.ndarray) -> np.ndarray:
         """Node field (n_nodes, C) -> values (n_points, C) at the points."""
         return np.einsum("pk,pkc->pc", self.weights, np.asarray(field)[self.nodes])

@@ -84,7 +84,8 @@ class RigidLesionTracker:
         self._rest = np.asarray(T, dtype=np.float64).copy()
         self._rest_inv = np.linalg.inv(self._rest)
 
-    def update(self, T: np.ndarray, with_surface: bool = False) -> TrackingResult:
+    def update(self, T: np.ndarray, with_surface: bool = False,
+               lesion_surfaces: bool = True) -> TrackingResult:
         """Lesion centres for pose ``T``; a status instead of numbers when the pose is unusable."""
         t0 = time.perf_counter()
         problem = pose_problem(T, self.rigid_tolerance)

@@ -247,13 +247,27 @@ class IgtlSession:
         self.stats.poses_handled += 1
         self._latest_pose = T
         self._auto_rest_pose(T)
-        result = self._safe_update(T)
+        models = self._models_due(now)
+        result = self._safe_update(T, models)
         if self._provisional_rest and result.status != NO_CONTACT:
             self._provisional_rest = False
             log.info("rest pose taken automatically at first contact (%s)", result.status)
-        yield from self._reply(result, T, timestamp, now)
+        yield from self._reply(result, models, timestamp, now)
 
-    def _reply(self, result: TrackingResult, T: np.ndarray, timestamp: float,
+    def _models_due(self, now: float) -> dict[str, bool]:
+        """Which models this pose sends (``lesions``, ``skin``): none without a client, a
+        lesion mesh or a skin, else each at its rate."""
+        if not self.clients:
+            return {}
+        due = {}
+        if self._lesion_faces and self._due("lesions", self.settings.lesion_model_rate_hz, now):
+            due["lesion_surfaces"] = True
+        if getattr(self.tracker, "skin_mesh", None) is not None and \
+                self._due("skin", self.settings.skin_model_rate_hz, now):
+            due["with_surface"] = True
+        return due
+
+    def _reply(self, result: TrackingResult, models: dict[str, bool], timestamp: float,
                now: float) -> Iterator[Batch]:
         """Status (when due) and POINT, then for reliable results the TRANSFORMs and the
         models that are due."""
@@ -266,7 +280,7 @@ class IgtlSession:
             yield None, head
             if result.status in RELIABLE:
                 yield None, transform_messages(result, timestamp)
-                yield from self._models(result, T, timestamp, now)
+                yield from self._models(result, models, timestamp)
         except Exception as exc:
             self.stats.tracker_failures += 1
             log.error("cannot encode the tracking result: %r", exc)
@@ -293,20 +307,21 @@ class IgtlSession:
         if msgs:
             yield None, msgs
 
-    def _models(self, result: TrackingResult, T: np.ndarray, timestamp: float,
-                now: float) -> Iterator[Batch]:
-        """The lesion and skin POLYDATA, each when its rate says so."""
-        if not self.clients:
-            return
-        if self._due("lesions", self.settings.lesion_model_rate_hz, now):
-            models = lesion_model_messages(result, self._lesion_faces, timestamp)
-            self.stats.models_sent += len(models)
-            yield None, models
-        if self._due("skin", self.settings.skin_model_rate_hz, now):
-            skin = self._skin_message(T, timestamp)
-            if skin is not None:
-                self.stats.models_sent += 1
-                yield None, [skin]
+    def _models(self, result: TrackingResult, models: dict[str, bool],
+                timestamp: float) -> Iterator[Batch]:
+        """The lesion and skin POLYDATA that were due (computed by the same update)."""
+        if models.get("lesion_surfaces"):
+            msgs = lesion_model_messages(result, self._lesion_faces, timestamp)
+            self.stats.models_sent += len(msgs)
+            yield None, msgs
+        if models.get("with_surface") and result.surface is not None:
+            if self._skin is None:
+                self._skin = decimate(*self.tracker.skin_mesh,
+                                      self.settings.skin_model_triangles)
+            weights, faces = self._skin
+            self.stats.models_sent += 1
+            yield None, [mesh_message(SKIN_DEVICE, weights @ result.surface, faces, result,
+                                      timestamp)]
 
     def _due(self, what: str, rate_hz: float, now: float) -> bool:
         due = self._next_model[what]
@@ -315,20 +330,6 @@ class IgtlSession:
         period = 1.0 / rate_hz
         self._next_model[what] = due + period if due + period > now else now + period
         return True
-
-    def _skin_message(self, T: np.ndarray, timestamp: float) -> Outgoing | None:
-        """The deformed, decimated skin (a second, full-field prediction), None when the
-        tracker has no skin."""
-        mesh = getattr(self.tracker, "skin_mesh", None)
-        if mesh is None:
-            return None
-        if self._skin is None:
-            self._skin = decimate(*mesh, self.settings.skin_model_triangles)
-        result = self.tracker.update(T.copy(), with_surface=True)
-        if result.status not in RELIABLE or result.surface is None:
-            return None
-        weights, faces = self._skin
-        return mesh_message(SKIN_DEVICE, weights @ result.surface, faces, result, timestamp)
 
     def _auto_rest_pose(self, T: np.ndarray) -> None:
         """Rest pose at first contact when none was set.
@@ -348,10 +349,12 @@ class IgtlSession:
         self.stats.rest_poses_set += 1
         self._provisional_rest = True
 
-    def _safe_update(self, T: np.ndarray) -> TrackingResult:
+    def _safe_update(self, T: np.ndarray, models: dict[str, bool]) -> TrackingResult:
+        """``tracker.update`` (asked for the models that are due); a failure becomes a
+        ``tracker_error`` result."""
         t0 = time.perf_counter()
         try:
-            result = self.tracker.update(T.copy())
+            result = self.tracker.update(T.copy(), **models)
             if not isinstance(getattr(result, "status", None), str):
                 raise TypeError(f"update returned {type(result).__name__}, not a "
                                 "TrackingResult")

@@ -107,14 +107,17 @@ class Tracker:
         self._lesion_centres = np.array([les.center for les in a.lesions]).reshape(-1, 3)
         self.lesion_meshes = lesion_meshes(a.lesions)
         self._lesion_points, self._lesion_emb = self._lesion_embedding()
+        self._centre_emb = self._lesion_emb.subset(np.arange(len(self._lesion_ids)))
         self._rest: np.ndarray | None = None
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
-        # the net engine's lesion displacement, linear part: (3 n_les, 3 n) on u_c (rest pose)
+        # the net engine's lesion displacement, linear part, (3 n_points, 3 n) on u_c, at the
+        # lesion points (centres and meshes) and at the centres only (rest pose)
         self._lesion_of_contact: np.ndarray | None = None
+        self._centre_ops: tuple | None = None
         self._input_op: ContactInputOperator | None = None
         self._projection = None  # ContactProjection of the rest pose's contact set
         self._lesion_proj: np.ndarray | None = None  # its u_lin at the lesions (3 n_les, 3 n)
@@ -191,7 +194,7 @@ class Tracker:
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
         self._input_op = None
-        self._lesion_of_contact = None
+        self._lesion_of_contact = self._centre_ops = None
         self._projection = self._lesion_proj = None
         self._input[:] = 0.0
         if len(idx):
@@ -205,13 +208,25 @@ class Tracker:
                     self._input_flat[3] = self._input_op.weights
                     self._set_projection(emb.matrix)
                     self._lesion_of_contact = self._lesion_contact_operator()
+                    self._centre_ops = self._centre_operators()
         return len(idx)
+
+    def _centre_operators(self) -> tuple | None:
+        """The lesion operators restricted to the lesion centres (the rows of the first
+        ``n_lesions`` points, axis-major): what ``update`` needs when no lesion surface is
+        asked for."""
+        if self._lesion_of_contact is None:
+            return None
+        n, n_points = len(self._lesion_ids), len(self._lesion_points)
+        rows = np.concatenate([k * n_points + np.arange(n) for k in range(3)])
+        proj = None if self._lesion_proj is None else self._lesion_proj[rows]
+        return self._lesion_of_contact[rows], proj
 
     def clear_rest_pose(self) -> None:
         """Forget the rest pose (and its contact set); ``update`` answers ``no_rest_pose``."""
         self._rest = None
         self._contact = np.zeros(0, dtype=np.int64)
-        self._contact_emb = self._input_op = self._lesion_of_contact = None
+        self._contact_emb = self._input_op = self._lesion_of_contact = self._centre_ops = None
         self._projection = self._lesion_proj = None
 
     def _set_projection(self, contact) -> None:
@@ -299,8 +314,13 @@ class Tracker:
         moved = self._contact_points @ rel[:3, :3].T + rel[:3, 3]
         return moved - self._contact_points
 
-    def update(self, pose: np.ndarray, with_surface: bool = False) -> TrackingResult:
-        """Lesion positions for probe ``pose``; the status says whether to trust them."""
+    def update(self, pose: np.ndarray, with_surface: bool = False,
+               lesion_surfaces: bool = False) -> TrackingResult:
+        """Lesion positions for probe ``pose``; the status says whether to trust them.
+
+        ``with_surface``: also the moved skin (``result.surface``, from the full grid field);
+        ``lesion_surfaces``: also each lesion's moved mesh vertices (``LesionResult.surface``).
+        """
         start = time.perf_counter()
         problem = pose_problem(pose, self.case.cfg.tracker.rigid_tolerance)
         if problem:
@@ -327,10 +347,11 @@ class Tracker:
                                     "mm", start)
         try:
             if self._lesion_of_contact is not None and not with_surface:
-                field, disp = None, self._net_lesion_displacement(u_c)
+                field, disp = None, self._net_lesion_displacement(u_c, lesion_surfaces)
             else:
                 field = self._predict(u_c)
-                disp = self._lesion_emb.interpolate(field)
+                emb = self._lesion_emb if lesion_surfaces else self._centre_emb
+                disp = emb.interpolate(field)
         except SolverError as exc:  # the FE engine did not converge: say so, not "unusual pose"
             return self._unreliable(st.SOLVER_FAILED, exc.what, start)
         except Exception as exc:  # never a confident number from a failed prediction
@@ -341,16 +362,21 @@ class Tracker:
         res.latency_ms = (time.perf_counter() - start) * 1e3
         return res
 
-    def _net_lesion_displacement(self, u_c: np.ndarray) -> np.ndarray:
-        """Lesion displacements (n_lesions, 3) mm: the network's residual interpolated at the
-        lesions plus the precomputed linear part (:meth:`_lesion_contact_operator`; no
-        full-grid baseline: the hot path of :meth:`update`)."""
+    def _net_lesion_displacement(self, u_c: np.ndarray, surfaces: bool) -> np.ndarray:
+        """Displacements (n_points, 3) mm of the lesion centres, and with ``surfaces`` of their
+        mesh vertices: the network's residual interpolated there plus the precomputed linear
+        part (:meth:`_lesion_contact_operator`; no full-grid baseline: the hot path of
+        :meth:`update`)."""
         self._set_input(u_c)
         net = self._surrogate.predict_network(self._input)
-        base = self._lesion_of_contact @ u_c.ravel()  # (3 * n_lesions,), axis-major
-        if self._lesion_proj is not None:  # - u_lin(W_P r) at the lesions
-            base -= self._lesion_proj @ self._projection.point_displacement(net).ravel()
-        return self._lesion_emb.interpolate(net.reshape(3, -1).T) + base.reshape(3, -1).T
+        if surfaces:
+            emb, linear, proj = self._lesion_emb, self._lesion_of_contact, self._lesion_proj
+        else:
+            emb, (linear, proj) = self._centre_emb, self._centre_ops
+        base = linear @ u_c.ravel()  # (3 * n_points,), axis-major
+        if proj is not None:  # - u_lin(W_P r) at the lesions
+            base -= proj @ self._projection.point_displacement(net).ravel()
+        return emb.interpolate(net.reshape(3, -1).T) + base.reshape(3, -1).T
 
     def _predict(self, u_c: np.ndarray) -> np.ndarray:
         """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
@@ -387,8 +413,11 @@ class Tracker:
 
     def _lesion_results(self, disp: np.ndarray, status: str) -> list[LesionResult]:
         """Lesions moved by ``disp`` (n_points, 3) mm at ``_lesion_points``: centres and, when
-        meshed, surfaces."""
+        ``disp`` covers them, the mesh vertices."""
         n = len(self._lesion_ids)
+        if len(disp) == n:
+            return [LesionResult(i, c + d, d, status) for i, c, d in
+                    zip(self._lesion_ids, self._lesion_centres, disp, strict=True)]
         moved = self._lesion_points + disp
         out, at = [], n
         for k, i in enumerate(self._lesion_ids):
