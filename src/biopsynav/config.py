@@ -340,12 +340,14 @@ class IgtlSection:
                                                "the rest pose: 'clear' (taken again at the next "
                                                "contact; the tracker's frame may have changed) "
                                                "or 'keep'.", choices=("clear", "keep"))
-    inference_threads: int = opt(1, "CPU threads of the served tracker's network (0: the idle "
-                                    "cores, as [network] threads). One by default: at 100 Hz "
-                                    "on 2 cores a second thread has to be woken for every pose "
-                                    "and competes with the socket traffic (round trip 4.7-4.9 "
-                                    "ms with 1 thread against 5.5-5.6 ms with 2; "
-                                    "BENCHMARKS.md).", lo=0, hi=1024)
+    inference_threads: int = opt(2, "CPU threads of the served tracker's network (0: the idle "
+                                    "cores when the service starts, as [network] threads; "
+                                    "never more than the machine has). On the 2-core "
+                                    "development VM at 100 Hz, 2 threads gave a 3.6 ms median "
+                                    "round trip against 5.8-6.0 ms with 1, and 0 picked 1 "
+                                    "there while the benchmark's own processes started "
+                                    "(BENCHMARKS.md, 2026-11-24); set 1 where the cores are "
+                                    "busy with other work.", lo=0, hi=1024)
 
 
 @dataclass

@@ -9,6 +9,7 @@ changes, clients that connect and drop, and a summary of the counters when it st
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
@@ -122,7 +123,8 @@ def service_tracker(case_dir: str | Path, cfg: IgtlSection | None = None) -> Tra
     except ImportError:
         raise BiopsynavError("the tracker (biopsynav.tracker.Tracker) is not available in "
                              "this installation", str(case_dir)) from None
-    return Tracker.load(case_dir, threads=cfg.inference_threads)
+    threads = cfg.inference_threads and min(cfg.inference_threads, os.cpu_count() or 1)
+    return Tracker.load(case_dir, threads=threads)
 
 
 __all__ = ["configure_logging", "install_signal_handlers", "run_service", "serve",
