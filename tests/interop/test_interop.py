@@ -91,6 +91,7 @@ def test_serve_streams_every_message_type_to_the_cpp_library(trained_case, cpp_b
     text = log.read_text()
     assert client.returncode == 0, client.stderr[-3000:] + text[-3000:]
     got = json.loads(client.stdout)
+    print(json.dumps(got, indent=1))  # shown with pytest -s
     counts = got["counts"]
     assert got["errors"] == []
     assert counts["POINT Lesions"] > 0.6 * 100 * STREAM_S  # 100 Hz, less the occluded second
