@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from biopsynav.anatomy.phantom import make_phantom_case
+from biopsynav.case import make_phantom_case
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
 from biopsynav.fem.skfem_peer import SkfemModel
 from biopsynav.grid.embedding import Embedding

@@ -45,7 +45,7 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, help="keep the case folder here")
     args = parser.parse_args()
 
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     tmp = Path(tempfile.mkdtemp(prefix="biopsynav-bench-"))
     try:

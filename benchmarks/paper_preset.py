@@ -59,14 +59,15 @@ def build_net(preset: str, data, in_scale: np.ndarray, out_scale: np.ndarray):
 def time_steps(case_dir: Path, case_data, preset: str, steps: int, threads: int) -> float:
     """Median seconds of one training step of ``preset`` on the case's data."""
     from biopsynav.config import load_config
-    from biopsynav.network.train import _Runner, build_optimizer, resolve_device, set_threads
+    from biopsynav.network.train import TrainingLoop, build_optimizer, resolve_device
+    from biopsynav.threads import set_threads
 
     s = dataclasses.replace(load_config(case_dir).network, preset=preset, threads=threads)
     set_threads(s.threads)
     data = case_data[0]
     net = build_net(preset, *case_data)
     opt = build_optimizer(net.unet.parameters(), s)
-    runner = _Runner(net, opt, data, s, resolve_device("cpu"), case_dir, {}, {})
+    runner = TrainingLoop(net, opt, data, s, resolve_device("cpu"), case_dir, {}, {})
     times = []
     for it in range(steps + 1):
         t = time.perf_counter()
@@ -79,7 +80,7 @@ def time_predictions(case_data, preset: str, n: int, threads: int) -> tuple[floa
     """Median and 99th percentile (ms) of one batch-1 prediction of ``preset``'s network."""
     from biopsynav.network.export import save_onnx, save_torchscript
     from biopsynav.network.infer import OpenVinoRunner, TorchScriptRunner, resolve_runtime
-    from biopsynav.network.train import set_threads
+    from biopsynav.threads import set_threads
 
     n_threads = set_threads(threads)
     data = case_data[0]

@@ -25,7 +25,7 @@ QUICK = {"grid": {"cell_size_mm": 12.0}, "dataset": {"n_train": 64, "n_test": 16
 def ensure_case(case_dir: Path, quick: bool, workers: int) -> None:
     """Create the phantom case and its data set where they are missing."""
     if not (case_dir / "case.toml").exists():
-        from biopsynav.anatomy.phantom import make_phantom_case
+        from biopsynav.case import make_phantom_case
 
         print(f"building the phantom case in {case_dir}", flush=True)
         make_phantom_case(case_dir, overrides=QUICK if quick else None)

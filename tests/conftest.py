@@ -47,7 +47,7 @@ def dome_lesions_csv(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def phantom_case(tmp_path_factory):
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     return make_phantom_case(tmp_path_factory.mktemp("phantom") / "case")
 
@@ -67,7 +67,7 @@ DATASET_N_TRAIN, DATASET_N_TEST = 14, 2
 @pytest.fixture(scope="session")
 def base_case(tmp_path_factory) -> Path:
     """A coarse phantom case (no data yet)."""
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
     from biopsynav.config import load_config, save_config
 
     case_dir = tmp_path_factory.mktemp("dataset") / "base"

@@ -126,7 +126,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
 
 def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: int = 0) -> dict:
     """Build the built-in phantom case (if absent) and run the whole pipeline on it."""
-    from .anatomy.phantom import make_phantom_case
+    from .case import make_phantom_case
 
     case_dir = Path(case_dir)
     start = time.perf_counter()

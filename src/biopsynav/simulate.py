@@ -127,7 +127,7 @@ def _write_outputs(out_dir: Path, vertices: np.ndarray, faces: np.ndarray,
              "png": out_dir / "simulate.png"}
     for key in ("vtu", "stl"):
         write_bytes_atomic(paths[key], _mesh_bytes(mesh, key))
-    save_figure_atomic(_figure(vertices, faces, surface_u, patch), paths["png"])
+    save_figure_atomic(_push_figure(vertices, faces, surface_u, patch), paths["png"])
     return paths
 
 
@@ -142,7 +142,7 @@ def _mesh_bytes(mesh, file_format: str) -> bytes:
         return path.read_bytes()
 
 
-def _figure(vertices: np.ndarray, faces: np.ndarray, surface_u: np.ndarray, patch: ProbePatch):
+def _push_figure(vertices: np.ndarray, faces: np.ndarray, surface_u: np.ndarray, patch: ProbePatch):
     import matplotlib
 
     matplotlib.use("Agg")

@@ -7,6 +7,6 @@ import pytest
 
 @pytest.fixture(scope="session")
 def coarse_phantom(tmp_path_factory):
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     return make_phantom_case(tmp_path_factory.mktemp("eval") / "case", cell_size_mm=15)

@@ -120,7 +120,7 @@ def test_zero_input_gives_zero_and_batches_match(box):
 def phantom(tmp_path_factory):
     """The phantom at 24 mm cells (16 x 8 x 8 nodes) with a small data set whose targets are
     the hard linear-elastic response plus a smooth non-linear term."""
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     case_dir = tmp_path_factory.mktemp("phantom") / "case"
     case = make_phantom_case(case_dir, cell_size_mm=24.0)

@@ -16,7 +16,7 @@ from biopsynav.network.projection import ContactProjection
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     """The phantom at 24 mm cells, its hard baseline and three skin points on the top."""
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     case = make_phantom_case(tmp_path_factory.mktemp("proj") / "case", cell_size_mm=24.0)
     base = LinearElasticBaseline.from_case(case, spring=None, dtype=np.float64)
@@ -113,7 +113,7 @@ def test_one_thread_limits_blas_and_torch_and_restores_them():
     import torch
     from threadpoolctl import threadpool_info
 
-    from biopsynav.network.projection import one_thread
+    from biopsynav.threads import one_thread
 
     before_torch = torch.get_num_threads()
     before = sorted((i["prefix"], i["num_threads"]) for i in threadpool_info())

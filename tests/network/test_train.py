@@ -123,7 +123,7 @@ def test_model_files_name_every_file_training_writes(trained):
 
 @pytest.mark.skipif(not Path("/proc/stat").exists(), reason="needs Linux /proc/stat")
 def test_auto_threads_sees_a_busy_core():
-    from biopsynav.network.train import _busy_cores, auto_threads
+    from biopsynav.threads import _busy_cores, auto_threads
 
     spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from biopsynav.anatomy.phantom import make_phantom_case
+from biopsynav.case import make_phantom_case
 from biopsynav.config import ProbeSection
 from biopsynav.errors import InputError
 from biopsynav.grid.embedding import Embedding

@@ -15,7 +15,7 @@ from biopsynav.report import write_report
 
 @pytest.fixture()
 def init_only(tmp_path):
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     return make_phantom_case(tmp_path / "case", cell_size_mm=15).dir
 

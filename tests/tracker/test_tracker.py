@@ -21,7 +21,7 @@ def pushed(depth: float) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def coarse_case(tmp_path_factory):
-    from biopsynav.anatomy.phantom import make_phantom_case
+    from biopsynav.case import make_phantom_case
 
     return make_phantom_case(tmp_path_factory.mktemp("trk") / "case", cell_size_mm=12.0)
 

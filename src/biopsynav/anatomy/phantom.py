@@ -53,22 +53,3 @@ def phantom_lesions_csv() -> str:
     rows = ["id,x,y,z,radius_mm"]
     rows += [f"{int(r[0])},{r[1]:g},{r[2]:g},{r[3]:g},{r[4] / 2:g}" for r in PHANTOM_LESIONS]
     return "\n".join(rows) + "\n"
-
-
-def make_phantom_case(case_dir, overwrite: bool = False, cell_size_mm: float | None = None,
-                      overrides: dict | None = None):
-    """Create the built-in phantom case in ``case_dir`` and return the loaded :class:`Case`.
-
-    ``overrides`` holds case.toml sections to set (validated like case.toml).
-    """
-    from ..case import init_case
-    from ..config import config_from_dict
-
-    data: dict = {section: dict(values) for section, values in (overrides or {}).items()}
-    data.setdefault("case", {}).setdefault("name", "phantom")
-    data["case"].setdefault("description", PHANTOM_DESCRIPTION)
-    data.setdefault("anatomy", {})["source"] = "phantom"
-    if cell_size_mm is not None:
-        data.setdefault("grid", {})["cell_size_mm"] = float(cell_size_mm)
-    cfg = config_from_dict(data, "phantom settings")
-    return init_case(case_dir, cfg, {}, overwrite=overwrite)

@@ -102,7 +102,7 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
             _run(runner, store, todo, stats, case.cfg.dataset.max_failure_share, progress)
         finally:
             runner.close()
-    summary = summarize(store, stats, time.perf_counter() - start)
+    summary = run_summary(store, stats, time.perf_counter() - start)
     write_json_atomic(case.dir / SUMMARY_FILE, summary)
     plot_distributions(store, case.dir / PLOT_FILE)
     return summary
@@ -402,7 +402,7 @@ def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> Non
 
 # ----- summary and plot ---------------------------------------------------------------------
 
-def summarize(store: DatasetStore, stats: Counter, seconds: float) -> dict:
+def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
     """Summary of the whole data set plus the figures of this run."""
     meta = store.read_meta()
     kinds = failure_counts(store.failures())
@@ -462,5 +462,5 @@ def plot_distributions(store: DatasetStore, path: Path) -> Path:
     return save_figure_atomic(fig, path)
 
 
-__all__ = ["generate_case", "make_runner", "plot_distributions", "prepare_store", "summarize",
+__all__ = ["generate_case", "make_runner", "plot_distributions", "prepare_store", "run_summary",
            "protocol_fingerprint"]

@@ -58,7 +58,7 @@ class Placement:
                 "depth_mm": self.depth_mm, "lateral_mm": self.lateral_mm}
 
 
-def probe_frame(z: np.ndarray, chest_normal: np.ndarray) -> np.ndarray:
+def beam_frame(z: np.ndarray, chest_normal: np.ndarray) -> np.ndarray:
     """Rotation (3, 3) with columns x, y, z for beam axis ``z`` (3,): x = chest_normal x z
     (parallel to the chest wall), or, where z is within ~17 degrees of the chest normal, the
     world axis least aligned with z projected normal to z; y = z cross x."""
@@ -84,7 +84,7 @@ def place_probe(anatomy: Anatomy, lesion_index: int) -> Placement:
     if np.degrees(np.arccos(np.clip(z @ inward, -1.0, 1.0))) > MAX_AXIS_TILT_DEG:
         z = inward / np.linalg.norm(inward)
     pose = np.eye(4)
-    pose[:3, :3] = probe_frame(z, anatomy.chest_normal)
+    pose[:3, :3] = beam_frame(z, anatomy.chest_normal)
     pose[:3, 3] = p
     local = (c - p) @ pose[:3, :3]
     return Placement(int(les.id), v, pose, float(local[2]), float(local[0]))

@@ -41,7 +41,7 @@ def evaluate_case(case_dir: str | Path, table2: bool = True, measured: str | Pat
         raise InputError("--poses and --measured go together: the tracked probe poses and the "
                          "lesion positions measured in those frames", "evaluate")
     require_model(case_dir)
-    from ..network.evaluate import evaluate_case as table1_case
+    from ..network.evaluate import evaluate_network_case as table1_case
     from ..network.evaluate import format_table1
 
     out: dict = {"table1": table1_case(case_dir)}

@@ -35,7 +35,7 @@ def build_grid(anatomy: Anatomy, settings: GridSection, levels: int) -> Grid:
     touched = _cells_touched(anatomy, origin, h, cshape)
     active = (fraction > settings.fraction_threshold) | touched
     status = np.where(fraction >= 1.0, 2, np.where((fraction > 0) | touched, 1, 0))
-    label = _cell_labels(anatomy, inside, lattice, cshape, n, active)
+    label = _grid_cell_labels(anatomy, inside, lattice, cshape, n, active)
     active_nodes = _nodes_of_cells(active, node_shape)
     coords = index.node_coordinates(origin, h, node_shape).reshape((*node_shape, 3))
     behind = (coords - anatomy.chest_point) @ anatomy.chest_normal >= -1e-6 * h
@@ -149,7 +149,7 @@ def _cells_touched(anatomy: Anatomy, origin: np.ndarray, h: float,
     return touched
 
 
-def _cell_labels(anatomy: Anatomy, inside: np.ndarray, lattice: tuple, cshape, n: int,
+def _grid_cell_labels(anatomy: Anatomy, inside: np.ndarray, lattice: tuple, cshape, n: int,
                  active: np.ndarray) -> np.ndarray:
     """Majority tissue label of the inside samples of each cell (-1 without labels)."""
     label = np.full(cshape, -1, dtype=np.int32)

@@ -16,6 +16,7 @@ import time
 import numpy as np
 import trimesh
 
+from ..tracker.core import as_pose, pose_problem
 from ..tracker.result import (
     INVALID_POSE,
     NO_CONTACT,
@@ -26,22 +27,6 @@ from ..tracker.result import (
     LesionResult,
     TrackingResult,
 )
-
-
-def pose_problem(T: np.ndarray, rigid_tolerance: float = 1e-3) -> str:
-    """Why ``T`` is not a usable rigid 4 x 4 pose, or "" when it is."""
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        return f"pose has shape {T.shape}, expected (4, 4)"
-    if not np.all(np.isfinite(T)):
-        return "pose holds NaN or infinite values"
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=rigid_tolerance):
-        return "pose bottom row is not 0 0 0 1"
-    R = T[:3, :3]
-    dev = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if dev > rigid_tolerance or np.linalg.det(R) < 0:
-        return f"pose rotation is not orthonormal (deviation {dev:.2e})"
-    return ""
 
 
 class RigidLesionTracker:
@@ -81,7 +66,7 @@ class RigidLesionTracker:
         problem = pose_problem(T, self.rigid_tolerance)
         if problem:
             raise ValueError(problem)
-        self._rest = np.asarray(T, dtype=np.float64).copy()
+        self._rest = as_pose(T).copy()
         self._rest_inv = np.linalg.inv(self._rest)
 
     def update(self, T: np.ndarray, with_surface: bool = False,
@@ -95,7 +80,7 @@ class RigidLesionTracker:
             return self._empty(NO_REST_POSE, "no rest pose set", t0)
         if self.skin_z is not None and self._rest[2, 3] < self.skin_z:
             return self._empty(NO_CONTACT, "no skin under the probe face at the rest pose", t0)
-        T = np.asarray(T, dtype=np.float64)
+        T = as_pose(T)
         motion = T @ self._rest_inv
         push = float(np.dot(T[:3, 3] - self._rest[:3, 3], self._rest[:3, 2]))
         if push > self.max_push_mm:

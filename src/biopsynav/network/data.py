@@ -40,7 +40,7 @@ class Dataset:
         return int(self.active.sum())
 
 
-def dataset_path(case_or_zarr: str | Path) -> Path:
+def resolve_dataset_path(case_or_zarr: str | Path) -> Path:
     """``dataset.zarr`` of a case folder, or the given path when it already is a zarr group."""
     p = Path(case_or_zarr)
     return p if p.suffix == ".zarr" else p / DATASET_NAME
@@ -56,7 +56,7 @@ def load_dataset(case_or_zarr: str | Path) -> Dataset:
     shapes) is one InputError naming the store and the array."""
     import zarr
 
-    path = dataset_path(case_or_zarr)
+    path = resolve_dataset_path(case_or_zarr)
     where = str(path)
     if not path.exists():
         raise InputError("no training data; run `biopsynav generate` first", where)
@@ -203,3 +203,10 @@ def envelope(data: Dataset) -> dict:
     if data.probe_disp_mm is not None:
         out["max_probe_disp_mm"] = float(data.probe_disp_mm[data.train_idx.numpy()].max())
     return out
+
+
+def dataset_contact_input(data: Dataset) -> str:
+    """The contact-input kind the data set was generated with (``[dataset] contact_input``;
+    data sets from before the option are 'average')."""
+    protocol = data.attrs.get("protocol") or {}
+    return str(protocol.get("dataset", {}).get("contact_input", "average"))

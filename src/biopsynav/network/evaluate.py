@@ -18,7 +18,7 @@ from ..fileio import write_json_atomic
 from ..grid.index import tensor_to_field
 from .data import Dataset, load_dataset
 from .infer import Surrogate, case_fingerprint
-from .metrics import mean_norm_error_np, summarize
+from .metrics import error_summary, mean_norm_error_np
 from .plots import plot_error_histogram, plot_sample
 from .projection import ContactProjection, sample_projections
 
@@ -104,7 +104,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
         pred = predict_all(sur, x, contacts=contacts)
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
-    result = summarize(e)
+    result = error_summary(e)
     result.update(time_predictions(sur, x, n_timing, contacts))
     result.update({"contact_projection": contacts is not None,
                    "mean_e_unprojected_mm": float(e_plain.mean()),
@@ -180,7 +180,7 @@ def format_table1(r: dict) -> str:
                if "inverted_samples" in r else ""))
 
 
-def evaluate_case(case_dir: str | Path) -> dict:
+def evaluate_network_case(case_dir: str | Path) -> dict:
     """CLI entry: Table 1 of ``CASE_DIR/model`` on ``CASE_DIR/dataset.zarr`` into CASE_DIR/eval."""
     from ..config import load_config
 

@@ -22,11 +22,11 @@ import torch
 
 from ..errors import InputError
 from ..probe import ContactInputOperator
+from ..threads import auto_threads
 from .baseline import LinearElasticBaseline
 from .export import load_torchscript
 from .model_io import ONNX, TORCHSCRIPT, check_file, check_fingerprint, read_meta
 from .projection import ContactProjection
-from .train import auto_threads
 
 if TYPE_CHECKING:
     from ..case import Case
@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 RUNTIMES = ("auto", "torchscript", "openvino")
 
 
-class _Runner(Protocol):
+class Runner(Protocol):
     def __call__(self, x: np.ndarray) -> np.ndarray: ...
 
 
@@ -129,7 +129,7 @@ def resolve_runtime(name: str) -> str:
 class Surrogate:
     """The trained surrogate of one case: contact input -> displacement of every grid node."""
 
-    def __init__(self, runner: _Runner, meta: dict, model_dir: Path,
+    def __init__(self, runner: Runner, meta: dict, model_dir: Path,
                  baseline: LinearElasticBaseline | None = None) -> None:
         self._run = runner
         self.baseline = baseline
@@ -163,7 +163,7 @@ class Surrogate:
         Raises FingerprintError when the model was trained for another anatomy or grid, and
         InputError when files are missing or corrupt. ``runtime`` defaults to the one recorded
         at training ([network] runtime); ``threads`` 0 takes the idle cores
-        (:func:`~biopsynav.network.train.auto_threads`). ``case`` (a loaded
+        (:func:`~biopsynav.threads.auto_threads`). ``case`` (a loaded
         :class:`~biopsynav.case.Case`) is needed by a model with a physics baseline; by default
         the case in ``model_dir``'s parent folder.
         """
@@ -173,7 +173,7 @@ class Surrogate:
         rt = resolve_runtime(runtime or meta.get("inference", {}).get("runtime", "auto"))
         n = threads if threads > 0 else auto_threads()
         if rt == "openvino":
-            runner: _Runner = OpenVinoRunner(check_file(model_dir, ONNX, meta), n,
+            runner: Runner = OpenVinoRunner(check_file(model_dir, ONNX, meta), n,
                                             tuple(meta["node_shape"]))
         else:
             runner = TorchScriptRunner(check_file(model_dir, TORCHSCRIPT, meta), n)

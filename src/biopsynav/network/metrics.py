@@ -54,7 +54,7 @@ def masked_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
     return (err * m).sum() / denom
 
 
-def summarize(e: np.ndarray) -> dict:
+def error_summary(e: np.ndarray) -> dict:
     """Mean, standard deviation and maximum of per-sample errors e (mm), plus the worst index."""
     e = np.asarray(e, dtype=np.float64)
     return {"mean_e_mm": float(e.mean()), "std_e_mm": float(e.std()),

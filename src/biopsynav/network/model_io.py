@@ -85,7 +85,7 @@ def meta_checksum(meta: dict) -> str:
 
 
 def _contact_input(data: Dataset) -> str:
-    from .train import dataset_contact_input  # local import: train imports this module
+    from .data import dataset_contact_input
 
     return dataset_contact_input(data)
 

@@ -27,15 +27,13 @@ elastic contact input and the hard (``spring = None``) linear-elastic baseline.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import numpy as np
 import scipy.sparse as sp
 import torch
 
 from ..errors import InputError
 from ..probe import ContactInputOperator, contact_input_operator
+from ..threads import one_thread
 from .baseline import LinearElasticBaseline
 
 
@@ -184,24 +182,6 @@ def sample_projections(baseline: LinearElasticBaseline, contacts: list[sp.spmatr
                                  "by another version: regenerate it", where)
             out.append((proj, g))
     return out
-
-
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """Run the enclosed NumPy/SciPy BLAS, OpenMP and PyTorch work on one thread, then restore
-    the thread counts. For many small (hundreds of rows) dense products and solves in turn:
-    there, extra threads only wait on each other, and PyTorch's spinning OpenMP workers
-    starve BLAS's. Measured for the per-sample projections of the phantom, 2-core VM, beside a
-    running training: 0.15 s against 0.01 s per sample (BENCHMARKS.md)."""
-    from threadpoolctl import threadpool_limits
-
-    torch_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with threadpool_limits(limits=1):
-            yield
-    finally:
-        torch.set_num_threads(torch_threads)
 
 
 class BatchProjection:

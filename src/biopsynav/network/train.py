@@ -21,7 +21,6 @@ import copy
 import dataclasses
 import io
 import math
-import os
 import sys
 import time
 from collections.abc import Iterable
@@ -34,8 +33,10 @@ import torch
 from ..config import NetworkSection, load_config
 from ..errors import InputError
 from ..fileio import remove_partial_writes, write_bytes_atomic
+from ..threads import set_threads
 from .data import (
     Dataset,
+    dataset_contact_input,
     envelope,
     load_dataset,
     normalisation_stats,
@@ -81,56 +82,6 @@ def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError("device 'cuda' requested but no CUDA GPU is available", "--device")
     return torch.device(name)
-
-
-def auto_threads(sample_s: float = 0.2) -> int:
-    """Cores not busy with other processes, at least 1.
-
-    Two PyTorch (OpenMP) threads collapse when another process holds a core: measured here, a
-    training step took 380 ms with 2 threads against 99 ms with 1 thread on a loaded 2-core
-    machine (64 ms with 2 threads when idle), so ``threads = 0`` takes only the idle cores.
-    Busy cores are measured from the CPU time the system spent outside idle and I/O wait over
-    ``sample_s`` seconds (``/proc/stat``), not from the load average: on the development VM a
-    kernel thread keeps the load average at 1 while both cores are idle. Elsewhere the
-    1-minute load average is used.
-    """
-    cores = os.cpu_count() or 1
-    busy = _busy_cores(sample_s)
-    if busy is None:
-        try:
-            busy = os.getloadavg()[0]
-        except OSError:
-            return cores
-    return max(1, min(cores, int(cores - busy + 0.5)))
-
-
-def _busy_cores(sample_s: float) -> float | None:
-    """Cores' worth of non-idle CPU time over ``sample_s`` seconds (Linux), else None."""
-    def snapshot() -> tuple[int, int] | None:
-        try:
-            with open("/proc/stat") as f:
-                fields = [int(v) for v in f.readline().split()[1:]]
-        except (OSError, ValueError):
-            return None
-        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
-        return sum(fields[:8]), idle
-
-    first = snapshot()
-    if first is None:
-        return None
-    time.sleep(sample_s)
-    second = snapshot()
-    if second is None or second[0] <= first[0]:
-        return None
-    total, idle = second[0] - first[0], second[1] - first[1]
-    return (os.cpu_count() or 1) * (total - idle) / total
-
-
-def set_threads(threads: int) -> int:
-    """Use ``threads`` intra-op CPU threads (0: :func:`auto_threads`); returns the count."""
-    n = threads if threads > 0 else auto_threads()
-    torch.set_num_threads(n)
-    return n
 
 
 def lr_at(it: int, s: NetworkSection) -> float:
@@ -312,7 +263,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
         ckpt = None
     resumed_from = state["iteration"]
 
-    runner = _Runner(net, opt, data, s, dev, out, signature, state, projections)
+    runner = TrainingLoop(net, opt, data, s, dev, out, signature, state, projections)
     if ckpt is None and baseline_meta["kind"] != "none":
         runner.keep_initial()  # the baseline alone is the model to beat
     was_deterministic = torch.are_deterministic_algorithms_enabled()
@@ -426,14 +377,7 @@ def _projected_baselines(base, case, data: Dataset, idx: torch.Tensor
                               BatchProjection(base, projections[n_train:]))
 
 
-def dataset_contact_input(data: Dataset) -> str:
-    """The contact-input kind the data set was generated with (``[dataset] contact_input``;
-    data sets from before the option are 'average')."""
-    protocol = data.attrs.get("protocol") or {}
-    return str(protocol.get("dataset", {}).get("contact_input", "average"))
-
-
-class _Runner:
+class TrainingLoop:
     """The optimisation loop with validation, checkpoints and the progress bar."""
 
     def __init__(self, net: SurrogateNet, opt: torch.optim.Optimizer, data: Dataset,

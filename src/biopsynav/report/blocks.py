@@ -27,7 +27,7 @@ class Image:
 
 
 @dataclass
-class Grid:
+class GridTable:
     """A table: ``header`` (n,), ``rows`` of n strings."""
 
     header: list[str]
@@ -77,7 +77,7 @@ def _md_block(b, base: Path) -> list[str]:
         return [f"> **{b.text}**"]
     if isinstance(b, Image):
         return [f"![{b.caption}]({_relative(b.path, base)})", "", f"*{b.caption}*"]
-    if isinstance(b, Grid):
+    if isinstance(b, GridTable):
         cells = [[c.replace("|", "\\|") for c in row] for row in [b.header, *b.rows]]
         lines = ["| " + " | ".join(cells[0]) + " |",
                  "|" + "|".join(":---" if i == 0 else "---:" for i in range(len(b.header)))
@@ -122,7 +122,7 @@ def _html_block(b) -> str:
         return (f"<figure><img alt=\"{html.escape(b.caption)}\" "
                 f"src=\"data:image/png;base64,{data}\"><figcaption>{html.escape(b.caption)}"
                 "</figcaption></figure>")
-    if isinstance(b, Grid):
+    if isinstance(b, GridTable):
         head = "".join(f"<th>{html.escape(c)}</th>" for c in b.header)
         rows = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>"
                        for r in b.rows)

@@ -11,7 +11,7 @@ from ..errors import BiopsynavError, InputError
 from ..evaluate.paper import PAPER_TABLE1
 from ..evaluate.run import TABLE2, TABLE2_MEASURED, shown_tables, table2_text
 from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
-from .blocks import Grid, Image, Note, Para, Pre, Section
+from .blocks import GridTable, Image, Note, Para, Pre, Section
 from .figures import plot_table2, plot_timing, timing_rows
 from .machine import versions_and_machine
 
@@ -23,7 +23,7 @@ def not_run(stage: str, case_dir: Path, what: str) -> Note:
     return Note(f"{what}: not run yet: run `biopsynav {stage} {case_dir}`.")
 
 
-def read_json(path: Path) -> dict | None:
+def read_stage_json(path: Path) -> dict | None:
     """The JSON object at ``path``, or None if missing; InputError naming a damaged one."""
     doc = fileio.read_json(path, f"rebuild it with the stage that writes it "
                                  f"({_WRITER.get(path.name, 'biopsynav run')})", missing_ok=True)
@@ -63,7 +63,7 @@ def case_section(case_dir: Path, cfg: CaseConfig) -> Section:
         for key, value in values.items():
             shown = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
             rows.append([f"[{section}] {key}", shown])
-    s.blocks += [Para("Parameters (case.toml):"), Grid(["parameter", "value"], rows)]
+    s.blocks += [Para("Parameters (case.toml):"), GridTable(["parameter", "value"], rows)]
     return s
 
 
@@ -86,11 +86,11 @@ def anatomy_picture(case_dir: Path) -> Path | Note:
 def dataset_section(case_dir: Path) -> Section:
     """Data generation summary and histograms."""
     s = Section("Training data (FE simulations)")
-    summary = read_json(case_dir / "dataset_summary.json")
+    summary = read_stage_json(case_dir / "dataset_summary.json")
     if summary is None:
         s.blocks.append(not_run("generate", case_dir, "Data generation"))
         return s
-    s.blocks.append(Grid(["quantity", "value"], [[k, _num(v)] for k, v in summary.items()]))
+    s.blocks.append(GridTable(["quantity", "value"], [[k, _num(v)] for k, v in summary.items()]))
     if (case_dir / "dataset.png").is_file():
         s.blocks.append(Image(case_dir / "dataset.png", "Distributions of probe force, tilt, "
                                                         "maximal nodal and probe displacement."))
@@ -100,7 +100,7 @@ def dataset_section(case_dir: Path) -> Section:
 def training_section(case_dir: Path) -> Section:
     """Architecture, training figures and the loss curve."""
     s = Section("Network training")
-    meta = read_json(case_dir / "model" / "meta.json")
+    meta = read_stage_json(case_dir / "model" / "meta.json")
     if meta is None:
         s.blocks.append(not_run("train", case_dir, "Training"))
         return s
@@ -108,7 +108,7 @@ def training_section(case_dir: Path) -> Section:
             ["parameters", _num(meta.get("n_parameters"))]]
     rows += [[k, _num(v)] for k, v in (meta.get("training") or {}).items()
              if not isinstance(v, (list, dict))]
-    s.blocks.append(Grid(["item", "value"], rows))
+    s.blocks.append(GridTable(["item", "value"], rows))
     curve = next((p for p in (case_dir / "model" / "loss_curve.png",
                               case_dir / "eval" / "loss_curve.png") if p.is_file()), None)
     if curve is not None:
@@ -119,7 +119,7 @@ def training_section(case_dir: Path) -> Section:
 def table1_section(case_dir: Path) -> Section:
     """Table 1 beside the paper's, error histogram, Figure 4 (worst, largest deformation)."""
     s = Section("Table 1: network against FE on the held-out samples")
-    t1 = read_json(case_dir / "eval" / "table1.json")
+    t1 = read_stage_json(case_dir / "eval" / "table1.json")
     if t1 is None:
         s.blocks.append(not_run("evaluate", case_dir, "Table 1"))
         return s
@@ -144,7 +144,7 @@ def table1_section(case_dir: Path) -> Section:
                      f"{t1['inverted_samples']} of {_num(t1.get('n_samples'))}, at most "
                      f"{t1['inverted_cells_max']} cells ({t1['inverted_samples_fe']})",
                      "not reported"])
-    s.blocks.append(Grid(["", "this case", "the paper"], rows))
+    s.blocks.append(GridTable(["", "this case", "the paper"], rows))
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
                                        "samples."),
                ("largest_deformation.png", "Figure 4(a): prediction (network) against FE on "
@@ -163,7 +163,7 @@ def table2_section(case_dir: Path, fig_dir: Path) -> Section:
     s = Section("Table 2: target registration error per lesion and probe displacement")
     found = False
     for stem, title in ((TABLE2, "by simulation"), (TABLE2_MEASURED, "from measured data")):
-        result = read_json(case_dir / "eval" / f"{stem}.json")
+        result = read_stage_json(case_dir / "eval" / f"{stem}.json")
         if result is None:
             continue
         found = True
@@ -181,7 +181,7 @@ def table2_blocks(result: dict, title: str, png: Path) -> list:
         t = result["tables"][m]
         header, *rows = _grid_rows(t)
         blocks += [Para(f"{METHOD_TITLES.get(m, m)}: average {what} "
-                        f"{_num(t['overall_mean'], '.3f')} mm."), Grid(header, rows)]
+                        f"{_num(t['overall_mean'], '.3f')} mm."), GridTable(header, rows)]
     blocks.append(Para("The paper, on the CIRS phantom with positions from ultrasound "
                        "images: average TRE below 6.194 mm (U-Net) and 6.080 mm (FE) per "
                        "lesion; column means D10 ... D30 of 2.75, 3.39, 4.22, 5.12, 5.76 mm "
@@ -208,14 +208,14 @@ def _grid_rows(t: dict) -> list[list[str]]:
 def timing_section(case_dir: Path, fig_dir: Path) -> Section:
     """FE against network times, with the paper's."""
     s = Section("Timing")
-    summary = read_json(case_dir / "dataset_summary.json")
-    t1 = read_json(case_dir / "eval" / "table1.json")
-    t2 = read_json(case_dir / "eval" / f"{TABLE2}.json")
+    summary = read_stage_json(case_dir / "dataset_summary.json")
+    t1 = read_stage_json(case_dir / "eval" / "table1.json")
+    t2 = read_stage_json(case_dir / "eval" / f"{TABLE2}.json")
     rows = timing_rows(summary, t1, t2)
     if len(rows) == 2:
         s.blocks.append(not_run("generate", case_dir, "Timings (data generation, training, "
                                                       "evaluation)"))
-    s.blocks.append(Grid(["", "mean (ms)", "std (ms)"],
+    s.blocks.append(GridTable(["", "mean (ms)", "std (ms)"],
                          [[lab, f"{v:.4g}", "-" if e is None else f"{e:.3g}"]
                           for lab, v, e in rows]))
     s.blocks.append(Image(plot_timing(rows, fig_dir / "timing.png"),
@@ -229,7 +229,7 @@ def timing_section(case_dir: Path, fig_dir: Path) -> Section:
 
 
 def machine_section() -> Section:
-    return Section("Versions and machine", [Grid(["item", "value"], versions_and_machine())])
+    return Section("Versions and machine", [GridTable(["item", "value"], versions_and_machine())])
 
 
 def stages_section(case_dir: Path) -> Section:
@@ -238,7 +238,7 @@ def stages_section(case_dir: Path) -> Section:
 
     rows = [[name, rel, "yes" if (case_dir / rel).exists() else "no"]
             for name, rel in STAGES.items() if name != "report"]
-    return Section("Pipeline stages", [Grid(["stage", "output", "done"], rows)])
+    return Section("Pipeline stages", [GridTable(["stage", "output", "done"], rows)])
 
 
 def dumps_compact(obj) -> str:

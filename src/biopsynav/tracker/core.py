@@ -201,7 +201,7 @@ class Tracker:
             emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
             self._contact_emb = emb
             if self.engine == "net":
-                from ..network.projection import one_thread
+                from ..threads import one_thread
 
                 with one_thread():  # many small dense solves (docs/igtl.md, rest pose)
                     self._input_op = self.input_operator()

@@ -1,0 +1,82 @@
+"""CPU thread settings, in one place: how many threads, and one thread for small solves.
+
+PyTorch's intra-op threads (training, TorchScript), OpenVINO's (``threads`` of its runner) and
+NumPy/SciPy's BLAS threads are all set from here.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+
+
+def auto_threads(sample_s: float = 0.2) -> int:
+    """Cores not busy with other processes, at least 1.
+
+    Two PyTorch (OpenMP) threads collapse when another process holds a core: measured here, a
+    training step took 380 ms with 2 threads against 99 ms with 1 thread on a loaded 2-core
+    machine (64 ms with 2 threads when idle), so ``threads = 0`` takes only the idle cores.
+    Busy cores are measured from the CPU time the system spent outside idle and I/O wait over
+    ``sample_s`` seconds (``/proc/stat``), not from the load average: on the development VM a
+    kernel thread keeps the load average at 1 while both cores are idle. Elsewhere the
+    1-minute load average is used.
+    """
+    cores = os.cpu_count() or 1
+    busy = _busy_cores(sample_s)
+    if busy is None:
+        try:
+            busy = os.getloadavg()[0]
+        except OSError:
+            return cores
+    return max(1, min(cores, int(cores - busy + 0.5)))
+
+
+def _busy_cores(sample_s: float) -> float | None:
+    """Cores' worth of non-idle CPU time over ``sample_s`` seconds (Linux), else None."""
+    def snapshot() -> tuple[int, int] | None:
+        try:
+            with open("/proc/stat") as f:
+                fields = [int(v) for v in f.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
+        return sum(fields[:8]), idle
+
+    first = snapshot()
+    if first is None:
+        return None
+    time.sleep(sample_s)
+    second = snapshot()
+    if second is None or second[0] <= first[0]:
+        return None
+    total, idle = second[0] - first[0], second[1] - first[1]
+    return (os.cpu_count() or 1) * (total - idle) / total
+
+
+def set_threads(threads: int) -> int:
+    """Use ``threads`` intra-op CPU threads (0: :func:`auto_threads`); returns the count."""
+    n = threads if threads > 0 else auto_threads()
+    torch.set_num_threads(n)
+    return n
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Run the enclosed NumPy/SciPy BLAS, OpenMP and PyTorch work on one thread, then restore
+    the thread counts. For many small (hundreds of rows) dense products and solves in turn:
+    there, extra threads only wait on each other, and PyTorch's spinning OpenMP workers
+    starve BLAS's. Measured for the per-sample projections of the phantom, 2-core VM, beside a
+    running training: 0.15 s against 0.01 s per sample (BENCHMARKS.md)."""
+    from threadpoolctl import threadpool_limits
+
+    torch_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        torch.set_num_threads(torch_threads)
