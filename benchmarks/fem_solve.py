@@ -4,7 +4,7 @@ The same problem in both: the phantom at the default grid (about 2,200 active ce
 default material (neo-Hookean) and stiffness, a probe push at 30 degrees from the inward
 normal on a 50 x 10 mm patch, large enough for >= 30 mm maximum displacement, the same
 Newton tolerance (|R| <= 1e-8 |R0| and |du| <= 1e-8 |u|). scikit-fem assembles its own weak
-form (:mod:`biopsynav.fem.skfem_peer`) and solves with SciPy's default sparse solver. Also
+form (``tests/peers/skfem_peer.py``) and solves with SciPy's default sparse solver. Also
 times biopsynav at two and four times the cell count.
 
 Usage: ``python benchmarks/fem_solve.py [--repeats N] [--peer-repeats N] [--force F]``.
@@ -14,6 +14,7 @@ The last line reads ``RESULT fem_ms=... peer_ms=... ratio=... max_disp_mm=... ne
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,10 +23,12 @@ import numpy as np
 
 from biopsynav.case import make_phantom_case
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
-from biopsynav.fem.skfem_peer import SkfemModel
 from biopsynav.grid.embedding import Embedding
 from biopsynav.probe import nodal_forces
 from biopsynav.simulate import patch_at
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.peers
+from tests.peers.skfem_peer import SkfemModel  # noqa: E402
 
 PUSH_AT_MM = np.array([20.0, 10.0, 80.0])
 TILT_DEG = 30.0

@@ -13,7 +13,7 @@
 
 Without CASE_DIR, or while ``biopsynav.tracker.Tracker`` does not exist, the update and FE parts
 are skipped (reported as nan) and the round trip uses the rigid stand-in tracker
-(:class:`biopsynav.igtl.RigidLesionTracker`), so it measures the service alone.
+(``tests/igtl/rigid.py``), so it measures the service alone.
 
 Poses: ``--poses`` reads the ``biopsynav track`` CSV (``frame, sequence, m00 ... m23``);
 otherwise a synthetic sequence pushes up to 8 mm along the rest pose's beam axis with a
@@ -98,7 +98,8 @@ def load_tracker(case_dir: str | None, engine: str | None = None):
 
 
 def stand_in_tracker():
-    from biopsynav.igtl.rigid import RigidLesionTracker
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository
+    from tests.igtl.rigid import RigidLesionTracker
 
     return RigidLesionTracker(LESION_CENTERS, max_push_mm=1e6)
 

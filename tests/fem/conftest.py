@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from biopsynav.fem.mesh import box_mesh
+from tests.fem.mesh import box_mesh
 
 E_MPA = 5e-3
 NU = 0.45

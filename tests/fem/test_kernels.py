@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from biopsynav.fem import FEModel, internal_forces, tangent_matrix
-from biopsynav.fem.mesh import box_mesh
+from tests.fem.mesh import box_mesh
 
 from .conftest import E_MPA, NU, distorted_box, pk1_exact
 

@@ -11,7 +11,7 @@ from scipy.optimize import fsolve
 from biopsynav.errors import InputError, SolverError
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
 from biopsynav.fem.linsolve import available_backends
-from biopsynav.fem.mesh import box_mesh
+from tests.fem.mesh import box_mesh
 
 from .conftest import E_MPA, NU, distorted_box, lame
 
@@ -74,7 +74,7 @@ def test_uniaxial_stretch_matches_closed_form(material, p11_over_e):
 
 def test_cross_check_against_scikit_fem(material):
     pytest.importorskip("skfem")
-    from biopsynav.fem.skfem_peer import SkfemModel
+    from tests.peers.skfem_peer import SkfemModel
 
     nodes, hexes = box_mesh((4, 3, 3), (40.0, 30.0, 30.0))
     fixed = nodes[:, 2] < 1e-9

@@ -13,8 +13,8 @@ import pytest
 
 from biopsynav.config import IgtlSection
 from biopsynav.igtl.protocol import Message, encode_transform, read_message
-from biopsynav.igtl.rigid import RigidLesionTracker
 from biopsynav.igtl.server import IgtlServer
+from tests.igtl.rigid import RigidLesionTracker
 
 HOST = "127.0.0.1"
 CENTERS = np.array([[10.0, 20.0, 30.0], [-5.0, 0.0, 40.0], [0.0, -15.0, 25.0]])

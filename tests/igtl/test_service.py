@@ -15,10 +15,10 @@ import pytest
 
 from biopsynav.errors import InputError
 from biopsynav.igtl.protocol import HEADER_SIZE, encode_string, encode_transform
-from biopsynav.igtl.rigid import RigidLesionTracker
 from biopsynav.igtl.server import IgtlServer
 from biopsynav.igtl.service import run_service
 from biopsynav.tracker.result import INVALID_POSE, OK, REST, TrackingResult
+from tests.igtl.rigid import RigidLesionTracker
 
 from .conftest import (
     CENTERS,

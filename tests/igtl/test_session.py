@@ -12,9 +12,9 @@ import pytest
 from biopsynav.config import IgtlSection
 from biopsynav.igtl.messages import CommandMessage, TriangleMesh, unpack_polydata
 from biopsynav.igtl.protocol import MessageReader, pack
-from biopsynav.igtl.rigid import RigidLesionTracker
 from biopsynav.igtl.session import IgtlSession
 from biopsynav.tracker.result import LesionResult, TrackingResult
+from tests.igtl.rigid import RigidLesionTracker
 
 from .conftest import CENTERS, translation
 

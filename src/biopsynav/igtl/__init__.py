@@ -6,11 +6,10 @@ and ``service`` runs ``biopsynav serve`` (docs/igtl.md).
 """
 
 from .protocol import IgtlProtocolError, MessageReader, read_message
-from .rigid import RigidLesionTracker
 from .server import IgtlServer
 from .service import run_service, serve
 from .session import IgtlSession, ServerStats, TrackerLike
 
 __all__ = ["IgtlProtocolError", "IgtlServer", "IgtlSession", "MessageReader",
-           "RigidLesionTracker", "ServerStats", "TrackerLike", "read_message", "run_service",
+           "ServerStats", "TrackerLike", "read_message", "run_service",
            "serve"]

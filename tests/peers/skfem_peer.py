@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from ..errors import SolverError
-from .model import lame_constants
+from biopsynav.errors import SolverError
+from biopsynav.fem.model import lame_constants
 
 
 def _stress_and_increment(material: str, f, mu, lam):

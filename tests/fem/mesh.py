@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..grid import index
+from biopsynav.grid import index
 
 
 def box_mesh(cells: tuple[int, int, int], size_mm: tuple[float, float, float],

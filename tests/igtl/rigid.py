@@ -16,8 +16,8 @@ import time
 import numpy as np
 import trimesh
 
-from ..tracker.core import as_pose, pose_problem
-from ..tracker.result import (
+from biopsynav.tracker.core import as_pose, pose_problem
+from biopsynav.tracker.result import (
     INVALID_POSE,
     NO_CONTACT,
     NO_REST_POSE,
