@@ -79,7 +79,7 @@ def time_steps(case_dir: Path, case_data, preset: str, steps: int, threads: int)
 def time_predictions(case_data, preset: str, n: int, threads: int) -> tuple[float, float]:
     """Median and 99th percentile (ms) of one batch-1 prediction of ``preset``'s network."""
     from biopsynav.network.export import save_onnx, save_torchscript
-    from biopsynav.network.infer import OpenVinoRunner, TorchScriptRunner, resolve_runtime
+    from biopsynav.network.runtimes import OpenVinoRunner, TorchScriptRunner, resolve_runtime
     from biopsynav.threads import set_threads
 
     n_threads = set_threads(threads)
@@ -87,7 +87,7 @@ def time_predictions(case_data, preset: str, n: int, threads: int) -> tuple[floa
     net = build_net(preset, *case_data).eval()
     x = np.ascontiguousarray(data.inputs[data.test_idx[:1]].numpy())
     with tempfile.TemporaryDirectory() as tmp:
-        if resolve_runtime("auto") == "openvino":
+        if resolve_runtime("auto").name == "openvino":
             run = OpenVinoRunner(save_onnx(net, Path(tmp) / "m.onnx", data.node_shape),
                                  n_threads, data.node_shape)
         else:

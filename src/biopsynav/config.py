@@ -19,17 +19,25 @@ import tomllib
 
 from .errors import InputError
 from .fileio import write_text_atomic
+from .network.runtimes import runtime_choices
 
 CASE_FILE = "case.toml"
 
 
 def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
-        choices: tuple | None = None, factory: Any = None) -> Any:
-    """A documented case.toml field with optional numeric range or choices."""
+        choices: tuple | Any = None, factory: Any = None) -> Any:
+    """A documented case.toml field with optional numeric range or choices (a tuple, or a
+    function returning one: the names of a registry, read when a value is checked)."""
     meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices}
     if factory is not None:
         return field(default_factory=factory, metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def field_choices(meta: dict) -> tuple:
+    """The allowed values of a field (its registry's names when ``choices`` is a function)."""
+    choices = meta.get("choices") or ()
+    return tuple(choices()) if callable(choices) else tuple(choices)
 
 
 @dataclass
@@ -272,7 +280,7 @@ class NetworkSection:
     runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
                                "(frozen, optimize_for_inference), 'openvino' (fp32 forced) or "
                                "'auto' (the fastest installed; see docs/network.md). Always "
-                               "fp32.", choices=("auto", "torchscript", "openvino"))
+                               "fp32.", choices=runtime_choices)
 
 
 @dataclass
@@ -421,8 +429,8 @@ def _check_value(section: str, f: dataclasses.Field, value: Any, where: str) -> 
     if not isinstance(value, expected):
         raise InputError(f"{key} must be of type {expected.__name__}, got {value!r}", where)
     meta = f.metadata
-    if meta.get("choices") and value not in meta["choices"]:
-        raise InputError(f"{key} must be one of {', '.join(meta['choices'])}; got {value!r}",
+    if meta.get("choices") and value not in field_choices(meta):
+        raise InputError(f"{key} must be one of {', '.join(field_choices(meta))}; got {value!r}",
                          where)
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         if not math.isfinite(value):
@@ -587,7 +595,7 @@ def reference_markdown() -> str:
             meta = f.metadata
             allowed = ""
             if meta.get("choices"):
-                allowed = ", ".join(meta["choices"])
+                allowed = ", ".join(field_choices(meta))
             elif meta.get("lo") is not None or meta.get("hi") is not None:
                 allowed = f"[{meta.get('lo')}, {meta.get('hi')}]"
             shown = repr(value) if not isinstance(value, dict) else "see meaning"

@@ -99,3 +99,27 @@ def test_evaluate_writes_table1(trained, tmp_path):
         assert (tmp_path / name).is_file(), name
     with pytest.raises(FingerprintError):
         evaluate(case / "model", case, tmp_path, "other")
+
+
+def test_a_registered_runtime_is_a_case_toml_choice_and_runs(monkeypatch):
+    """One registration (network/runtimes.py) makes a runtime loadable by name and accepted by
+    ``[network] runtime``; unknown names are refused with the known ones."""
+    from biopsynav.config import config_from_dict
+    from biopsynav.network import runtimes
+
+    class Zeros:
+        name = "zeros"
+
+        def __init__(self, path, threads, shape):
+            self.shape = shape
+
+        def __call__(self, x):
+            return np.zeros((x.shape[0], 3, *self.shape), np.float32)
+
+    monkeypatch.setitem(runtimes.RUNTIMES, "zeros",
+                        runtimes.RuntimeSpec("zeros", runtimes.TORCHSCRIPT, Zeros))
+    assert config_from_dict({"network": {"runtime": "zeros"}}, "t").network.runtime == "zeros"
+    assert runtimes.resolve_runtime("zeros").make(None, 1, (2, 2, 2))(
+        np.zeros((1, 4, 2, 2, 2), np.float32)).shape == (1, 3, 2, 2, 2)
+    with pytest.raises(InputError, match="one of auto, torchscript, openvino, zeros"):
+        config_from_dict({"network": {"runtime": "tensorrt"}}, "t")

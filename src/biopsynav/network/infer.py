@@ -14,7 +14,7 @@ When the model was trained on top of the linear-elastic baseline (``meta.json`` 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -24,106 +24,13 @@ from ..errors import InputError
 from ..probe import ContactInputOperator
 from ..threads import auto_threads
 from .baseline import LinearElasticBaseline
-from .export import load_torchscript
-from .model_io import ONNX, TORCHSCRIPT, check_file, check_fingerprint, read_meta
+from .model_io import check_file, check_fingerprint, read_meta
 from .projection import ContactProjection
+from .runtimes import Runner, openvino_available, resolve_runtime  # noqa: F401  (re-exported)
 
 if TYPE_CHECKING:
     from ..case import Case
 
-RUNTIMES = ("auto", "torchscript", "openvino")
-
-
-class Runner(Protocol):
-    def __call__(self, x: np.ndarray) -> np.ndarray: ...
-
-
-class TorchScriptRunner:
-    """Frozen TorchScript on the CPU, fp32, run under ``torch.inference_mode``."""
-
-    name = "torchscript"
-
-    def __init__(self, path: Path, threads: int) -> None:
-        torch.set_num_threads(threads)
-        try:
-            self.module = load_torchscript(path)
-        except RuntimeError as exc:
-            raise InputError(f"cannot load the TorchScript model ({str(exc)[:200]}); retrain "
-                             "with `biopsynav train`", str(path)) from None
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            return self.module(torch.from_numpy(x)).numpy()
-
-
-class OpenVinoRunner:
-    """OpenVINO on the CPU with the inference precision forced to fp32 (never bf16)."""
-
-    name = "openvino"
-
-    def __init__(self, path: Path, threads: int, node_shape: tuple[int, int, int]) -> None:
-        import openvino as ov
-
-        self.node_shape = tuple(node_shape)
-        self.core = ov.Core()
-        self.model = self.core.read_model(str(path))
-        self.threads = threads
-        self.compiled: dict[int, object] = {}
-        self._request(1)
-
-    def _request(self, batch: int):
-        req = self.compiled.get(batch)
-        if req is None:
-            model = self.model.clone()
-            model.reshape({0: [batch, 4, *self.node_shape]})
-            cm = self.core.compile_model(model, "CPU", {
-                "INFERENCE_PRECISION_HINT": "f32", "INFERENCE_NUM_THREADS": self.threads,
-                "PERFORMANCE_HINT": "LATENCY"})
-            precision = str(cm.get_property("INFERENCE_PRECISION_HINT"))
-            if "32" not in precision:
-                raise InputError(f"OpenVINO picked precision {precision}, not fp32", "runtime")
-            req = cm.create_infer_request()
-            self.compiled[batch] = req
-        return req
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        req = self._request(x.shape[0])
-        return req.infer({0: x}, share_inputs=True)[0]
-
-    def start(self, x: np.ndarray):
-        """Start an inference on ``x`` (kept alive by the caller) and return at once; OpenVINO
-        runs it on its own threads, without the GIL. Finish with :meth:`finish`."""
-        req = self._request(x.shape[0])
-        req.start_async({0: x}, share_inputs=True)
-        return req
-
-    @staticmethod
-    def finish(req) -> np.ndarray:
-        """The output of a started inference (a copy: the request reuses its buffer)."""
-        req.wait()
-        return np.array(req.get_output_tensor(0).data)
-
-
-def openvino_available() -> bool:
-    """Whether the ``openvino`` package can be imported."""
-    try:
-        import openvino  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def resolve_runtime(name: str) -> str:
-    """``auto`` -> ``openvino`` when installed (fastest measured, docs/network.md), else
-    ``torchscript``."""
-    if name not in RUNTIMES:
-        raise InputError(f"unknown runtime {name!r}; known: {', '.join(RUNTIMES)}", "runtime")
-    if name == "auto":
-        return "openvino" if openvino_available() else "torchscript"
-    if name == "openvino" and not openvino_available():
-        raise InputError("runtime 'openvino' requested but the openvino package is not "
-                         "installed", "runtime")
-    return name
 
 
 class Surrogate:
@@ -170,19 +77,16 @@ class Surrogate:
         model_dir = Path(model_dir)
         meta = read_meta(model_dir)
         check_fingerprint(meta, expected_fingerprint, str(model_dir))
-        rt = resolve_runtime(runtime or meta.get("inference", {}).get("runtime", "auto"))
+        spec = resolve_runtime(runtime or meta.get("inference", {}).get("runtime", "auto"))
         n = threads if threads > 0 else auto_threads()
-        if rt == "openvino":
-            runner: Runner = OpenVinoRunner(check_file(model_dir, ONNX, meta), n,
-                                            tuple(meta["node_shape"]))
-        else:
-            runner = TorchScriptRunner(check_file(model_dir, TORCHSCRIPT, meta), n)
+        runner = spec.make(check_file(model_dir, spec.model_file, meta), n,
+                           tuple(meta["node_shape"]))
         baseline = _load_baseline(meta, model_dir, case)
         if baseline is not None:
-            # the baseline's small BLAS calls run in torch's pool; beside OpenVINO's own pool
-            # one torch thread is faster (two spinning pools fight for the cores: measured
-            # 3.6 ms against 5.0 ms per prediction on 2 cores, docs/network.md)
-            torch.set_num_threads(1 if rt == "openvino" else n)
+            # the baseline's small BLAS calls run in torch's pool; beside a runtime with its
+            # own pool one torch thread is faster (two spinning pools fight for the cores:
+            # measured 3.6 ms against 5.0 ms per prediction on 2 cores, docs/network.md)
+            torch.set_num_threads(1 if spec.own_threads else n)
         sur = cls(runner, meta, model_dir, baseline)
         sur.warm_up(warmup)
         return sur

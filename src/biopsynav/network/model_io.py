@@ -15,11 +15,10 @@ from ..errors import FingerprintError, InputError
 from ..fileio import json_default, write_json_atomic
 from .data import Dataset
 from .export import SurrogateNet, load_torchscript, save_onnx, save_torchscript
+from .runtimes import ONNX, TORCHSCRIPT
 from .unet import UNetSpec, count_parameters
 
 META = "meta.json"
-TORCHSCRIPT = "model.ts"
-ONNX = "model.onnx"
 HISTORY = "history.json"
 FORMAT = "biopsynav-unet/1"
 

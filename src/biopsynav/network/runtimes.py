@@ -1,0 +1,153 @@
+"""Inference runtimes of the exported model: one registry (``register_runtime``).
+
+A runtime runs the exported network on a batch ``x`` (b, 4, nx, ny, nz) float32 and returns
+(b, 3, nx, ny, nz), always in fp32. Each is a :class:`RuntimeSpec`: the exported file it runs
+(``model.ts`` or ``model.onnx`` in the model folder), how to build its runner, whether it is
+installed, whether it keeps its own thread pool, and its rank for ``auto`` (the installed
+runtime of highest rank; measured fastest first, docs/network.md). ``[network] runtime``
+takes its choices from this registry. Nothing heavy is imported until a runner is built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from ..errors import InputError
+
+TORCHSCRIPT = "model.ts"
+ONNX = "model.onnx"
+
+
+class Runner(Protocol):
+    name: str
+
+    def __call__(self, x: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class RuntimeSpec:
+    """One runtime: ``make(model_path, threads, node_shape) -> Runner``."""
+
+    name: str
+    model_file: str
+    make: Callable[[Path, int, tuple[int, int, int]], Runner]
+    available: Callable[[], bool] = lambda: True
+    own_threads: bool = False
+    auto_rank: int = 0
+
+
+RUNTIMES: dict[str, RuntimeSpec] = {}
+
+
+def register_runtime(spec: RuntimeSpec) -> None:
+    """Add (or replace) a runtime; ``[network] runtime`` accepts its name."""
+    RUNTIMES[spec.name] = spec
+
+
+def runtime_choices() -> tuple[str, ...]:
+    """``auto`` and every registered runtime: the allowed ``[network] runtime`` values."""
+    return ("auto", *RUNTIMES)
+
+
+def resolve_runtime(name: str) -> RuntimeSpec:
+    """The runtime called ``name``; ``auto``: the installed one of highest rank."""
+    if name == "auto":
+        return max((s for s in RUNTIMES.values() if s.available()), key=lambda s: s.auto_rank)
+    spec = RUNTIMES.get(name)
+    if spec is None:
+        raise InputError(f"unknown runtime {name!r}; known: {', '.join(runtime_choices())}",
+                         "runtime")
+    if not spec.available():
+        raise InputError(f"runtime {name!r} requested but it is not installed", "runtime")
+    return spec
+
+
+class TorchScriptRunner:
+    """Frozen TorchScript on the CPU, fp32, run under ``torch.inference_mode``."""
+
+    name = "torchscript"
+
+    def __init__(self, path: Path, threads: int) -> None:
+        import torch
+
+        from .export import load_torchscript
+
+        self._torch = torch
+        torch.set_num_threads(threads)
+        try:
+            self.module = load_torchscript(path)
+        except RuntimeError as exc:
+            raise InputError(f"cannot load the TorchScript model ({str(exc)[:200]}); retrain "
+                             "with `biopsynav train`", str(path)) from None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        with self._torch.inference_mode():
+            return self.module(self._torch.from_numpy(x)).numpy()
+
+
+class OpenVinoRunner:
+    """OpenVINO on the CPU with the inference precision forced to fp32 (never bf16)."""
+
+    name = "openvino"
+
+    def __init__(self, path: Path, threads: int, node_shape: tuple[int, int, int]) -> None:
+        import openvino as ov
+
+        self.node_shape = tuple(node_shape)
+        self.core = ov.Core()
+        self.model = self.core.read_model(str(path))
+        self.threads = threads
+        self.compiled: dict[int, object] = {}
+        self._request(1)
+
+    def _request(self, batch: int):
+        req = self.compiled.get(batch)
+        if req is None:
+            model = self.model.clone()
+            model.reshape({0: [batch, 4, *self.node_shape]})
+            cm = self.core.compile_model(model, "CPU", {
+                "INFERENCE_PRECISION_HINT": "f32", "INFERENCE_NUM_THREADS": self.threads,
+                "PERFORMANCE_HINT": "LATENCY"})
+            precision = str(cm.get_property("INFERENCE_PRECISION_HINT"))
+            if "32" not in precision:
+                raise InputError(f"OpenVINO picked precision {precision}, not fp32", "runtime")
+            req = cm.create_infer_request()
+            self.compiled[batch] = req
+        return req
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        req = self._request(x.shape[0])
+        return req.infer({0: x}, share_inputs=True)[0]
+
+    def start(self, x: np.ndarray):
+        """Start an inference on ``x`` (kept alive by the caller) and return at once; OpenVINO
+        runs it on its own threads, without the GIL. Finish with :meth:`finish`."""
+        req = self._request(x.shape[0])
+        req.start_async({0: x}, share_inputs=True)
+        return req
+
+    @staticmethod
+    def finish(req) -> np.ndarray:
+        """The output of a started inference (a copy: the request reuses its buffer)."""
+        req.wait()
+        return np.array(req.get_output_tensor(0).data)
+
+
+def openvino_available() -> bool:
+    """Whether the ``openvino`` package can be imported."""
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+register_runtime(RuntimeSpec("torchscript", TORCHSCRIPT,
+                             lambda path, threads, shape: TorchScriptRunner(path, threads)))
+register_runtime(RuntimeSpec("openvino", ONNX, OpenVinoRunner, openvino_available,
+                             own_threads=True, auto_rank=1))
