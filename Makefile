@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test interop lint bench clean venv
+.PHONY: demo test interop browser-check lint bench clean venv
 
 venv: $(STAMP)
 
@@ -30,6 +30,13 @@ interop: $(STAMP)
 		$(SUDO) apt-get install -y libopenigtlink-dev cmake g++ || \
 		($(SUDO) apt-get update && $(SUDO) apt-get install -y libopenigtlink-dev cmake g++)
 	BIOPSYNAV_INTEROP=1 $(PY) -m pytest -q -m interop tests/interop
+
+# report.html in headless Chromium (tests/report/test_report_browser.py): installs Debian's
+# chromium when missing.
+browser-check: $(STAMP)
+	@command -v chromium >/dev/null || $(SUDO) apt-get install -y chromium || \
+		($(SUDO) apt-get update && $(SUDO) apt-get install -y chromium)
+	BIOPSYNAV_BROWSER=1 $(PY) -m pytest -q -m browser tests/report
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

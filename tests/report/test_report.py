@@ -114,3 +114,16 @@ def test_report_with_all_outputs_holds_both_tables(init_only):
     _check_self_contained(html)
     assert (init_only / "report_files" / "table2.png").is_file()
     assert (init_only / "eval" / "table2.md").read_text().startswith("# Table 2")
+
+
+def test_headline_first_parameters_folded_last(init_only):
+    """Table 1, Table 2 and the timing open the report; the 80-odd parameters come last,
+    folded (HTML <details>)."""
+    _fake_outputs(init_only)
+    html, md = (p.read_text() for p in write_report(init_only))
+    headings = re.findall(r"<h2>([^<]+)</h2>|<summary>([^<]+)</summary>", html)
+    titles = [a or b for a, b in headings]
+    assert titles[0].startswith("Table 1") and titles[1].startswith("Table 2")
+    assert titles[2].startswith("Timing") and titles[-1] == "Parameters (case.toml)"
+    assert html.index("<details><summary>Parameters") > html.index("Versions")
+    assert md.index("## Parameters (case.toml)") > md.index("## Table 2")

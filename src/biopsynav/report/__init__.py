@@ -1,9 +1,11 @@
 """``biopsynav report``: ``CASE/report.html`` (self-contained) and ``CASE/report.md``.
 
-Sections: pipeline stages, the case (anatomy picture, case.toml), training data, training,
-Table 1 (with the paper's), Table 2 (three methods, with the paper's), timing (FE against
-network against the paper's), versions and machine. A section whose stage has not run says
-so ("not run yet: run `biopsynav <stage> CASE`"); the report never fails on a partial case.
+Sections, the headline first: Table 1 (with the paper's, and Figure 4: a prediction against
+FE), Table 2 (three methods, with the paper's), timing (FE against network against the
+paper's); then the pipeline stages, the case (anatomy picture), training data, training,
+versions and machine, and every case.toml parameter (folded in the HTML). A section whose
+stage has not run says so ("not run yet: run `biopsynav <stage> CASE`"); the report never fails
+on a partial case.
 Figures the report makes itself go to ``CASE/report_files/``; the Markdown links every image
 relative to the case folder, the HTML embeds them as base64 data URIs.
 """
@@ -25,6 +27,7 @@ from .sections import (  # noqa: E402
     case_section,
     dataset_section,
     machine_section,
+    parameters_section,
     stages_section,
     table1_section,
     table2_section,
@@ -43,10 +46,10 @@ def build_sections(case_dir: Path) -> tuple[str, list]:
     fig_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     title = f"biopsynav report: {cfg.case.name} ({stamp})"
-    sections = [stages_section(case_dir), case_section(case_dir, cfg),
-                dataset_section(case_dir), training_section(case_dir),
-                table1_section(case_dir), table2_section(case_dir, fig_dir),
-                timing_section(case_dir, fig_dir), machine_section()]
+    sections = [table1_section(case_dir), table2_section(case_dir, fig_dir),
+                timing_section(case_dir, fig_dir), stages_section(case_dir),
+                case_section(case_dir, cfg), dataset_section(case_dir),
+                training_section(case_dir), machine_section(), parameters_section(cfg)]
     return title, sections
 
 

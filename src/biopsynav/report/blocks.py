@@ -41,9 +41,12 @@ class Pre:
 
 @dataclass
 class Section:
+    """A titled part of the report; ``folded`` shows only its title until opened (HTML)."""
+
     title: str
     blocks: list = field(default_factory=list)
     level: int = 2
+    folded: bool = False
 
 
 CSS = """
@@ -56,6 +59,8 @@ td:first-child,th:first-child{text-align:left}img{max-width:100%;border:1px soli
 figure{margin:1em 0}figcaption{font-size:.9em;color:#555}
 .note{background:#fff6dd;border-left:4px solid #e0a800;padding:.5em .8em}
 pre{background:#f6f6f8;padding:.6em;overflow-x:auto;font-size:.85em}
+details{margin-top:2em}summary{font-size:1.3em;font-weight:bold;cursor:pointer;
+border-bottom:1px solid #ccd}
 code{background:#f0f0f4;padding:0 .2em}
 """
 
@@ -99,8 +104,11 @@ def to_html(title: str, sections: list[Section]) -> str:
     """Self-contained HTML: inline CSS, images as base64 data URIs, no external reference."""
     body = [f"<h1>{html.escape(title)}</h1>"]
     for s in sections:
-        body.append(f"<h{s.level}>{html.escape(s.title)}</h{s.level}>")
-        body += [_html_block(b) for b in s.blocks]
+        head, blocks = html.escape(s.title), [_html_block(b) for b in s.blocks]
+        if s.folded:
+            body += [f"<details><summary>{head}</summary>", *blocks, "</details>"]
+        else:
+            body += [f"<h{s.level}>{head}</h{s.level}>", *blocks]
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>{html.escape(title)}</title><style>{CSS}</style></head>\n<body>\n"
             + "\n".join(body) + "\n</body></html>\n")

@@ -48,7 +48,7 @@ def _num(v, fmt: str = ".4g") -> str:
 
 
 def case_section(case_dir: Path, cfg: CaseConfig) -> Section:
-    """The anatomy picture and every case.toml parameter."""
+    """The case's name, description and anatomy picture."""
     s = Section("The case")
     s.blocks.append(Para(f"{cfg.case.name}: {cfg.case.description or 'no description'}. "
                          "Units: mm, N, MPa."))
@@ -58,13 +58,18 @@ def case_section(case_dir: Path, cfg: CaseConfig) -> Section:
                                        "grid cells (3D view and three mid-slices)."))
     else:
         s.blocks.append(picture)
+    return s
+
+
+def parameters_section(cfg: CaseConfig) -> Section:
+    """Every case.toml parameter (folded in the HTML report)."""
     rows = []
     for section, values in cfg.to_dict().items():
         for key, value in values.items():
             shown = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
             rows.append([f"[{section}] {key}", shown])
-    s.blocks += [Para("Parameters (case.toml):"), GridTable(["parameter", "value"], rows)]
-    return s
+    return Section("Parameters (case.toml)", [GridTable(["parameter", "value"], rows)],
+                   folded=True)
 
 
 def anatomy_picture(case_dir: Path) -> Path | Note:
