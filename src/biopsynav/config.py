@@ -19,6 +19,7 @@ import tomllib
 
 from .errors import InputError
 from .fileio import write_text_atomic
+from .footprint import Footprint, footprint_names, make_footprint
 from .network.runtimes import runtime_choices
 
 CASE_FILE = "case.toml"
@@ -155,6 +156,9 @@ class SolverSection:
 
 @dataclass
 class ProbeSection:
+    shape: str = opt("rectangle", "Shape of the probe face (biopsynav.footprint registry): "
+                                  "'rectangle' (a linear array) or 'ellipse' (inscribed in "
+                                  "footprint_mm).", choices=footprint_names)
     footprint_mm: list = opt(None, "Probe face, long side x short side.",
                              factory=lambda: [50.0, 10.0])
     depth_tolerance_mm: float = opt(5.0, "Half-depth of the oriented selection box along the "
@@ -183,6 +187,11 @@ class ProbeSection:
     contact_tolerance_mm: float = opt(2.0, "Tracker rest pose: skin points within this distance "
                                            "of the probe face plane (and under the footprint) "
                                            "are in contact.", lo=0.0, hi=50.0)
+
+    @property
+    def footprint(self) -> Footprint:
+        """The probe face: ``shape`` of ``footprint_mm``."""
+        return make_footprint(self.shape, self.footprint_mm)
 
 
 @dataclass

@@ -35,6 +35,7 @@ import scipy.sparse as sp
 from .anatomy.model import Anatomy
 from .config import ProbeSection
 from .errors import InputError
+from .footprint import Footprint, as_footprint
 
 #: A contact point must have ``n_i . n_p`` above this (faces the probe, not away from it).
 MIN_NORMAL_COSINE = 0.0
@@ -101,13 +102,14 @@ def probe_frame(normal: np.ndarray, angle_rad: float) -> tuple[np.ndarray, np.nd
 
 
 def probe_patch(anatomy: Anatomy, center_index: int, long_axis: np.ndarray,
-                footprint_mm: tuple[float, float] | list[float],
+                footprint: Footprint | tuple[float, float] | list[float],
                 depth_tol: float) -> np.ndarray:
     """Indices (n,) of the skin vertices under a probe centred on vertex ``center_index``.
 
-    The oriented box: ``long_axis`` (3,) (made orthogonal to the centre's outward normal
-    ``n_p``), the short axis ``n_p x long``, half-sizes ``footprint_mm / 2`` and ``depth_tol``
-    (mm) along ``n_p``. Kept: vertices inside the box, not on the chest wall, with
+    The probe frame: ``long_axis`` (3,) (made orthogonal to the centre's outward normal
+    ``n_p``), the short axis ``n_p x long``, and ``n_p``. Kept: vertices under the
+    ``footprint`` (a :class:`~biopsynav.footprint.Footprint`, or (long, short) mm: a
+    rectangle) within ``depth_tol`` (mm) along ``n_p``, not on the chest wall, with
     ``n_i . n_p > MIN_NORMAL_COSINE``. Sorted ascending.
     """
     normal = anatomy.normals[center_index] / np.linalg.norm(anatomy.normals[center_index])
@@ -116,17 +118,18 @@ def probe_patch(anatomy: Anatomy, center_index: int, long_axis: np.ndarray,
     long_axis /= np.linalg.norm(long_axis)
     short_axis = np.cross(normal, long_axis)
     axes = np.stack([long_axis, short_axis, normal], axis=1)
-    half = np.array([0.5 * footprint_mm[0], 0.5 * footprint_mm[1], depth_tol])
-    return skin_in_box(anatomy, anatomy.vertices[center_index], axes, half, normal)
+    return skin_under_face(anatomy, anatomy.vertices[center_index], axes,
+                           as_footprint(footprint), depth_tol, normal)
 
 
-def skin_in_box(anatomy: Anatomy, centre: np.ndarray, axes: np.ndarray, half: np.ndarray,
-                facing: np.ndarray) -> np.ndarray:
-    """Indices (n,) of skin vertices off the chest wall inside an oriented box, with outward
+def skin_under_face(anatomy: Anatomy, centre: np.ndarray, axes: np.ndarray,
+                    footprint: Footprint, depth_tol: float, facing: np.ndarray) -> np.ndarray:
+    """Indices (n,) of skin vertices off the chest wall under a probe face, with outward
     normals along ``facing`` (n_i . facing > MIN_NORMAL_COSINE). ``centre`` (3,) mm, ``axes``
-    (3, 3) orthonormal box axes as columns, ``half`` (3,) half-sizes along them, mm."""
+    (3, 3) the probe frame's axes as columns (long, short, face normal), ``footprint`` the
+    face's shape, ``depth_tol`` mm along the third axis."""
     local = (anatomy.vertices - centre) @ axes
-    inside = (np.all(np.abs(local) <= half, axis=1)
+    inside = (footprint.covers(local, depth_tol)
               & (anatomy.normals @ facing > MIN_NORMAL_COSINE)
               & ~np.asarray(anatomy.fixed_vertices, dtype=bool))
     return np.flatnonzero(inside)
@@ -175,7 +178,7 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
         angle = rng.uniform(0.0, np.pi)  # a footprint is symmetric under a half turn
         normal = anatomy.normals[vertex] / np.linalg.norm(anatomy.normals[vertex])
         long_axis, short_axis = probe_frame(normal, angle)
-        contact = probe_patch(anatomy, vertex, long_axis, probe.footprint_mm,
+        contact = probe_patch(anatomy, vertex, long_axis, probe.footprint,
                               probe.depth_tolerance_mm)
         if len(contact) >= probe.min_contact_points:
             break
@@ -312,4 +315,4 @@ __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",
            "MIN_NORMAL_COSINE", "ProbePush", "contact_input", "contact_input_operator",
            "draw_push", "eligible_centers",
            "nodal_forces", "probe_frame", "probe_patch", "push_for_sample", "sample_rng",
-           "skin_in_box", "tangent_basis", "tilted_direction"]
+           "skin_under_face", "tangent_basis", "tilted_direction"]

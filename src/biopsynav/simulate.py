@@ -11,6 +11,7 @@ import numpy as np
 from .errors import InputError
 from .fem import FEModel, Loads, SolveReport, SolverSettings, solve
 from .fileio import save_figure_atomic, write_bytes_atomic, write_json_atomic
+from .footprint import Footprint
 from .probe import nodal_forces, probe_patch
 
 #: Largest distance (mm) between the --at point and the skin surface.
@@ -41,7 +42,7 @@ def world_long_axis(normal: np.ndarray) -> np.ndarray:
         np.array([0.0, 1.0, 0.0])
 
 
-def patch_at(anatomy, at_mm: np.ndarray, footprint_mm: tuple[float, float],
+def patch_at(anatomy, at_mm: np.ndarray, footprint: Footprint | tuple[float, float],
              depth_tolerance_mm: float) -> ProbePatch:
     """The probe patch (:func:`biopsynav.probe.probe_patch`) centred at the skin vertex nearest
     ``at_mm`` (3,) mm; InputError if that point is not within 10 mm of the skin."""
@@ -55,7 +56,7 @@ def patch_at(anatomy, at_mm: np.ndarray, footprint_mm: tuple[float, float],
         raise InputError(f"the point {np.round(at_mm, 2).tolist()} mm is {dist.min():.1f} mm "
                          f"from the skin (at most {MAX_AT_DISTANCE_MM:g} mm)", "--at")
     normal = anatomy.normals[nearest] / np.linalg.norm(anatomy.normals[nearest])
-    ids = probe_patch(anatomy, nearest, world_long_axis(normal), footprint_mm,
+    ids = probe_patch(anatomy, nearest, world_long_axis(normal), footprint,
                       depth_tolerance_mm)
     long_axis = world_long_axis(normal) - (world_long_axis(normal) @ normal) * normal
     long_axis /= np.linalg.norm(long_axis)
@@ -84,7 +85,7 @@ def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
                          "--force")
     case = Case.load(case_dir)
     anatomy, cfg = case.anatomy, case.cfg
-    patch = patch_at(anatomy, at_mm, tuple(cfg.probe.footprint_mm), cfg.probe.depth_tolerance_mm)
+    patch = patch_at(anatomy, at_mm, cfg.probe.footprint, cfg.probe.depth_tolerance_mm)
     if len(patch.vertices) == 0:
         raise InputError("no skin vertex under the probe footprint", "--at")
     model = FEModel.from_case(case)

@@ -79,6 +79,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
         solver.pop(key, None)
     probe = cfg.section_dict("probe")
     probe.pop("contact_tolerance_mm", None)
+    if probe.get("shape") == "rectangle":  # the only shape before the registry: same protocol
+        probe.pop("shape")
     return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
             "fe_model": {"tissue_labels": cfg.anatomy.tissue_labels,
                          "min_fraction": cfg.grid.min_fraction},

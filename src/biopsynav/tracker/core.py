@@ -25,9 +25,10 @@ import numpy as np
 from ..anatomy.display import lesion_mesh
 from ..case import Case
 from ..errors import InputError, SolverError
+from ..footprint import Footprint, as_footprint
 from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
-from ..probe import ContactInputOperator, contact_input_operator, skin_in_box
+from ..probe import ContactInputOperator, contact_input_operator, skin_under_face
 from . import result as st
 from .result import LesionResult, TrackingResult
 
@@ -69,14 +70,14 @@ def pose_problem(matrix: np.ndarray, tol: float) -> str:
     return ""
 
 
-def contact_indices(anatomy, pose: np.ndarray, footprint: tuple[float, float],
+def contact_indices(anatomy, pose: np.ndarray, footprint: Footprint | tuple[float, float],
                     tol: float) -> np.ndarray:
-    """Indices of skin vertices in contact with the probe face at ``pose`` (rest pose)."""
+    """Indices of skin vertices in contact with the probe face at ``pose`` (rest pose):
+    under ``footprint`` (or (long, short) mm: a rectangle), within ``tol`` mm of the face."""
     pose = as_pose(pose)
     r = pose[:3, :3]
-    half = np.array([footprint[0] / 2, footprint[1] / 2, tol])
     # outward skin normals against the beam (the probe's z axis)
-    return skin_in_box(anatomy, pose[:3, 3], r, half, -r[:, 2])
+    return skin_under_face(anatomy, pose[:3, 3], r, as_footprint(footprint), tol, -r[:, 2])
 
 
 def lesion_meshes(lesions) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -186,7 +187,7 @@ class Tracker:
             raise InputError(problem, "rest pose")
         pose = as_pose(pose)
         cfg = self.case.cfg.probe
-        idx = contact_indices(self.case.anatomy, pose, tuple(cfg.footprint_mm),
+        idx = contact_indices(self.case.anatomy, pose, cfg.footprint,
                               cfg.contact_tolerance_mm)
         self._rest = pose
         self._rest_inv = np.linalg.inv(pose)
