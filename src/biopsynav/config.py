@@ -20,6 +20,7 @@ import tomllib
 from .errors import InputError
 from .fileio import write_text_atomic
 from .footprint import Footprint, footprint_names, make_footprint
+from .materials import MATERIAL_LAWS, material_law_names
 from .network.runtimes import runtime_choices
 
 CASE_FILE = "case.toml"
@@ -93,10 +94,11 @@ class GridSection:
 
 @dataclass
 class MaterialSection:
-    model: str = opt("neo-hookean", "Hyperelastic law: 'neo-hookean' (compressible, default: "
-                                    "stable under large pushes) or 'svk' (Saint Venant-Kirchhoff, "
-                                    "the paper's; collapses under large pushes on soft tissue).",
-                     choices=("neo-hookean", "svk"))
+    model: str = opt("neo-hookean", "Hyperelastic law (biopsynav.materials registry): "
+                                    "'neo-hookean' (compressible, default: stable under large "
+                                    "pushes) or 'svk' (Saint Venant-Kirchhoff, the paper's; "
+                                    "collapses under large pushes on soft tissue).",
+                     choices=material_law_names)
     default_tissue: str = opt("phantom", "Tissue of cells without a label.")
     tissues: dict = opt(None, "Per-tissue Young's modulus E_mpa (MPa) and Poisson ratio nu. "
                               "Defaults: fat 4.46 kPa, gland 15.1 kPa, skin 20 kPa (UC Davis / "
@@ -462,16 +464,11 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
         raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
                          f"{fp!r}", where)
+    law = MATERIAL_LAWS[cfg.material.model]
     for name, tissue in cfg.material.tissues.items():
-        if not isinstance(tissue, dict) or set(tissue) != {"E_mpa", "nu"}:
-            raise InputError(f"[material.tissues.{name}] needs exactly E_mpa and nu", where)
-        e, nu = tissue["E_mpa"], tissue["nu"]
-        if not is_finite_number(e) or not 0 < e < 1e3:
-            raise InputError(f"[material.tissues.{name}] E_mpa must be in (0, 1000) MPa (a "
-                             f"number, not a boolean), got {e!r}", where)
-        if not is_finite_number(nu) or not -1 < nu < 0.5:
-            raise InputError(f"[material.tissues.{name}] nu must be in (-1, 0.5), got {nu!r}",
-                             where)
+        problem = law.tissue_problem(tissue)
+        if problem:
+            raise InputError(f"[material.tissues.{name}] {problem}", where)
     if cfg.material.default_tissue not in cfg.material.tissues:
         raise InputError(f"[material] default_tissue {cfg.material.default_tissue!r} is not in "
                          "[material.tissues]", where)
@@ -528,13 +525,21 @@ def config_from_dict(data: dict, where: str = CASE_FILE) -> CaseConfig:
                 raise InputError(f"unknown key {key!r} in [{section}]; known: "
                                  f"{', '.join(fields)}", where)
             kwargs[key] = _check_value(section, fields[key], value, where)
-        if section == "material" and "tissues" in kwargs:
-            merged = CaseConfig().material.tissues
+        if section == "material" and "tissues" in kwargs and _default_parameters(kwargs):
+            merged = CaseConfig().material.tissues  # the built-in tissues, unless redefined
             merged.update(kwargs["tissues"])
             kwargs["tissues"] = merged
         setattr(cfg, section, cls(**kwargs))
     _check_special(cfg, where)
     return cfg
+
+
+def _default_parameters(material: dict) -> bool:
+    """Whether the ``[material]`` being read uses a law with the default law's tissue
+    parameters (then its tissues extend the built-in ones)."""
+    law = MATERIAL_LAWS.get(material.get("model", MaterialSection().model))
+    return law is not None and set(law.parameters) == set(
+        MATERIAL_LAWS[MaterialSection().model].parameters)
 
 
 HEADER_LINE = "# biopsynav case. Units: mm, N, MPa (1 kPa = 1e-3 MPa), s."

@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from biopsynav.errors import SolverError
-from biopsynav.fem.model import lame_constants
+from biopsynav.materials import lame_constants
 
 
 def _stress_and_increment(material: str, f, mu, lam):

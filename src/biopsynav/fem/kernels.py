@@ -18,9 +18,10 @@ import numpy as np
 from numba import njit, prange
 
 from ..grid.index import HEX_CORNERS
+from ..materials import KERNEL_NEO_HOOKEAN, KERNEL_SVK
 
-SVK = 0
-NEO_HOOKEAN = 1
+SVK = KERNEL_SVK  # the branch ids of biopsynav.materials
+NEO_HOOKEAN = KERNEL_NEO_HOOKEAN
 
 GAUSS_POINTS = (2.0 * HEX_CORNERS - 1.0) / np.sqrt(3.0)  # (8, 3) natural coordinates
 NATURAL_CORNERS = 2.0 * HEX_CORNERS - 1.0  # (8, 3) corners of the reference cube [-1, 1]^3

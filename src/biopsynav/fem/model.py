@@ -15,22 +15,13 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ..errors import InputError
+from ..materials import MATERIAL_LAWS, lame_constants
 from . import kernels
 
 if TYPE_CHECKING:
     from ..case import Case
     from ..config import CaseConfig
 
-MATERIALS = {"svk": kernels.SVK, "neo-hookean": kernels.NEO_HOOKEAN}
-
-
-def lame_constants(e_mpa: np.ndarray, nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lame constants (mu, lambda) in MPa from Young's modulus (MPa) and Poisson ratio."""
-    e_mpa = np.asarray(e_mpa, dtype=np.float64)
-    nu = np.asarray(nu, dtype=np.float64)
-    mu = e_mpa / (2.0 * (1.0 + nu))
-    lam = e_mpa * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    return mu, lam
 
 
 class FEModel:
@@ -40,17 +31,18 @@ class FEModel:
         nodes: (n_nodes, 3) reference positions, mm.
         hexes: (n_el, 8) flat node ids per element, VTK hexahedron order.
         weight: (n_el,) tissue volume fraction in (0, 1] scaling each element's Gauss weights.
-        E_mpa: (n_el,) Young's modulus, MPa.  nu: (n_el,) Poisson ratio.
+        E_mpa: (n_el,) Young's modulus, MPa.  nu: (n_el,) Poisson ratio (for a law with
+            other parameters, :meth:`from_parameters`).
         fixed: (n_nodes,) bool, Dirichlet nodes (u = 0 on all three components), or
             (n_nodes, 3) bool per component (rollers).
-        material: 'neo-hookean' or 'svk'.
+        material: a registered law (:mod:`biopsynav.materials`: 'neo-hookean', 'svk').
 
     Nodes used by no element carry no equation; solves return zero displacement there.
     """
 
     def __init__(self, nodes: np.ndarray, hexes: np.ndarray, weight: np.ndarray,
                  E_mpa: np.ndarray, nu: np.ndarray, fixed: np.ndarray,
-                 material: str = "neo-hookean") -> None:
+                 material: str = "neo-hookean", lame: tuple | None = None) -> None:
         self.nodes = np.ascontiguousarray(nodes, dtype=np.float64)
         self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
         n_el = self.hexes.shape[0]
@@ -60,8 +52,9 @@ class FEModel:
         self.fixed = _fixed_components(fixed, len(self.nodes))
         self.material = material
         _validate(self)
-        self.material_id = MATERIALS[material]
-        self.mu, self.lam = lame_constants(self.E_mpa, self.nu)
+        law = MATERIAL_LAWS[material]
+        self.material_id = law.kernel
+        self.mu, self.lam = lame if lame is not None else lame_constants(self.E_mpa, self.nu)
         self.grads, self.jw, self.elem_set = _unique_gradients(self.nodes[self.hexes])
         self.eq_of_dof, self.n_eq = _number_equations(self.hexes, self.fixed, len(self.nodes))
         self.elem_eq = self.eq_of_dof[self.hexes].reshape(n_el, 24)
@@ -112,13 +105,14 @@ class FEModel:
     def from_case(cls, case: Case) -> FEModel:
         """The model of a case: active grid cells, tissue per cell label, chest wall fixed."""
         cfg, grid = case.cfg, case.grid
-        tissues = cfg.material.tissues
+        law = MATERIAL_LAWS[cfg.material.model]
         names = cell_tissues(np.asarray(grid.active_label()), cfg)
-        e_mpa = np.array([tissues[n]["E_mpa"] for n in names], dtype=np.float64)
-        nu = np.array([tissues[n]["nu"] for n in names], dtype=np.float64)
+        params = {key: np.array([cfg.material.tissues[n][key] for n in names], dtype=np.float64)
+                  for key in law.parameters}
         weight = np.clip(grid.active_fraction(), cfg.grid.min_fraction, 1.0)
+        e_mpa, nu = law.small_strain(params)
         return cls(grid.node_coords(), grid.active_hexes(), weight, e_mpa, nu,
-                   np.asarray(grid.fixed_nodes).ravel(), cfg.material.model)
+                   np.asarray(grid.fixed_nodes).ravel(), law.name, law.lame(params))
 
 
 def cell_tissues(labels: np.ndarray, cfg: CaseConfig) -> np.ndarray:
@@ -166,8 +160,8 @@ def _validate(m: FEModel) -> None:
         raise InputError(f"hexes must be (n_el, 8) with n_el > 0, got {m.hexes.shape}", where)
     if m.hexes.min() < 0 or m.hexes.max() >= len(m.nodes):
         raise InputError("hexes refer to nodes that do not exist", where)
-    if m.material not in MATERIALS:
-        raise InputError(f"material must be one of {', '.join(MATERIALS)}, got "
+    if m.material not in MATERIAL_LAWS:
+        raise InputError(f"material must be one of {', '.join(MATERIAL_LAWS)}, got "
                          f"{m.material!r}", where)
     if not np.all(np.isfinite(m.nodes)):
         raise InputError("nodes contain NaN or infinity", where)
