@@ -123,3 +123,19 @@ def test_top_level_names_are_unique_across_modules():
             if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
                 where.setdefault(node.name, []).append(_module_name(path))
     assert {name: mods for name, mods in where.items() if len(mods) > 1} == {}
+
+
+def test_case_file_names_are_spelt_only_in_layout():
+    """Every name of a file in a case folder comes from biopsynav.layout (CasePaths)."""
+    from biopsynav import layout
+
+    names = {v for k, v in vars(layout).items() if k.isupper() and isinstance(v, str)
+             and ("." in v or "_" in v)}
+    found = []
+    for path in sorted(SRC.rglob("*.py")):
+        if path.name == "layout.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Constant) and node.value in names:
+                found.append(f"{_module_name(path)}:{node.lineno} {node.value!r}")
+    assert found == []

@@ -13,21 +13,33 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .anatomy.build import build_anatomy
-from .anatomy.model import ANATOMY_FILE, Anatomy
+from .anatomy.model import Anatomy
 from .anatomy.phantom import phantom_lesions_csv
 from .config import CaseConfig, load_config, save_config
 from .errors import InputError
 from .fileio import write_json_atomic, write_text_atomic
 from .grid.build import build_grid
-from .grid.model import GRID_FILE, Grid
+from .grid.model import Grid
+from .layout import (
+    ANATOMY_FILE,
+    DATASET_NAME,
+    EVAL_DIR,
+    GRID_FILE,
+    META,
+    MODEL_DIR,
+    PHANTOM_LESIONS_FILE,
+    REPORT_HTML,
+    TABLE1_FILE,
+    CasePaths,
+)
 
 STAGES = {
     "anatomy": ANATOMY_FILE,
     "grid": GRID_FILE,
-    "dataset": "dataset.zarr/zarr.json",
-    "model": "model/meta.json",
-    "evaluation": "eval/table1.json",
-    "report": "report.html",
+    "dataset": f"{DATASET_NAME}/zarr.json",
+    "model": f"{MODEL_DIR}/{META}",
+    "evaluation": f"{EVAL_DIR}/{TABLE1_FILE}",
+    "report": REPORT_HTML,
 }
 
 
@@ -41,12 +53,16 @@ class Case:
     grid: Grid
 
     @classmethod
-    def load(cls, case_dir: str | Path) -> Case:
-        """Read ``case.toml``, ``anatomy.npz`` and ``grid.npz`` of a case folder."""
-        case_dir = Path(case_dir)
-        cfg = load_config(case_dir)
-        return cls(case_dir, cfg, Anatomy.load(case_dir / ANATOMY_FILE),
-                   Grid.load(case_dir / GRID_FILE))
+    def load(cls, case_dir: str | Path, cfg: CaseConfig | None = None) -> Case:
+        """Read ``case.toml`` (unless ``cfg`` is given), ``anatomy.npz`` and ``grid.npz``."""
+        paths = CasePaths(case_dir)
+        cfg = load_config(paths.dir) if cfg is None else cfg
+        return cls(paths.dir, cfg, Anatomy.load(paths.anatomy), Grid.load(paths.grid))
+
+    @property
+    def paths(self) -> CasePaths:
+        """The paths of this case's files."""
+        return CasePaths(self.dir)
 
     def fingerprint(self) -> str:
         """SHA-256 of anatomy and grid: data and models carry it to refuse another patient's."""
@@ -58,6 +74,12 @@ class Case:
         return {name: (self.dir / rel).exists() for name, rel in STAGES.items()}
 
 
+def as_case(case: Case | str | Path) -> Case:
+    """``case`` itself when loaded, else the case folder ``case`` loaded (public entry points
+    take either; the stages below them pass the loaded :class:`Case` on)."""
+    return case if isinstance(case, Case) else Case.load(case)
+
+
 def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     """Build anatomy and grid from ``cfg`` and write ``case.toml``, ``anatomy.npz``,
     ``grid.npz`` (each atomically; nothing is written if the inputs are bad)."""
@@ -67,9 +89,10 @@ def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     grid = build_grid(anatomy, cfg.grid, cfg.network.levels)
     cell_tissues(grid.active_label(), cfg)  # every label mapped to a material, or refused now
     save_config(case_dir, cfg)
-    anatomy.save(case_dir / ANATOMY_FILE)
-    grid.save(case_dir / GRID_FILE)
-    write_json_atomic(case_dir / "inputs" / "facts.json", facts)
+    paths = CasePaths(case_dir)
+    anatomy.save(paths.anatomy)
+    grid.save(paths.grid)
+    write_json_atomic(paths.facts, facts)
     return Case(case_dir, cfg, anatomy, grid)
 
 
@@ -81,19 +104,19 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
     never left behind: on error the new folder is removed.
     """
     case_dir = Path(case_dir)
-    if (case_dir / "case.toml").exists() and not overwrite:
+    if CasePaths(case_dir).config.exists() and not overwrite:
         raise InputError("a case already exists here; use --overwrite to rebuild it",
                          str(case_dir))
     created = not case_dir.exists()
     try:
-        (case_dir / "inputs").mkdir(parents=True, exist_ok=True)
+        CasePaths(case_dir).inputs.mkdir(parents=True, exist_ok=True)
         for key, src in inputs.items():
             if src is None:
                 continue
             src = Path(src)
             if not src.exists():
                 raise InputError("file not found", str(src))
-            dst = case_dir / "inputs" / src.name
+            dst = CasePaths(case_dir).inputs / src.name
             if src.is_dir():
                 shutil.copytree(src, dst, dirs_exist_ok=True)
             elif src.resolve() != dst.resolve():
@@ -104,7 +127,8 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
             else:
                 cfg.anatomy.lesions = rel
         if cfg.anatomy.source == "phantom" and not cfg.anatomy.lesions:
-            write_text_atomic(case_dir / "inputs" / "phantom_lesions.csv", phantom_lesions_csv())
+            write_text_atomic(CasePaths(case_dir).inputs / PHANTOM_LESIONS_FILE,
+                              phantom_lesions_csv())
             cfg.anatomy.lesions = "inputs/phantom_lesions.csv"
         return build_case(case_dir, cfg)
     except BaseException:

@@ -16,8 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from .errors import CaseBusyError, WriteError
-
-LOCK_NAME = ".biopsynav.lock"
+from .layout import LOCK_NAME
 
 
 @contextlib.contextmanager

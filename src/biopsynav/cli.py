@@ -68,22 +68,29 @@ def cmd_init(args: argparse.Namespace) -> int:
     return 0
 
 
+def loaded_case(args: argparse.Namespace):
+    """The case folder of the command line, loaded once (``biopsynav.case.Case``) and handed to
+    the stage it runs."""
+    from .case import Case
+
+    return Case.load(args.case_dir)
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from .info import case_summary, format_summary
 
-    summary = case_summary(args.case_dir)
+    summary = case_summary(loaded_case(args))
     print(json.dumps(summary) if args.json else format_summary(summary))
     return 0
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from .case import Case
     from .fileio import check_output_path
     from .show import render_case
 
     if args.out:
         check_output_path(args.out, "--out")
-    out = render_case(Case.load(args.case_dir), args.out)
+    out = render_case(loaded_case(args), args.out)
     print(f"picture written to {out}")
     return 0
 
@@ -92,7 +99,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulate import simulate
 
     out = Path(args.out) if args.out else Path(args.case_dir) / "simulate"
-    result = simulate(args.case_dir, args.force, args.at, out)
+    result = simulate(loaded_case(args), args.force, args.at, out)
     print(json.dumps(result, indent=2, default=json_default))
     return 0
 
@@ -100,7 +107,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_generate(args: argparse.Namespace) -> int:
     from .dataset.generate import generate_case
 
-    summary = generate_case(args.case_dir, workers=args.workers, scheduler=args.scheduler,
+    summary = generate_case(loaded_case(args), workers=args.workers, scheduler=args.scheduler,
                             overwrite=args.overwrite)
     print(json.dumps(summary, indent=2, default=json_default))
     return 0
@@ -109,7 +116,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from .network.train import train_case
 
-    s = train_case(args.case_dir, preset=args.preset, iterations=args.iterations,
+    s = train_case(loaded_case(args), preset=args.preset, iterations=args.iterations,
                    device=args.device)
     state = "finished" if s.finished else "stopped; run again to resume"
     print(f"training {state}: {s.iterations_done} of {s.iterations} iterations, best held-out "
@@ -121,7 +128,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_case
 
-    evaluate_case(args.case_dir, table2=not args.table1_only, measured=args.measured,
+    evaluate_case(loaded_case(args), table2=not args.table1_only, measured=args.measured,
                   poses=args.poses)
     return 0
 
@@ -129,7 +136,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_track(args: argparse.Namespace) -> int:
     from .tracker.csvtrack import track_csv
 
-    counts = track_csv(args.case_dir, args.poses, args.out, engine=args.engine)
+    counts = track_csv(loaded_case(args), args.poses, args.out, engine=args.engine)
     per_status = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
     print(f"{sum(counts.values())} poses tracked ({per_status}); lesion positions and the "
           f"reason of every unreliable one written to {args.out}")
@@ -143,7 +150,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     configure_logging(logging.WARNING if args.quiet else logging.DEBUG if args.verbose
                       else logging.INFO)
-    serve(args.case_dir, tracker_addr=args.tracker, listen_addr=args.listen, device=args.device)
+    serve(loaded_case(args), tracker_addr=args.tracker, listen_addr=args.listen, device=args.device)
     return 0
 
 

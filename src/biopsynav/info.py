@@ -6,15 +6,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .case import Case
+from .case import Case, as_case
 from .fileio import read_json
 
 
-def case_summary(case_dir: str | Path) -> dict:
-    """Anatomy, lesions, chest wall, grid and stage status of a case as a plain dict (mm, mL)."""
-    case = Case.load(case_dir)
+def case_summary(case: Case | str | Path) -> dict:
+    """Anatomy, lesions, chest wall, grid and stage status of ``case`` (loaded, or its folder)
+    as a plain dict (mm, mL)."""
+    case = as_case(case)
     a, g = case.anatomy, case.grid
-    facts = read_json(case.dir / "inputs" / "facts.json", "rebuild the case with `biopsynav "
+    facts = read_json(case.paths.facts, "rebuild the case with `biopsynav "
                       "init CASE --overwrite`", missing_ok=True) or {}
     return {
         "case": case.cfg.case.name,

@@ -10,10 +10,13 @@ stopped, so running again after an interruption continues rather than restarts.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+from .case import Case, build_case
 from .config import load_config
 from .fileio import read_json
+from .layout import CasePaths
 
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
@@ -41,19 +44,17 @@ def _banner(step: int, total: int, text: str) -> None:
     print(f"\n[{step}/{total}] {text}", flush=True)
 
 
-def dataset_complete(case_dir: Path) -> bool:
+def dataset_complete(case: Case) -> bool:
     """True when dataset.zarr holds every requested sample for the current anatomy, grid and
     protocol (then ``generate`` has nothing to do)."""
-    from .case import Case
-    from .dataset.store import check_compatible, dataset_path, open_store, protocol_dict
+    from .dataset.store import check_compatible, open_store, protocol_dict
     from .errors import BiopsynavError
 
-    if not dataset_path(case_dir).exists():
+    if not case.paths.dataset.exists():
         return False
     try:
-        case = Case.load(case_dir)
         cfg = case.cfg
-        store = open_store(dataset_path(case_dir), mode="r")
+        store = open_store(case.paths.dataset, mode="r")
         check_compatible(store, case.fingerprint(),
                          protocol_dict(cfg, cfg.dataset.n_train, cfg.dataset.n_test))
         return bool(store.done_mask().all())
@@ -61,66 +62,70 @@ def dataset_complete(case_dir: Path) -> bool:
         return False
 
 
-def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:
-    """Run every stage of ``case_dir`` whose outputs are missing or out of date."""
-    from .case import Case, build_case
-
-    case_dir = Path(case_dir)
+def anatomy_stage(case_dir: Path) -> Case:
+    """Stage 1: read case.toml (the only time a run reads it) and build anatomy and grid when
+    they are missing or older than it (and no data set was made from them); the loaded case."""
+    paths = CasePaths(case_dir)
     cfg = load_config(case_dir)
-    timings: dict[str, float] = {}
-    grid_file, toml = case_dir / "grid.npz", case_dir / "case.toml"
-
-    _banner(1, 5, "anatomy and grid")
-    t = time.perf_counter()
-    if _stale(grid_file, toml) and not (case_dir / "dataset.zarr").exists():
-        build_case(case_dir, cfg)
+    if _stale(paths.grid, paths.config) and not paths.dataset.exists():
+        case = build_case(case_dir, cfg)
         print("  rebuilt anatomy and grid from case.toml")
-    else:
-        print("  up to date")
-    timings["grid_s"] = time.perf_counter() - t
+        return case
+    print("  up to date")
+    return Case.load(case_dir, cfg)
 
-    _banner(2, 5, "training data (FE simulations)")
+
+def data_stage(case: Case, workers: int) -> dict:
+    """Stage 2: complete the training data; its summary."""
     from .dataset.generate import generate_case
 
-    t = time.perf_counter()
-    summary_file = case_dir / "dataset_summary.json"
-    if dataset_complete(case_dir):
-        print("  up to date")
-        data_summary = read_json(summary_file, "run `biopsynav generate CASE` to rewrite it",
-                                 missing_ok=True) or {}
-    else:
-        data_summary = generate_case(case_dir, workers=workers)
-    timings["generate_s"] = time.perf_counter() - t
+    if not dataset_complete(case):
+        return generate_case(case, workers=workers)
+    print("  up to date")
+    return read_json(case.paths.dataset_summary, "run `biopsynav generate CASE` to rewrite it",
+                     missing_ok=True) or {}
 
-    _banner(3, 5, "network training")
-    meta = case_dir / "model" / "meta.json"
-    t = time.perf_counter()
-    if _stale(meta, summary_file):
+
+def training_stage(case: Case) -> None:
+    """Stage 3: train (or resume) when the model is missing or older than the data."""
+    if _stale(case.paths.model_meta, case.paths.dataset_summary):
         from .network.train import train_case
 
-        train_case(case_dir)
+        train_case(case)
     else:
         print("  up to date")
-    timings["train_s"] = time.perf_counter() - t
 
-    _banner(4, 5, "evaluation (Table 1 and Table 2)")
-    table2 = case_dir / "eval" / "table2.json"
-    t = time.perf_counter()
-    if _stale(table2, meta):
+
+def evaluation_stage(case: Case, quick: bool) -> None:
+    """Stage 4: Table 1 and Table 2 when they are missing or older than the model."""
+    if _stale(case.paths.table2(), case.paths.model_meta):
         from .evaluate import evaluate_case
 
-        evaluate_case(case_dir, quick=quick)
+        evaluate_case(case, quick=quick)
     else:
         print("  up to date")
-    timings["evaluate_s"] = time.perf_counter() - t
 
-    _banner(5, 5, "report")
+
+def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:
+    """Run every stage of ``case_dir`` whose outputs are missing or out of date: the folder is
+    read once into a :class:`~biopsynav.case.Case` that every stage is handed."""
     from .report import write_report
 
-    t = time.perf_counter()
-    paths = write_report(case_dir)
-    timings["report_s"] = time.perf_counter() - t
-    Case.load(case_dir)  # the finished case must load cleanly
+    timings: dict[str, float] = {}
+
+    def timed(step: int, text: str, key: str, stage: Callable, *args):
+        _banner(step, 5, text)
+        t = time.perf_counter()
+        out = stage(*args)
+        timings[key] = time.perf_counter() - t
+        return out
+
+    case = timed(1, "anatomy and grid", "grid_s", anatomy_stage, Path(case_dir))
+    data_summary = timed(2, "training data (FE simulations)", "generate_s", data_stage, case,
+                         workers)
+    timed(3, "network training", "train_s", training_stage, case)
+    timed(4, "evaluation (Table 1 and Table 2)", "evaluate_s", evaluation_stage, case, quick)
+    paths = timed(5, "report", "report_s", write_report, case)
     return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary}
 
 
@@ -130,7 +135,7 @@ def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: i
 
     case_dir = Path(case_dir)
     start = time.perf_counter()
-    if not (case_dir / "case.toml").exists():
+    if not CasePaths(case_dir).config.exists():
         print(f"building the built-in phantom case in {case_dir}"
               + (" (quick: reduced sizes)" if quick else ""))
         make_phantom_case(case_dir, overrides=QUICK if quick else FULL_DEMO)

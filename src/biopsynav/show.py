@@ -12,11 +12,12 @@ import numpy as np  # noqa: E402
 
 from .case import Case  # noqa: E402
 from .fileio import save_figure_atomic  # noqa: E402
+from .layout import ANATOMY_PICTURE
 
 
 def render_case(case: Case, out: str | Path | None = None) -> Path:
     """PNG with a 3D view and three mid-slices: surface, lesions, chest wall, grid fractions."""
-    out = Path(out) if out else case.dir / "anatomy.png"
+    out = Path(out) if out else case.dir / ANATOMY_PICTURE
     fig = plt.figure(figsize=(14, 10))
     ax = fig.add_subplot(2, 2, 1, projection="3d")
     draw_anatomy_3d(ax, case)

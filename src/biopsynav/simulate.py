@@ -5,6 +5,7 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from .fem import FEModel, Loads, SolveReport, SolverSettings, solve
 from .fileio import save_figure_atomic, write_bytes_atomic, write_json_atomic
 from .footprint import Footprint
 from .probe import nodal_forces, probe_patch
+
+if TYPE_CHECKING:
+    from .case import Case
 
 #: Largest distance (mm) between the --at point and the skin surface.
 MAX_AT_DISTANCE_MM = 10.0
@@ -64,9 +68,10 @@ def patch_at(anatomy, at_mm: np.ndarray, footprint: Footprint | tuple[float, flo
                       np.cross(normal, long_axis), ids, anatomy.vertices[ids])
 
 
-def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
+def simulate(case: Case | str | Path, force_n: np.ndarray, at_mm: np.ndarray,
              out_dir: str | Path) -> dict:
-    """One probe push: total force ``force_n`` (3,) N on the probe patch at ``at_mm`` (3,) mm.
+    """One probe push on ``case`` (loaded, or its folder): total force ``force_n`` (3,) N on
+    the probe patch at ``at_mm`` (3,) mm.
 
     Writes ``displaced_surface.vtu``, ``displaced_surface.stl``, ``simulate.png`` and
     ``simulate.json`` into ``out_dir`` (atomically) and returns the summary dict (paths,
@@ -76,14 +81,14 @@ def simulate(case_dir: str | Path, force_n: np.ndarray, at_mm: np.ndarray,
         InputError: bad force or point (NaN, wrong length, point far from the skin).
         SolverError: the solve did not converge.
     """
-    from .case import Case
+    from .case import as_case
     from .grid.embedding import Embedding, surface_embedding
 
     force_n = np.asarray(force_n, dtype=np.float64).ravel()
     if force_n.shape != (3,) or not np.all(np.isfinite(force_n)):
         raise InputError(f"--force must be three finite numbers, got {force_n.tolist()}",
                          "--force")
-    case = Case.load(case_dir)
+    case = as_case(case)
     anatomy, cfg = case.anatomy, case.cfg
     patch = patch_at(anatomy, at_mm, cfg.probe.footprint, cfg.probe.depth_tolerance_mm)
     if len(patch.vertices) == 0:

@@ -10,7 +10,6 @@ import numpy as np
 
 from ..fileio import load_npz, save_npz_atomic
 
-ANATOMY_FILE = "anatomy.npz"
 REBUILD = "rebuild the case with `biopsynav init CASE --overwrite` (same inputs)"
 ANATOMY_KEYS = ("vertices", "faces", "normals", "fixed_vertices", "chest_point", "chest_normal",
                 "lesion_ids", "lesion_centers", "lesion_radii", "lesion_points",

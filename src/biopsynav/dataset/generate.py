@@ -22,8 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from ..case import Case, as_case
 from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
+from ..layout import DATASET_PLOT, DATASET_SUMMARY
 from .store import (
     DatasetStore,
     check_compatible,
@@ -44,8 +46,7 @@ from .worker import (
     process_sample,
 )
 
-SUMMARY_FILE = "dataset_summary.json"
-PLOT_FILE = "dataset.png"
+SUMMARY_FILE, PLOT_FILE = DATASET_SUMMARY, DATASET_PLOT
 #: The failure share is judged once this many draws (or all requested, if fewer) were made.
 MIN_DRAWS_FOR_SHARE = 20
 #: A sample whose draw crashes the worker pool this many times stops the job.
@@ -54,13 +55,13 @@ MAX_POOL_CRASHES = 3
 IN_FLIGHT_PER_WORKER = 2
 
 
-def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None = None,
+def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | None = None,
                   overwrite: bool = False, n_train: int | None = None,
                   n_test: int | None = None, progress: bool = True) -> dict:
     """Generate (or complete) ``CASE_DIR/dataset.zarr``; returns the summary dict.
 
     Args:
-        case_dir: the case folder (``biopsynav init`` done).
+        case: the loaded case, or its folder (``biopsynav init`` done).
         workers: local worker processes (0: all cores); ignored with ``scheduler``.
         scheduler: ``tcp://HOST:PORT`` of a Dask distributed scheduler (its workers get the
             case by value: no shared folder needed).
@@ -79,10 +80,8 @@ def generate_case(case_dir: str | Path, workers: int = 0, scheduler: str | None 
         BiopsynavError: more than ``[dataset] max_failure_share`` of the draws did not converge,
             or went deeper than ``[probe] max_push_mm``.
     """
-    from ..case import Case
-
     start = time.perf_counter()
-    case = Case.load(case_dir)
+    case = as_case(case)
     n_train = int(case.cfg.dataset.n_train if n_train is None else n_train)
     n_test = int(case.cfg.dataset.n_test if n_test is None else n_test)
     if n_train < 1 or n_test < 1:

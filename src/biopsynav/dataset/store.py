@@ -36,8 +36,8 @@ import numpy as np
 
 from ..config import CaseConfig
 from ..errors import FingerprintError, InputError
+from ..layout import DATASET_NAME
 
-DATASET_NAME = "dataset.zarr"
 FORMAT = "biopsynav-dataset/1"
 #: Bump when the protocol (draw order, input encoding) changes: old data is then refused.
 PROTOCOL_VERSION = 1

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..case import Case
+from ..case import Case, as_case
 from ..errors import InputError
 from ..tracker.csvtrack import read_poses
 from .simulation import METHODS, _method_trackers, evaluation_solver_settings
@@ -81,7 +81,7 @@ def _check_consistency(rows: list, measured: dict, lesion_ids: list[int], poses_
                              f"{', '.join(map(str, lesion_ids))})", str(measured_path))
 
 
-def evaluate_measured(case_dir: str | Path, poses_csv: str | Path, measured_csv: str | Path,
+def evaluate_measured(case: Case | str | Path, poses_csv: str | Path, measured_csv: str | Path,
                       methods: Sequence[str] = METHODS,
                       log: Callable[[str], None] = print) -> dict:
     """Table 2 (methods against measured positions) from a poses and a positions CSV.
@@ -93,7 +93,7 @@ def evaluate_measured(case_dir: str | Path, poses_csv: str | Path, measured_csv:
     poses_csv, measured_csv = Path(poses_csv), Path(measured_csv)
     rows = read_poses(poses_csv)
     measured = read_measured(measured_csv)
-    case = Case.load(case_dir)
+    case = as_case(case)
     lesion_ids = [int(les.id) for les in case.anatomy.lesions]
     _check_consistency(rows, measured, lesion_ids, poses_csv, measured_csv)
     index_of = {lid: i for i, lid in enumerate(lesion_ids)}

@@ -5,27 +5,25 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from ..case import Case, as_case
 from ..errors import InputError
 from ..fileio import write_json_atomic, write_text_atomic
+from ..layout import EVAL_DIR, TABLE2, TABLE2_MEASURED, CasePaths
 from .measured import evaluate_measured
 from .paper import PAPER_TABLE2_COL_MEAN, PAPER_TABLE2_MAX_ROW_MEAN
 from .simulation import run_simulation
 from .table import BIN_EDGES_MM, METHOD_TITLES, format_markdown, format_text, table_from_dict
 
-EVAL_DIR = "eval"
-TABLE2 = "table2"  # by simulation: eval/table2.json and eval/table2.md
-TABLE2_MEASURED = "table2_measured"  # from user data: eval/table2_measured.json and .md
-
 
 def require_model(case_dir: Path) -> None:
     """Raise InputError unless the case has a trained model."""
-    if not (case_dir / "model" / "meta.json").is_file():
+    meta = CasePaths(case_dir).model_meta
+    if not meta.is_file():
         raise InputError("missing: no trained model in this case; run `biopsynav train "
-                         f"{case_dir}` first (and `biopsynav generate` before it)",
-                         str(case_dir / "model" / "meta.json"))
+                         f"{case_dir}` first (and `biopsynav generate` before it)", str(meta))
 
 
-def evaluate_case(case_dir: str | Path, table2: bool = True, measured: str | Path | None = None,
+def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | Path | None = None,
                   poses: str | Path | None = None, quick: bool = False,
                   log: Callable[[str], None] = print) -> dict:
     """Table 1, then Table 2 (by simulation, or from ``poses`` + ``measured`` CSVs).
@@ -36,22 +34,22 @@ def evaluate_case(case_dir: str | Path, table2: bool = True, measured: str | Pat
     1.5 times finer reference). Returns ``{"table1": ..., "table2": ...}`` (``table2``
     absent with ``table2=False``).
     """
-    case_dir = Path(case_dir)
     if (measured is None) != (poses is None):
         raise InputError("--poses and --measured go together: the tracked probe poses and the "
                          "lesion positions measured in those frames", "evaluate")
-    require_model(case_dir)
+    case = as_case(case)
+    require_model(case.dir)
     from ..network.evaluate import evaluate_network_case as table1_case
     from ..network.evaluate import format_table1
 
-    out: dict = {"table1": table1_case(case_dir)}
+    out: dict = {"table1": table1_case(case)}
     log("Table 1: " + format_table1(out["table1"]))
     if measured is not None:
-        result = evaluate_measured(case_dir, poses, measured, log=log)
-        out["table2"] = write_table2(case_dir, result, TABLE2_MEASURED, log)
+        result = evaluate_measured(case, poses, measured, log=log)
+        out["table2"] = write_table2(case.dir, result, TABLE2_MEASURED, log)
     elif table2:
-        result = run_simulation(case_dir, quick=quick, log=log)
-        out["table2"] = write_table2(case_dir, result, TABLE2, log)
+        result = run_simulation(case, quick=quick, log=log)
+        out["table2"] = write_table2(case.dir, result, TABLE2, log)
     return out
 
 

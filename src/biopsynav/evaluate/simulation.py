@@ -14,10 +14,11 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from ..case import Case
+from ..case import Case, as_case
 from ..fem import FEModel, SolverSettings
 from ..grid.build import build_grid
 from ..tracker.core import Tracker
@@ -87,9 +88,9 @@ def setup_for(case: Case, quick: bool) -> Setup:
                  ev.deformations_per_lesion, ev.max_push_mm)
 
 
-def run_simulation(case_dir, methods: Sequence[str] = METHODS, quick: bool = False,
+def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, quick: bool = False,
                    log: Callable[[str], None] = print) -> dict:
-    """Table 2 by simulation of the case in ``case_dir``; returns the JSON-ready result.
+    """Table 2 by simulation of ``case`` (loaded, or its folder); returns the JSON-ready result.
 
     Keys: ``source`` ("simulation"), ``methods``, ``records`` (one per lesion, push and
     method: displacement_mm, bin, tre_mm or None with status and reason, time_ms),
@@ -97,7 +98,7 @@ def run_simulation(case_dir, methods: Sequence[str] = METHODS, quick: bool = Fal
     facts), ``failures`` and ``timing`` (seconds).
     """
     t_start = time.perf_counter()
-    case = Case.load(case_dir)
+    case = as_case(case)
     setup = setup_for(case, quick)
     settings = evaluation_solver_settings(case)
     t0 = time.perf_counter()
@@ -147,7 +148,7 @@ def _method_trackers(case: Case, methods: Sequence[str],
                      settings: SolverSettings) -> dict[str, Tracker]:
     trackers: dict[str, Tracker] = {}
     if "net" in methods:
-        trackers["net"] = Tracker.load(case.dir, engine="net")
+        trackers["net"] = Tracker.load(case, engine="net")
     if "fem" in methods:
         trackers["fem"] = fem_tracker(case, settings)
     return trackers

@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ..errors import InputError
+from ..layout import CASE_FILE
 from ..materials import MATERIAL_LAWS, lame_constants
 from . import kernels
 
@@ -125,7 +126,7 @@ def cell_tissues(labels: np.ndarray, cfg: CaseConfig) -> np.ndarray:
     if unmapped:
         raise InputError(f"the anatomy has cell labels {', '.join(map(str, unmapped))} with no "
                          "entry in [anatomy] tissue_labels (init --tissue-labels "
-                         f"{','.join(f'{v}=fat' for v in unmapped)}, for example)", "case.toml")
+                         f"{','.join(f'{v}=fat' for v in unmapped)}, for example)", CASE_FILE)
     for value in present:
         names[labels == value] = cfg.anatomy.tissue_labels[str(value)]
     return names

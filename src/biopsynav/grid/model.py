@@ -12,8 +12,6 @@ from ..anatomy.model import REBUILD
 from ..fileio import load_npz, save_npz_atomic
 from . import index
 
-GRID_FILE = "grid.npz"
-
 
 @dataclass
 class Grid:

@@ -16,11 +16,15 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..config import IgtlSection
 from ..errors import BiopsynavError
 from .server import Address, IgtlServer
 from .session import ServerStats, TrackerLike
+
+if TYPE_CHECKING:
+    from ..case import Case
 
 log = logging.getLogger("biopsynav.igtl")
 
@@ -100,31 +104,33 @@ def summary(stats: ServerStats, seconds: float) -> str:
             f"dropped); {stats.tracker_failures} tracker failures")
 
 
-def serve(case_dir: str | Path, tracker_addr: str | Address | None = None,
+def serve(case: Case | str | Path, tracker_addr: str | Address | None = None,
           listen_addr: str | Address | None = None, device: str | None = None) -> ServerStats:
-    """``biopsynav serve``: load the case's tracker and run the service (None: case.toml)."""
-    from ..config import load_config
+    """``biopsynav serve``: load the tracker of ``case`` (loaded, or its folder) and run the
+    service (addresses and device None: its case.toml)."""
+    from ..case import as_case
 
-    cfg = load_config(case_dir).igtl
-    log.info("loading the tracker of %s", case_dir)
-    return run_service(service_tracker(case_dir, cfg), tracker_addr or cfg.tracker,
+    case = as_case(case)
+    log.info("loading the tracker of %s", case.dir)
+    cfg = case.cfg.igtl
+    return run_service(service_tracker(case, cfg), tracker_addr or cfg.tracker,
                        listen_addr or cfg.listen, device or cfg.probe_device, settings=cfg)
 
 
-def service_tracker(case_dir: str | Path, cfg: IgtlSection | None = None) -> TrackerLike:
-    """The case's tracker as the service runs it: ``[igtl] inference_threads`` threads (of
-    ``cfg``, else of the case's case.toml)."""
-    if cfg is None:
-        from ..config import load_config
+def service_tracker(case: Case | str | Path, cfg: IgtlSection | None = None) -> TrackerLike:
+    """The tracker of ``case`` (loaded, or its folder) as the service runs it:
+    ``[igtl] inference_threads`` threads (of ``cfg``, else of the case's case.toml)."""
+    from ..case import as_case
 
-        cfg = load_config(case_dir).igtl
     try:
         from ..tracker import Tracker
     except ImportError:
         raise BiopsynavError("the tracker (biopsynav.tracker.Tracker) is not available in "
-                             "this installation", str(case_dir)) from None
+                             "this installation", str(case)) from None
+    case = as_case(case)
+    cfg = case.cfg.igtl if cfg is None else cfg
     threads = cfg.inference_threads and min(cfg.inference_threads, os.cpu_count() or 1)
-    return Tracker.load(case_dir, threads=threads)
+    return Tracker.load(case, threads=threads)
 
 
 __all__ = ["configure_logging", "install_signal_handlers", "run_service", "serve",

@@ -15,9 +15,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..layout import DATASET_NAME
 from .unet import QUADRATIC_PAIRS
-
-DATASET_NAME = "dataset.zarr"
 
 
 @dataclass

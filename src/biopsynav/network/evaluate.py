@@ -11,19 +11,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..case import Case
+from ..case import Case, as_case
 from ..dataset.contacts import sample_contact_matrices
 from ..errors import FingerprintError
 from ..fileio import write_json_atomic
 from ..grid.index import tensor_to_field
+from ..layout import TABLE1_FILE, CasePaths
 from .data import Dataset, load_dataset
-from .infer import Surrogate, case_fingerprint
+from .infer import Surrogate
 from .metrics import error_summary, mean_norm_error_np
 from .plots import plot_error_histogram, plot_sample
 from .projection import ContactProjection, sample_projections
-
-EVAL_DIR = "eval"
-
 
 Contacts = list[tuple[ContactProjection, np.ndarray]]
 
@@ -96,7 +94,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     e_plain = mean_norm_error_np(pred, y, active)
     project = sur.projects(contact_projection)
     home = Path(model_dir).parent
-    if case is None and (project or (home / "case.toml").is_file()):
+    if case is None and (project or CasePaths(home).config.is_file()):
         case = Case.load(home)  # needed to project; else for the inverted-cell count
     contacts = None
     if project:
@@ -127,7 +125,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
         result.update(inverted_cell_figures(case, pred, y))
     _figures(Path(out_dir), pred, y, active, e, disp,
              spacing_mm or meta.get("spacing_mm") or 1.0)
-    write_json_atomic(Path(out_dir) / "table1.json", result)
+    write_json_atomic(Path(out_dir) / TABLE1_FILE, result)
     return result
 
 
@@ -180,16 +178,13 @@ def format_table1(r: dict) -> str:
                if "inverted_samples" in r else ""))
 
 
-def evaluate_network_case(case_dir: str | Path) -> dict:
-    """CLI entry: Table 1 of ``CASE_DIR/model`` on ``CASE_DIR/dataset.zarr`` into CASE_DIR/eval."""
-    from ..config import load_config
-
-    case_dir = Path(case_dir)
-    cfg = load_config(case_dir)
-    from ..grid.model import GRID_FILE, Grid
-
-    return evaluate(case_dir / "model", case_dir, case_dir / EVAL_DIR, case_fingerprint(case_dir),
+def evaluate_network_case(case: Case | str | Path) -> dict:
+    """CLI entry: Table 1 of the case's model on its ``dataset.zarr``, written to its eval/
+    (``case``: loaded, or its folder)."""
+    case = as_case(case)
+    cfg = case.cfg
+    return evaluate(case.paths.model, case.dir, case.paths.eval, case.fingerprint(),
                     runtime=cfg.network.runtime, threads=cfg.network.threads,
-                    spacing_mm=Grid.load(case_dir / GRID_FILE).spacing,
+                    spacing_mm=case.grid.spacing, case=case,
                     contact_projection=cfg.network.contact_projection,
                     n_timing=cfg.evaluate.timed_predictions)

@@ -218,20 +218,21 @@ def _load_baseline(meta: dict, model_dir: Path,
                                            power=float(info.get("spring_power", SPRING_POWER)))
 
 
-def load_for_case(case_dir: str | Path, *, runtime: str | None = None,
+def load_for_case(case: Case | str | Path, *, runtime: str | None = None,
                   threads: int | None = None) -> Surrogate:
-    """Load ``CASE_DIR/model`` checked against the case's anatomy+grid fingerprint."""
-    from ..config import load_config
+    """Load the model of ``case`` (loaded, or its folder) checked against the case's
+    anatomy+grid fingerprint, with its [network] runtime and threads unless given."""
+    from ..case import as_case
 
-    case_dir = Path(case_dir)
-    cfg = load_config(case_dir)
-    return Surrogate.load(case_dir / "model", case_fingerprint(case_dir),
-                          runtime=runtime or cfg.network.runtime,
-                          threads=cfg.network.threads if threads is None else threads)
+    case = as_case(case)
+    net = case.cfg.network
+    return Surrogate.load(case.paths.model, case.fingerprint(), case=case,
+                          runtime=runtime or net.runtime,
+                          threads=net.threads if threads is None else threads)
 
 
 def case_fingerprint(case_dir: str | Path) -> str:
-    """Anatomy+grid fingerprint of a case (``biopsynav.case.Case``)."""
-    from ..case import Case  # type: ignore[import-not-found]
+    """Anatomy+grid fingerprint of the case in ``case_dir`` (``biopsynav.case.Case``)."""
+    from ..case import Case
 
     return Case.load(case_dir).fingerprint()

@@ -13,13 +13,12 @@ import torch
 from ..config import is_finite_number
 from ..errors import FingerprintError, InputError
 from ..fileio import json_default, write_json_atomic
+from ..layout import HISTORY, META
 from .data import Dataset
 from .export import SurrogateNet, load_torchscript, save_onnx, save_torchscript
 from .runtimes import ONNX, TORCHSCRIPT
 from .unet import UNetSpec, count_parameters
 
-META = "meta.json"
-HISTORY = "history.json"
 FORMAT = "biopsynav-unet/1"
 
 

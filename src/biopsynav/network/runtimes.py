@@ -18,9 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from ..errors import InputError
-
-TORCHSCRIPT = "model.ts"
-ONNX = "model.onnx"
+from ..layout import ONNX, TORCHSCRIPT
 
 
 class Runner(Protocol):

@@ -30,9 +30,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import NetworkSection, load_config
+from ..case import Case, as_case
+from ..config import NetworkSection
 from ..errors import InputError
 from ..fileio import remove_partial_writes, write_bytes_atomic
+from ..layout import BEST, CHECKPOINT, LOSS_CURVE, MODEL_DIR
 from ..threads import set_threads
 from .data import (
     Dataset,
@@ -50,10 +52,6 @@ from .model_io import HISTORY, META, ONNX, TORCHSCRIPT, write_model
 from .projection import BatchProjection, sample_projections
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
 
-MODEL_DIR = "model"
-CHECKPOINT = "checkpoint.pt"
-BEST = "best.pt"
-LOSS_CURVE = "loss_curve.png"
 #: Every file training writes into the model folder (all atomically).
 MODEL_FILES = (CHECKPOINT, BEST, LOSS_CURVE, TORCHSCRIPT, ONNX, META, HISTORY)
 
@@ -208,11 +206,11 @@ def validate(net: SurrogateNet, x: torch.Tensor, y: torch.Tensor, active: torch.
     return torch.cat(errs).cpu()
 
 
-def train(case_dir: str | Path, preset: str | None = None, iterations: int | None = None,
+def train(case: Case | str | Path, preset: str | None = None, iterations: int | None = None,
           device: str | None = None, *, settings: NetworkSection | None = None,
           dataset: str | Path | None = None, model_dir: str | Path | None = None,
           progress: bool = True, stop_after: int | None = None) -> TrainSummary:
-    """Train (or resume training of) the surrogate of a case.
+    """Train (or resume training of) the surrogate of ``case`` (a loaded case, or its folder).
 
     ``settings`` is the [network] section (defaults when None); ``preset``, ``iterations`` and
     ``device`` override it. Data come from ``dataset`` (default ``CASE_DIR/dataset.zarr``) and
@@ -226,7 +224,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
         s.iterations = int(iterations)
     if device is not None:
         s.device = device
-    case_dir = Path(case_dir)
+    case_dir = case.dir if isinstance(case, Case) else Path(case)
     out = Path(model_dir) if model_dir is not None else case_dir / MODEL_DIR
     spec = preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
                        activation=s.activation, features=s.features)
@@ -236,7 +234,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
     check_node_shape(full.node_shape, spec.levels)
-    data, baseline_meta, projections = residual_dataset(full, s.baseline, case_dir,
+    data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
                                                         s.contact_projection)
     in_scale, out_scale = normalisation_stats(data)
     if baseline_meta["kind"] != "none":
@@ -296,7 +294,7 @@ def train(case_dir: str | Path, preset: str | None = None, iterations: int | Non
                         finished, spec.to_dict(), count_parameters(spec))
 
 
-def residual_dataset(data: Dataset, kind: str, case_dir: str | Path,
+def residual_dataset(data: Dataset, kind: str, case: Case | str | Path,
                      contact_projection: bool = False
                      ) -> tuple[Dataset, dict, tuple[BatchProjection, BatchProjection] | None]:
     """The data set the network trains on, the ``baseline`` entry of meta.json and, when it
@@ -304,7 +302,7 @@ def residual_dataset(data: Dataset, kind: str, case_dir: str | Path,
 
     ``kind`` 'none': ``data`` itself. 'linear-elastic': targets replaced by the residual
     ``target - baseline(input)`` of :class:`~biopsynav.network.baseline.LinearElasticBaseline`
-    of the case in ``case_dir`` (computed once for every sample); the case must be the one the
+    of ``case`` (computed once for every sample); the case must be the one the
     data were generated for (fingerprint). With ``contact_projection`` (and the elastic contact
     input) the network is trained on what the tracker deploys, the projected prediction
     (:mod:`~biopsynav.network.projection`): the target is ``target - u_lin(x) - u_lin(g -
@@ -316,11 +314,10 @@ def residual_dataset(data: Dataset, kind: str, case_dir: str | Path,
     if kind != "linear-elastic":
         raise InputError(f"unknown baseline {kind!r}; use linear-elastic or none",
                          "[network] baseline")
-    from ..case import Case
     from ..errors import FingerprintError
     from .baseline import SPRING_SCALE, LinearElasticBaseline
 
-    case = Case.load(case_dir)
+    case = as_case(case)
     if case.fingerprint() != data.fingerprint:
         raise FingerprintError("the data set was generated for another anatomy or grid than "
                                "this case; the linear-elastic baseline needs the case's own "
@@ -482,11 +479,12 @@ class TrainingLoop:
                      "state": self.state, "signature": self.signature}, self.out / CHECKPOINT)
 
 
-def train_case(case_dir: str | Path, preset: str | None = None, iterations: int | None = None,
+def train_case(case: Case | str | Path, preset: str | None = None, iterations: int | None = None,
                device: str | None = None, *, progress: bool = True) -> TrainSummary:
-    """CLI entry: train with the [network] section of ``CASE_DIR/case.toml``, with overrides."""
-    cfg = load_config(case_dir)
-    return train(case_dir, preset, iterations, device, settings=cfg.network, progress=progress)
+    """CLI entry: train with the [network] section of the case's ``case.toml``, with
+    overrides (``case``: a loaded case, or its folder)."""
+    case = as_case(case)
+    return train(case, preset, iterations, device, settings=case.cfg.network, progress=progress)
 
 
 __all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",

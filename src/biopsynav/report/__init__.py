@@ -19,8 +19,10 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+from ..case import Case  # noqa: E402
 from ..config import load_config  # noqa: E402
 from ..fileio import write_text_atomic  # noqa: E402
+from ..layout import REPORT_HTML, REPORT_MD
 from .blocks import to_html, to_markdown  # noqa: E402
 from .sections import (  # noqa: E402
     FIG_DIR,
@@ -35,28 +37,31 @@ from .sections import (  # noqa: E402
     training_section,
 )
 
-HTML_FILE = "report.html"
-MD_FILE = "report.md"
+HTML_FILE, MD_FILE = REPORT_HTML, REPORT_MD
 
 
-def build_sections(case_dir: Path) -> tuple[str, list]:
-    """Title and sections of the report of ``case_dir`` (makes the report's own figures)."""
-    cfg = load_config(case_dir)
+def build_sections(case_dir: Path, case: Case | None = None) -> tuple[str, list]:
+    """Title and sections of the report of ``case_dir`` (makes the report's own figures);
+    ``case``: the loaded case, when the caller has it (else case.toml is read here, and the
+    report is written for a partial case too)."""
+    cfg = case.cfg if case is not None else load_config(case_dir)
     fig_dir = case_dir / FIG_DIR
     fig_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     title = f"biopsynav report: {cfg.case.name} ({stamp})"
     sections = [table1_section(case_dir), table2_section(case_dir, fig_dir),
                 timing_section(case_dir, fig_dir), stages_section(case_dir),
-                case_section(case_dir, cfg), dataset_section(case_dir),
+                case_section(case_dir, cfg, case), dataset_section(case_dir),
                 training_section(case_dir), machine_section(), parameters_section(cfg)]
     return title, sections
 
 
-def write_report(case_dir: str | Path) -> list[Path]:
-    """Write ``CASE/report.html`` and ``CASE/report.md``; return their paths (HTML first)."""
-    case_dir = Path(case_dir)
-    title, sections = build_sections(case_dir)
+def write_report(case: Case | str | Path) -> list[Path]:
+    """Write ``CASE/report.html`` and ``CASE/report.md`` of ``case`` (loaded, or its folder);
+    return their paths (HTML first)."""
+    loaded = case if isinstance(case, Case) else None
+    case_dir = loaded.dir if loaded is not None else Path(case)
+    title, sections = build_sections(case_dir, loaded)
     html_path = write_text_atomic(case_dir / HTML_FILE, to_html(title, sections))
     md_path = write_text_atomic(case_dir / MD_FILE, to_markdown(title, sections, case_dir))
     return [html_path, md_path]

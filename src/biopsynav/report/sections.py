@@ -6,16 +6,28 @@ import json
 from pathlib import Path
 
 from .. import fileio
+from ..case import Case
 from ..config import CaseConfig
 from ..errors import BiopsynavError, InputError
 from ..evaluate.paper import PAPER_TABLE1
 from ..evaluate.run import TABLE2, TABLE2_MEASURED, shown_tables, table2_text
 from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
+from ..layout import (
+    ANATOMY_PICTURE,
+    DATASET_PLOT,
+    DATASET_SUMMARY,
+    FACTS_FILE,
+    LOSS_CURVE,
+    META,
+    REPORT_FILES,
+    TABLE1_FILE,
+    CasePaths,
+)
 from .blocks import GridTable, Image, Note, Para, Pre, Section
 from .figures import plot_table2, plot_timing, timing_rows
 from .machine import versions_and_machine
 
-FIG_DIR = "report_files"  # figures the report makes, beside report.html
+FIG_DIR = REPORT_FILES
 
 
 def not_run(stage: str, case_dir: Path, what: str) -> Note:
@@ -34,9 +46,9 @@ def read_stage_json(path: Path) -> dict | None:
 
 
 #: The command that writes each JSON file the report reads.
-_WRITER = {"table1.json": "`biopsynav evaluate`", "table2.json": "`biopsynav evaluate`",
-           "meta.json": "`biopsynav train`", "dataset_summary.json": "`biopsynav generate`",
-           "facts.json": "`biopsynav init --overwrite`"}
+_WRITER = {TABLE1_FILE: "`biopsynav evaluate`", f"{TABLE2}.json": "`biopsynav evaluate`",
+           META: "`biopsynav train`", DATASET_SUMMARY: "`biopsynav generate`",
+           FACTS_FILE: "`biopsynav init --overwrite`"}
 
 
 def _num(v, fmt: str = ".4g") -> str:
@@ -47,12 +59,13 @@ def _num(v, fmt: str = ".4g") -> str:
     return str(v)
 
 
-def case_section(case_dir: Path, cfg: CaseConfig) -> Section:
-    """The case's name, description and anatomy picture."""
+def case_section(case_dir: Path, cfg: CaseConfig, case: Case | None = None) -> Section:
+    """The case's name, description and anatomy picture (``case``: the loaded case, when the
+    caller has it)."""
     s = Section("The case")
     s.blocks.append(Para(f"{cfg.case.name}: {cfg.case.description or 'no description'}. "
                          "Units: mm, N, MPa."))
-    picture = anatomy_picture(case_dir)
+    picture = anatomy_picture(case_dir, case)
     if isinstance(picture, Path):
         s.blocks.append(Image(picture, "Anatomy: surface, chest wall, lesions and the active "
                                        "grid cells (3D view and three mid-slices)."))
@@ -72,18 +85,19 @@ def parameters_section(cfg: CaseConfig) -> Section:
                    folded=True)
 
 
-def anatomy_picture(case_dir: Path) -> Path | Note:
-    """``CASE/anatomy.png`` (rendered when missing or older than the grid), or a note."""
-    png, grid = case_dir / "anatomy.png", case_dir / "grid.npz"
-    if not grid.is_file() or not (case_dir / "anatomy.npz").is_file():
+def anatomy_picture(case_dir: Path, case: Case | None = None) -> Path | Note:
+    """``CASE/anatomy.png`` (rendered when missing or older than the grid, from ``case`` or
+    the folder's files), or a note."""
+    paths = CasePaths(case_dir)
+    png, grid = case_dir / ANATOMY_PICTURE, paths.grid
+    if not grid.is_file() or not paths.anatomy.is_file():
         return not_run("init", case_dir, "Anatomy and grid")
     if png.is_file() and png.stat().st_mtime >= grid.stat().st_mtime:
         return png
     try:
-        from ..case import Case
         from ..show import render_case
 
-        return render_case(Case.load(case_dir), png)
+        return render_case(case if case is not None else Case.load(case_dir), png)
     except (BiopsynavError, OSError, ValueError) as exc:
         return Note(f"The anatomy picture could not be rendered: {exc}")
 
@@ -91,13 +105,13 @@ def anatomy_picture(case_dir: Path) -> Path | Note:
 def dataset_section(case_dir: Path) -> Section:
     """Data generation summary and histograms."""
     s = Section("Training data (FE simulations)")
-    summary = read_stage_json(case_dir / "dataset_summary.json")
+    summary = read_stage_json(CasePaths(case_dir).dataset_summary)
     if summary is None:
         s.blocks.append(not_run("generate", case_dir, "Data generation"))
         return s
     s.blocks.append(GridTable(["quantity", "value"], [[k, _num(v)] for k, v in summary.items()]))
-    if (case_dir / "dataset.png").is_file():
-        s.blocks.append(Image(case_dir / "dataset.png", "Distributions of probe force, tilt, "
+    if (case_dir / DATASET_PLOT).is_file():
+        s.blocks.append(Image(case_dir / DATASET_PLOT, "Distributions of probe force, tilt, "
                                                         "maximal nodal and probe displacement."))
     return s
 
@@ -105,7 +119,7 @@ def dataset_section(case_dir: Path) -> Section:
 def training_section(case_dir: Path) -> Section:
     """Architecture, training figures and the loss curve."""
     s = Section("Network training")
-    meta = read_stage_json(case_dir / "model" / "meta.json")
+    meta = read_stage_json(CasePaths(case_dir).model_meta)
     if meta is None:
         s.blocks.append(not_run("train", case_dir, "Training"))
         return s
@@ -114,8 +128,9 @@ def training_section(case_dir: Path) -> Section:
     rows += [[k, _num(v)] for k, v in (meta.get("training") or {}).items()
              if not isinstance(v, (list, dict))]
     s.blocks.append(GridTable(["item", "value"], rows))
-    curve = next((p for p in (case_dir / "model" / "loss_curve.png",
-                              case_dir / "eval" / "loss_curve.png") if p.is_file()), None)
+    paths = CasePaths(case_dir)
+    curve = next((p for p in (paths.model / LOSS_CURVE, paths.eval / LOSS_CURVE)
+                  if p.is_file()), None)
     if curve is not None:
         s.blocks.append(Image(curve, "Training loss and validation error against iterations."))
     return s
@@ -124,7 +139,7 @@ def training_section(case_dir: Path) -> Section:
 def table1_section(case_dir: Path) -> Section:
     """Table 1 beside the paper's, error histogram, Figure 4 (worst, largest deformation)."""
     s = Section("Table 1: network against FE on the held-out samples")
-    t1 = read_stage_json(case_dir / "eval" / "table1.json")
+    t1 = read_stage_json(CasePaths(case_dir).table1)
     if t1 is None:
         s.blocks.append(not_run("evaluate", case_dir, "Table 1"))
         return s
@@ -157,7 +172,7 @@ def table1_section(case_dir: Path) -> Section:
                ("worst_sample.png", "Figure 4(b): prediction against FE on the sample with "
                                     "the largest mean norm error.")]
     for name, caption in figures:
-        path = case_dir / "eval" / name
+        path = CasePaths(case_dir).eval / name
         s.blocks.append(Image(path, caption) if path.is_file() else
                         Note(f"{name} is missing: run `biopsynav evaluate {case_dir}` again."))
     return s
@@ -168,7 +183,7 @@ def table2_section(case_dir: Path, fig_dir: Path) -> Section:
     s = Section("Table 2: target registration error per lesion and probe displacement")
     found = False
     for stem, title in ((TABLE2, "by simulation"), (TABLE2_MEASURED, "from measured data")):
-        result = read_stage_json(case_dir / "eval" / f"{stem}.json")
+        result = read_stage_json(CasePaths(case_dir).table2(stem))
         if result is None:
             continue
         found = True
@@ -213,9 +228,10 @@ def _grid_rows(t: dict) -> list[list[str]]:
 def timing_section(case_dir: Path, fig_dir: Path) -> Section:
     """FE against network times, with the paper's."""
     s = Section("Timing")
-    summary = read_stage_json(case_dir / "dataset_summary.json")
-    t1 = read_stage_json(case_dir / "eval" / "table1.json")
-    t2 = read_stage_json(case_dir / "eval" / f"{TABLE2}.json")
+    paths = CasePaths(case_dir)
+    summary = read_stage_json(paths.dataset_summary)
+    t1 = read_stage_json(paths.table1)
+    t2 = read_stage_json(paths.table2(TABLE2))
     rows = timing_rows(summary, t1, t2)
     if len(rows) == 2:
         s.blocks.append(not_run("generate", case_dir, "Timings (data generation, training, "

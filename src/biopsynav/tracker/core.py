@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..anatomy.display import lesion_mesh
-from ..case import Case
+from ..case import Case, as_case
 from ..errors import InputError, SolverError
 from ..footprint import Footprint, as_footprint
 from ..grid.embedding import Embedding, surface_embedding
@@ -145,17 +145,18 @@ class Tracker:
                                                          where="lesions")
 
     @classmethod
-    def load(cls, case_dir: str | Path, engine: str | None = None,
+    def load(cls, case: Case | str | Path, engine: str | None = None,
              threads: int | None = None) -> Tracker:
-        """Load a case and its engine: ``"net"`` (trained model, fingerprint-checked) or
-        ``"fem"`` (finite elements with prescribed contact displacements). ``threads``: CPU
-        threads of the network (None: ``[network] threads``; 0: the idle cores)."""
-        case = Case.load(case_dir)
+        """The tracker of ``case`` (loaded, or its folder) with its engine: ``"net"`` (trained
+        model, fingerprint-checked) or ``"fem"`` (finite elements with prescribed contact
+        displacements). ``threads``: CPU threads of the network (None: ``[network] threads``;
+        0: the idle cores)."""
+        case = as_case(case)
         engine = engine or case.cfg.tracker.engine
         if engine == "net":
             from ..network.infer import Surrogate
 
-            sur = Surrogate.load(case.dir / "model", case.fingerprint(),
+            sur = Surrogate.load(case.paths.model, case.fingerprint(), case=case,
                                  threads=case.cfg.network.threads if threads is None
                                  else threads)
             return cls(case, engine, surrogate=sur)

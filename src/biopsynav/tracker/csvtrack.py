@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..case import Case
 from ..errors import InputError
 from ..fileio import write_text_atomic
 
@@ -84,16 +85,16 @@ def lesions_csv(tracked: list[tuple]) -> str:
     return buf.getvalue()
 
 
-def track_csv(case_dir: str | Path, poses: str | Path, out: str | Path,
+def track_csv(case: Case | str | Path, poses: str | Path, out: str | Path,
               engine: str = "net") -> dict[str, int]:
-    """Track all poses of ``poses`` with the case's tracker; write ``out``; return the number
-    of poses per status."""
+    """Track all poses of ``poses`` with the tracker of ``case`` (loaded, or its folder);
+    write ``out``; return the number of poses per status."""
     from ..fileio import check_output_path
     from .core import Tracker
 
     check_output_path(out, "--out")
     rows = read_poses(poses)
-    tracker = Tracker.load(case_dir, engine=engine)
+    tracker = Tracker.load(case, engine=engine)
     tracked = track_rows(tracker, rows)
     write_text_atomic(out, lesions_csv(tracked))
     return dict(Counter(result.status for _, result in tracked))
