@@ -118,3 +118,23 @@ def poses_csv(tmp_path_factory) -> Path:
     rows = [f"{i},a,1,0,0,0,0,-1,0,0,0,0,-1,{z}" for i, z in enumerate((76.0, 70.0))]
     path.write_text("\n".join([head, *rows]) + "\n")
     return path
+
+
+# --- a tiny synthetic data set and one tiny model trained on it: network and inference tests ---
+
+@pytest.fixture(scope="session")
+def synth_case(tmp_path_factory) -> Path:
+    from tests.network.synth import SHAPE, write_synthetic_dataset
+
+    case = tmp_path_factory.mktemp("synth") / "case"
+    write_synthetic_dataset(case, shape=SHAPE, n_train=40, n_test=10, seed=1)
+    return case
+
+
+@pytest.fixture(scope="session")
+def trained(synth_case):
+    from biopsynav.network.train import train
+    from tests.network.synth import tiny_settings
+
+    summary = train(synth_case, settings=tiny_settings(), progress=False)
+    return synth_case, summary

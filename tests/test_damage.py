@@ -155,7 +155,7 @@ def _usable(op: str, case: Path) -> None:
     elif op == "report":
         assert "Table 1" in (case / "report.html").read_text()
     elif op == "train":
-        from biopsynav.network.model_io import read_meta
+        from biopsynav.inference.model_files import read_meta
 
         assert read_meta(case / "model")["envelope"]["max_contact_disp_mm"] > 0
 

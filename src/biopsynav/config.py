@@ -20,9 +20,9 @@ import tomllib
 from .errors import InputError
 from .fileio import write_text_atomic
 from .footprint import Footprint, footprint_names, make_footprint
+from .inference.runtimes import runtime_choices
 from .layout import CASE_FILE
 from .materials import MATERIAL_LAWS, material_law_names
-from .network.runtimes import runtime_choices
 
 
 def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,

@@ -256,7 +256,7 @@ def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
     n_nodes), on the nodes ``c`` of the cells that hold them (``w > 0``); zero elsewhere.
 
     ``kind = "elastic"`` (default; needs ``compliance``, a
-    :class:`~biopsynav.fem.greens.ContactCompliance`): the nodal values ``U_c = Z_cc f`` of
+    :class:`~biopsynav.contact.greens.ContactCompliance`): the nodal values ``U_c = Z_cc f`` of
     the linear-elastic field that moves the points as given, ``W_P U = u_P``, with forces
     ``f`` on the contact nodes only: least squares ``min |W_P Z_cc f - u_P|`` regularised by
     the energy ``f^T Z_cc f`` (:data:`ELASTIC_REGULARISATION`) where the points leave ``f``

@@ -74,9 +74,11 @@ def one_thread() -> Iterator[None]:
     from threadpoolctl import threadpool_limits
 
     torch_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with threadpool_limits(limits=1):
+    # the pools' state is saved before torch's change (torch.set_num_threads also sets the MKL
+    # pool) and restored after torch's restore, so each pool ends as it was on entry
+    with threadpool_limits(limits=1):
+        torch.set_num_threads(1)
+        try:
             yield
-    finally:
-        torch.set_num_threads(torch_threads)
+        finally:
+            torch.set_num_threads(torch_threads)

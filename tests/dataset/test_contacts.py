@@ -9,9 +9,9 @@ import pytest
 import zarr
 
 from biopsynav.case import Case
+from biopsynav.contact.greens import ContactCompliance
 from biopsynav.dataset.contacts import sample_contact_matrices
 from biopsynav.errors import InputError
-from biopsynav.fem.greens import ContactCompliance
 from biopsynav.grid.index import tensor_to_field
 from biopsynav.probe import contact_input
 
@@ -50,8 +50,8 @@ def test_a_store_drawn_otherwise_is_refused(reference, tmp_path):
 def test_projections_refuse_an_input_their_points_do_not_rebuild(reference):
     """The redrawn points' displacement must rebuild the stored input (training and Table 1
     check it before projecting)."""
-    from biopsynav.network.baseline import LinearElasticBaseline
-    from biopsynav.network.projection import sample_projections
+    from biopsynav.contact.baseline import LinearElasticBaseline
+    from biopsynav.contact.projection import sample_projections
 
     case = Case.load(reference)
     g = zarr.open_group(str(reference / "dataset.zarr"), mode="r")

@@ -17,9 +17,9 @@ import zarr
 from dataset_helpers import N_TEST, N_TRAIN, edit_config
 
 from biopsynav.case import Case
+from biopsynav.contact.greens import ContactCompliance
 from biopsynav.dataset.generate import generate_case
 from biopsynav.errors import BiopsynavError, FingerprintError, InputError
-from biopsynav.fem.greens import ContactCompliance
 from biopsynav.grid.embedding import Embedding
 from biopsynav.grid.index import tensor_to_field
 from biopsynav.probe import contact_input, probe_patch, push_for_sample

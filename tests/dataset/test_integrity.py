@@ -49,7 +49,7 @@ def test_train_refuses_an_unfinished_data_set(reference, tmp_path):
 
 
 def test_edited_envelope_in_meta_json_is_refused(trained_case, tmp_path):
-    from biopsynav.network.model_io import read_meta
+    from biopsynav.inference.model_files import read_meta
 
     case = _copy(trained_case, tmp_path / "case")
     path = case / "model" / "meta.json"

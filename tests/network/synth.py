@@ -13,7 +13,21 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from biopsynav.config import NetworkSection
+
 FINGERPRINT = "synthetic-fingerprint-0001"
+SHAPE = (16, 8, 8)  # the node grid of the shared synthetic data set (tests/conftest.py)
+
+
+def tiny_settings(**kw) -> NetworkSection:
+    """The default architecture (width 8, SiLU, quadratic features) with a short schedule
+    (seconds on one CPU thread)."""
+    base = dict(preset="custom", base_channels=8, levels=3, activation="silu",
+                features="quadratic", iterations=300, val_interval=100,
+                warmup_iterations=20, learning_rate=3e-3, batch_size=4, threads=1, seed=0,
+                baseline="none")  # synthetic data have no case (FE model)
+    base.update(kw)
+    return NetworkSection(**base)
 
 
 def active_mask(shape: tuple[int, int, int]) -> np.ndarray:

@@ -10,11 +10,11 @@ import pytest
 import scipy.sparse as sp
 import zarr
 
+from biopsynav.contact.baseline import LinearElasticBaseline
+from biopsynav.contact.greens import candidate_nodes
 from biopsynav.errors import FingerprintError
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
-from biopsynav.fem.greens import candidate_nodes
 from biopsynav.grid.index import hex_connectivity
-from biopsynav.network.baseline import LinearElasticBaseline
 
 from .conftest import tiny_settings
 
@@ -163,8 +163,8 @@ def trained_le(phantom):
 def test_surrogate_adds_the_baseline_to_the_residual_net(phantom, trained_le):
     import torch
 
-    from biopsynav.network.export import load_torchscript
-    from biopsynav.network.infer import Surrogate
+    from biopsynav.inference.runtimes import load_torchscript
+    from biopsynav.inference.surrogate import Surrogate
 
     case_dir, case, x = phantom
     model_dir, summary = trained_le
@@ -184,7 +184,7 @@ def test_surrogate_adds_the_baseline_to_the_residual_net(phantom, trained_le):
     sur2 = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
                           warmup=0, case=case)
     assert np.abs(sur2.predict(x[0]) - expect[0]).max() < 1e-4
-    from biopsynav.network.infer import openvino_available
+    from biopsynav.inference.surrogate import openvino_available
 
     if openvino_available():  # the network started asynchronously beside the baseline
         ov = Surrogate.load(model_dir, case.fingerprint(), runtime="openvino", threads=1,
@@ -198,8 +198,8 @@ def test_surrogate_adds_the_baseline_to_the_residual_net(phantom, trained_le):
 def test_fingerprint_refusal_with_baseline(phantom, trained_le, tmp_path):
     import shutil
 
-    from biopsynav.network.infer import Surrogate
-    from biopsynav.network.model_io import meta_checksum
+    from biopsynav.inference.model_files import meta_checksum
+    from biopsynav.inference.surrogate import Surrogate
 
     _, case, _ = phantom
     model_dir, _ = trained_le
@@ -217,7 +217,7 @@ def test_fingerprint_refusal_with_baseline(phantom, trained_le, tmp_path):
 
 
 def test_baseline_none_keeps_the_old_behaviour(phantom, tmp_path):
-    from biopsynav.network.infer import Surrogate
+    from biopsynav.inference.surrogate import Surrogate
     from biopsynav.network.train import train
 
     case_dir, case, x = phantom
@@ -237,7 +237,7 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
     """Tracker.update (network residual at the lesions + precomputed baseline operators)
     gives the lesion positions of the full-grid path (``with_surface``: Surrogate.predict),
     with the contact projection and without."""
-    from biopsynav.network.infer import Surrogate
+    from biopsynav.inference.surrogate import Surrogate
     from biopsynav.tracker import Tracker
 
     _, case, _ = phantom
@@ -248,7 +248,7 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
     assert sur.can_project
     tracker = Tracker(case, "net", surrogate=sur)
     top = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
-    assert tracker.set_rest_pose(top) > 0 and tracker._lesion_of_contact is not None
+    assert tracker.set_rest_pose(top) > 0 and tracker._lesion_op is not None
     assert tracker.projects_contact == projection
     for depth, angle in ((3.0, 0.0), (8.0, 0.1)):
         pose = top.copy()
@@ -271,7 +271,7 @@ def test_tracker_refuses_pushes_deeper_than_the_deepest_trained_one(phantom, tra
     """A probe displacement beyond ``envelope_margin`` x the envelope's ``max_probe_disp_mm``
     gives out_of_envelope and no numbers; within it, lesion positions; a model without the
     figure (trained before it was recorded) has only the contact bound."""
-    from biopsynav.network.infer import Surrogate
+    from biopsynav.inference.surrogate import Surrogate
     from biopsynav.tracker import Tracker
 
     _, case, _ = phantom
@@ -332,7 +332,7 @@ def test_surrogate_predict_with_the_contact_projection(phantom, trained_le):
     from biopsynav.errors import InputError
     from biopsynav.grid.embedding import Embedding
     from biopsynav.grid.index import field_to_tensor
-    from biopsynav.network.infer import Surrogate, openvino_available
+    from biopsynav.inference.surrogate import Surrogate, openvino_available
 
     _, case, x = phantom
     model_dir, _ = trained_le

@@ -122,7 +122,7 @@ def test_contact_input_is_a_weighted_average_with_weight_channel(case, pushes):
 
 @pytest.fixture(scope="module")
 def compliance(case):
-    from biopsynav.fem.greens import ContactCompliance
+    from biopsynav.contact.greens import ContactCompliance
 
     return ContactCompliance.from_case(case)
 

@@ -65,7 +65,7 @@ class SampleContext:
         self.contact_input = case.cfg.dataset.contact_input
         self.compliance = None
         if self.contact_input == "elastic":
-            from ..fem.greens import ContactCompliance
+            from ..contact.greens import ContactCompliance
 
             self.compliance = ContactCompliance.from_case(case)
 

@@ -1,7 +1,10 @@
-"""Network stage: the 3D U-Net surrogate (training, export, real-time inference, Table 1).
+"""Network stage: training the 3D U-Net surrogate, its export and Table 1.
+
+The deployed model is loaded and run by :mod:`biopsynav.inference`; the contact physics it
+builds on (baseline, projection, Green's functions) is :mod:`biopsynav.contact`.
 
 Public API: :func:`train_case`, :func:`train`, :func:`evaluate_network_case`, :func:`evaluate`,
-:class:`Surrogate`, :func:`load_for_case`, :class:`UNet3d`, :class:`UNetSpec`, :data:`PRESETS`.
+:class:`UNet3d`, :class:`UNetSpec`, :data:`PRESETS`.
 Imports are lazy so that ``import biopsynav.network`` stays cheap.
 """
 
@@ -12,7 +15,6 @@ from typing import Any
 _EXPORTS = {
     "train": "train", "train_case": "train", "TrainSummary": "train",
     "evaluate": "evaluate", "evaluate_network_case": "evaluate", "format_table1": "evaluate",
-    "Surrogate": "infer", "load_for_case": "infer",
     "UNet3d": "unet", "UNetSpec": "unet", "PRESETS": "unet", "count_parameters": "unet",
 }
 

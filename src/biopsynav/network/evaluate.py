@@ -12,16 +12,16 @@ from pathlib import Path
 import numpy as np
 
 from ..case import Case, as_case
+from ..contact.projection import ContactProjection, sample_projections
 from ..dataset.contacts import sample_contact_matrices
 from ..errors import FingerprintError
 from ..fileio import write_json_atomic
 from ..grid.index import tensor_to_field
+from ..inference.surrogate import Surrogate
 from ..layout import TABLE1_FILE, CasePaths
 from .data import Dataset, load_dataset
-from .infer import Surrogate
 from .metrics import error_summary, mean_norm_error_np
 from .plots import plot_error_histogram, plot_sample
-from .projection import ContactProjection, sample_projections
 
 Contacts = list[tuple[ContactProjection, np.ndarray]]
 
@@ -41,7 +41,7 @@ def test_contacts(sur: Surrogate, case: Case, data: Dataset) -> Contacts:
     """For each held-out sample, for a model that can project (``sur.can_project``): the
     contact projection of its probe's contact points (redrawn from the data set's protocol)
     and their displacement ``W_P u_FE`` (n, 3) mm, from which the dataset stage built the
-    input (:func:`~biopsynav.network.projection.sample_projections`; InputError when they do
+    input (:func:`~biopsynav.contact.projection.sample_projections`; InputError when they do
     not give the stored input)."""
     test = data.test_idx.numpy()
     return sample_projections(sur.baseline, sample_contact_matrices(case, data.path, test),
@@ -77,7 +77,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
 
     ``spacing_mm``: grid cell size for the figures (node units when unknown).
     ``contact_projection``: project the predictions onto the measured contact
-    (:mod:`~biopsynav.network.projection`) when the model allows it, as the tracker does
+    (:mod:`~biopsynav.contact.projection`) when the model allows it, as the tracker does
     (always for a model trained through the projection);
     the figures without it are kept as ``*_unprojected_mm``. ``case``: the loaded case
     (default: ``model_dir``'s parent folder)."""

@@ -67,7 +67,7 @@ def save_torchscript(net: SurrogateNet, path: str | Path) -> Path:
 
     The file holds the scripted, not yet frozen module: a module frozen and passed through
     ``optimize_for_inference`` cannot be saved and loaded again (prepacked oneDNN weights), so
-    :func:`load_torchscript` freezes and optimises it at load time.
+    :func:`biopsynav.inference.runtimes.load_torchscript` freezes and optimises it at load time.
     """
     import copy
 
@@ -76,13 +76,6 @@ def save_torchscript(net: SurrogateNet, path: str | Path) -> Path:
     with torch.no_grad():
         torch.jit.save(torch.jit.script(net), buf)
     return write_bytes_atomic(path, buf.getvalue())
-
-
-def load_torchscript(path: str | Path) -> torch.jit.ScriptModule:
-    """Load a saved module, then freeze it and optimise it for CPU inference."""
-    module = torch.jit.load(str(path), map_location="cpu").eval()
-    with torch.no_grad():
-        return torch.jit.optimize_for_inference(torch.jit.freeze(module))
 
 
 def save_onnx(net: SurrogateNet, path: str | Path, node_shape: tuple[int, int, int]) -> Path:

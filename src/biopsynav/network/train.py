@@ -32,9 +32,11 @@ import torch
 
 from ..case import Case, as_case
 from ..config import NetworkSection
+from ..contact.projection import BatchProjection, sample_projections
 from ..errors import InputError
 from ..fileio import remove_partial_writes, write_bytes_atomic
-from ..layout import BEST, CHECKPOINT, LOSS_CURVE, MODEL_DIR
+from ..inference.runtimes import ONNX, TORCHSCRIPT
+from ..layout import BEST, CHECKPOINT, HISTORY, LOSS_CURVE, META, MODEL_DIR
 from ..threads import set_threads
 from .data import (
     Dataset,
@@ -48,8 +50,7 @@ from .data import (
 )
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
-from .model_io import HISTORY, META, ONNX, TORCHSCRIPT, write_model
-from .projection import BatchProjection, sample_projections
+from .model_io import write_model
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
 
 #: Every file training writes into the model folder (all atomically).
@@ -301,11 +302,11 @@ def residual_dataset(data: Dataset, kind: str, case: Case | str | Path,
     trains through the contact projection, the (training, held-out) :class:`BatchProjection`.
 
     ``kind`` 'none': ``data`` itself. 'linear-elastic': targets replaced by the residual
-    ``target - baseline(input)`` of :class:`~biopsynav.network.baseline.LinearElasticBaseline`
+    ``target - baseline(input)`` of :class:`~biopsynav.contact.baseline.LinearElasticBaseline`
     of ``case`` (computed once for every sample); the case must be the one the
     data were generated for (fingerprint). With ``contact_projection`` (and the elastic contact
     input) the network is trained on what the tracker deploys, the projected prediction
-    (:mod:`~biopsynav.network.projection`): the target is ``target - u_lin(x) - u_lin(g -
+    (:mod:`~biopsynav.contact.projection`): the target is ``target - u_lin(x) - u_lin(g -
     W_P x)``, ``g = W_P target`` the contact points' displacement (their weights redrawn from
     the data set's protocol), and the loss sees ``r - u_lin(W_P r)``.
     """
@@ -314,8 +315,8 @@ def residual_dataset(data: Dataset, kind: str, case: Case | str | Path,
     if kind != "linear-elastic":
         raise InputError(f"unknown baseline {kind!r}; use linear-elastic or none",
                          "[network] baseline")
+    from ..contact.baseline import SPRING_SCALE, LinearElasticBaseline
     from ..errors import FingerprintError
-    from .baseline import SPRING_SCALE, LinearElasticBaseline
 
     case = as_case(case)
     if case.fingerprint() != data.fingerprint:

@@ -10,7 +10,7 @@ contact_tolerance_mm`` of the face plane, facing the probe. They then follow the
 the probe from the rest pose (the paper's assumption); their displacement, spread on the grid,
 drives the network (or the FE model with prescribed displacements), and lesions are read off
 the predicted grid displacement by trilinear interpolation. The network's prediction is
-projected onto the contact (:mod:`biopsynav.network.projection`, ``[network]
+projected onto the contact (:mod:`biopsynav.contact.projection`, ``[network]
 contact_projection``): it moves the contact points exactly as the probe does.
 """
 
@@ -24,6 +24,7 @@ import numpy as np
 
 from ..anatomy.display import lesion_mesh
 from ..case import Case, as_case
+from ..contact.lesions import PointOperator
 from ..errors import InputError, SolverError
 from ..footprint import Footprint, as_footprint
 from ..grid.embedding import Embedding, surface_embedding
@@ -115,13 +116,12 @@ class Tracker:
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
-        # the net engine's lesion displacement, linear part, (3 n_points, 3 n) on u_c, at the
-        # lesion points (centres and meshes) and at the centres only (rest pose)
-        self._lesion_of_contact: np.ndarray | None = None
-        self._centre_ops: tuple | None = None
+        # the net engine's lesion displacement for the rest pose's contact set, asked of the
+        # surrogate: at the lesion points (centres and meshes) and at the centres only
+        self._lesion_op: PointOperator | None = None
+        self._centre_op: PointOperator | None = None
         self._input_op: ContactInputOperator | None = None
         self._projection = None  # ContactProjection of the rest pose's contact set
-        self._lesion_proj: np.ndarray | None = None  # its u_lin at the lesions (3 n_les, 3 n)
         self._compliance = None
         env = surrogate.envelope if surrogate is not None else {}
         self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
@@ -154,7 +154,7 @@ class Tracker:
         case = as_case(case)
         engine = engine or case.cfg.tracker.engine
         if engine == "net":
-            from ..network.infer import Surrogate
+            from ..inference.surrogate import Surrogate
 
             sur = Surrogate.load(case.paths.model, case.fingerprint(), case=case,
                                  threads=case.cfg.network.threads if threads is None
@@ -196,8 +196,7 @@ class Tracker:
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
         self._input_op = None
-        self._lesion_of_contact = self._centre_ops = None
-        self._projection = self._lesion_proj = None
+        self._lesion_op = self._centre_op = self._projection = None
         self._input[:] = 0.0
         if len(idx):
             emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
@@ -208,42 +207,29 @@ class Tracker:
                 with one_thread():  # many small dense solves (docs/igtl.md, rest pose)
                     self._input_op = self.input_operator()
                     self._input_flat[3] = self._input_op.weights
-                    self._set_projection(emb.matrix)
-                    self._lesion_of_contact = self._lesion_contact_operator()
-                    self._centre_ops = self._centre_operators()
+                    self._set_lesion_operators(emb.matrix)
         return len(idx)
-
-    def _centre_operators(self) -> tuple | None:
-        """The lesion operators restricted to the lesion centres (the rows of the first
-        ``n_lesions`` points, axis-major): what ``update`` needs when no lesion surface is
-        asked for."""
-        if self._lesion_of_contact is None:
-            return None
-        n, n_points = len(self._lesion_ids), len(self._lesion_points)
-        rows = np.concatenate([k * n_points + np.arange(n) for k in range(3)])
-        proj = None if self._lesion_proj is None else self._lesion_proj[rows]
-        return self._lesion_of_contact[rows], proj
 
     def clear_rest_pose(self) -> None:
         """Forget the rest pose (and its contact set); ``update`` answers ``no_rest_pose``."""
         self._rest = None
         self._contact = np.zeros(0, dtype=np.int64)
-        self._contact_emb = self._input_op = self._lesion_of_contact = self._centre_ops = None
-        self._projection = self._lesion_proj = None
+        self._contact_emb = self._input_op = None
+        self._lesion_op = self._centre_op = self._projection = None
 
-    def _set_projection(self, contact) -> None:
+    def _set_lesion_operators(self, contact) -> None:
         """The net engine's contact projection for this contact set (``[network]
-        contact_projection``, or a model trained through it) and its operator at the
-        lesions."""
+        contact_projection``, or a model trained through it), and the lesion displacement
+        asked of the surrogate (:meth:`Surrogate.point_operator`; None without a physics
+        baseline or lesions): at every lesion point and at the centres only."""
         sur = self._surrogate
-        if not sur.projects(self.case.cfg.network.contact_projection):
-            return
-        self._projection = sur.contact_projection(contact, self._input_op)
+        if sur.projects(self.case.cfg.network.contact_projection):
+            self._projection = sur.contact_projection(contact, self._input_op)
         if len(self._lesion_ids):
-            import scipy.sparse as sp
-
-            rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
-            self._lesion_proj = self._projection.lesion_operator(rows)
+            self._lesion_op = sur.point_operator(self._lesion_emb, self._input_op,
+                                                 self._projection)
+        if self._lesion_op is not None:
+            self._centre_op = self._lesion_op.first(len(self._lesion_ids))
 
     @property
     def projects_contact(self) -> bool:
@@ -270,45 +256,16 @@ class Tracker:
         return contact_input_operator(self._contact_emb.matrix, kind, compliance)
 
     def _contact_compliance(self):
-        """The case's :class:`~biopsynav.fem.greens.ContactCompliance`: the baseline's when
+        """The case's :class:`~biopsynav.contact.greens.ContactCompliance`: the baseline's when
         the model has one, else computed once."""
         baseline = getattr(self._surrogate, "baseline", None)
         if baseline is not None:
             return baseline.compliance
         if self._compliance is None:
-            from ..fem.greens import ContactCompliance
+            from ..contact.greens import ContactCompliance
 
             self._compliance = ContactCompliance.from_case(self.case)
         return self._compliance
-
-    def _lesion_contact_operator(self) -> np.ndarray | None:
-        """For the net engine with a physics baseline: the lesion displacement's part that is
-        linear in the contact displacement, one matrix ``A`` (3 n_lesions axis-major, 3 n
-        point-major), so that the lesions move by ``A @ u_c.ravel()`` plus the network's
-        residual at the lesions (minus, with the projection, ``u_lin`` of the residual's
-        own point displacement). ``A`` folds the input operator ``x = M u_c`` into the
-        baseline's lesion rows (:meth:`LinearElasticBaseline.contact_operator`) and, with the
-        projection, into ``u_lin(u_c - W_P x)``; None without a baseline or lesions."""
-        baseline = getattr(self._surrogate, "baseline", None)
-        if baseline is None or not len(self._lesion_ids):
-            return None
-        op = self._input_op
-        if self._lesion_proj is not None:
-            # the baseline's contact forces for the input x = M u_c are the projection's
-            # ``forces_of_points @ u_c``, so at the lesions u_lin(x) = L u_c (L =
-            # ``_lesion_proj``) and u_lin(x) + u_lin(u_c - W_P x) = L (2 u_c - W_P M u_c)
-            comp, node = np.divmod(op.positions, baseline.n_nodes)
-            w = self._projection.contact[:, node].toarray()  # (n, q) weights of written dofs
-            points_of_input = np.zeros((w.shape[0], 3, len(node)))
-            points_of_input[:, comp, np.arange(len(node))] = w
-            points = points_of_input.reshape(-1, len(node)) @ op.matrix  # W_P M, (3n, 3n)
-            return self._lesion_proj @ (2.0 * np.eye(points.shape[0]) - points)
-        import scipy.sparse as sp
-
-        rows = sp.kron(sp.identity(3), self._lesion_emb.matrix, format="csr")
-        positions, operator = baseline.contact_operator(op.weights, rows)
-        at = op.rows_at(positions)  # the input operator's row of each baseline dof (-1: none)
-        return operator @ np.where((at >= 0)[:, None], op.matrix[np.maximum(at, 0)], 0.0)
 
     def contact_displacement(self, pose: np.ndarray) -> np.ndarray:
         """Displacement (n_contact, 3) mm of the contact points moved rigidly with the probe."""
@@ -348,7 +305,7 @@ class Tracker:
                                     f"beyond the deepest trained push, {self.max_probe_mm:.1f} "
                                     "mm", start)
         try:
-            if self._lesion_of_contact is not None and not with_surface:
+            if self._lesion_op is not None and not with_surface:
                 field, disp = None, self._net_lesion_displacement(u_c, lesion_surfaces)
             else:
                 field = self._predict(u_c)
@@ -366,19 +323,12 @@ class Tracker:
 
     def _net_lesion_displacement(self, u_c: np.ndarray, surfaces: bool) -> np.ndarray:
         """Displacements (n_points, 3) mm of the lesion centres, and with ``surfaces`` of their
-        mesh vertices: the network's residual interpolated there plus the precomputed linear
-        part (:meth:`_lesion_contact_operator`; no full-grid baseline: the hot path of
-        :meth:`update`)."""
+        mesh vertices: the network's residual and the surrogate's point operator
+        (:class:`~biopsynav.contact.lesions.PointOperator`; no full-grid baseline: the hot
+        path of :meth:`update`)."""
         self._set_input(u_c)
         net = self._surrogate.predict_network(self._input)
-        if surfaces:
-            emb, linear, proj = self._lesion_emb, self._lesion_of_contact, self._lesion_proj
-        else:
-            emb, (linear, proj) = self._centre_emb, self._centre_ops
-        base = linear @ u_c.ravel()  # (3 * n_points,), axis-major
-        if proj is not None:  # - u_lin(W_P r) at the lesions
-            base -= proj @ self._projection.point_displacement(net).ravel()
-        return emb.interpolate(net.reshape(3, -1).T) + base.reshape(3, -1).T
+        return (self._lesion_op if surfaces else self._centre_op).displacement(net, u_c)
 
     def _predict(self, u_c: np.ndarray) -> np.ndarray:
         """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""

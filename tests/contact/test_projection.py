@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from biopsynav.contact.baseline import LinearElasticBaseline
+from biopsynav.contact.projection import ContactProjection
 from biopsynav.errors import InputError
 from biopsynav.grid.embedding import Embedding
 from biopsynav.grid.index import field_to_tensor
-from biopsynav.network.baseline import LinearElasticBaseline
-from biopsynav.network.projection import ContactProjection
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_batch_projection_matches_the_per_sample_projection(setup):
     (two sets of different sizes)."""
     import torch
 
-    from biopsynav.network.projection import BatchProjection
+    from biopsynav.contact.projection import BatchProjection
 
     case, base, proj = setup
     a = case.anatomy
@@ -116,13 +116,16 @@ def test_one_thread_limits_blas_and_torch_and_restores_them():
     from biopsynav.threads import one_thread
 
     before_torch = torch.get_num_threads()
-    before = sorted((i["prefix"], i["num_threads"]) for i in threadpool_info())
+    # torch.set_num_threads also sets MKL's pool: what must come back is the state on entry
     torch.set_num_threads(2)
-    with pytest.raises(RuntimeError, match="inside"):
-        with one_thread():
-            assert torch.get_num_threads() == 1
-            assert all(i["num_threads"] == 1 for i in threadpool_info())
-            raise RuntimeError("inside")
-    assert torch.get_num_threads() == 2
-    torch.set_num_threads(before_torch)
-    assert sorted((i["prefix"], i["num_threads"]) for i in threadpool_info()) == before
+    before = sorted((i["prefix"], i["num_threads"]) for i in threadpool_info())
+    try:
+        with pytest.raises(RuntimeError, match="inside"):
+            with one_thread():
+                assert torch.get_num_threads() == 1
+                assert all(i["num_threads"] == 1 for i in threadpool_info())
+                raise RuntimeError("inside")
+        assert torch.get_num_threads() == 2
+        assert sorted((i["prefix"], i["num_threads"]) for i in threadpool_info()) == before
+    finally:
+        torch.set_num_threads(before_torch)

@@ -10,13 +10,13 @@ import pytest
 import torch
 
 from biopsynav.errors import FingerprintError, InputError
+from biopsynav.inference.surrogate import Surrogate, openvino_available
 from biopsynav.network.data import load_dataset
 from biopsynav.network.evaluate import evaluate
 from biopsynav.network.export import SurrogateNet
-from biopsynav.network.infer import Surrogate, openvino_available
 from biopsynav.network.unet import UNetSpec
 
-from .synth import FINGERPRINT
+from ..network.synth import FINGERPRINT
 
 
 def _eager(model_dir) -> SurrogateNet:
@@ -102,10 +102,10 @@ def test_evaluate_writes_table1(trained, tmp_path):
 
 
 def test_a_registered_runtime_is_a_case_toml_choice_and_runs(monkeypatch):
-    """One registration (network/runtimes.py) makes a runtime loadable by name and accepted by
+    """One registration (inference/runtimes.py) makes a runtime loadable by name and accepted by
     ``[network] runtime``; unknown names are refused with the known ones."""
     from biopsynav.config import config_from_dict
-    from biopsynav.network import runtimes
+    from biopsynav.inference import runtimes
 
     class Zeros:
         name = "zeros"

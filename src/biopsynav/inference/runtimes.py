@@ -13,12 +13,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from ..errors import InputError
 from ..layout import ONNX, TORCHSCRIPT
+
+if TYPE_CHECKING:
+    import torch
 
 
 class Runner(Protocol):
@@ -73,7 +76,6 @@ class TorchScriptRunner:
     def __init__(self, path: Path, threads: int) -> None:
         import torch
 
-        from .export import load_torchscript
 
         self._torch = torch
         torch.set_num_threads(threads)
@@ -149,3 +151,12 @@ register_runtime(RuntimeSpec("torchscript", TORCHSCRIPT,
                              lambda path, threads, shape: TorchScriptRunner(path, threads)))
 register_runtime(RuntimeSpec("openvino", ONNX, OpenVinoRunner, openvino_available,
                              own_threads=True, auto_rank=1))
+
+
+def load_torchscript(path: str | Path) -> torch.jit.ScriptModule:
+    """Load a saved module, then freeze it and optimise it for CPU inference."""
+    import torch
+
+    module = torch.jit.load(str(path), map_location="cpu").eval()
+    with torch.no_grad():
+        return torch.jit.optimize_for_inference(torch.jit.freeze(module))

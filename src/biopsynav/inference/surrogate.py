@@ -20,16 +20,18 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..contact.baseline import LinearElasticBaseline
+from ..contact.lesions import PointOperator, point_operator
+from ..contact.projection import ContactProjection
 from ..errors import InputError
 from ..probe import ContactInputOperator
 from ..threads import auto_threads
-from .baseline import LinearElasticBaseline
-from .model_io import check_file, check_fingerprint, read_meta
-from .projection import ContactProjection
+from .model_files import check_file, check_fingerprint, read_meta
 from .runtimes import Runner, openvino_available, resolve_runtime  # noqa: F401  (re-exported)
 
 if TYPE_CHECKING:
     from ..case import Case
+    from ..grid.embedding import Embedding
 
 
 
@@ -116,9 +118,20 @@ class Surrogate:
         model trained through the projection."""
         return (enabled or self.requires_projection) and self.can_project
 
+    def point_operator(self, points: Embedding, input_op: ContactInputOperator,
+                       projection: ContactProjection | None = None) -> PointOperator | None:
+        """The displacement of ``points`` for the contact set of ``input_op`` as the network's
+        residual plus a linear map of the contact displacement
+        (:class:`~biopsynav.contact.lesions.PointOperator`), projected with ``projection``
+        when given; None for a model without a physics baseline (its prediction is the
+        network's field alone)."""
+        if self.baseline is None:
+            return None
+        return point_operator(self.baseline, input_op, points, projection)
+
     def contact_projection(self, contact: sp.spmatrix,
                            input_op: ContactInputOperator | None = None) -> ContactProjection:
-        """The :class:`~biopsynav.network.projection.ContactProjection` of the contact points
+        """The :class:`~biopsynav.contact.projection.ContactProjection` of the contact points
         of trilinear weights ``contact`` (n, n_nodes), for :meth:`predict`; InputError when
         this model has no hard baseline on the elastic input (retrain it)."""
         if not self.can_project:
@@ -212,7 +225,7 @@ def _load_baseline(meta: dict, model_dir: Path,
                              f"(case.toml, anatomy.npz, grid.npz) in {model_dir.parent} or "
                              f"passed as case= ({exc})", str(model_dir)) from None
     check_fingerprint(meta, case.fingerprint(), str(case.dir))
-    from .baseline import SPRING_POWER
+    from ..contact.baseline import SPRING_POWER
 
     return LinearElasticBaseline.from_case(case, spring=info.get("spring"),
                                            power=float(info.get("spring_power", SPRING_POWER)))

@@ -9,7 +9,7 @@ transposed, ``zt`` (candidate dofs x free equations), so that the columns of a c
 contiguous rows.
 
 Used by the elastic contact input (:func:`biopsynav.probe.contact_input_operator`) and by the
-network's physics baseline (:class:`biopsynav.network.baseline.LinearElasticBaseline`).
+network's physics baseline (:class:`biopsynav.contact.baseline.LinearElasticBaseline`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from ..errors import InputError
 
 if TYPE_CHECKING:
     from ..case import Case
-    from .model import FEModel
+    from ..fem.model import FEModel
 
 
 class ContactCompliance:
@@ -71,7 +71,7 @@ class ContactCompliance:
     @classmethod
     def from_case(cls, case: Case, dtype: type = np.float32) -> ContactCompliance:
         """The compliance of a case: its FE model and the nodes around its free skin."""
-        from .model import FEModel
+        from ..fem.model import FEModel
 
         return cls(FEModel.from_case(case), candidate_nodes(case), case.grid.node_shape, dtype)
 
@@ -117,7 +117,7 @@ def greens_rows(model: FEModel, cols: np.ndarray, dtype: type) -> np.ndarray:
     One factorisation of K(u = 0) and blocks of many right-hand sides: MKL Pardiso through
     pypardiso when installed (one call solves a whole block), else SciPy's SuperLU.
     """
-    from .solver import tangent_matrix
+    from ..fem.solver import tangent_matrix
 
     k = tangent_matrix(model, np.zeros((model.n_nodes, 3))).tocsr()
     k.sort_indices()

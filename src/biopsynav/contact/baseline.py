@@ -5,7 +5,7 @@ at u = 0 (tangent ``K`` = linear elasticity with the same E, nu, immersed weight
 wall), takes when the contact nodes are moved by the network input and every other node is
 force-free. The U-Net then only learns the residual (geometric and material non-linearity).
 
-Green's-function (Schur) form, with ``Z`` of :class:`~biopsynav.fem.greens.ContactCompliance`
+Green's-function (Schur) form, with ``Z`` of :class:`~biopsynav.contact.greens.ContactCompliance`
 (unit forces on every candidate dof): the solution with prescribed values ``g`` on the contact
 set ``c`` is ``u = Z[:, c] Z[c, c]^-1 g``: the forces ``f_c = Z[c, c]^-1 g`` on ``c`` reproduce
 ``g`` there, and no force acts elsewhere.
@@ -25,7 +25,7 @@ import scipy.sparse as sp
 import torch
 
 from ..errors import InputError
-from ..fem.greens import ContactCompliance
+from .greens import ContactCompliance
 
 if TYPE_CHECKING:
     from ..case import Case
@@ -42,7 +42,7 @@ class LinearElasticBaseline:
     """Linear-elastic response to prescribed contact-node displacements (see module doc).
 
     Args:
-        compliance: the Green's functions (:class:`~biopsynav.fem.greens.ContactCompliance`)
+        compliance: the Green's functions (:class:`~biopsynav.contact.greens.ContactCompliance`)
             of the FE model linearised at rest; :meth:`from_case` and :meth:`from_model` make
             them.
         spring: None: hard constraints (the exact Dirichlet response, ``u_c = g``); a float
