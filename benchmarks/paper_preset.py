@@ -78,8 +78,8 @@ def time_steps(case_dir: Path, case_data, preset: str, steps: int, threads: int)
 
 def time_predictions(case_data, preset: str, n: int, threads: int) -> tuple[float, float]:
     """Median and 99th percentile (ms) of one batch-1 prediction of ``preset``'s network."""
+    from biopsynav.inference.runtimes import OpenVinoRunner, TorchScriptRunner, resolve_runtime
     from biopsynav.network.export import save_onnx, save_torchscript
-    from biopsynav.network.runtimes import OpenVinoRunner, TorchScriptRunner, resolve_runtime
     from biopsynav.threads import set_threads
 
     n_threads = set_threads(threads)

@@ -53,8 +53,8 @@ def main(argv: list[str] | None = None) -> dict:
     ensure_case(case_dir, args.quick, args.workers)
 
     from biopsynav.config import load_config
+    from biopsynav.inference.surrogate import case_fingerprint
     from biopsynav.network.evaluate import evaluate, format_table1
-    from biopsynav.network.infer import case_fingerprint
     from biopsynav.network.train import train
 
     cfg = load_config(case_dir)

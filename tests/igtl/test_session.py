@@ -103,6 +103,30 @@ def test_skin_model_is_decimated_and_moved():
     np.testing.assert_allclose(radii, 60.0, rtol=5e-3)  # on the skin, moved rigidly
 
 
+def test_prepare_decimates_the_skin_before_the_first_pose(monkeypatch):
+    """The skin model is made before serving, never by the first reply after a pose (at
+    100 Hz its first decimation, a few hundred ms, queued poses behind it)."""
+    import trimesh
+
+    import biopsynav.igtl.session as session_module
+
+    skin = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
+    tracker = RigidLesionTracker(CENTERS, skin=(skin.vertices, skin.faces))
+    off, _ = make_session(tracker)  # skin model off: nothing to prepare
+    off.prepare()
+    session, clock = make_session(tracker, skin_model_rate_hz=5.0, skin_model_triangles=300)
+    session.prepare()
+    calls = []
+    monkeypatch.setattr(session_module, "decimate", lambda *a: calls.append(a))
+    session.add_peer("slicer")
+    plus = session.add_peer("plus", True)
+    list(session.on_messages(plus, [pose(np.eye(4))]))
+    clock.t += 0.3
+    batches = sent(session.on_messages(plus, [pose(translation(0, 2, 0))]))
+    assert [m for b in batches for m in b if m.device == "BreastSkin"]
+    assert calls == [] and off._skin is None
+
+
 def test_unreliable_lesion_keeps_its_slot_at_its_last_reliable_place():
     session, _ = make_session()
     session.add_peer("slicer")

@@ -73,6 +73,7 @@ def run_service(tracker: TrackerLike, tracker_addr: str | Address | None,
     bound address is ``server.address``).
     """
     server = IgtlServer(tracker, listen_addr, tracker_addr, probe_device, settings)
+    server.session.prepare()
     server.start()
     restore = install_signal_handlers(server) if handle_signals else (lambda: None)
     if stop_event is not None:

@@ -153,6 +153,14 @@ class IgtlSession:
         self._next_model = {"lesions": -math.inf, "skin": -math.inf}
         self._warned_devices: set[str] = set()
 
+    def prepare(self) -> None:
+        """Compute before the first pose what a reply would otherwise compute on the hot path:
+        the decimated skin model, when one is sent (its first decimation, imports included,
+        takes a few hundred milliseconds: at 100 Hz that many poses would queue)."""
+        if self._skin is None and self.settings.skin_model_rate_hz > 0 and \
+                getattr(self.tracker, "skin_mesh", None) is not None:
+            self._skin = decimate(*self.tracker.skin_mesh, self.settings.skin_model_triangles)
+
     # --------------------------------------------------------------------------- peers
     def add_peer(self, name: str, is_tracker: bool = False) -> Peer:
         """A new connection; clients receive every broadcast batch."""
