@@ -1,0 +1,213 @@
+"""Mesh convergence of the FE teacher: lesion displacements under rigid-probe pushes on a sequence
+of immersed hexahedral grids, against an independent P2 tetrahedral reference in the same run.
+
+    python benchmarks/convergence.py CASE [--cells 7.3 5 3.65] [--depths 10 20 30]
+                                          [--lesions 3] [--tet-size 10] [--tet-fine 2.5]
+                                          [--nu 0.45] [--out convergence.json]
+
+For each evaluated lesion the probe is placed over it as in Table 2
+(:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
+skin the face touches at rest follows the probe rigidly (the tracker's contact model), the
+chest wall is fixed, the material is homogeneous neo-Hookean (E of the case's default tissue,
+``--nu``). Two discretisations answer:
+
+* biopsynav's FE (``Tracker(engine="fem")``: immersed hexahedra, prescribed contact-point
+  displacements) on grids of each ``--cells`` size, the first being the default 7.3 mm;
+* the reference, ``tests/peers/tet_reference.py``: quadratic tetrahedra of a gmsh mesh of the
+  same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe), its own
+  assembly and Newton loop.
+
+Printed per lesion and depth: the lesion displacement |u| of every grid and of the reference,
+each grid's error (distance to the reference's displacement vector, mm), the displacement
+extrapolated to zero cell size from the two finest grids (first order, the immersed boundary's),
+and the observed order from the three finest (when the sequence is monotone). The last line
+reads ``RESULT`` with the mean and largest error of each grid against the reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from biopsynav.case import Case  # noqa: E402
+from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
+from biopsynav.fem import FEModel  # noqa: E402
+from biopsynav.grid.build import build_grid  # noqa: E402
+from biopsynav.tracker import Tracker  # noqa: E402
+
+
+def homogeneous(case: Case, nu: float) -> tuple[Case, float]:
+    """The case with every tissue set to its default tissue's E (MPa) and ``nu``."""
+    cfg = copy.deepcopy(case.cfg)
+    e_mpa = float(cfg.material.tissues[cfg.material.default_tissue]["E_mpa"])
+    cfg.material.model = "neo-hookean"
+    cfg.material.tissues = {name: {"E_mpa": e_mpa, "nu": nu} for name in cfg.material.tissues}
+    return Case(case.dir, cfg, case.anatomy, case.grid), e_mpa
+
+
+def hex_tracker(case: Case, cell_mm: float) -> tuple[Tracker, int]:
+    """biopsynav's FE tracker of ``case`` on a grid of ``cell_mm`` cells; its active cells."""
+    section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
+    grid = build_grid(case.anatomy, section, levels=0)
+    sized = Case(case.dir, case.cfg, case.anatomy, grid)
+    tracker = Tracker(sized, "fem", fem_model=FEModel.from_case(sized),
+                      fem_settings=evaluation_solver_settings(sized))
+    return tracker, int(grid.active_cells.sum())
+
+
+def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float]) -> list:
+    """Lesion displacement (3,) mm, or None where the solve failed, for each depth."""
+    tracker.set_rest_pose(placement.pose)
+    out = []
+    for depth in depths:
+        res = tracker.update(placement.pushed(depth))
+        out.append(res.lesions[lesion].displacement.tolist() if res.status == "ok" else None)
+    return out
+
+
+def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
+               depths: list[float], args) -> tuple[list, dict]:
+    """The P2 reference's lesion displacements for each depth, and its mesh facts."""
+    from tests.peers.tet_reference import TetReference
+
+    t0 = time.perf_counter()
+    ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
+                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine)
+    probe = case.cfg.probe
+    contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
+    centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
+    poses = [placement.pushed(d) for d in depths]
+    disp = [u[0].tolist() for u in ref.push(placement.pose, poses, contact, centre)]
+    return disp, {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
+                  "seconds": time.perf_counter() - t0}
+
+
+def extrapolated(cells: list[float], values: list) -> np.ndarray | None:
+    """First-order extrapolation to zero cell size from the two finest grids (3,) mm."""
+    (h2, u2), (h3, u3) = sorted(zip(cells, values, strict=True), reverse=True)[-2:]
+    if u2 is None or u3 is None:
+        return None
+    u2, u3 = np.asarray(u2), np.asarray(u3)
+    return u3 + (u3 - u2) * h3 / (h2 - h3)
+
+
+def observed_order(cells: list[float], values: list) -> float | None:
+    """Order p of |u(h)| = |u*| + C h^p through the three finest grids (bisection), or None
+    when the sequence is not monotone."""
+    pts = sorted(zip(cells, values, strict=True), reverse=True)[-3:]
+    if len(pts) < 3 or any(v is None for _, v in pts):
+        return None
+    (h1, a), (h2, b), (h3, c) = [(h, float(np.linalg.norm(v))) for h, v in pts]
+    if (a - b) * (b - c) <= 0:
+        return None
+    ratio = (a - b) / (b - c)
+
+    def gap(p: float) -> float:
+        return (h1 ** p - h2 ** p) / (h2 ** p - h3 ** p) - ratio
+
+    lo, hi = 0.05, 6.0
+    if gap(lo) * gap(hi) > 0:
+        return None
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if gap(lo) * gap(mid) > 0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def run(args) -> dict:
+    case, e_mpa = homogeneous(Case.load(args.case_dir), args.nu)
+    lesions = select_lesions(len(case.anatomy.lesions), args.lesions)
+    placements = {li: place_probe(case.anatomy, li) for li in lesions}
+    print(f"case {args.case_dir}: homogeneous neo-Hookean E = {e_mpa * 1e3:g} kPa, "
+          f"nu = {args.nu:g}; lesions {', '.join(str(case.anatomy.lesions[i].id) for i in lesions)}"
+          f"; pushes {', '.join(f'{d:g}' for d in args.depths)} mm", flush=True)
+    grids = {}
+    for cell in args.cells:
+        t0 = time.perf_counter()
+        tracker, active = hex_tracker(case, cell)
+        disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
+        grids[cell] = {"active_cells": active, "n_equations": int(tracker._fem_model.n_eq),
+                       "seconds": time.perf_counter() - t0, "displacement": disp}
+        print(f"  hex {cell:g} mm: {active} active cells, {time.perf_counter() - t0:.0f} s",
+              flush=True)
+    reference = {}
+    for li in lesions:
+        disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args)
+        reference[li] = {"displacement": disp, **facts}
+        print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: {facts['tets']} tetrahedra,"
+              f" {facts['dofs']} dofs, {facts['contact_nodes']} contact nodes, "
+              f"{facts['seconds']:.0f} s", flush=True)
+    return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": args.nu,
+            "depths_mm": args.depths, "cells_mm": args.cells, "lesions": lesions,
+            "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
+            "grids": grids, "reference": reference,
+            "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine}
+
+
+def report(result: dict) -> dict[float, list[float]]:
+    """Print the table; return each grid's errors against the reference (mm)."""
+    cells, depths = result["cells_mm"], result["depths_mm"]
+    errors: dict[float, list[float]] = {c: [] for c in cells}
+    head = ("lesion  push  " + "  ".join(f"|u| {c:>4g}" for c in cells)
+            + "  |u| P2   " + "  ".join(f"err {c:>4g}" for c in cells)
+            + "  |u| h->0  order")
+    print("\n" + head + "\n" + "-" * len(head))
+    for li, lid in zip(result["lesions"], result["lesion_ids"], strict=True):
+        for k, depth in enumerate(depths):
+            values = [result["grids"][c]["displacement"][li][k] for c in cells]
+            ref = np.asarray(result["reference"][li]["displacement"][k])
+            mags, errs = [], []
+            for c, v in zip(cells, values, strict=True):
+                mags.append("failed" if v is None else f"{np.linalg.norm(v):8.2f}")
+                err = None if v is None else float(np.linalg.norm(np.asarray(v) - ref))
+                errs.append("-" if err is None else f"{err:8.2f}")
+                if err is not None:
+                    errors[c].append(err)
+            ext = extrapolated(cells, values)
+            order = observed_order(cells, values)
+            print(f"{lid:>6}  {depth:4g}  " + "  ".join(mags) + f"  {np.linalg.norm(ref):7.2f}  "
+                  + "  ".join(errs) + ("  " + ("       -" if ext is None else
+                                               f"{np.linalg.norm(ext):8.2f}"))
+                  + ("      -" if order is None else f"  {order:5.2f}"))
+    return errors
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--cells", type=float, nargs="+", default=[7.3, 5.0, 3.65],
+                   help="hexahedral cell sizes, mm (the first: the default grid)")
+    p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0],
+                   help="push depths, mm")
+    p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
+    p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
+    p.add_argument("--tet-fine", type=float, default=2.5,
+                   help="reference tetrahedra within 35 mm of the probe, mm")
+    p.add_argument("--nu", type=float, default=0.45)
+    p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    args = p.parse_args(argv)
+    start = time.perf_counter()
+    result = run(args)
+    errors = report(result)
+    result["seconds"] = time.perf_counter() - start
+    if args.out:
+        args.out.write_text(json.dumps(result, indent=1))
+    print(f"\ntotal {result['seconds'] / 60:.1f} min")
+    print("RESULT " + " ".join(
+        f"err_{c:g}mm_mean={np.mean(e):.3f} err_{c:g}mm_max={np.max(e):.3f}"
+        for c, e in errors.items() if e))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,66 @@
+"""The independent P2 tetrahedral reference of benchmarks/convergence.py: its tangent is the
+derivative of its forces, rigid motions cost nothing, and it interpolates P2 fields exactly."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.peers.tet_reference import TetReference, shape_values
+
+
+@pytest.fixture(scope="module")
+def cube() -> TetReference:
+    """A 30 mm cube of 10 mm tetrahedra, its bottom face (z = -15) the chest wall."""
+    box = trimesh.creation.box(extents=(30.0, 30.0, 30.0))
+    anatomy = SimpleNamespace(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces),
+                              normals=np.asarray(box.vertex_normals),
+                              chest_point=np.array([0.0, 0.0, -15.0]),
+                              chest_normal=np.array([0.0, 0.0, -1.0]))
+    return TetReference.build(anatomy, 10.0, 5e-3, 0.45)
+
+
+def test_tangent_is_the_derivative_of_the_forces(cube):
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=cube.nodes.shape) * 0.05
+    d = rng.normal(size=cube.nodes.shape)
+    forces, stiff = cube.forces_and_tangent(u)
+    eps = 1e-6
+    fd = (cube.forces_and_tangent(u + eps * d, tangent=False)
+          - cube.forces_and_tangent(u - eps * d, tangent=False)) / (2 * eps)
+    assert np.linalg.norm(fd - stiff @ d.ravel()) < 1e-6 * np.linalg.norm(fd)
+    assert abs(stiff - stiff.T).max() < 1e-12 * abs(stiff).max()
+
+
+def test_rigid_motions_give_no_forces(cube):
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    moved = cube.nodes @ rot.T - cube.nodes + [3.0, -2.0, 5.0]
+    assert np.abs(cube.forces_and_tangent(moved, tangent=False)).max() < 1e-12
+    assert len(cube.fixed_nodes) > 0 and np.allclose(cube.nodes[cube.fixed_nodes, 2], -15.0)
+
+
+def test_quadratic_fields_are_interpolated_exactly(cube):
+    points = np.array([[1.0, 2.0, 3.0], [-7.0, 4.0, -11.0], [12.0, -13.0, 9.0]])
+    field = cube.nodes[:, :1] ** 2 + cube.nodes[:, 1:2] * cube.nodes[:, 2:3]
+    values = cube._interpolation(points) @ field
+    np.testing.assert_allclose(values[:, 0], points[:, 0] ** 2 + points[:, 1] * points[:, 2])
+    assert np.allclose(shape_values(np.eye(4)), np.eye(4, 10))
+
+
+def test_a_push_moves_the_contact_with_the_probe_and_pulls_the_centre(cube):
+    """The top face pushed down 3 mm by a face larger than it: the top follows, the centre
+    moves down by less, the chest wall not at all."""
+    from biopsynav.footprint import make_footprint
+
+    rest = np.diag([1.0, -1.0, -1.0, 1.0])
+    rest[2, 3] = 15.0  # face on the top, beam down
+    pushed = rest.copy()
+    pushed[2, 3] -= 3.0
+    contact = cube.contact(rest, make_footprint("rectangle", (60.0, 60.0)), 0.5)
+    assert np.allclose(cube.nodes[contact, 2], 15.0) and len(contact) >= 9
+    (centre,) = cube.push(rest, [pushed], contact, np.zeros((1, 3)))
+    assert -3.0 < centre[0, 2] < -0.5 and np.abs(centre[0, :2]).max() < 0.05  # mesh asymmetry

@@ -1,0 +1,328 @@
+"""An independent FE reference for rigid-probe pushes: quadratic (10-node, P2) tetrahedra on a gmsh
+tetrahedral mesh of the breast surface, compressible neo-Hookean, Newton on the displacement.
+
+Nothing is shared with biopsynav's FE: another mesh (tetrahedra fitted to the surface, not an
+immersed hexahedral grid), another element (P2 tetrahedra, 11-point degree-4 rule from
+scikit-fem), another formulation (spatial: Kirchhoff stress ``tau = mu (b - I) + lam ln J I`` and
+its tangent ``c = lam I x I + 2 (mu - lam ln J) II``, on spatial shape-function gradients; the
+biopsynav kernel works in the reference configuration), its own vectorised assembly and
+Newton loop (MKL Pardiso for the linear solves). The boundary conditions are the tracker's: the
+chest-wall plane fixed, and the skin the probe face touches at the rest pose (within the contact
+tolerance, under the footprint, facing the probe; :func:`biopsynav.probe.skin_under_face`) moved
+rigidly with the probe; the rest free. Used by ``benchmarks/convergence.py``; needs gmsh.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import scipy.sparse as sp
+
+from biopsynav.materials import lame_constants
+from biopsynav.probe import skin_under_face
+
+#: local vertex pairs of the six edge nodes of a 10-node tetrahedron (nodes 4-9)
+EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+
+
+def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
+             fine_at: np.ndarray | None = None, fine_mm: float = 2.0, fine_radius_mm: float = 35.0
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Tetrahedra of the closed surface (vertices (n, 3) mm, faces (m, 3)) with edges of about
+    ``size_mm``, and of ``fine_mm`` within ``fine_radius_mm`` of ``fine_at`` (3,) mm when
+    given (under the probe): points (p, 3) mm and tetrahedra (t, 4), positively oriented
+    (gmsh: the surface reparametrised and remeshed, then filled)."""
+    import gmsh
+    import trimesh
+
+    with tempfile.TemporaryDirectory() as tmp:
+        stl = Path(tmp) / "surface.stl"
+        trimesh.Trimesh(vertices, faces, process=False).export(stl)
+        gmsh.initialize(interruptible=False)
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.merge(str(stl))
+            gmsh.model.mesh.classifySurfaces(np.radians(40.0), True, True, np.pi)
+            gmsh.model.mesh.createGeometry()
+            loop = gmsh.model.geo.addSurfaceLoop([t for _, t in gmsh.model.getEntities(2)])
+            gmsh.model.geo.addVolume([loop])
+            gmsh.model.geo.synchronize()
+            gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
+            gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+            if fine_at is not None:
+                _ball_field(fine_at, fine_mm, size_mm, fine_radius_mm)
+            gmsh.model.mesh.generate(3)
+            tags, coords, _ = gmsh.model.mesh.getNodes()
+            _, elem_nodes = gmsh.model.mesh.getElementsByType(4)  # 4-node tetrahedra
+        finally:
+            gmsh.finalize()
+    index = np.full(int(tags.max()) + 1, -1)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    tets = index[np.asarray(elem_nodes, dtype=np.int64).reshape(-1, 4)]
+    used = np.unique(tets)
+    remap = np.full(len(tags), -1)
+    remap[used] = np.arange(len(used))
+    points, tets = coords.reshape(-1, 3)[used], remap[tets]
+    flip = _volumes(points, tets) < 0
+    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
+    return points, tets
+
+
+def _ball_field(centre: np.ndarray, fine_mm: float, size_mm: float, radius_mm: float) -> None:
+    """gmsh background size: ``fine_mm`` within ``radius_mm`` of ``centre``, growing to
+    ``size_mm`` over another radius."""
+    import gmsh
+
+    field = gmsh.model.mesh.field
+    tag = field.add("Ball")
+    for key, value in (("Radius", radius_mm), ("Thickness", radius_mm), ("VIn", fine_mm),
+                       ("VOut", size_mm), ("XCenter", centre[0]), ("YCenter", centre[1]),
+                       ("ZCenter", centre[2])):
+        field.setNumber(tag, key, float(value))
+    field.setAsBackgroundMesh(tag)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", fine_mm)
+
+
+def _volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    e = points[tets[:, 1:]] - points[tets[:, :1]]
+    return np.linalg.det(e) / 6.0
+
+
+def p2_nodes(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes (n, 3) mm of the P2 mesh (vertices, then edge midpoints) and the (t, 10)
+    element node lists (4 vertices, then the edges in :data:`EDGES` order)."""
+    pairs = np.sort(tets[:, EDGES].reshape(-1, 2), axis=1)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    elements = np.hstack([tets, len(points) + inverse.reshape(-1, 6)])
+    return np.vstack([points, points[edges].mean(axis=1)]), elements
+
+
+def shape_gradients(bary: np.ndarray, grad_l: np.ndarray) -> np.ndarray:
+    """Gradients (t, 10, 3) of the P2 shape functions at barycentric point ``bary`` (4,) of
+    elements whose barycentric gradients are ``grad_l`` (t, 4, 3)."""
+    vertex = (4.0 * bary - 1.0)[None, :, None] * grad_l
+    i, j = EDGES[:, 0], EDGES[:, 1]
+    edge = 4.0 * (bary[i][None, :, None] * grad_l[:, j] + bary[j][None, :, None] * grad_l[:, i])
+    return np.concatenate([vertex, edge], axis=1)
+
+
+def shape_values(bary: np.ndarray) -> np.ndarray:
+    """P2 shape function values (k, 10) at barycentric points (k, 4)."""
+    vertex = bary * (2.0 * bary - 1.0)
+    edge = 4.0 * bary[:, EDGES[:, 0]] * bary[:, EDGES[:, 1]]
+    return np.hstack([vertex, edge])
+
+
+@dataclass
+class TetReference:
+    """The P2 model of one case's anatomy (homogeneous neo-Hookean, chest wall fixed)."""
+
+    nodes: np.ndarray  # (n, 3) mm
+    elements: np.ndarray  # (t, 10)
+    corners: np.ndarray  # (t, 4) the linear tetrahedra
+    grads: np.ndarray  # (q, t, 10, 3) reference shape-function gradients per quadrature point
+    weights: np.ndarray  # (q, t) quadrature weight x volume
+    mu: float
+    lam: float
+    fixed_nodes: np.ndarray
+    skin: SimpleNamespace  # boundary nodes as an anatomy: vertices, normals, fixed_vertices
+    skin_nodes: np.ndarray  # (k,) node index of each skin entry
+
+    @classmethod
+    def build(cls, anatomy, size_mm: float, e_mpa: float, nu: float,
+              fine_at: np.ndarray | None = None, fine_mm: float = 2.0,
+              chest_tol_mm: float = 0.05) -> TetReference:
+        """The reference of ``anatomy`` (a biopsynav Anatomy) on tetrahedra of about
+        ``size_mm`` (``fine_mm`` around ``fine_at``: :func:`tet_mesh`) with a homogeneous
+        material (E MPa, nu)."""
+        from scipy.spatial import cKDTree
+        from skfem.quadrature import get_quadrature
+        from skfem.refdom import RefTet
+
+        points, tets = tet_mesh(anatomy.vertices, anatomy.faces, size_mm, fine_at, fine_mm)
+        nodes, elements = p2_nodes(points, tets)
+        grad_l = _barycentric_gradients(points, tets)
+        xq, wq = get_quadrature(RefTet, 4)
+        bary = np.vstack([1.0 - xq.sum(axis=0), xq]).T  # (q, 4)
+        grads = np.stack([shape_gradients(b, grad_l) for b in bary])
+        weights = 6.0 * wq[:, None] * _volumes(points, tets)[None, :]
+        mu, lam = lame_constants(np.array([e_mpa]), np.array([nu]))
+        skin_nodes = _boundary_nodes(tets, len(points), elements)
+        locs = nodes[skin_nodes]
+        normal = anatomy.chest_normal / np.linalg.norm(anatomy.chest_normal)
+        on_chest = np.abs((locs - anatomy.chest_point) @ normal) <= chest_tol_mm
+        _, nearest = cKDTree(anatomy.vertices).query(locs)
+        skin = SimpleNamespace(vertices=locs, normals=anatomy.normals[nearest],
+                               fixed_vertices=on_chest)
+        return cls(nodes, elements, tets, grads, weights, float(mu[0]), float(lam[0]),
+                   skin_nodes[on_chest], skin, skin_nodes)
+
+    @property
+    def n_dofs(self) -> int:
+        return 3 * len(self.nodes)
+
+    def contact(self, pose: np.ndarray, footprint, tol_mm: float) -> np.ndarray:
+        """Node indices of the skin the probe face touches at rest ``pose`` (as the
+        tracker's :func:`biopsynav.tracker.contact_indices`)."""
+        r = np.asarray(pose)[:3, :3]
+        found = skin_under_face(self.skin, np.asarray(pose)[:3, 3], r, footprint, tol_mm,
+                                -r[:, 2])
+        return self.skin_nodes[found]
+
+    def forces_and_tangent(self, u: np.ndarray, tangent: bool = True):
+        """Internal forces (3 n,) N and, with ``tangent``, the stiffness (3 n, 3 n) N/mm at
+        the nodal displacement ``u`` (n, 3) mm (node-major dofs)."""
+        ue = u[self.elements]  # (t, 10, 3)
+        n_el = len(self.elements)
+        f = np.zeros((n_el, 10, 3))
+        k = np.zeros((n_el, 10, 3, 10, 3)) if tangent else None
+        for g0, w in zip(self.grads, self.weights, strict=True):
+            defo = np.eye(3) + np.einsum("tai,taj->tij", ue, g0)
+            det = np.linalg.det(defo)
+            if np.any(det <= 0.0):
+                raise FloatingPointError("an element inverted")
+            g = np.einsum("taj,tji->tai", g0, np.linalg.inv(defo))  # spatial gradients F^-T G
+            b = defo @ defo.transpose(0, 2, 1)
+            m = self.mu - self.lam * np.log(det)
+            tau = self.mu * (b - np.eye(3)) + (self.lam * np.log(det))[:, None, None] * np.eye(3)
+            f += w[:, None, None] * np.einsum("tij,taj->tai", tau, g)
+            if tangent:
+                k += w[:, None, None, None, None] * _element_tangent(g, tau, self.lam, m)
+        rows = (3 * self.elements[:, :, None] + np.arange(3)).reshape(n_el, 30)
+        forces = np.bincount(rows.ravel(), f.ravel(), minlength=self.n_dofs)
+        if not tangent:
+            return forces
+        r = np.repeat(rows, 30, axis=1).ravel()
+        c = np.tile(rows, (1, 30)).ravel()
+        stiff = sp.csr_matrix((k.reshape(n_el, 900).ravel(), (r, c)),
+                              shape=(self.n_dofs, self.n_dofs))
+        return forces, stiff
+
+    def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
+             points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6) -> list[np.ndarray]:
+        """Displacements (k, 3) mm at ``points`` (k, 3) for each of ``poses`` (in turn, each
+        solve starting from the last): the contact nodes follow the probe rigidly from
+        ``rest``, in load steps of at most ``step_mm`` (halved where a step fails)."""
+        x0 = self.nodes[contact]
+        u = np.zeros_like(self.nodes)
+        done = np.zeros_like(x0)
+        out = []
+        interp = self._interpolation(np.asarray(points, dtype=np.float64))
+        for pose in poses:
+            rel = np.asarray(pose) @ np.linalg.inv(rest)
+            target = x0 @ rel[:3, :3].T + rel[:3, 3] - x0
+            steps = max(1, int(np.ceil(np.abs(target - done).max() / step_mm)))
+            for s in range(1, steps + 1):
+                u = self._step(u, contact, done + (target - done) * s / steps, tol)
+            done = target
+            out.append(interp @ u)
+        return out
+
+    def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
+              depth: int = 0) -> np.ndarray:
+        """One load step to ``values`` at the contact nodes; split in two when it fails."""
+        try:
+            return self._newton(u, contact, values, tol)
+        except (FloatingPointError, RuntimeError):
+            if depth >= 4:
+                raise
+            half = 0.5 * (u[contact] + values)
+            u = self._step(u, contact, half, tol, depth + 1)
+            return self._step(u, contact, values, tol, depth + 1)
+
+    def _newton(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
+                tol: float) -> np.ndarray:
+        """Equilibrium with ``values`` (n_c, 3) mm at the ``contact`` nodes, from the
+        equilibrium ``u``: the first iteration carries the prescribed increment through the
+        tangent (no element is distorted by moving the contact nodes alone)."""
+        import pypardiso
+
+        constrained = np.zeros(self.n_dofs, dtype=bool)
+        constrained[(3 * np.concatenate([contact, self.fixed_nodes])[:, None]
+                     + np.arange(3)).ravel()] = True
+        free = np.flatnonzero(~constrained)
+        lift = np.zeros_like(u)
+        lift[contact] = values - u[contact]
+        u = u.copy()
+        r0 = None
+        for it in range(30):
+            forces, stiff = self.forces_and_tangent(u)
+            if it == 0:
+                rhs = -(forces + stiff @ lift.ravel())[free]
+            else:
+                r_norm = float(np.linalg.norm(forces[free]))
+                r0 = r_norm if r0 is None else r0
+                if r_norm <= tol * r0 or r_norm < 1e-12:
+                    return u
+                rhs = -forces[free]
+            du = np.zeros(self.n_dofs)
+            du[free] = pypardiso.spsolve(stiff[free][:, free].tocsr(), rhs)
+            if it == 0:
+                du += lift.ravel()
+            u = u + du.reshape(u.shape)
+        raise RuntimeError("P2 reference: Newton did not converge")
+
+    def _interpolation(self, points: np.ndarray) -> sp.csr_matrix:
+        """(k, n) P2 interpolation at ``points`` (k, 3) mm; ValueError outside the mesh."""
+        p, t = self.nodes, self.corners
+        e = p[t[:, 1:]] - p[t[:, :1]]  # (t, 3, 3) edge vectors as rows
+        inv = np.linalg.inv(e.transpose(0, 2, 1))
+        rows, cols, vals = [], [], []
+        for i, x in enumerate(points):
+            lam = np.einsum("tij,tj->ti", inv, x - p[t[:, 0]])
+            bary = np.hstack([1.0 - lam.sum(axis=1, keepdims=True), lam])
+            inside = np.flatnonzero(bary.min(axis=1) >= -1e-9)
+            if inside.size == 0:
+                raise ValueError(f"point {x} lies outside the tetrahedral mesh")
+            el = inside[0]
+            rows += [i] * 10
+            cols += list(self.elements[el])
+            vals += list(shape_values(bary[el][None])[0])
+        return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
+
+
+def _element_tangent(g: np.ndarray, tau: np.ndarray, lam: float, m: np.ndarray) -> np.ndarray:
+    """(t, 10, 3, 10, 3) spatial tangent per unit weight: the stress term (g_a . tau g_b)
+    delta_ik and the material term lam g_ai g_bk + m (delta_ik g_a . g_b + g_ak g_bi)."""
+    gg = np.einsum("tai,tbi->tab", g, g)
+    geo = np.einsum("tai,tij,tbj->tab", g, tau, g) + m[:, None, None] * gg
+    out = (lam * np.einsum("tai,tbk->taibk", g, g)
+           + m[:, None, None, None, None] * np.einsum("tak,tbi->taibk", g, g))
+    out += geo[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+    return out
+
+
+def _barycentric_gradients(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(t, 4, 3) gradients of the barycentric coordinates of each tetrahedron."""
+    e = points[tets[:, 1:]] - points[tets[:, :1]]  # rows: x1 - x0, x2 - x0, x3 - x0
+    inv = np.linalg.inv(e)  # columns: gradients of lambda_1..3
+    g123 = inv.transpose(0, 2, 1)
+    return np.concatenate([-g123.sum(axis=1, keepdims=True), g123], axis=1)
+
+
+def _boundary_nodes(tets: np.ndarray, n_points: int, elements: np.ndarray) -> np.ndarray:
+    """P2 node indices (vertices and edge nodes) on the boundary faces of the tetrahedra."""
+    faces = np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]],
+                                    tets[:, [0, 2, 3]], tets[:, [1, 2, 3]]]), axis=1)
+    uniq, counts = np.unique(faces, axis=0, return_counts=True)
+    boundary = uniq[counts == 1]
+    vertices = np.unique(boundary)
+    on_boundary = np.zeros(n_points, dtype=bool)
+    on_boundary[vertices] = True
+    # an edge node is on the boundary when its edge is an edge of a boundary face
+    pairs = np.sort(np.concatenate([boundary[:, [0, 1]], boundary[:, [1, 2]],
+                                    boundary[:, [0, 2]]]), axis=1)
+    face_edges = {tuple(p) for p in np.unique(pairs, axis=0)}
+    edge_nodes = []
+    for el, tet in zip(elements, tets, strict=True):
+        for k, (a, b) in enumerate(EDGES):
+            key = (min(tet[a], tet[b]), max(tet[a], tet[b]))
+            if key in face_edges:
+                edge_nodes.append(el[4 + k])
+    return np.concatenate([vertices, np.unique(edge_nodes)]).astype(np.int64)
