@@ -86,10 +86,19 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     probe = case.cfg.probe
     contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
-    poses = [placement.pushed(d) for d in depths]
-    disp = [u[0].tolist() for u in ref.push(placement.pose, poses, contact, centre)]
+    disp, failure = [], ""
+    rest = placement.pose
+    for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
+        try:
+            (u,) = ref.push(rest, [placement.pushed(depth)], contact, centre,
+                            start=ref.last if disp else None)
+        except (FloatingPointError, RuntimeError) as exc:
+            failure = f"{depth:g} mm: {exc}"
+            break
+        disp.append(u[0].tolist())
+    disp += [None] * (len(depths) - len(disp))
     return disp, {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
-                  "seconds": time.perf_counter() - t0}
+                  "seconds": time.perf_counter() - t0, "failure": failure}
 
 
 def extrapolated(cells: list[float], values: list) -> np.ndarray | None:
@@ -138,20 +147,29 @@ def run(args) -> dict:
         disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
         grids[cell] = {"active_cells": active, "n_equations": int(tracker._fem_model.n_eq),
                        "seconds": time.perf_counter() - t0, "displacement": disp}
+        save(args.out, {"grids": grids})
         print(f"  hex {cell:g} mm: {active} active cells, {time.perf_counter() - t0:.0f} s",
               flush=True)
     reference = {}
     for li in lesions:
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args)
         reference[li] = {"displacement": disp, **facts}
+        save(args.out, {"grids": grids, "reference": reference})
         print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: {facts['tets']} tetrahedra,"
               f" {facts['dofs']} dofs, {facts['contact_nodes']} contact nodes, "
-              f"{facts['seconds']:.0f} s", flush=True)
+              f"{facts['seconds']:.0f} s" + (f"; failed at {facts['failure']}"
+                                             if facts["failure"] else ""), flush=True)
     return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": args.nu,
             "depths_mm": args.depths, "cells_mm": args.cells, "lesions": lesions,
             "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
             "grids": grids, "reference": reference,
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine}
+
+
+def save(path: Path | None, partial: dict) -> None:
+    """Write what is computed so far (a long run keeps its figures if a later part fails)."""
+    if path is not None:
+        path.write_text(json.dumps(partial, indent=1, default=str))
 
 
 def report(result: dict) -> dict[float, list[float]]:
@@ -165,11 +183,13 @@ def report(result: dict) -> dict[float, list[float]]:
     for li, lid in zip(result["lesions"], result["lesion_ids"], strict=True):
         for k, depth in enumerate(depths):
             values = [result["grids"][c]["displacement"][li][k] for c in cells]
-            ref = np.asarray(result["reference"][li]["displacement"][k])
+            ref_k = result["reference"][li]["displacement"][k]
+            ref = np.full(3, np.nan) if ref_k is None else np.asarray(ref_k)
             mags, errs = [], []
             for c, v in zip(cells, values, strict=True):
-                mags.append("failed" if v is None else f"{np.linalg.norm(v):8.2f}")
-                err = None if v is None else float(np.linalg.norm(np.asarray(v) - ref))
+                mags.append("  failed" if v is None else f"{np.linalg.norm(v):8.2f}")
+                err = None if v is None or ref_k is None else \
+                    float(np.linalg.norm(np.asarray(v) - ref))
                 errs.append("-" if err is None else f"{err:8.2f}")
                 if err is not None:
                     errors[c].append(err)

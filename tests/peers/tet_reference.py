@@ -204,14 +204,18 @@ class TetReference:
                               shape=(self.n_dofs, self.n_dofs))
         return forces, stiff
 
+    last: np.ndarray | None = None  # the nodal displacement of the last push (n, 3) mm
+
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
-             points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6) -> list[np.ndarray]:
+             points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
+             start: np.ndarray | None = None) -> list[np.ndarray]:
         """Displacements (k, 3) mm at ``points`` (k, 3) for each of ``poses`` (in turn, each
-        solve starting from the last): the contact nodes follow the probe rigidly from
+        solve starting from the last; the first from ``start``, an equilibrium (n, 3) mm of
+        the same contact set, or from rest): the contact nodes follow the probe rigidly from
         ``rest``, in load steps of at most ``step_mm`` (halved where a step fails)."""
         x0 = self.nodes[contact]
-        u = np.zeros_like(self.nodes)
-        done = np.zeros_like(x0)
+        u = np.zeros_like(self.nodes) if start is None else np.array(start, dtype=np.float64)
+        done = u[contact].copy()
         out = []
         interp = self._interpolation(np.asarray(points, dtype=np.float64))
         for pose in poses:
@@ -221,6 +225,7 @@ class TetReference:
             for s in range(1, steps + 1):
                 u = self._step(u, contact, done + (target - done) * s / steps, tol)
             done = target
+            self.last = u
             out.append(interp @ u)
         return out
 
