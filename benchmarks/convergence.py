@@ -2,6 +2,8 @@
 of immersed hexahedral grids, against an independent P2 tetrahedral reference in the same run.
 
     python benchmarks/convergence.py CASE [--cells 7.3 5 3.65] [--depths 10 20 30]
+                                          [--contact points cell_average]
+                                          [--laws neo-hookean neo-hookean-sri]
                                           [--lesions 3] [--tet-size 10] [--tet-fine 2.5]
                                           [--nu 0.45] [--out convergence.json]
 
@@ -12,16 +14,21 @@ chest wall is fixed, the material is homogeneous neo-Hookean (E of the case's de
 ``--nu``). Two discretisations answer:
 
 * biopsynav's FE (``Tracker(engine="fem")``: immersed hexahedra, prescribed contact-point
-  displacements) on grids of each ``--cells`` size, the first being the default 7.3 mm;
+  displacements) on grids of each ``--cells`` size, the first being the default 7.3 mm, with
+  each ``--contact`` kind of constraint (:mod:`biopsynav.contact.constraints`: every contact
+  point, or the mean of each cell's points) and each ``--laws`` hexahedral integration of the
+  neo-Hookean energy (``neo-hookean``: 2x2x2 Gauss points; ``neo-hookean-sri``: its volumetric
+  term at the cell centre, free of volumetric locking);
 * the reference, ``tests/peers/tet_reference.py``: quadratic tetrahedra of a gmsh mesh of the
   same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe), its own
   assembly and Newton loop.
 
-Printed per lesion and depth: the lesion displacement |u| of every grid and of the reference,
-each grid's error (distance to the reference's displacement vector, mm), the displacement
-extrapolated to zero cell size from the two finest grids (first order, the immersed boundary's),
-and the observed order from the three finest (when the sequence is monotone). The last line
-reads ``RESULT`` with the mean and largest error of each grid against the reference.
+Printed per variant (law and contact kind), lesion and depth: the lesion displacement |u| of
+every grid and of the reference, each grid's error (distance to the reference's displacement
+vector, mm), the displacement extrapolated to zero cell size from the two finest grids (first
+order, the immersed boundary's), and the observed order from the three finest (when the
+sequence is monotone). The last line reads ``RESULT`` with the mean and largest error of each
+variant and grid against the reference.
 """
 
 from __future__ import annotations
@@ -39,6 +46,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
+from biopsynav.contact.constraints import contact_constraint_names  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
@@ -55,11 +63,17 @@ def homogeneous(case: Case, nu: float) -> tuple[Case, float]:
     return Case(case.dir, cfg, case.anatomy, case.grid), e_mpa
 
 
-def hex_tracker(case: Case, cell_mm: float) -> tuple[Tracker, int]:
-    """biopsynav's FE tracker of ``case`` on a grid of ``cell_mm`` cells; its active cells."""
+def hex_tracker(case: Case, cell_mm: float, variant: str = "neo-hookean/points"
+                ) -> tuple[Tracker, int]:
+    """biopsynav's FE tracker of ``case`` on a grid of ``cell_mm`` cells for ``variant``
+    (``law/contact``: material law and contact constraints); its active cells."""
+    law, contact = variant.split("/")
     section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
     grid = build_grid(case.anatomy, section, levels=0)
-    sized = Case(case.dir, case.cfg, case.anatomy, grid)
+    cfg = copy.deepcopy(case.cfg)
+    cfg.tracker.fem_contact = contact
+    cfg.material.model = law
+    sized = Case(case.dir, cfg, case.anatomy, grid)
     tracker = Tracker(sized, "fem", fem_model=FEModel.from_case(sized),
                       fem_settings=evaluation_solver_settings(sized))
     return tracker, int(grid.active_cells.sum())
@@ -141,15 +155,17 @@ def run(args) -> dict:
           f"nu = {args.nu:g}; lesions {', '.join(str(case.anatomy.lesions[i].id) for i in lesions)}"
           f"; pushes {', '.join(f'{d:g}' for d in args.depths)} mm", flush=True)
     grids = {}
-    for cell in args.cells:
-        t0 = time.perf_counter()
-        tracker, active = hex_tracker(case, cell)
-        disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
-        grids[cell] = {"active_cells": active, "n_equations": int(tracker._fem_model.n_eq),
-                       "seconds": time.perf_counter() - t0, "displacement": disp}
-        save(args.out, {"grids": grids})
-        print(f"  hex {cell:g} mm: {active} active cells, {time.perf_counter() - t0:.0f} s",
-              flush=True)
+    for variant in variants(args):
+        for cell in args.cells:
+            t0 = time.perf_counter()
+            tracker, active = hex_tracker(case, cell, variant)
+            disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
+            grids[series_key(variant, cell)] = {
+                "active_cells": active, "n_equations": int(tracker._fem_model.n_eq),
+                "seconds": time.perf_counter() - t0, "displacement": disp}
+            save(args.out, {"grids": grids})
+            print(f"  hex {cell:g} mm, {variant}: {active} active cells, "
+                  f"{time.perf_counter() - t0:.0f} s", flush=True)
     reference = {}
     for li in lesions:
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args)
@@ -160,10 +176,21 @@ def run(args) -> dict:
               f"{facts['seconds']:.0f} s" + (f"; failed at {facts['failure']}"
                                              if facts["failure"] else ""), flush=True)
     return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": args.nu,
-            "depths_mm": args.depths, "cells_mm": args.cells, "lesions": lesions,
+            "depths_mm": args.depths, "cells_mm": args.cells, "variants": variants(args),
+            "lesions": lesions,
             "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
             "grids": grids, "reference": reference,
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine}
+
+
+def variants(args) -> list[str]:
+    """Every ``law/contact`` pair asked for."""
+    return [f"{law}/{contact}" for law in args.laws for contact in args.contact]
+
+
+def series_key(variant: str, cell: float) -> str:
+    """The key of one grid series in the figures: variant and cell size."""
+    return f"{variant} {cell:g}"
 
 
 def save(path: Path | None, partial: dict) -> None:
@@ -172,27 +199,37 @@ def save(path: Path | None, partial: dict) -> None:
         path.write_text(json.dumps(partial, indent=1, default=str))
 
 
-def report(result: dict) -> dict[float, list[float]]:
-    """Print the table; return each grid's errors against the reference (mm)."""
+def report(result: dict) -> dict[str, list[float]]:
+    """Print one table per variant; return each series' errors against the reference (mm),
+    keyed as :func:`series_key`."""
+    errors: dict[str, list[float]] = {}
+    for variant in result["variants"]:
+        errors.update(report_variant(result, variant))
+    return errors
+
+
+def report_variant(result: dict, variant: str) -> dict[str, list[float]]:
+    """The table of one variant (every grid against the reference)."""
     cells, depths = result["cells_mm"], result["depths_mm"]
-    errors: dict[float, list[float]] = {c: [] for c in cells}
+    keys = [series_key(variant, c) for c in cells]
+    errors: dict[str, list[float]] = {key: [] for key in keys}
     head = ("lesion  push  " + "  ".join(f"|u| {c:>4g}" for c in cells)
             + "  |u| P2   " + "  ".join(f"err {c:>4g}" for c in cells)
             + "  |u| h->0  order")
-    print("\n" + head + "\n" + "-" * len(head))
+    print(f"\n{variant}\n" + head + "\n" + "-" * len(head))
     for li, lid in zip(result["lesions"], result["lesion_ids"], strict=True):
         for k, depth in enumerate(depths):
-            values = [result["grids"][c]["displacement"][li][k] for c in cells]
+            values = [result["grids"][key]["displacement"][li][k] for key in keys]
             ref_k = result["reference"][li]["displacement"][k]
             ref = np.full(3, np.nan) if ref_k is None else np.asarray(ref_k)
             mags, errs = [], []
-            for c, v in zip(cells, values, strict=True):
+            for key, v in zip(keys, values, strict=True):
                 mags.append("  failed" if v is None else f"{np.linalg.norm(v):8.2f}")
                 err = None if v is None or ref_k is None else \
                     float(np.linalg.norm(np.asarray(v) - ref))
-                errs.append("-" if err is None else f"{err:8.2f}")
+                errs.append("       -" if err is None else f"{err:8.2f}")
                 if err is not None:
-                    errors[c].append(err)
+                    errors[key].append(err)
             ext = extrapolated(cells, values)
             order = observed_order(cells, values)
             print(f"{lid:>6}  {depth:4g}  " + "  ".join(mags) + f"  {np.linalg.norm(ref):7.2f}  "
@@ -209,6 +246,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="hexahedral cell sizes, mm (the first: the default grid)")
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0],
                    help="push depths, mm")
+    p.add_argument("--contact", nargs="+", default=list(contact_constraint_names()),
+                   choices=contact_constraint_names(), help="contact constraint kinds")
+    p.add_argument("--laws", nargs="+", default=["neo-hookean"],
+                   choices=["neo-hookean", "neo-hookean-sri"],
+                   help="hexahedral integration of the neo-Hookean energy")
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
     p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
     p.add_argument("--tet-fine", type=float, default=2.5,
@@ -223,9 +265,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         args.out.write_text(json.dumps(result, indent=1))
     print(f"\ntotal {result['seconds'] / 60:.1f} min")
+    names = {key: key.replace(" ", "_").replace("/", ":") for key in errors}
     print("RESULT " + " ".join(
-        f"err_{c:g}mm_mean={np.mean(e):.3f} err_{c:g}mm_max={np.max(e):.3f}"
-        for c, e in errors.items() if e))
+        f"err_{names[key]}mm_mean={np.mean(e):.3f} err_{names[key]}mm_max={np.max(e):.3f}"
+        for key, e in errors.items() if e))
     return 0
 
 

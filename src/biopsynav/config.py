@@ -17,6 +17,7 @@ from typing import Any
 import tomli_w
 import tomllib
 
+from .contact.constraints import contact_constraint_names
 from .errors import InputError
 from .fileio import write_text_atomic
 from .footprint import Footprint, footprint_names, make_footprint
@@ -95,8 +96,11 @@ class GridSection:
 class MaterialSection:
     model: str = opt("neo-hookean", "Hyperelastic law (biopsynav.materials registry): "
                                     "'neo-hookean' (compressible, default: stable under large "
-                                    "pushes) or 'svk' (Saint Venant-Kirchhoff, the paper's; "
-                                    "collapses under large pushes on soft tissue).",
+                                    "pushes), 'neo-hookean-sri' (the same energy, its "
+                                    "volumetric term integrated at the cell centre: free of "
+                                    "volumetric locking, docs/fem.md) or 'svk' (Saint "
+                                    "Venant-Kirchhoff, the paper's; collapses under large "
+                                    "pushes on soft tissue).",
                      choices=material_law_names)
     default_tissue: str = opt("phantom", "Tissue of cells without a label.")
     tissues: dict = opt(None, "Per-tissue Young's modulus E_mpa (MPa) and Poisson ratio nu. "
@@ -150,9 +154,11 @@ class SolverSection:
     threads: int = opt(0, "Pardiso threads (0: all cores).", lo=0, hi=1024)
     penalty: float = opt(1e6, "Penalty of prescribed displacements, relative to the mean "
                               "diagonal of the reference stiffness.", lo=1.0, hi=1e12)
-    constraint_tolerance_mm: float = opt(1e-4, "Largest error of a prescribed displacement; "
-                                               "augmented-Lagrangian updates run until it is "
-                                               "met.", lo=1e-10, hi=1.0)
+    constraint_tolerance_mm: float = opt(1e-2, "Largest error of a prescribed displacement "
+                                               "(mm); augmented-Lagrangian updates run until "
+                                               "it is met. Far below the discretisation "
+                                               "error of lesion displacements (docs/fem.md).",
+                                         lo=1e-10, hi=1.0)
 
 
 @dataclass
@@ -304,6 +310,13 @@ class TrackerSection:
                                  lo=1.0, hi=10.0)
     rigid_tolerance: float = opt(1e-3, "Largest deviation of a pose rotation from orthonormal.",
                                  lo=1e-9, hi=1.0)
+    fem_contact: str = opt("points", "How the FE engine (and Table 2's FE method and ground "
+                                     "truth) prescribes the probe's motion "
+                                     "(biopsynav.contact.constraints registry): 'points' "
+                                     "(every contact point) or 'cell_average' (the mean of "
+                                     "the contact points of each grid cell; converges faster "
+                                     "with the cell size, docs/fem.md).",
+                           choices=contact_constraint_names)
 
 
 @dataclass

@@ -5,7 +5,12 @@ for the laws registered here). A :class:`MaterialLaw` names those parameters wit
 ranges, turns per-element parameter arrays into the numba kernel's per-element Lame constants
 (mu, lambda) in MPa, gives the small-strain (E, nu) that the linear-elastic baseline and the
 contact compliance use, and names the kernel branch that evaluates it (the kernels keep their
-branches: ``KERNEL_SVK``, ``KERNEL_NEO_HOOKEAN``; a law with a new energy adds one there).
+branches: ``KERNEL_SVK``, ``KERNEL_NEO_HOOKEAN``, ``KERNEL_NEO_HOOKEAN_SRI``; a law with a new
+energy adds one there).
+
+Registered: ``neo-hookean`` (compressible, ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``),
+``neo-hookean-sri`` (the same energy, its ``lam`` term integrated at the cell centre:
+selective reduced integration, free of volumetric locking near nu = 0.5) and ``svk``.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import numpy as np
 
 KERNEL_SVK = 0
 KERNEL_NEO_HOOKEAN = 1
+KERNEL_NEO_HOOKEAN_SRI = 2
 
 Arrays = dict[str, np.ndarray]
 
@@ -80,4 +86,6 @@ def _e_nu(p: Arrays) -> tuple[np.ndarray, np.ndarray]:
 
 register_material_law(MaterialLaw("neo-hookean", KERNEL_NEO_HOOKEAN, ELASTIC_PARAMETERS,
                                   _lame, _e_nu))
+register_material_law(MaterialLaw("neo-hookean-sri", KERNEL_NEO_HOOKEAN_SRI,
+                                  ELASTIC_PARAMETERS, _lame, _e_nu))
 register_material_law(MaterialLaw("svk", KERNEL_SVK, ELASTIC_PARAMETERS, _lame, _e_nu))

@@ -35,6 +35,6 @@ def distorted_box(cells=(2, 2, 2), size=20.0):
     return nodes, hexes
 
 
-@pytest.fixture(params=["neo-hookean", "svk"])
+@pytest.fixture(params=["neo-hookean", "neo-hookean-sri", "svk"])
 def material(request) -> str:
     return request.param

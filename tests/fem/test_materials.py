@@ -40,5 +40,6 @@ def test_a_registered_law_takes_its_own_tissue_parameters(monkeypatch, phantom_c
     np.testing.assert_allclose(got[0], 1.0e-3)  # the small-strain (E, nu) give the same mu
     with pytest.raises(InputError, match="needs exactly mu_mpa and K_mpa"):
         config_from_dict({"material": {"model": law.name}}, "t")  # E_mpa/nu tissues refused
-    with pytest.raises(InputError, match="one of neo-hookean, svk, neo-hookean-mu-k"):
+    with pytest.raises(InputError,
+                       match="one of neo-hookean, neo-hookean-sri, svk, neo-hookean-mu-k"):
         config_from_dict({"material": {"model": "ogden"}}, "t")

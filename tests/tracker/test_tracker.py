@@ -105,20 +105,46 @@ def test_unreliable_poses_give_no_numbers(fem_tracker):
         fem_tracker.set_rest_pose(nan_pose)
 
 
-def test_rest_pose_answers_at_once_without_a_solve(fem_tracker, monkeypatch):
+def tilted_rest_pose(case) -> np.ndarray:
+    """A Table 2 rest pose over the first lesion: a rotation whose inverse rounds."""
+    from biopsynav.evaluate.placement import place_probe
+
+    return place_probe(case.anatomy, 0).pose
+
+
+@pytest.mark.parametrize("tilted", [False, True])
+def test_rest_pose_answers_at_once_without_a_solve(fem_tracker, monkeypatch, tilted):
     import biopsynav.fem
 
-    fem_tracker.set_rest_pose(TOP)
+    rest = tilted_rest_pose(fem_tracker.case) if tilted else TOP
+    fem_tracker.set_rest_pose(rest)
 
     def no_solve(*args, **kwargs):
         raise AssertionError("a pose with zero displacement must not solve")
 
     monkeypatch.setattr(biopsynav.fem, "solve", no_solve)
-    r = fem_tracker.update(TOP)
+    r = fem_tracker.update(rest.copy())
     assert r.status == st.OK and r.reliable
     np.testing.assert_array_equal([les.displacement for les in r.lesions], 0.0)
     np.testing.assert_array_equal([les.center for les in r.lesions],
                                   [les.center for les in fem_tracker.case.anatomy.lesions])
+
+
+def test_every_clinical_push_over_every_lesion_converges(fem_tracker):
+    """Table-2-like pushes (probe over each lesion, along its beam) up to the clinical 35 mm:
+    the FE engine answers ok for each (benchmarks/fe_pushes.py runs the default grid)."""
+    from biopsynav.evaluate.placement import place_probe
+
+    anatomy = fem_tracker.case.anatomy
+    failed = []
+    for li in range(len(anatomy.lesions)):
+        placement = place_probe(anatomy, li)
+        fem_tracker.set_rest_pose(placement.pose)
+        for depth in (12.0, 24.0, 35.0):
+            r = fem_tracker.update(placement.pushed(depth))
+            if r.status != st.OK:
+                failed.append((anatomy.lesions[li].id, depth, r.status, r.reason))
+    assert not failed
 
 
 def test_solver_failure_is_solver_failed_not_out_of_envelope(fem_tracker, monkeypatch):

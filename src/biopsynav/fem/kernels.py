@@ -18,10 +18,11 @@ import numpy as np
 from numba import njit, prange
 
 from ..grid.index import HEX_CORNERS
-from ..materials import KERNEL_NEO_HOOKEAN, KERNEL_SVK
+from ..materials import KERNEL_NEO_HOOKEAN, KERNEL_NEO_HOOKEAN_SRI, KERNEL_SVK
 
 SVK = KERNEL_SVK  # the branch ids of biopsynav.materials
 NEO_HOOKEAN = KERNEL_NEO_HOOKEAN
+NEO_HOOKEAN_SRI = KERNEL_NEO_HOOKEAN_SRI
 
 GAUSS_POINTS = (2.0 * HEX_CORNERS - 1.0) / np.sqrt(3.0)  # (8, 3) natural coordinates
 NATURAL_CORNERS = 2.0 * HEX_CORNERS - 1.0  # (8, 3) corners of the reference cube [-1, 1]^3
@@ -137,6 +138,76 @@ def _strain_energy(f, det_f, mu, lam, material):
     return 0.5 * mu * (i1 - 3.0) - mu * log_j + 0.5 * lam * log_j * log_j
 
 
+@njit(cache=True, inline="always")
+def _add_point(ue, dn, w, mu, lam, material, want_tangent, f_el, k_el, f, s, d, b, db, gsn,
+               sv, pairs):
+    """Add one integration point (shape gradients ``dn`` (8, 3), weight ``w`` mm^3) to the
+    element force ``f_el`` (24,) and tangent ``k_el`` (24, 24, upper triangle); returns
+    (energy mJ, det F). Nothing is added where det F <= 0."""
+    for i in range(3):
+        for j in range(3):
+            acc = 1.0 if i == j else 0.0
+            for a in range(8):
+                acc += ue[a, i] * dn[a, j]
+            f[i, j] = acc
+    det_f = (f[0, 0] * (f[1, 1] * f[2, 2] - f[1, 2] * f[2, 1])
+             - f[0, 1] * (f[1, 0] * f[2, 2] - f[1, 2] * f[2, 0])
+             + f[0, 2] * (f[1, 0] * f[2, 1] - f[1, 1] * f[2, 0]))
+    if det_f <= 0.0:
+        return 0.0, det_f
+    if material == SVK:
+        _stress_svk(f, mu, lam, s, d)
+    else:
+        _stress_neo_hookean(f, det_f, mu, lam, s, d, pairs)
+    energy = w * _strain_energy(f, det_f, mu, lam, material)
+    for a in range(8):
+        for i in range(3):
+            col = 3 * a + i
+            b[0, col] = f[i, 0] * dn[a, 0]
+            b[1, col] = f[i, 1] * dn[a, 1]
+            b[2, col] = f[i, 2] * dn[a, 2]
+            b[3, col] = f[i, 0] * dn[a, 1] + f[i, 1] * dn[a, 0]
+            b[4, col] = f[i, 1] * dn[a, 2] + f[i, 2] * dn[a, 1]
+            b[5, col] = f[i, 0] * dn[a, 2] + f[i, 2] * dn[a, 0]
+    sv[0] = s[0, 0]
+    sv[1] = s[1, 1]
+    sv[2] = s[2, 2]
+    sv[3] = s[0, 1]
+    sv[4] = s[1, 2]
+    sv[5] = s[0, 2]
+    for col in range(24):
+        acc = 0.0
+        for p in range(6):
+            acc += b[p, col] * sv[p]
+        f_el[col] += w * acc
+    if not want_tangent:
+        return energy, det_f
+    for p in range(6):
+        for col in range(24):
+            acc = 0.0
+            for q in range(6):
+                acc += d[p, q] * b[q, col]
+            db[p, col] = w * acc
+    for r in range(24):
+        for col in range(r, 24):
+            acc = 0.0
+            for p in range(6):
+                acc += b[p, r] * db[p, col]
+            k_el[r, col] += acc
+    for a in range(8):
+        for j in range(3):
+            acc = 0.0
+            for i in range(3):
+                acc += s[j, i] * dn[a, i]
+            gsn[a, j] = w * acc
+    for a in range(8):
+        for bb in range(a, 8):
+            geo = dn[a, 0] * gsn[bb, 0] + dn[a, 1] * gsn[bb, 1] + dn[a, 2] * gsn[bb, 2]
+            for i in range(3):
+                k_el[3 * a + i, 3 * bb + i] += geo
+    return energy, det_f
+
+
 @njit(cache=True, parallel=True)
 def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want_tangent,
                    fe, ke, min_det, energy):
@@ -148,11 +219,15 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
         elem_set: (n_el,) index into ``grads``/``jw`` (identical cubes share one set).
         grads: (n_sets, 8 gauss, 8 nodes, 3) dN/dX, 1/mm.  jw: (n_sets, 8) det J * weight, mm^3.
         scale: (n_el,) integration-weight factor (tissue volume fraction).
-        mu, lam: (n_el,) Lame constants, MPa.  material: SVK or NEO_HOOKEAN.
+        mu, lam: (n_el,) Lame constants, MPa.  material: SVK, NEO_HOOKEAN or
+            NEO_HOOKEAN_SRI (the neo-Hookean energy with its ``lam`` term integrated at one
+            point with the cell's whole weight and the volume average of the shape gradients,
+            ``(1/V) int grad N dV``: selective reduced integration, free of volumetric
+            locking; the ``mu`` terms keep the 2x2x2 rule, so no hourglass modes).
         want_tangent: fill ``ke`` too.
     Outputs (filled in place): fe (n_el, 24) N; ke (n_el, 24, 24) N/mm; min_det (n_el,);
-    energy (n_el,) mJ (N mm). An element with det F <= 0 at a Gauss point gets zero
-    contributions and an infinite energy; callers reject such states through ``min_det``.
+    energy (n_el,) mJ (N mm). An element with det F <= 0 at an integration point gets an
+    infinite energy; callers reject such states through ``min_det``.
     """
     n_el = hexes.shape[0]
     pairs = VOIGT_PAIRS
@@ -170,75 +245,33 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
         db = np.empty((6, 24))
         gsn = np.empty((8, 3))
         sv = np.empty(6)
+        dn_c = np.zeros((8, 3))
         w_el = 0.0
+        w_c = 0.0
         dmin = np.inf
         gset = elem_set[e]
+        split = material == NEO_HOOKEAN_SRI
+        law = NEO_HOOKEAN if split else material
+        lam_g = 0.0 if split else lam[e]
         for g in range(8):
-            dn = grads[gset, g]
             w = jw[gset, g] * scale[e]
-            for i in range(3):
-                for j in range(3):
-                    acc = 1.0 if i == j else 0.0
-                    for a in range(8):
-                        acc += ue[a, i] * dn[a, j]
-                    f[i, j] = acc
-            det_f = (f[0, 0] * (f[1, 1] * f[2, 2] - f[1, 2] * f[2, 1])
-                     - f[0, 1] * (f[1, 0] * f[2, 2] - f[1, 2] * f[2, 0])
-                     + f[0, 2] * (f[1, 0] * f[2, 1] - f[1, 1] * f[2, 0]))
-            if det_f < dmin:
-                dmin = det_f
-            if det_f <= 0.0:
-                continue
-            if material == SVK:
-                _stress_svk(f, mu[e], lam[e], s, d)
-            else:
-                _stress_neo_hookean(f, det_f, mu[e], lam[e], s, d, pairs)
-            w_el += w * _strain_energy(f, det_f, mu[e], lam[e], material)
+            en, det_f = _add_point(ue, grads[gset, g], w, mu[e], lam_g, law, want_tangent,
+                                   f_el, k_el, f, s, d, b, db, gsn, sv, pairs)
+            w_el += en
+            dmin = min(dmin, det_f)
+            if split:
+                w_c += w
+                for a in range(8):
+                    for i in range(3):
+                        dn_c[a, i] += w * grads[gset, g, a, i]
+        if split:
             for a in range(8):
                 for i in range(3):
-                    col = 3 * a + i
-                    b[0, col] = f[i, 0] * dn[a, 0]
-                    b[1, col] = f[i, 1] * dn[a, 1]
-                    b[2, col] = f[i, 2] * dn[a, 2]
-                    b[3, col] = f[i, 0] * dn[a, 1] + f[i, 1] * dn[a, 0]
-                    b[4, col] = f[i, 1] * dn[a, 2] + f[i, 2] * dn[a, 1]
-                    b[5, col] = f[i, 0] * dn[a, 2] + f[i, 2] * dn[a, 0]
-            sv[0] = s[0, 0]
-            sv[1] = s[1, 1]
-            sv[2] = s[2, 2]
-            sv[3] = s[0, 1]
-            sv[4] = s[1, 2]
-            sv[5] = s[0, 2]
-            for col in range(24):
-                acc = 0.0
-                for p in range(6):
-                    acc += b[p, col] * sv[p]
-                f_el[col] += w * acc
-            if not want_tangent:
-                continue
-            for p in range(6):
-                for col in range(24):
-                    acc = 0.0
-                    for q in range(6):
-                        acc += d[p, q] * b[q, col]
-                    db[p, col] = w * acc
-            for r in range(24):
-                for col in range(r, 24):
-                    acc = 0.0
-                    for p in range(6):
-                        acc += b[p, r] * db[p, col]
-                    k_el[r, col] += acc
-            for a in range(8):
-                for j in range(3):
-                    acc = 0.0
-                    for i in range(3):
-                        acc += s[j, i] * dn[a, i]
-                    gsn[a, j] = w * acc
-            for a in range(8):
-                for bb in range(a, 8):
-                    geo = dn[a, 0] * gsn[bb, 0] + dn[a, 1] * gsn[bb, 1] + dn[a, 2] * gsn[bb, 2]
-                    for i in range(3):
-                        k_el[3 * a + i, 3 * bb + i] += geo
+                    dn_c[a, i] /= w_c
+            en, det_f = _add_point(ue, dn_c, w_c, 0.0, lam[e], NEO_HOOKEAN, want_tangent,
+                                   f_el, k_el, f, s, d, b, db, gsn, sv, pairs)
+            w_el += en
+            dmin = min(dmin, det_f)
         for i in range(24):
             fe[e, i] = f_el[i]
         if want_tangent:
@@ -249,7 +282,6 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
                     ke[e, col, r] = k_el[r, col]
         min_det[e] = dmin
         energy[e] = w_el if dmin > 0.0 else np.inf
-
 
 
 @njit(cache=True)

@@ -10,6 +10,11 @@ import scipy.sparse as sp
 from ..errors import InputError
 from .model import FEModel, find_positions
 
+#: loads at or below these are no load: the solve returns zero displacement at once (a rest
+#: pose recomputed through a matrix inverse prescribes displacements of ~1e-13 mm)
+NEGLIGIBLE_FORCE_N = 1e-12
+NEGLIGIBLE_DISPLACEMENT_MM = 1e-9
+
 
 @dataclass
 class Loads:
@@ -50,8 +55,11 @@ class PreparedLoads:
 
     @property
     def is_zero(self) -> bool:
-        no_force = not np.any(self.f)
-        return no_force and (self.g is None or not np.any(self.g))
+        """Whether the loads are negligible (no force above ``NEGLIGIBLE_FORCE_N``, no
+        prescribed displacement above ``NEGLIGIBLE_DISPLACEMENT_MM``)."""
+        no_force = not np.any(np.abs(self.f) > NEGLIGIBLE_FORCE_N)
+        return no_force and (self.g is None
+                             or not np.any(np.abs(self.g) > NEGLIGIBLE_DISPLACEMENT_MM))
 
 
 def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:

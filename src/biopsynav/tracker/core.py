@@ -34,6 +34,7 @@ from . import result as st
 from .result import LesionResult, TrackingResult
 
 LIFT_OFF_MM = 0.5  # contact points moved this far out of the tissue: the probe left the skin
+AT_REST_MM = 1e-6  # no contact point moved further: the rest pose (up to rounding), no solve
 
 
 def as_pose(matrix: np.ndarray) -> np.ndarray:
@@ -113,6 +114,7 @@ class Tracker:
         self._rest: np.ndarray | None = None
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
+        self._fem_rows = None  # the FE engine's constraint rows of the contact set
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
@@ -123,6 +125,7 @@ class Tracker:
         self._input_op: ContactInputOperator | None = None
         self._projection = None  # ContactProjection of the rest pose's contact set
         self._compliance = None
+        self.last_solve = None  # the FE engine's last SolveReport (biopsynav.fem.solver)
         env = surrogate.envelope if surrogate is not None else {}
         self.max_contact_mm = float(env.get("max_contact_disp_mm", np.inf))
         # the deepest training push (mean contact-point displacement); models trained before
@@ -195,7 +198,7 @@ class Tracker:
         self._contact = idx
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
-        self._input_op = None
+        self._input_op = self._fem_rows = None
         self._lesion_op = self._centre_op = self._projection = None
         self._input[:] = 0.0
         if len(idx):
@@ -214,7 +217,7 @@ class Tracker:
         """Forget the rest pose (and its contact set); ``update`` answers ``no_rest_pose``."""
         self._rest = None
         self._contact = np.zeros(0, dtype=np.int64)
-        self._contact_emb = self._input_op = None
+        self._contact_emb = self._input_op = self._fem_rows = None
         self._lesion_op = self._centre_op = self._projection = None
 
     def _set_lesion_operators(self, contact) -> None:
@@ -281,6 +284,7 @@ class Tracker:
         ``lesion_surfaces``: also each lesion's moved mesh vertices (``LesionResult.surface``).
         """
         start = time.perf_counter()
+        self.last_solve = None
         problem = pose_problem(pose, self.case.cfg.tracker.rigid_tolerance)
         if problem:
             return self._unreliable(st.INVALID_POSE, problem, start)
@@ -295,7 +299,7 @@ class Tracker:
             return self._rest_result(st.NO_CONTACT, "probe lifted off the skin", start)
         norms = np.linalg.norm(u_c, axis=1)
         largest, depth = float(norms.max()), float(norms.mean())
-        if largest == 0.0:  # the rest pose itself: nothing moved, no solve or prediction
+        if largest <= AT_REST_MM:  # the rest pose itself: nothing moved, no solve or prediction
             return self._rest_result(st.OK, "", start)
         if largest > self.max_contact_mm * self.envelope_margin:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"contact displacement {largest:.1f} mm "
@@ -341,9 +345,21 @@ class Tracker:
             return out.reshape(3, -1).T
         from ..fem import Loads, solve
 
-        u, _ = solve(self._fem_model, Loads(prescribed_matrix=self._contact_emb.matrix,
-                                            prescribed_displacement=u_c), self._fem_settings)
+        rows = self._constraint_rows()
+        u, self.last_solve = solve(self._fem_model, Loads(
+            prescribed_matrix=rows @ self._contact_emb.matrix,
+            prescribed_displacement=rows @ u_c), self._fem_settings)
         return u
+
+    def _constraint_rows(self):
+        """The FE engine's constraint rows (n_constraints, n_contact) for the rest pose's
+        contact set (``[tracker] fem_contact``, :mod:`biopsynav.contact.constraints`)."""
+        if self._fem_rows is None:
+            from ..contact.constraints import constraint_rows
+
+            self._fem_rows = constraint_rows(self.case.cfg.tracker.fem_contact,
+                                             self._contact_emb.cells)
+        return self._fem_rows
 
     def _set_input(self, u_c: np.ndarray) -> None:
         """Write the displacement channels of ``self._input`` for contact displacements

@@ -1,0 +1,68 @@
+"""Contact constraint kinds of the FE engine (biopsynav.contact.constraints)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from biopsynav.case import Case
+from biopsynav.config import TrackerSection, field_choices
+from biopsynav.contact.constraints import constraint_rows, contact_constraint_names
+from biopsynav.tracker import Tracker
+
+TOP = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
+
+
+def test_config_choices_come_from_the_registry():
+    import dataclasses
+
+    meta = {f.name: f.metadata for f in dataclasses.fields(TrackerSection)}["fem_contact"]
+    assert field_choices(meta) == contact_constraint_names() == ("points", "cell_average")
+
+
+def test_cell_average_rows_average_each_cells_points():
+    cells = np.array([7, 3, 7, 7, 3, 9])
+    rows = constraint_rows("cell_average", cells).toarray()
+    assert rows.shape == (3, 6)
+    np.testing.assert_allclose(rows.sum(axis=1), 1.0)
+    for r in rows:  # each row averages the points of one cell, equally
+        assert len(set(cells[r > 0])) == 1 and np.ptp(r[r > 0]) == 0.0
+    np.testing.assert_array_equal(constraint_rows("points", cells).toarray(), np.eye(6))
+
+
+@pytest.fixture(scope="module")
+def coarse(tmp_path_factory) -> Case:
+    from biopsynav.case import make_phantom_case
+
+    return make_phantom_case(tmp_path_factory.mktemp("cst") / "case", cell_size_mm=12.0)
+
+
+def fem_tracker(case: Case, kind: str) -> Tracker:
+    cfg = copy.deepcopy(case.cfg)
+    cfg.tracker.fem_contact = kind
+    return Tracker.load(Case(case.dir, cfg, case.anatomy, case.grid), engine="fem")
+
+
+def test_cell_average_meets_each_cells_mean_and_lets_the_cell_deform(coarse):
+    """With ``cell_average`` the mean displacement of each cell's contact points is the
+    probe's (to the solver tolerance) while single points deviate; with ``points`` each one
+    is met."""
+    push = TOP.copy()
+    push[2, 3] -= 10.0
+    moved = {}
+    for kind in ("points", "cell_average"):
+        tracker = fem_tracker(coarse, kind)
+        tracker.set_rest_pose(TOP)
+        res = tracker.update(push, with_surface=True)
+        assert res.status == "ok", res.reason
+        emb = tracker._contact_emb
+        u = tracker._predict(tracker.contact_displacement(push))
+        moved[kind] = emb.interpolate(u)
+        target = tracker.contact_displacement(push)
+        rows = constraint_rows(kind, emb.cells)
+        tol = tracker._fem_settings.constraint_tolerance_mm
+        assert np.abs(rows @ (moved[kind] - target)).max() <= tol
+    deviation = np.abs(moved["cell_average"] - tracker.contact_displacement(push)).max()
+    assert deviation > 10 * tol
