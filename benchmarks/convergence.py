@@ -6,6 +6,7 @@ of immersed hexahedral grids, against an independent P2 tetrahedral reference in
                                           [--laws neo-hookean neo-hookean-sri]
                                           [--lesions 3] [--tet-size 10] [--tet-fine 2.5]
                                           [--nu 0.45] [--out convergence.json]
+                                          [--reuse-reference earlier.json]
 
 For each evaluated lesion the probe is placed over it as in Table 2
 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
@@ -167,7 +168,13 @@ def run(args) -> dict:
             print(f"  hex {cell:g} mm, {variant}: {active} active cells, "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
     reference = {}
+    earlier = reused_reference(args, e_mpa)
     for li in lesions:
+        if str(li) in earlier:
+            reference[li] = earlier[str(li)]
+            print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: from "
+                  f"{args.reuse_reference}", flush=True)
+            continue
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args)
         reference[li] = {"displacement": disp, **facts}
         save(args.out, {"grids": grids, "reference": reference})
@@ -186,6 +193,21 @@ def run(args) -> dict:
 def variants(args) -> list[str]:
     """Every ``law/contact`` pair asked for."""
     return [f"{law}/{contact}" for law in args.laws for contact in args.contact]
+
+
+def reused_reference(args, e_mpa: float) -> dict:
+    """The P2 figures of an earlier run (``--reuse-reference``) by lesion index, when it ran
+    the same depths, material and reference mesh sizes; else {} (the reference runs)."""
+    if args.reuse_reference is None:
+        return {}
+    earlier = json.loads(args.reuse_reference.read_text())
+    same = (earlier.get("depths_mm") == args.depths and earlier.get("nu") == args.nu
+            and earlier.get("E_mpa") == e_mpa and earlier.get("tet_size_mm") == args.tet_size
+            and earlier.get("tet_fine_mm") == args.tet_fine)
+    if not same:
+        raise SystemExit(f"{args.reuse_reference}: another depth list, material or reference "
+                         "mesh; run the reference again")
+    return earlier.get("reference", {})
 
 
 def series_key(variant: str, cell: float) -> str:
@@ -257,6 +279,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="reference tetrahedra within 35 mm of the probe, mm")
     p.add_argument("--nu", type=float, default=0.45)
     p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    p.add_argument("--reuse-reference", type=Path, default=None,
+                   help="take the P2 figures of an earlier run's --out JSON (same case, depths, "
+                        "material and reference mesh) instead of running the reference again")
     args = p.parse_args(argv)
     start = time.perf_counter()
     result = run(args)

@@ -17,6 +17,8 @@ from .conftest import E_MPA, NU, distorted_box, lame
 
 TIGHT = SolverSettings(tol_residual=1e-12, tol_displacement=1e-12, single_precision=False,
                        constraint_tolerance_mm=1e-9)
+PENALTY_TIGHT = SolverSettings(tol_residual=1e-9, tol_displacement=1e-9, single_precision=False,
+                               constraint_tolerance_mm=1e-9)  # penalty round-off floor ~1e-10
 
 
 def _uniaxial_exact(material: str, p11: float) -> tuple[float, float]:
@@ -320,3 +322,41 @@ def test_reduced_volumetric_integration_does_not_lock():
     full = _sheared_block_tip("neo-hookean", 0.4999) / _sheared_block_tip("neo-hookean", 0.45)
     assert sri > 0.95
     assert full < 0.6
+
+
+def test_normal_only_prescribed_points_slide_freely():
+    """Frictionless compression: the top face of a rollered block pushed 10 % down along z
+    only (``prescribed_normals``) contracts in z and expands freely in x and y, as the closed
+    form of uniaxial stress says (neo-Hookean); with the whole vector prescribed it cannot."""
+    size = 10.0
+    nodes, hexes, fixed = _roller_block(2, size)
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, "neo-hookean")
+    top = np.flatnonzero(nodes[:, 2] > size - 1e-9)
+    w = sp.csr_matrix((np.ones(len(top)), (np.arange(len(top)), top)),
+                      shape=(len(top), len(nodes)))
+    g = np.tile([0.0, 0.0, -1.0], (len(top), 1))
+    normals = np.tile([0.0, 0.0, 1.0], (len(top), 1))
+    u, _ = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=g,
+                              prescribed_normals=normals), PENALTY_TIGHT)
+    mu, lam = lame()
+
+    def lateral(lt):
+        return mu * (1 - 1 / lt**2) + lam * np.log(0.9 * lt**2) / lt**2
+
+    (lt,) = fsolve(lateral, [1.0], xtol=1e-13)
+    corner = np.argmax(nodes.sum(axis=1))
+    np.testing.assert_allclose(u[top, 2], -1.0, atol=1e-8)
+    np.testing.assert_allclose(u[corner, :2], (lt - 1.0) * size, rtol=1e-6)
+    assert lt > 1.01
+    stuck, _ = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=g),
+                     PENALTY_TIGHT)
+    np.testing.assert_allclose(stuck[top, :2], 0.0, atol=1e-8)
+
+
+def test_prescribed_normals_are_checked():
+    nodes, hexes, fixed = _roller_block(2, 10.0)
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, "neo-hookean")
+    w = sp.csr_matrix((np.ones(1), ([0], [len(nodes) - 1])), shape=(1, len(nodes)))
+    with pytest.raises(InputError, match="unit vectors"):
+        solve(model, Loads(prescribed_matrix=w, prescribed_displacement=np.ones((1, 3)),
+                           prescribed_normals=np.array([[0.0, 0.0, 2.0]])))

@@ -203,3 +203,32 @@ def test_hot_path_input_matches_the_dataset_contract(fem_tracker):
     expected = fem_tracker.network_input(u_c)
     assert fem_tracker.contact_input_kind == "elastic" and np.abs(expected[:3]).max() > 1.0
     np.testing.assert_allclose(fem_tracker._input, expected, atol=1e-5)
+
+
+def test_fe_engine_holds_skin_that_the_face_reaches(phantom_case):
+    """``[tracker] contact_follows_pose`` (default grid, a 30 mm push over lesion 4, where the
+    ends of the face reach skin not touched at rest): afterwards that skin lies on the face
+    plane, and the lesions move differently from the rest-contact-only solve."""
+    import copy
+
+    from biopsynav.case import Case
+    from biopsynav.evaluate.placement import place_probe
+
+    cfg = copy.deepcopy(phantom_case.cfg)
+    cfg.tracker.contact_follows_pose = True
+    follow = Tracker.load(Case(phantom_case.dir, cfg, phantom_case.anatomy, phantom_case.grid),
+                          engine="fem")
+    plain = Tracker.load(phantom_case, engine="fem")
+    placement = place_probe(phantom_case.anatomy, 3)
+    pose = placement.pushed(30.0)
+    for tracker in (follow, plain):
+        tracker.set_rest_pose(placement.pose)
+    r_follow, r_plain = follow.update(pose, with_surface=True), plain.update(pose)
+    assert r_follow.status == r_plain.status == st.OK, r_follow.reason
+    held = follow.last_touched
+    assert len(held) > 0 and not np.isin(held, follow._contact).any()
+    depth = (r_follow.surface[held] - pose[:3, 3]) @ pose[:3, 2]
+    assert np.abs(depth).max() < 0.05  # on the face plane
+    moved = np.array([les.displacement for les in r_follow.lesions])
+    rest_only = np.array([les.displacement for les in r_plain.lesions])
+    assert np.abs(moved - rest_only).max() > 0.5

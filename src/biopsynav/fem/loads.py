@@ -27,11 +27,16 @@ class Loads:
             weights, rows summing to 1) of points whose displacement is prescribed.
         prescribed_displacement: (n_pts, 3) target displacements ``g`` of those points, mm;
             the solve enforces ``W u = g``.
+        prescribed_normals: optional (n_pts, 3) unit vectors ``n`` (rows of zeros: the whole
+            vector): where given, only the component along ``n`` is prescribed,
+            ``n . (W u) = n . g``, and the point slides freely normal to it (frictionless
+            contact with a plane of normal ``n``).
     """
 
     forces: np.ndarray | None = None
     prescribed_matrix: sp.spmatrix | None = None
     prescribed_displacement: np.ndarray | None = None
+    prescribed_normals: np.ndarray | None = None
 
 
 @dataclass
@@ -39,8 +44,10 @@ class PreparedLoads:
     """Loads in free-equation form for one model.
 
     ``f`` (n_eq,) forces; ``w`` (n_pts, n_nodes) CSR prescribed-point matrix; ``g``
-    (n_pts, 3); ``pen_pos`` / ``pen_val`` positions in the tangent's upper CSR data and values
-    of ``W^T W`` per component on free equations (penalty stiffness per unit penalty).
+    (n_pts, 3); ``projector`` (n_pts, 3, 3): ``P_i`` = I for a whole prescribed vector,
+    ``n n^T`` for a normal-only one (None: all whole); ``pen_pos`` / ``pen_val`` positions in
+    the tangent's upper CSR data and values of ``W^T P W`` on free equations (penalty
+    stiffness per unit penalty).
     """
 
     f: np.ndarray
@@ -48,6 +55,13 @@ class PreparedLoads:
     g: np.ndarray | None
     pen_pos: np.ndarray | None
     pen_val: np.ndarray | None
+    projector: np.ndarray | None = None
+
+    def gap(self, u_nodes: np.ndarray, t: float = 1.0) -> np.ndarray:
+        """The constraint error ``P (W u - t g)`` (n_pts, 3) mm of node displacements
+        ``u_nodes`` (n_nodes, 3) at load factor ``t``."""
+        e = self.w @ u_nodes - t * self.g
+        return e if self.projector is None else np.einsum("pij,pj->pi", self.projector, e)
 
     @property
     def has_constraints(self) -> bool:
@@ -82,8 +96,48 @@ def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:
     if np.any(~used[w_full.indices]):
         raise InputError("a prescribed point lies outside the active cells (it weights nodes "
                          "of no element)", "Loads")
-    pen_pos, pen_val = _penalty_pattern(model, w_full)
-    return PreparedLoads(f, w_full, g, pen_pos, pen_val)
+    projector = _projectors(loads.prescribed_normals, len(g))
+    if projector is None:
+        pen_pos, pen_val = _penalty_pattern(model, w_full)
+    else:
+        pen_pos, pen_val = _projected_penalty_pattern(model, w_full, projector)
+    return PreparedLoads(f, w_full, g, pen_pos, pen_val, projector)
+
+
+def _projectors(normals: np.ndarray | None, n_pts: int) -> np.ndarray | None:
+    """Per-point projectors (n_pts, 3, 3): I where the normal row is zero, ``n n^T`` where it
+    is a unit vector; None without normals."""
+    if normals is None:
+        return None
+    n = np.asarray(normals, dtype=np.float64)
+    if n.shape != (n_pts, 3) or not np.all(np.isfinite(n)):
+        raise InputError(f"prescribed normals must be finite (n_pts, 3) = ({n_pts}, 3), got "
+                         f"{n.shape}", "Loads")
+    norm = np.linalg.norm(n, axis=1)
+    whole = norm == 0.0
+    if np.any(np.abs(norm[~whole] - 1.0) > 1e-9):
+        raise InputError("prescribed normals must be unit vectors (or zero rows)", "Loads")
+    proj = np.einsum("pi,pj->pij", n, n)
+    proj[whole] = np.eye(3)
+    return proj
+
+
+def _projected_penalty_pattern(model: FEModel, w: sp.csr_matrix, projector: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and values of ``W^T P W`` (dof-level, components coupled by each point's
+    projector) in the upper CSR tangent data."""
+    n_pts = w.shape[0]
+    w_dof = sp.kron(w, sp.identity(3), format="csr")  # (3 n_pts, 3 n_nodes)
+    blocks = sp.block_diag(list(projector), format="csr")  # (3 n_pts, 3 n_pts)
+    m = (w_dof.T @ blocks @ w_dof).tocoo()
+    eq = model.eq_of_dof.ravel()
+    eq_r, eq_c = eq[m.row], eq[m.col]
+    keep = (eq_r >= 0) & (eq_c >= 0) & (eq_r <= eq_c) & (m.data != 0.0)
+    pos = find_positions(model, eq_r[keep], eq_c[keep])
+    if np.any(pos < 0):
+        raise InputError("a prescribed point couples nodes that share no element (each point "
+                         f"must weight the nodes of one cell; {n_pts} points)", "Loads")
+    return pos, m.data[keep]
 
 
 def _prepare_forces(model: FEModel, forces: np.ndarray | None) -> np.ndarray:

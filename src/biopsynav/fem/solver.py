@@ -109,7 +109,7 @@ class _System:
             data = np.empty(m.nnz)
             kernels.scatter_matrix(self.ke, m.scatter, data)
         if self.loads.has_constraints:
-            gap = self.loads.w @ m.to_nodes(u) - t * self.loads.g  # (n_pts, 3)
+            gap = self.loads.gap(m.to_nodes(u), t)  # (n_pts, 3)
             traction = self.alpha * gap + self.lam
             residual += m.to_free(self.loads.w.T @ traction)
             energy += 0.5 * self.alpha * float(np.sum(gap * gap)) + float(np.sum(self.lam * gap))
@@ -121,7 +121,7 @@ class _System:
         """Largest |W u - g| over the prescribed points, mm (0 without constraints)."""
         if not self.loads.has_constraints:
             return 0.0
-        gap = self.loads.w @ self.model.to_nodes(u) - self.loads.g
+        gap = self.loads.gap(self.model.to_nodes(u))
         return float(np.sqrt((gap * gap).sum(axis=1)).max())
 
     def reference_residual(self, du_full: np.ndarray) -> float:
@@ -129,7 +129,7 @@ class _System:
         by the reactions they need in the linearised problem (``du_full`` = K0^-1 load)."""
         r0 = float(np.dot(self.loads.f, self.loads.f))
         if self.loads.has_constraints:
-            gap = self.loads.w @ self.model.to_nodes(du_full) - self.loads.g
+            gap = self.loads.gap(self.model.to_nodes(du_full))
             reaction = self.model.to_free(self.loads.w.T @ (self.alpha * gap))
             r0 += float(np.dot(reaction, reaction))
         return float(np.sqrt(r0))
@@ -421,8 +421,7 @@ def _enforce_constraints(system: _System, solver: LinearSolver, settings: Solver
         report.constraint_error_mm = error
         if error <= settings.constraint_tolerance_mm:
             return u
-        gap = system.loads.w @ system.model.to_nodes(u) - system.loads.g
-        system.lam += system.alpha * gap
+        system.lam += system.alpha * system.loads.gap(system.model.to_nodes(u))
         try:
             u, _ = _newton(system, solver, settings, report, u, 0.0, 1.0, final=True)
         except _IncrementFailed as exc:

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..anatomy.display import lesion_mesh
 from ..case import Case, as_case
@@ -35,6 +36,8 @@ from .result import LesionResult, TrackingResult
 
 LIFT_OFF_MM = 0.5  # contact points moved this far out of the tissue: the probe left the skin
 AT_REST_MM = 1e-6  # no contact point moved further: the rest pose (up to rounding), no solve
+PENETRATION_TOL_MM = 0.1  # FE engine: skin further behind the probe face is held on it
+CONTACT_ROUNDS = 4  # FE engine: most solves of the active set (skin the face reaches)
 
 
 def as_pose(matrix: np.ndarray) -> np.ndarray:
@@ -115,6 +118,8 @@ class Tracker:
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
         self._fem_rows = None  # the FE engine's constraint rows of the contact set
+        self.last_touched = np.zeros(0, dtype=np.int64)  # skin the face reached (FE engine)
+        self._pose = np.eye(4)
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
@@ -294,6 +299,7 @@ class Tracker:
             return self._unreliable(st.NO_CONTACT, "no skin under the probe face at the rest "
                                     "pose", start)
         u_c = self.contact_displacement(pose)
+        self._pose = as_pose(pose)
         push = -np.einsum("ij,ij->i", u_c, self._contact_normals)  # into the tissue
         if np.median(push) < -LIFT_OFF_MM:
             return self._rest_result(st.NO_CONTACT, "probe lifted off the skin", start)
@@ -343,13 +349,68 @@ class Tracker:
             else:
                 out = self._surrogate.predict(self._input)
             return out.reshape(3, -1).T
+        return self._fem_field(u_c)
+
+    def _fem_field(self, u_c: np.ndarray) -> np.ndarray:
+        """The FE engine's grid displacement (n_nodes, 3) mm for contact displacements
+        ``u_c`` (n_contact, 3) mm at the pose ``self._pose``: the rest pose's contact points
+        move with the probe (``[tracker] fem_contact`` constraints); with ``[tracker]
+        contact_follows_pose`` skin that the face reaches is added as frictionless contact
+        (an active set: solve, find skin behind the face plane under the footprint, hold it
+        on the plane along the beam, free to slide, and solve again; at most
+        ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added."""
+        touched = np.zeros(0, dtype=np.int64)
+        rounds = CONTACT_ROUNDS if self.case.cfg.tracker.contact_follows_pose else 1
+        for _ in range(rounds):
+            u = self._fem_solve(u_c, touched)
+            new = self._skin_behind_face(u, touched)
+            if not len(new):
+                break
+            touched = np.concatenate([touched, new])
+        self.last_touched = touched
+        return u
+
+    def _fem_solve(self, u_c: np.ndarray, touched: np.ndarray) -> np.ndarray:
+        """One solve: the rest contact points prescribed to ``u_c`` and the skin vertices
+        ``touched`` held on the face plane (normal component only)."""
         from ..fem import Loads, solve
 
         rows = self._constraint_rows()
+        w, g = rows @ self._contact_emb.matrix, rows @ u_c
+        normals = None
+        if len(touched):
+            beam = self._pose[:3, 2]
+            rest = self.case.anatomy.vertices[touched]
+            depth = (rest - self._pose[:3, 3]) @ beam  # < 0: behind the face, rest position
+            w = sp.vstack([w, self._surface_embedding().subset(touched).matrix]).tocsr()
+            g = np.vstack([g, -depth[:, None] * beam])
+            normals = np.vstack([np.zeros((rows.shape[0], 3)), np.tile(beam, (len(touched), 1))])
         u, self.last_solve = solve(self._fem_model, Loads(
-            prescribed_matrix=rows @ self._contact_emb.matrix,
-            prescribed_displacement=rows @ u_c), self._fem_settings)
+            prescribed_matrix=w, prescribed_displacement=g, prescribed_normals=normals),
+            self._fem_settings)
         return u
+
+    def _skin_behind_face(self, u: np.ndarray, touched: np.ndarray) -> np.ndarray:
+        """Skin vertices not yet held (off the chest wall, facing the probe, not in a cell of
+        the rest contact set) that the displacement ``u`` (n_nodes, 3) mm puts under the
+        footprint and more than ``PENETRATION_TOL_MM`` behind the face plane at the current
+        pose."""
+        a = self.case.anatomy
+        moved = a.vertices + self._surface_embedding().interpolate(u)
+        local = (moved - self._pose[:3, 3]) @ self._pose[:3, :3]
+        fp = as_footprint(self.case.cfg.probe.footprint)
+        behind = ((local[:, 2] < -PENETRATION_TOL_MM) & fp.inside(local[:, :2])
+                  & (a.normals @ self._pose[:3, 2] < 0.0)
+                  & ~np.asarray(a.fixed_vertices, dtype=bool))
+        behind[self._contact] = False
+        behind[touched] = False
+        # nodes of the cells holding rest contact points move with the probe already: a
+        # constraint on a point of a cell sharing them could only contradict them (and, with a
+        # small weight on the other nodes, invert the cell)
+        pinned = np.zeros(self.case.grid.n_nodes, dtype=bool)
+        pinned[self._contact_emb.nodes] = True
+        behind &= ~pinned[self._surface_embedding().nodes].any(axis=1)
+        return np.flatnonzero(behind)
 
     def _constraint_rows(self):
         """The FE engine's constraint rows (n_constraints, n_contact) for the rest pose's
