@@ -16,7 +16,7 @@ from .anatomy.build import build_anatomy
 from .anatomy.model import Anatomy
 from .anatomy.phantom import phantom_lesions_csv
 from .config import CaseConfig, load_config, save_config
-from .errors import InputError
+from .errors import BiopsynavError, InputError
 from .fileio import write_json_atomic, write_text_atomic
 from .grid.build import build_grid
 from .grid.model import Grid
@@ -108,6 +108,7 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
         raise InputError("a case already exists here; use --overwrite to rebuild it",
                          str(case_dir))
     created = not case_dir.exists()
+    copies: dict[str, str] = {}  # the copy inside the case -> the user's own file
     try:
         CasePaths(case_dir).inputs.mkdir(parents=True, exist_ok=True)
         for key, src in inputs.items():
@@ -121,6 +122,7 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
                 shutil.copytree(src, dst, dirs_exist_ok=True)
             elif src.resolve() != dst.resolve():
                 shutil.copy2(src, dst)
+            copies[str(dst)] = str(src)
             rel = str(dst.relative_to(case_dir))
             if key == "anatomy":
                 cfg.anatomy.path = rel
@@ -131,10 +133,29 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
                               phantom_lesions_csv())
             cfg.anatomy.lesions = "inputs/phantom_lesions.csv"
         return build_case(case_dir, cfg)
+    except BiopsynavError as exc:
+        if created:
+            shutil.rmtree(case_dir, ignore_errors=True)
+        raise _naming_user_files(exc, copies) from None
     except BaseException:
         if created:
             shutil.rmtree(case_dir, ignore_errors=True)
         raise
+
+
+def _naming_user_files(exc: BiopsynavError, copies: dict[str, str]) -> BiopsynavError:
+    """``exc`` with the copies of the user's inputs (inside the case folder) named by the
+    user's own paths, in ``where`` and in the message."""
+    what, where = exc.what, exc.where
+    for copy, original in copies.items():
+        what = what.replace(copy, original)
+        where = where.replace(copy, original) if where else where
+    if (what, where) == (exc.what, exc.where):
+        return exc
+    renamed = type(exc).__new__(type(exc))
+    renamed.__dict__.update(exc.__dict__)
+    BiopsynavError.__init__(renamed, what, where)
+    return renamed
 
 
 def surface_kind(path: Path) -> str:

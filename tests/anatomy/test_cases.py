@@ -123,12 +123,16 @@ def test_bad_inputs_exit_2_with_one_line_and_write_nothing(tmp_path, capsys, dom
     metres = tmp_path / "metres.stl"
     trimesh.Trimesh(v / 1000.0, f).export(metres)
     outside = _bad(tmp_path, "outside.csv", "id,x,y,z,radius_mm\n1,0,0,200,3\n")
+    junk = _bad(tmp_path, "junk.stl", data=b"\x00garbage")
+    random_stl = _bad(tmp_path, "random.stl", data=np.random.default_rng(0).bytes(3000))
     cases = [
         (["--surface", tmp_path / "missing.stl"], "missing.stl: file not found"),
-        (["--surface", _bad(tmp_path, "junk.stl", data=b"\x00garbage")], "junk.stl"),
+        (["--surface", junk], f"{junk}: file holds no triangles"),
+        (["--surface", random_stl], f"{random_stl}: not a readable STL surface mesh"),
         (["--surface", open_stl], "surface is not closed: 1 hole"),
         (["--surface", metres], "units look wrong"),
-        (["--surface", dome_stl, "--lesions", outside], "lesion 1 at [0.0, 0.0, 200.0] mm"),
+        (["--surface", dome_stl, "--lesions", outside],
+         f"{outside}: lesion 1 at [0.0, 0.0, 200.0] mm"),
         (["--surface", dome_stl, "--chest-wall", "plane:0,0,-50,0,0,-1"], "chest wall is empty"),
         (["--surface", dome_stl, "--lesions", tmp_path / "nope.csv"], "nope.csv: file not found"),
         (["--surface", _bad(tmp_path, "x.xyz", "1 2 3")], "unsupported anatomy format"),
@@ -142,6 +146,7 @@ def test_bad_inputs_exit_2_with_one_line_and_write_nothing(tmp_path, capsys, dom
         assert code == 2, (args, err)
         assert message in err, (message, err)
         assert err.count("\n") == 1 and "Traceback" not in err
+        assert "inputs/" not in err, "the error names the case's copy, not the user's file"
         assert not case.exists(), "a half-built case was left behind"
 
 

@@ -35,7 +35,8 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
         lesions = read_lesions(case_dir / a.lesions, a.lesion_points)
     point, normal = chest_wall_plane(vertices, faces, a.chest_wall, a.chest_wall_tolerance_mm)
     fixed = chest_wall_vertices(vertices, point, normal, a.chest_wall_tolerance_mm, where)
-    check_lesions_inside(lesions, vertices, faces)
+    check_lesions_inside(lesions, vertices, faces,
+                         str(case_dir / a.lesions) if a.lesions else where)
     anatomy = Anatomy(vertices, faces, vertex_normals(vertices, faces), fixed, point, normal,
                       lesions, np.asarray(label_points, np.float64),
                       np.asarray(label_values, np.int32))
@@ -52,8 +53,10 @@ def read_lesions(path: Path, n_points: int) -> list[Lesion]:
     return read_lesion_csv(path, n_points)
 
 
-def check_lesions_inside(lesions: list[Lesion], vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Every lesion centre must lie inside the breast surface."""
+def check_lesions_inside(lesions: list[Lesion], vertices: np.ndarray, faces: np.ndarray,
+                         where: str = "lesions") -> None:
+    """Every lesion centre must lie inside the breast surface; ``where`` names the lesions'
+    source in the error."""
     if not lesions:
         return
     centres = np.array([les.center for les in lesions])
@@ -61,4 +64,4 @@ def check_lesions_inside(lesions: list[Lesion], vertices: np.ndarray, faces: np.
     if not inside.all():
         bad = [les for les, ok in zip(lesions, inside, strict=True) if not ok][0]
         raise InputError(f"lesion {bad.id} at {np.round(bad.center, 2).tolist()} mm lies "
-                         "outside the breast surface", "lesions")
+                         "outside the breast surface", where)

@@ -62,6 +62,14 @@ def read_anatomy(path: str | Path, breast_labels: list | None = None,
                      "NRRD, NIfTI or MHA", str(path))
 
 
+def _reader_failure(exc: Exception) -> str:
+    """Why the mesh reader gave up, in words: an import error inside the reader means it took
+    the bytes for text in an unknown encoding (a damaged binary file or not a mesh at all)."""
+    if isinstance(exc, ImportError):
+        return "the bytes are neither a binary mesh of consistent size nor text"
+    return f"{type(exc).__name__}: {exc}"
+
+
 def read_surface_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Triangles of a surface file via trimesh (vertices merged)."""
     import trimesh
@@ -69,7 +77,8 @@ def read_surface_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         mesh = trimesh.load(path, force="mesh", process=True)
     except Exception as exc:  # trimesh raises many kinds on broken files
-        raise InputError(f"cannot read surface: {exc}", str(path)) from None
+        raise InputError(f"not a readable {_suffix(path).lstrip('.').upper()} surface mesh "
+                         f"({_reader_failure(exc)})", str(path)) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("file holds no triangles", str(path))
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
