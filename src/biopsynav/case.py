@@ -86,7 +86,7 @@ def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     from .fem.model import cell_tissues
 
     anatomy, facts = build_anatomy(cfg, case_dir)
-    grid = build_grid(anatomy, cfg.grid, cfg.network.levels)
+    grid = build_grid(anatomy, cfg.grid, cfg.network.levels, cfg.anatomy.max_fixed_share)
     cell_tissues(grid.active_label(), cfg)  # every label mapped to a material, or refused now
     save_config(case_dir, cfg)
     paths = CasePaths(case_dir)
@@ -132,6 +132,8 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
             write_text_atomic(CasePaths(case_dir).inputs / PHANTOM_LESIONS_FILE,
                               phantom_lesions_csv())
             cfg.anatomy.lesions = "inputs/phantom_lesions.csv"
+            copies[str(CasePaths(case_dir).inputs / PHANTOM_LESIONS_FILE)] = \
+                "the built-in phantom lesions"
         return build_case(case_dir, cfg)
     except BiopsynavError as exc:
         if created:

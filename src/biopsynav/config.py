@@ -72,6 +72,12 @@ class AnatomySection:
     chest_wall_tolerance_mm: float = opt(1.0, "Distance from the chest-wall plane within which "
                                               "surface vertices and grid nodes count as on it.",
                                          lo=0.0, hi=50.0)
+    max_fixed_share: float = opt(0.4, "Largest share of the grid's active nodes the chest wall "
+                                      "may fix. A chest wall holds the breast's base (about 12 "
+                                      "% of the nodes on the phantom and the UC Davis breast); "
+                                      "more usually means a plane whose normal points into the "
+                                      "breast, and init refuses it with the numbers.",
+                                 lo=0.0, hi=1.0)
     lesion_points: int = opt(42, "Surface points kept per spherical lesion.", lo=6, hi=2000)
 
 

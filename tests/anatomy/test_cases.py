@@ -134,6 +134,11 @@ def test_bad_inputs_exit_2_with_one_line_and_write_nothing(tmp_path, capsys, dom
         (["--surface", dome_stl, "--lesions", outside],
          f"{outside}: lesion 1 at [0.0, 0.0, 200.0] mm"),
         (["--surface", dome_stl, "--chest-wall", "plane:0,0,-50,0,0,-1"], "chest wall is empty"),
+        (["--surface", dome_stl, "--chest-wall", "plane:0,0,0,0,0,1"],
+         "more than [anatomy] max_fixed_share = 40 %"),
+        (["--surface", dome_stl, "--lesions", dome_lesions_csv, "--chest-wall",
+          "plane:0,0,0,0,0,1"], f"{dome_lesions_csv}: lesion 1 at [0.0, 0.0, 10.0] mm lies on "
+                                "or behind the chest wall"),
         (["--surface", dome_stl, "--lesions", tmp_path / "nope.csv"], "nope.csv: file not found"),
         (["--surface", _bad(tmp_path, "x.xyz", "1 2 3")], "unsupported anatomy format"),
         (["--surface", dome_stl, "--config", _bad(tmp_path, "c.toml", "[grid]\nsize = 3\n")],

@@ -35,8 +35,9 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
         lesions = read_lesions(case_dir / a.lesions, a.lesion_points)
     point, normal = chest_wall_plane(vertices, faces, a.chest_wall, a.chest_wall_tolerance_mm)
     fixed = chest_wall_vertices(vertices, point, normal, a.chest_wall_tolerance_mm, where)
-    check_lesions_inside(lesions, vertices, faces,
-                         str(case_dir / a.lesions) if a.lesions else where)
+    lesion_source = str(case_dir / a.lesions) if a.lesions else where
+    check_lesions_inside(lesions, vertices, faces, lesion_source)
+    check_lesions_free(lesions, point, normal, a.chest_wall_tolerance_mm, lesion_source)
     anatomy = Anatomy(vertices, faces, vertex_normals(vertices, faces), fixed, point, normal,
                       lesions, np.asarray(label_points, np.float64),
                       np.asarray(label_values, np.int32))
@@ -51,6 +52,19 @@ def read_lesions(path: Path, n_points: int) -> list[Lesion]:
             raise InputError("lesion folder holds no mesh files", str(path))
         return read_lesion_meshes(files)
     return read_lesion_csv(path, n_points)
+
+
+def check_lesions_free(lesions: list[Lesion], point: np.ndarray, normal: np.ndarray,
+                       tol: float, where: str) -> None:
+    """No lesion centre may lie on or behind the chest-wall plane (``point``, outward
+    ``normal``, mm), where the grid is fixed: a lesion there could never move."""
+    for les in lesions:
+        height = float((np.asarray(les.center) - point) @ normal)
+        if height >= -tol:
+            raise InputError(f"lesion {les.id} at {np.round(les.center, 2).tolist()} mm lies on "
+                             f"or behind the chest wall ({height:+.1f} mm along its outward "
+                             f"normal {np.round(normal, 3).tolist()}), where the tissue is fixed;"
+                             " is the chest-wall normal reversed? ([anatomy] chest_wall)", where)
 
 
 def check_lesions_inside(lesions: list[Lesion], vertices: np.ndarray, faces: np.ndarray,

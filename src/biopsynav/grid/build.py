@@ -20,9 +20,11 @@ from .model import Grid
 _COLUMN_JITTER = np.array([np.sqrt(2.0) * 1e-7, np.sqrt(3.0) * 1e-7])
 
 
-def build_grid(anatomy: Anatomy, settings: GridSection, levels: int) -> Grid:
+def build_grid(anatomy: Anatomy, settings: GridSection, levels: int,
+               max_fixed_share: float = 1.0) -> Grid:
     """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm``; node counts are
-    padded to multiples of ``2**levels`` (the U-Net's pooling)."""
+    padded to multiples of ``2**levels`` (the U-Net's pooling). InputError when the chest wall
+    fixes more than ``max_fixed_share`` of the active nodes."""
     h = float(settings.cell_size_mm)
     origin, node_shape = _grid_frame(anatomy, h, settings.margin_cells, 2 ** levels)
     cshape = index.cell_shape(node_shape)
@@ -42,9 +44,19 @@ def build_grid(anatomy: Anatomy, settings: GridSection, levels: int) -> Grid:
     fixed = active_nodes & (behind | _wall_layer(anatomy, node_shape))
     if not fixed.any():
         raise InputError("no grid node lies on the chest wall; check [anatomy] chest_wall")
+    check_fixed_share(int(fixed.sum()), int(active_nodes.sum()), max_fixed_share)
     return Grid(origin=origin, spacing=h, fraction=fraction.astype(np.float32),
                 label=label, active_cells=active, active_nodes=active_nodes,
                 fixed_nodes=fixed, status=status.astype(np.int8))
+
+
+def check_fixed_share(n_fixed: int, n_active: int, max_share: float) -> None:
+    """Refuse a chest wall that fixes more than ``max_share`` of the active nodes."""
+    if n_fixed > max_share * n_active:
+        raise InputError(f"the chest wall fixes {n_fixed} of {n_active} grid nodes "
+                         f"({100.0 * n_fixed / n_active:.0f} %, more than [anatomy] "
+                         f"max_fixed_share = {100.0 * max_share:.0f} %): a chest wall holds the "
+                         "breast's base only; is its normal reversed? ([anatomy] chest_wall)")
 
 
 def _grid_frame(anatomy: Anatomy, h: float, margin: int,
