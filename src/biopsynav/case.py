@@ -135,29 +135,22 @@ def init_case(case_dir: str | Path, cfg: CaseConfig, inputs: dict[str, Path | No
             copies[str(CasePaths(case_dir).inputs / PHANTOM_LESIONS_FILE)] = \
                 "the built-in phantom lesions"
         return build_case(case_dir, cfg)
-    except BiopsynavError as exc:
+    except BaseException as exc:
         if created:
             shutil.rmtree(case_dir, ignore_errors=True)
-        raise _naming_user_files(exc, copies) from None
-    except BaseException:
-        if created:
-            shutil.rmtree(case_dir, ignore_errors=True)
+        if isinstance(exc, BiopsynavError):
+            _name_user_files(exc, copies)
         raise
 
 
-def _naming_user_files(exc: BiopsynavError, copies: dict[str, str]) -> BiopsynavError:
-    """``exc`` with the copies of the user's inputs (inside the case folder) named by the
-    user's own paths, in ``where`` and in the message."""
+def _name_user_files(exc: BiopsynavError, copies: dict[str, str]) -> None:
+    """Name the user's own files in ``exc`` (its ``what`` and ``where``) instead of their
+    copies inside the case folder."""
     what, where = exc.what, exc.where
     for copy, original in copies.items():
         what = what.replace(copy, original)
         where = where.replace(copy, original) if where else where
-    if (what, where) == (exc.what, exc.where):
-        return exc
-    renamed = type(exc).__new__(type(exc))
-    renamed.__dict__.update(exc.__dict__)
-    BiopsynavError.__init__(renamed, what, where)
-    return renamed
+    BiopsynavError.__init__(exc, what, where)
 
 
 def surface_kind(path: Path) -> str:

@@ -58,7 +58,7 @@ def test_cell_average_meets_each_cells_mean_and_lets_the_cell_deform(coarse):
         res = tracker.update(push, with_surface=True)
         assert res.status == "ok", res.reason
         emb = tracker._contact_emb
-        u = tracker._predict(tracker.contact_displacement(push))
+        u = tracker._predict(tracker.contact_displacement(push), push)
         moved[kind] = emb.interpolate(u)
         target = tracker.contact_displacement(push)
         rows = constraint_rows(kind, emb.cells)

@@ -126,18 +126,13 @@ def _projected_penalty_pattern(model: FEModel, w: sp.csr_matrix, projector: np.n
                                ) -> tuple[np.ndarray, np.ndarray]:
     """Positions and values of ``W^T P W`` (dof-level, components coupled by each point's
     projector) in the upper CSR tangent data."""
-    n_pts = w.shape[0]
     w_dof = sp.kron(w, sp.identity(3), format="csr")  # (3 n_pts, 3 n_nodes)
     blocks = sp.block_diag(list(projector), format="csr")  # (3 n_pts, 3 n_pts)
     m = (w_dof.T @ blocks @ w_dof).tocoo()
     eq = model.eq_of_dof.ravel()
     eq_r, eq_c = eq[m.row], eq[m.col]
     keep = (eq_r >= 0) & (eq_c >= 0) & (eq_r <= eq_c) & (m.data != 0.0)
-    pos = find_positions(model, eq_r[keep], eq_c[keep])
-    if np.any(pos < 0):
-        raise InputError("a prescribed point couples nodes that share no element (each point "
-                         f"must weight the nodes of one cell; {n_pts} points)", "Loads")
-    return pos, m.data[keep]
+    return _penalty_positions(model, eq_r[keep], eq_c[keep]), m.data[keep]
 
 
 def _prepare_forces(model: FEModel, forces: np.ndarray | None) -> np.ndarray:
@@ -162,9 +157,14 @@ def _penalty_pattern(model: FEModel, w: sp.csr_matrix) -> tuple[np.ndarray, np.n
     eq_c = model.eq_of_dof[wtw.col].ravel()
     vals = np.repeat(wtw.data, 3)
     keep = (eq_r >= 0) & (eq_c >= 0) & (eq_r <= eq_c)
-    eq_r, eq_c, vals = eq_r[keep], eq_c[keep], vals[keep]
+    return _penalty_positions(model, eq_r[keep], eq_c[keep]), vals[keep]
+
+
+def _penalty_positions(model: FEModel, eq_r: np.ndarray, eq_c: np.ndarray) -> np.ndarray:
+    """Positions of penalty entries (free equations, ``eq_r <= eq_c``) in the upper CSR
+    tangent data; InputError where one lies outside the element pattern."""
     pos = find_positions(model, eq_r, eq_c)
     if np.any(pos < 0):
         raise InputError("a prescribed point couples nodes that share no element (each point "
                          "must weight the nodes of one cell)", "Loads")
-    return pos, vals
+    return pos

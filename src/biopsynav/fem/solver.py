@@ -73,6 +73,8 @@ class SolveReport:
     min_det_F: float = 1.0
     max_displacement_mm: float = 0.0
     constraint_error_mm: float = 0.0
+    #: checked only when the last factorisation reported negative pivots (else None)
+    lowest_scaled_eigenvalue: float | None = None
     backend: str = ""
     log: list[dict] = field(default_factory=list)
 
@@ -447,8 +449,7 @@ def _final_checks(system: _System, settings: SolverSettings, report: SolveReport
     modes = [e["mode"] for e in report.log if e["increment"] == last and e["mode"] != "reuse"]
     if modes and modes[-1].startswith("indefinite"):
         lowest = lowest_scaled_eigenvalue(system, u)
-        report.log.append({"increment": last, "mode": "stability check",
-                           "lowest_scaled_eigenvalue": lowest})
+        report.lowest_scaled_eigenvalue = lowest
         if lowest < -UNSTABLE_EIGENVALUE:
             raise SolverError(f"the solve converged to an unstable equilibrium (tangent "
                               f"{modes[-1]}, lowest Jacobi-scaled eigenvalue {lowest:.3g}): "

@@ -119,7 +119,6 @@ class Tracker:
         self._contact_emb: Embedding | None = None
         self._fem_rows = None  # the FE engine's constraint rows of the contact set
         self.last_touched = np.zeros(0, dtype=np.int64)  # skin the face reached (FE engine)
-        self._pose = np.eye(4)
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
@@ -299,7 +298,6 @@ class Tracker:
             return self._unreliable(st.NO_CONTACT, "no skin under the probe face at the rest "
                                     "pose", start)
         u_c = self.contact_displacement(pose)
-        self._pose = as_pose(pose)
         push = -np.einsum("ij,ij->i", u_c, self._contact_normals)  # into the tissue
         if np.median(push) < -LIFT_OFF_MM:
             return self._rest_result(st.NO_CONTACT, "probe lifted off the skin", start)
@@ -318,7 +316,7 @@ class Tracker:
             if self._lesion_op is not None and not with_surface:
                 field, disp = None, self._net_lesion_displacement(u_c, lesion_surfaces)
             else:
-                field = self._predict(u_c)
+                field = self._predict(u_c, pose)
                 emb = self._lesion_emb if lesion_surfaces else self._centre_emb
                 disp = emb.interpolate(field)
         except SolverError as exc:  # the FE engine did not converge: say so, not "unusual pose"
@@ -340,7 +338,7 @@ class Tracker:
         net = self._surrogate.predict_network(self._input)
         return (self._lesion_op if surfaces else self._centre_op).displacement(net, u_c)
 
-    def _predict(self, u_c: np.ndarray) -> np.ndarray:
+    def _predict(self, u_c: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
         if self.engine == "net":
             self._set_input(u_c)
@@ -349,28 +347,29 @@ class Tracker:
             else:
                 out = self._surrogate.predict(self._input)
             return out.reshape(3, -1).T
-        return self._fem_field(u_c)
+        return self._fem_field(u_c, as_pose(pose))
 
-    def _fem_field(self, u_c: np.ndarray) -> np.ndarray:
+    def _fem_field(self, u_c: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """The FE engine's grid displacement (n_nodes, 3) mm for contact displacements
-        ``u_c`` (n_contact, 3) mm at the pose ``self._pose``: the rest pose's contact points
+        ``u_c`` (n_contact, 3) mm at ``pose`` (4, 4): the rest pose's contact points
         move with the probe (``[tracker] fem_contact`` constraints); with ``[tracker]
         contact_follows_pose`` skin that the face reaches is added as frictionless contact
         (an active set: solve, find skin behind the face plane under the footprint, hold it
         on the plane along the beam, free to slide, and solve again; at most
         ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added."""
         touched = np.zeros(0, dtype=np.int64)
-        rounds = CONTACT_ROUNDS if self.case.cfg.tracker.contact_follows_pose else 1
-        for _ in range(rounds):
-            u = self._fem_solve(u_c, touched)
-            new = self._skin_behind_face(u, touched)
-            if not len(new):
-                break
-            touched = np.concatenate([touched, new])
+        u = self._fem_solve(u_c, pose, touched)
+        if self.case.cfg.tracker.contact_follows_pose:
+            for _ in range(CONTACT_ROUNDS - 1):
+                new = self._skin_behind_face(u, pose, touched)
+                if not len(new):
+                    break
+                touched = np.concatenate([touched, new])
+                u = self._fem_solve(u_c, pose, touched)
         self.last_touched = touched
         return u
 
-    def _fem_solve(self, u_c: np.ndarray, touched: np.ndarray) -> np.ndarray:
+    def _fem_solve(self, u_c: np.ndarray, pose: np.ndarray, touched: np.ndarray) -> np.ndarray:
         """One solve: the rest contact points prescribed to ``u_c`` and the skin vertices
         ``touched`` held on the face plane (normal component only)."""
         from ..fem import Loads, solve
@@ -379,9 +378,9 @@ class Tracker:
         w, g = rows @ self._contact_emb.matrix, rows @ u_c
         normals = None
         if len(touched):
-            beam = self._pose[:3, 2]
+            beam = pose[:3, 2]
             rest = self.case.anatomy.vertices[touched]
-            depth = (rest - self._pose[:3, 3]) @ beam  # < 0: behind the face, rest position
+            depth = (rest - pose[:3, 3]) @ beam  # < 0: behind the face, rest position
             w = sp.vstack([w, self._surface_embedding().subset(touched).matrix]).tocsr()
             g = np.vstack([g, -depth[:, None] * beam])
             normals = np.vstack([np.zeros((rows.shape[0], 3)), np.tile(beam, (len(touched), 1))])
@@ -390,17 +389,17 @@ class Tracker:
             self._fem_settings)
         return u
 
-    def _skin_behind_face(self, u: np.ndarray, touched: np.ndarray) -> np.ndarray:
+    def _skin_behind_face(self, u: np.ndarray, pose: np.ndarray, touched: np.ndarray
+                          ) -> np.ndarray:
         """Skin vertices not yet held (off the chest wall, facing the probe, not in a cell of
         the rest contact set) that the displacement ``u`` (n_nodes, 3) mm puts under the
-        footprint and more than ``PENETRATION_TOL_MM`` behind the face plane at the current
-        pose."""
+        footprint and more than ``PENETRATION_TOL_MM`` behind the face plane at ``pose``."""
         a = self.case.anatomy
         moved = a.vertices + self._surface_embedding().interpolate(u)
-        local = (moved - self._pose[:3, 3]) @ self._pose[:3, :3]
+        local = (moved - pose[:3, 3]) @ pose[:3, :3]
         fp = as_footprint(self.case.cfg.probe.footprint)
         behind = ((local[:, 2] < -PENETRATION_TOL_MM) & fp.inside(local[:, :2])
-                  & (a.normals @ self._pose[:3, 2] < 0.0)
+                  & (a.normals @ pose[:3, 2] < 0.0)
                   & ~np.asarray(a.fixed_vertices, dtype=bool))
         behind[self._contact] = False
         behind[touched] = False
