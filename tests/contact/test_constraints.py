@@ -20,6 +20,13 @@ def test_config_choices_come_from_the_registry():
 
     meta = {f.name: f.metadata for f in dataclasses.fields(TrackerSection)}["fem_contact"]
     assert field_choices(meta) == contact_constraint_names() == ("points", "cell_average")
+    from biopsynav.config import config_from_dict
+    from biopsynav.errors import InputError
+
+    with pytest.raises(InputError, match="fem_contact must be one of points, cell_average"):
+        config_from_dict({"tracker": {"fem_contact": "glue"}}, "case.toml")
+    with pytest.raises(InputError, match="contact_follows_pose"):
+        config_from_dict({"tracker": {"contact_follows_pose": "yes"}}, "case.toml")
 
 
 def test_cell_average_rows_average_each_cells_points():
