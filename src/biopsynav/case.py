@@ -83,11 +83,12 @@ def as_case(case: Case | str | Path) -> Case:
 def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     """Build anatomy and grid from ``cfg`` and write ``case.toml``, ``anatomy.npz``,
     ``grid.npz`` (each atomically; nothing is written if the inputs are bad)."""
-    from .fem.model import cell_tissues
+    from .fem.tissues import label_tissues
 
     anatomy, facts = build_anatomy(cfg, case_dir)
-    grid = build_grid(anatomy, cfg.grid, cfg.network.levels, cfg.anatomy.max_fixed_share)
-    cell_tissues(grid.active_label(), cfg)  # every label mapped to a material, or refused now
+    grid = build_grid(anatomy, cfg.grid, cfg.network.levels, cfg.anatomy.max_fixed_share,
+                      cfg.anatomy.chest_wall_tolerance_mm)
+    label_tissues(grid.label_values, cfg, anatomy)  # every label has a material, or refused
     save_config(case_dir, cfg)
     paths = CasePaths(case_dir)
     anatomy.save(paths.anatomy)

@@ -15,13 +15,37 @@ from pathlib import Path
 from .errors import BiopsynavError, InputError
 from .fileio import json_default
 
+LABEL_OPTIONS = ("--breast-labels", "--lesion-labels", "--chest-labels", "--tissue-labels")
 
-def _float_list(text: str) -> list[int]:
-    try:
-        return [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}"
-                                         ) from None
+
+def _label_list(text: str) -> list[int | str]:
+    """Comma-separated label values (any integer, negative included) or segment names."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    if not items:
+        raise argparse.ArgumentTypeError(f"expected label values or segment names, got {text!r}")
+    return [int(v) if v.lstrip("+-").isdigit() else v for v in items]
+
+
+def _tissue_map(text: str) -> dict[str, str]:
+    """``LABEL=TISSUE,...`` (a label value, negative included, or a segment name)."""
+    pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
+    if not pairs or any(len(p) != 2 or not p[0].strip() or not p[1].strip() for p in pairs):
+        raise argparse.ArgumentTypeError(f"expected LABEL=TISSUE,..., got {text!r}")
+    return {str(int(k)) if k.strip().lstrip("+-").isdigit() else k.strip(): v.strip()
+            for k, v in pairs}
+
+
+def join_label_values(argv: list[str]) -> list[str]:
+    """``--breast-labels -2,1`` as ``--breast-labels=-2,1``: argparse takes a value starting
+    with '-' for an option unless it is one negative number."""
+    out: list[str] = []
+    for token in argv:
+        if out and out[-1] in LABEL_OPTIONS and token.startswith("-") \
+                and not token.startswith("--"):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
 
 
 def cmd_init(args: argparse.Namespace) -> int:
@@ -41,13 +65,16 @@ def cmd_init(args: argparse.Namespace) -> int:
         overrides["anatomy"]["source"] = "surface"
     elif args.labelmap:
         overrides["anatomy"].update(source="labelmap", breast_labels=args.breast_labels or [],
-                                    lesion_labels=args.lesion_labels or [])
+                                    lesion_labels=args.lesion_labels or [],
+                                    chest_labels=args.chest_labels or [], side=args.side or "")
     else:
         raise InputError("give --phantom, --surface FILE or --labelmap FILE", "init")
+    if not args.labelmap and (args.chest_labels or args.side):
+        raise InputError("--chest-labels and --side need --labelmap", "init")
     overrides["anatomy"]["chest_wall"] = args.chest_wall
+    overrides["anatomy"]["input_frame"] = args.frame
     if args.tissue_labels:
-        overrides["anatomy"]["tissue_labels"] = dict(
-            item.split("=", 1) for item in args.tissue_labels.split(","))
+        overrides["anatomy"]["tissue_labels"] = args.tissue_labels
     if args.cell_size:
         overrides["grid"] = {"cell_size_mm": args.cell_size}
     if args.config:
@@ -195,12 +222,22 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--surface", type=Path, help="closed surface (STL/OBJ/PLY/VTK/VTU) or "
                      "tetrahedral volume mesh (VTK/VTU) of the breast, mm")
     src.add_argument("--labelmap", type=Path, help="segmented label map (NRRD/NIfTI/MHA)")
-    p.add_argument("--lesions", type=Path, help="lesion CSV (id,x,y,z,radius_mm) or a folder "
-                   "of lesion surface meshes")
-    p.add_argument("--breast-labels", type=_float_list, help="label values of breast tissue")
-    p.add_argument("--lesion-labels", type=_float_list, help="label values of lesions")
-    p.add_argument("--tissue-labels", help="map label values to tissues, e.g. "
-                   "1=fat,2=gland,3=skin")
+    p.add_argument("--lesions", type=Path, help="lesion CSV (id,x,y,z,radius_mm), Slicer "
+                   "markups (.mrk.json) or a folder of lesion surface meshes")
+    p.add_argument("--breast-labels", type=_label_list, help="label values (negative "
+                   "included) or segment names of breast tissue, e.g. fat,gland,skin or -2,1")
+    p.add_argument("--lesion-labels", type=_label_list, help="label values or segment names "
+                   "of lesions")
+    p.add_argument("--chest-labels", type=_label_list, help="label values or segment names "
+                   "of the pectoral muscle: the chest wall is the interface with them")
+    p.add_argument("--side", choices=("left", "right"), help="the patient's breast to take "
+                   "from a bilateral label map")
+    p.add_argument("--tissue-labels", type=_tissue_map, help="map labels to tissues, e.g. "
+                   "1=fat,2=gland,-3=skin (segments named fat, gland, skin, tumour map "
+                   "themselves)")
+    p.add_argument("--frame", choices=("ras", "lps"), default="ras", help="frame of a surface "
+                   "mesh and a lesion CSV (default ras, Slicer's); label maps and markups "
+                   "carry their own")
     p.add_argument("--chest-wall", default="auto", help="auto | x-min ... z-max | "
                    "plane:px,py,pz,nx,ny,nz (default auto)")
     p.add_argument("--cell-size", type=float, help="grid cell size, mm")
@@ -293,7 +330,7 @@ def _run_command(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_label_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         return _run_command(args)
     except BiopsynavError as exc:

@@ -57,12 +57,41 @@ class AnatomySection:
     lesions: str = opt("", "Lesions: a CSV (id,x,y,z,radius_mm) or a folder of lesion surface "
                            "meshes, relative to the case folder; empty when lesions come from "
                            "label values or the phantom.")
-    breast_labels: list = opt(None, "Label-map values that are breast tissue.", factory=list)
-    lesion_labels: list = opt(None, "Label-map values that are lesions (one lesion per "
-                                    "connected component).", factory=list)
-    tissue_labels: dict = opt(None, "Map from a per-cell label value of a volume mesh or label "
-                                    "map (as a string key) to a tissue name of [material].",
-                              factory=dict)
+    breast_labels: list = opt(None, "Label-map values (any integer, negative included) or "
+                                    "segment names of a Slicer .seg.nrrd that are breast "
+                                    "tissue.", factory=list)
+    lesion_labels: list = opt(None, "Label-map values or segment names that are lesions (one "
+                                    "lesion per connected component; their cells get the "
+                                    "tissue 'lesion' unless tissue_labels says otherwise).",
+                              factory=list)
+    chest_labels: list = opt(None, "Label-map values or segment names of the pectoral muscle "
+                                   "(or chest): when given, the chest wall is the curved "
+                                   "interface between breast tissue and these labels, not a "
+                                   "plane.", factory=list)
+    side: str = opt("", "Which breast of a bilateral label map: 'left' or 'right' (the "
+                        "patient's; RAS -x is left). Empty: the only breast, or the one "
+                        "holding the lesions.", choices=("", "left", "right"))
+    labelmap_spacing_mm: float = opt(0.0, "Isotropic voxel size a label map is resampled to "
+                                          "before its surface is made; 0 takes the image's "
+                                          "finest spacing.", lo=0.0, hi=10.0)
+    labelmap_smoothing_mm: float = opt(1.0, "Standard deviation of the Gaussian that smooths "
+                                            "the breast mask before marching cubes (0: none). "
+                                            "The surface volume is checked against the "
+                                            "labelled volume (within 10 %).", lo=0.0, hi=10.0)
+    input_frame: str = opt("ras", "Frame of surface/volume meshes and lesion CSVs given by the "
+                                  "user: 'ras' (3D Slicer's display frame) or 'lps' (DICOM/ITK). "
+                                  "A case, its tracker and OpenIGTLink are in RAS; label maps "
+                                  "(LPS in the file) and Slicer markups (their own "
+                                  "coordinateSystem) are converted whatever this says.",
+                           choices=("ras", "lps"))
+    lesion_radius_mm: float = opt(5.0, "Radius of a lesion given as a markups point (.mrk.json "
+                                       "has no size).", lo=0.1, hi=100.0)
+    tissue_labels: dict = opt(None, "Map from a label value (as a string key, negative "
+                                    "included) or a segment name to a tissue name of "
+                                    "[material]. A label without an entry takes the tissue "
+                                    "its segment is named after (fat, gland, fibroglandular, "
+                                    "skin, tumour, lesion), lesion labels take 'lesion'; any "
+                                    "other is refused at init.", factory=dict)
     label_field: str = opt("", "Name of the cell-data array that holds tissue labels in a volume "
                                "mesh; empty picks the first integer cell array.")
     chest_wall: str = opt("auto", "Chest wall (fixed, Dirichlet) definition: 'auto' (the flat "
@@ -499,6 +528,11 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if cfg.material.default_tissue not in cfg.material.tissues:
         raise InputError(f"[material] default_tissue {cfg.material.default_tissue!r} is not in "
                          "[material.tissues]", where)
+    for key in ("breast_labels", "lesion_labels", "chest_labels"):
+        for item in getattr(cfg.anatomy, key):
+            if isinstance(item, bool) or not isinstance(item, (int, str)) or item == "":
+                raise InputError(f"[anatomy] {key} holds {item!r}: give integer label values "
+                                 "or segment names", where)
     for label, tissue in cfg.anatomy.tissue_labels.items():
         if tissue not in cfg.material.tissues:
             raise InputError(f"[anatomy] tissue_labels maps {label} to unknown tissue "

@@ -27,7 +27,8 @@ def case_summary(case: Case | str | Path) -> dict:
         "pinch_vertices_split": int(facts.get("pinch_vertices_split", 0)),
         "chest_wall": {"point_mm": np.round(a.chest_point, 3).tolist(),
                        "normal": np.round(a.chest_normal, 4).tolist(),
-                       "n_surface_vertices": int(a.fixed_vertices.sum())},
+                       "n_surface_vertices": int(a.fixed_vertices.sum()),
+                       "kind": facts.get("chest_wall_kind", "plane")},
         "n_lesions": len(a.lesions),
         "lesions": [{"id": les.id, "center_mm": np.round(les.center, 3).tolist(),
                      "radius_mm": round(les.radius_mm, 3)} for les in a.lesions],
@@ -39,10 +40,41 @@ def case_summary(case: Case | str | Path) -> dict:
         "active_nodes": int(g.active_nodes.sum()),
         "n_fixed_nodes": int(g.fixed_nodes.sum()),
         "grid_volume_ml": round(float(g.fraction.sum()) * g.spacing ** 3 / 1000.0, 3),
-        "tissue_labels": sorted(int(v) for v in np.unique(g.label[g.active_cells]) if v >= 0),
+        "tissues": tissue_table(case),
+        "crop_vertices": int(np.asarray(a.crop_vertices).sum()),
+        "label_map": {k: facts[k] for k in ("breast", "label_volume_ml", "surface_volume_ml",
+                                            "voxel_mm") if k in facts},
         "stages": case.stages_done(),
         "fingerprint": case.fingerprint()[:16],
     }
+
+
+def tissue_table(case: Case) -> list[dict]:
+    """One row per tissue label of the grid (and one for the unlabelled default tissue when
+    present): label, segment name, tissue, E (kPa), nu, the cells holding it and its volume
+    (mL)."""
+    from .fem.tissues import label_tissues
+
+    g, cfg = case.grid, case.cfg
+    share = g.active_label_share().astype(np.float64)
+    cells_ml = g.active_fraction() * g.spacing ** 3 / 1000.0
+    names = {v: n for n, v in case.anatomy.segments.items()}
+    tissues = label_tissues(g.label_values, cfg, case.anatomy)
+    rows = [_tissue_row(str(int(v)), names.get(int(v), ""), t, share[:, i], cells_ml, cfg)
+            for i, (v, t) in enumerate(zip(g.label_values, tissues, strict=True))]
+    rest = np.clip(1.0 - share.sum(axis=1), 0.0, 1.0)
+    if rest.max(initial=0.0) > 1e-6:
+        rows.append(_tissue_row("none", "", cfg.material.default_tissue, rest, cells_ml, cfg))
+    return rows
+
+
+def _tissue_row(label: str, segment: str, tissue: str, share: np.ndarray, cells_ml: np.ndarray,
+                cfg) -> dict:
+    params = cfg.material.tissues[tissue]
+    return {"label": label, "segment": segment, "tissue": tissue,
+            "E_kpa": round(1000.0 * params.get("E_mpa", float("nan")), 3),
+            "nu": params.get("nu"), "cells": int((share > 0).sum()),
+            "volume_ml": round(float(share @ cells_ml), 2)}
 
 
 def format_summary(s: dict) -> str:
@@ -54,6 +86,7 @@ def format_summary(s: dict) -> str:
         f"box {bb[0]} .. {bb[1]} mm",
         f"  chest     {s['chest_wall']['n_surface_vertices']} surface vertices on the plane "
         f"through {s['chest_wall']['point_mm']} with outward normal {s['chest_wall']['normal']}",
+        f"            ({s['chest_wall']['kind']})",
         f"  lesions   {s['n_lesions']}",
     ]
     lines += [f"    #{les['id']}: centre {les['center_mm']} mm, radius {les['radius_mm']} mm"
@@ -64,6 +97,22 @@ def format_summary(s: dict) -> str:
         f"{s['active_cells']} active cells ({s['boundary_cells']} boundary, "
         f"{s['inside_cells']} inside), {s['active_nodes']} active nodes, "
         f"{s['n_fixed_nodes']} fixed nodes, immersed volume {s['grid_volume_ml']:.1f} mL",
+        *_label_map_lines(s),
+        "  tissues   label   segment         tissue    E (kPa)    nu  cells  volume (mL)",
+        *[f"            {t['label']:>5}   {t['segment'][:14]:<14}  {t['tissue']:<8} "
+          f"{t['E_kpa']:>8.3g} {t['nu']:>5}  {t['cells']:>5}  {t['volume_ml']:>8.1f}"
+          for t in s["tissues"]],
         "  stages    " + ", ".join(f"{k} {'done' if v else '-'}" for k, v in s["stages"].items()),
     ]
     return "\n".join(lines)
+
+
+def _label_map_lines(s: dict) -> list[str]:
+    """The label-map facts of a summary: which breast, labelled against surface volume, crop
+    vertices (none for other inputs)."""
+    m = s.get("label_map") or {}
+    if not m:
+        return []
+    return [f"  labelmap  {m.get('breast', '')}; voxels {m.get('voxel_mm')} mm; labels "
+            f"{m.get('label_volume_ml')} mL, surface {m.get('surface_volume_ml')} mL; "
+            f"{s['crop_vertices']} surface vertices on crop faces (never pushed)"]

@@ -131,16 +131,15 @@ def skin_under_face(anatomy: Anatomy, centre: np.ndarray, axes: np.ndarray,
     local = (anatomy.vertices - centre) @ axes
     inside = (footprint.covers(local, depth_tol)
               & (anatomy.normals @ facing > MIN_NORMAL_COSINE)
-              & ~np.asarray(anatomy.fixed_vertices, dtype=bool))
+              & anatomy.pushable)
     return np.flatnonzero(inside)
 
 
 def eligible_centers(anatomy: Anatomy, min_chest_distance_mm: float) -> np.ndarray:
-    """Indices of skin vertices that may centre a push: off the chest wall and at least
-    ``min_chest_distance_mm`` in front of its plane."""
-    normal = anatomy.chest_normal / np.linalg.norm(anatomy.chest_normal)
-    depth = -(anatomy.vertices - anatomy.chest_point) @ normal  # mm in front of the wall
-    ok = ~np.asarray(anatomy.fixed_vertices, dtype=bool) & (depth >= min_chest_distance_mm)
+    """Indices of skin vertices that may centre a push: off the chest wall and crop faces and
+    at least ``min_chest_distance_mm`` in front of the wall (:meth:`Anatomy.chest_depth`)."""
+    depth = anatomy.chest_depth(anatomy.vertices)
+    ok = anatomy.pushable & (depth >= min_chest_distance_mm)
     found = np.flatnonzero(ok)
     if found.size == 0:
         raise InputError(f"no skin vertex lies {min_chest_distance_mm:g} mm or more in front "

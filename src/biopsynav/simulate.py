@@ -53,7 +53,7 @@ def patch_at(anatomy, at_mm: np.ndarray, footprint: Footprint | tuple[float, flo
     at_mm = np.asarray(at_mm, dtype=np.float64)
     if at_mm.shape != (3,) or not np.all(np.isfinite(at_mm)):
         raise InputError(f"--at must be three finite numbers, got {at_mm.tolist()}", "--at")
-    candidates = np.flatnonzero(~anatomy.fixed_vertices)
+    candidates = np.flatnonzero(anatomy.pushable)
     dist = np.linalg.norm(anatomy.vertices[candidates] - at_mm, axis=1)
     nearest = candidates[int(np.argmin(dist))]
     if dist.min() > MAX_AT_DISTANCE_MM:

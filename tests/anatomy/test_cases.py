@@ -99,7 +99,11 @@ def test_ucdavis_init_and_show(tmp_path, capsys, ucdavis_dir):
     info = json.loads(run(capsys, "info", case, "--json")[1])
     assert info["pinch_vertices_split"] == 1
     assert info["volume_ml"] == pytest.approx(599, rel=0.01)
-    assert set(info["tissue_labels"]) == {1, 2, 3}
+    rows = {t["label"]: t for t in info["tissues"]}
+    assert {k: r["tissue"] for k, r in rows.items()} == {"1": "fat", "2": "gland", "3": "skin"}
+    assert rows["2"]["E_kpa"] == pytest.approx(15.1)
+    # the 2 mm skin does not turn whole 7.3 mm cells into skin: its volume, not its cells
+    assert rows["3"]["volume_ml"] < 0.1 * info["volume_ml"] < rows["3"]["cells"] * 0.389
     assert abs(info["chest_wall"]["n_surface_vertices"] - 1171) < 30
     assert info["chest_wall"]["normal"][2] == pytest.approx(-1.0, abs=1e-3)
     assert run(capsys, "show", case)[0] == 0

@@ -88,7 +88,8 @@ def test_label_maps(tmp_path, suffix):
     half_ball = 0.5 * 4 / 3 * np.pi * 40 ** 3
     assert surface_volume(v, f) == pytest.approx(half_ball, rel=0.05)
     assert len(raw.lesions) == 1
-    np.testing.assert_allclose(raw.lesions[0].center, [10 + 45, 20 + 45, 30 + 20], atol=0.2)
+    lps = np.array([10 + 45, 20 + 45, 30 + 20])
+    np.testing.assert_allclose(raw.lesions[0].center, lps * [-1, -1, 1], atol=0.2)  # RAS
     assert winding_number(raw.lesions[0].center[None], v, f)[0] > 0.5
     with pytest.raises(InputError, match="label 5 is absent"):
         read_anatomy(path, breast_labels=[1], lesion_labels=[5])

@@ -91,20 +91,20 @@ def test_unmapped_tissue_label_is_refused_before_workers_start(reference, tmp_pa
     the same check) and at `generate`, never a crash of the worker pool."""
     from biopsynav.case import Case
     from biopsynav.cli import main
-    from biopsynav.fem.model import cell_tissues
+    from biopsynav.fem.tissues import label_tissues
 
     case_dir = _copy(reference, tmp_path / "case")
     case = Case.load(case_dir)
-    labels = np.full(case.grid.active_cells.sum(), -1)
-    labels[:5] = 7
-    with pytest.raises(InputError, match="cell labels 7 with no entry"):
-        cell_tissues(labels, case.cfg)
-    case.grid.label[case.grid.active_cells] = labels
+    with pytest.raises(InputError, match="tissue labels 7 with no tissue"):
+        label_tissues(np.array([7]), case.cfg, case.anatomy)
+    share = np.zeros((*case.grid.cell_shape, 1), np.float32)
+    share[tuple(np.argwhere(case.grid.active_cells)[:5].T)] = 1.0
+    case.grid.label_values, case.grid.label_share = np.array([7]), share
     case.grid.save(case_dir / "grid.npz")
     shutil.rmtree(case_dir / "dataset.zarr")
     rc = main(["generate", str(case_dir), "--workers", "1"])
     out = capfd.readouterr()
     assert rc == 2 and "Traceback" not in out.err
     assert out.err.strip().splitlines() == [line for line in out.err.strip().splitlines()
-                                            if "cell labels 7 with no entry" in line]
+                                            if "tissue labels 7 with no tissue" in line]
     assert not (case_dir / "dataset.zarr").exists()

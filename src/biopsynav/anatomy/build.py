@@ -9,58 +9,152 @@ import numpy as np
 from ..config import CaseConfig
 from ..errors import InputError
 from .chestwall import chest_wall_plane, chest_wall_vertices
-from .io import read_anatomy, read_lesion_csv, read_lesion_meshes
+from .io import RawAnatomy, read_anatomy, read_lesion_csv, read_lesion_meshes, read_markups
+from .labelmap import LPS_TO_RAS
 from .model import Anatomy, Lesion, vertex_normals, winding_number
 from .phantom import phantom_surface
 from .surface import check_units, close_surface, split_pinch_vertices
 
 
 def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
-    """Read, repair and check the anatomy of a case; also return a few facts for ``info``."""
+    """Read, repair and check the anatomy of a case (mm, RAS); also return facts for ``info``."""
+    a = cfg.anatomy
+    raw, where = read_raw(cfg, case_dir)
+    check_units(raw.vertices, where)
+    vertices, faces = close_surface(raw.vertices, raw.faces, where)
+    vertices, faces, n_pinch = split_pinch_vertices(vertices, faces)
+    lesions = raw.lesions
+    lesion_source = where
+    if a.lesions:
+        lesion_source = str(case_dir / a.lesions)
+        lesions = read_lesions(case_dir / a.lesions, a.lesion_points, a.input_frame,
+                               a.lesion_radius_mm)
+    point, normal, fixed = chest_wall(vertices, faces, raw.chest_points, a, where)
+    check_lesions_inside(lesions, vertices, faces, lesion_source)
+    check_lesions_free(lesions, vertices[fixed], point, normal, a.chest_wall_tolerance_mm,
+                       len(raw.chest_points) > 0, lesion_source)
+    crop = near_points(vertices, raw.crop_points, _voxel_reach(raw)) & ~fixed
+    anatomy = Anatomy(vertices, faces, vertex_normals(vertices, faces), fixed, point, normal,
+                      lesions, np.asarray(raw.label_points, np.float64),
+                      np.asarray(raw.label_values, np.int32), crop, len(raw.chest_points) > 0,
+                      dict(raw.segments))
+    facts = {"pinch_vertices_split": n_pinch, "crop_vertices": int(crop.sum()),
+             "chest_wall_kind": _chest_kind(a, raw), **raw.facts}
+    return anatomy, facts
+
+
+def read_raw(cfg: CaseConfig, case_dir: Path) -> tuple[RawAnatomy, str]:
+    """The anatomy input of ``cfg`` in RAS, and the name errors give it."""
     a = cfg.anatomy
     if a.source == "phantom":
         vertices, faces = phantom_surface()
-        label_points, label_values, lesions = np.zeros((0, 3)), np.zeros(0, np.int32), []
-        where = "built-in phantom"
-    else:
-        path = case_dir / a.path
-        where = str(path)
-        raw = read_anatomy(path, a.breast_labels, a.lesion_labels, a.label_field)
-        vertices, faces = raw.vertices, raw.faces
-        label_points, label_values, lesions = raw.label_points, raw.label_values, raw.lesions
-    check_units(vertices, where)
-    vertices, faces = close_surface(vertices, faces, where)
-    vertices, faces, n_pinch = split_pinch_vertices(vertices, faces)
-    if a.lesions:
-        lesions = read_lesions(case_dir / a.lesions, a.lesion_points)
-    point, normal = chest_wall_plane(vertices, faces, a.chest_wall, a.chest_wall_tolerance_mm)
-    fixed = chest_wall_vertices(vertices, point, normal, a.chest_wall_tolerance_mm, where)
-    lesion_source = str(case_dir / a.lesions) if a.lesions else where
-    check_lesions_inside(lesions, vertices, faces, lesion_source)
-    check_lesions_free(lesions, point, normal, a.chest_wall_tolerance_mm, lesion_source)
-    anatomy = Anatomy(vertices, faces, vertex_normals(vertices, faces), fixed, point, normal,
-                      lesions, np.asarray(label_points, np.float64),
-                      np.asarray(label_values, np.int32))
-    return anatomy, {"pinch_vertices_split": n_pinch}
+        return (RawAnatomy(vertices, faces, np.zeros((0, 3)), np.zeros(0, np.int32), []),
+                "built-in phantom")
+    path = case_dir / a.path
+    raw = read_anatomy(path, a.breast_labels, a.lesion_labels, a.label_field,
+                       chest_labels=a.chest_labels, side=a.side,
+                       spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm)
+    if a.source != "labelmap" and a.input_frame == "lps":
+        raw.vertices = raw.vertices * LPS_TO_RAS
+        raw.label_points = raw.label_points * LPS_TO_RAS
+    return raw, str(path)
 
 
-def read_lesions(path: Path, n_points: int) -> list[Lesion]:
-    """Lesions from a CSV file or a folder of lesion surface meshes."""
+def _voxel_reach(raw: RawAnatomy) -> float:
+    """How far (mm) from a voxel centre a label-map surface vertex of that voxel may lie."""
+    voxel = np.asarray(raw.facts.get("voxel_mm", [1.0, 1.0, 1.0]), np.float64)
+    return float(np.linalg.norm(voxel)) + 1.0
+
+
+def near_points(vertices: np.ndarray, points: np.ndarray, reach: float) -> np.ndarray:
+    """(nv,) True for vertices within ``reach`` mm of any of ``points`` (n, 3)."""
+    if len(points) == 0:
+        return np.zeros(len(vertices), dtype=bool)
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(points).query(vertices, distance_upper_bound=reach)
+    return np.isfinite(dist)
+
+
+def chest_wall(vertices: np.ndarray, faces: np.ndarray, interface: np.ndarray, a,
+               where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point (3,), outward normal (3,) and fixed-vertex mask (nv,) of the chest wall: the
+    vertices on a muscle interface (``interface`` points, mm) when there is one, else the
+    plane of ``[anatomy] chest_wall``."""
+    if len(interface) == 0:
+        point, normal = chest_wall_plane(vertices, faces, a.chest_wall,
+                                         a.chest_wall_tolerance_mm)
+        fixed = chest_wall_vertices(vertices, point, normal, a.chest_wall_tolerance_mm, where)
+        return point, normal, fixed
+    fixed = near_points(vertices, interface, a.chest_wall_tolerance_mm
+                        + 0.75 * _interface_spacing(interface))
+    point, normal = patch_plane(vertices, faces, fixed)
+    return point, normal, fixed
+
+
+def _interface_spacing(points: np.ndarray) -> float:
+    """Typical distance (mm) between neighbouring interface voxel centres."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points[:: max(1, len(points) // 500)], k=2)
+    return float(np.median(d[:, 1]))
+
+
+def patch_plane(vertices: np.ndarray, faces: np.ndarray,
+                fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted centroid (3,) and mean outward unit normal (3,) of the faces whose three
+    vertices are fixed."""
+    tri = vertices[faces[fixed[faces].all(axis=1)]]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = cross.sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum(), normal
+
+
+def _chest_kind(a, raw: RawAnatomy) -> str:
+    if len(raw.chest_points):
+        return f"interface with the chest labels {a.chest_labels}"
+    if a.chest_wall == "auto":
+        return "plane of the largest flat face (auto)"
+    return f"plane {a.chest_wall}"
+
+
+def read_lesions(path: Path, n_points: int, frame: str = "ras",
+                 markup_radius_mm: float = 5.0) -> list[Lesion]:
+    """Lesions (RAS) from a CSV file in ``frame``, a Slicer markups file (its own frame), or
+    a folder of lesion surface meshes in ``frame``."""
     if path.is_dir():
         files = [p for p in path.iterdir() if p.is_file()]
         if not files:
             raise InputError("lesion folder holds no mesh files", str(path))
-        return read_lesion_meshes(files)
-    return read_lesion_csv(path, n_points)
+        lesions = read_lesion_meshes(files)
+    elif path.name.lower().endswith(".json"):
+        return read_markups(path, markup_radius_mm, n_points)
+    else:
+        lesions = read_lesion_csv(path, n_points)
+    if frame == "lps":
+        for les in lesions:
+            les.center, les.points = les.center * LPS_TO_RAS, les.points * LPS_TO_RAS
+    return lesions
 
 
-def check_lesions_free(lesions: list[Lesion], point: np.ndarray, normal: np.ndarray,
-                       tol: float, where: str) -> None:
-    """No lesion centre may lie on or behind the chest-wall plane (``point``, outward
-    ``normal``, mm), where the grid is fixed: a lesion there could never move."""
+def check_lesions_free(lesions: list[Lesion], wall_vertices: np.ndarray, point: np.ndarray,
+                       normal: np.ndarray, tol: float, curved: bool, where: str) -> None:
+    """No lesion centre may lie on the chest wall (within ``tol`` mm of its vertices) or, for
+    a plane wall (``point``, outward ``normal``, mm), behind it, where the grid is fixed: a
+    lesion there could never move."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(wall_vertices)
     for les in lesions:
+        gap = float(tree.query(les.center)[0])
         height = float((np.asarray(les.center) - point) @ normal)
-        if height >= -tol:
+        if curved and gap <= tol:
+            raise InputError(f"lesion {les.id} at {np.round(les.center, 2).tolist()} mm lies on "
+                             f"the chest wall ({gap:.1f} mm from the muscle interface), where "
+                             "the tissue is fixed; check --chest-labels", where)
+        if not curved and height >= -tol:
             raise InputError(f"lesion {les.id} at {np.round(les.center, 2).tolist()} mm lies on "
                              f"or behind the chest wall ({height:+.1f} mm along its outward "
                              f"normal {np.round(normal, 3).tolist()}), where the tissue is fixed;"

@@ -8,13 +8,12 @@ label maps (SimpleITK + marching cubes), lesion CSVs ``id,x,y,z,radius_mm``.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from ..grid.index import image_array_to_xyz
 from .model import Lesion
 
 SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off")
@@ -31,6 +30,10 @@ class RawAnatomy:
     label_points: np.ndarray
     label_values: np.ndarray
     lesions: list[Lesion]
+    crop_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    chest_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    facts: dict = field(default_factory=dict)
+    segments: dict = field(default_factory=dict)
 
 
 def _suffix(path: Path) -> str:
@@ -46,8 +49,10 @@ def _require_file(path: Path) -> None:
 
 
 def read_anatomy(path: str | Path, breast_labels: list | None = None,
-                 lesion_labels: list | None = None, label_field: str = "") -> RawAnatomy:
-    """Read any supported anatomy file (surface, volume mesh or label map), in mm."""
+                 lesion_labels: list | None = None, label_field: str = "",
+                 **labelmap_options) -> RawAnatomy:
+    """Read any supported anatomy file (surface, volume mesh or label map), in mm;
+    ``labelmap_options`` go to :func:`read_labelmap`."""
     path = Path(path)
     _require_file(path)
     suffix = _suffix(path)
@@ -57,7 +62,8 @@ def read_anatomy(path: str | Path, breast_labels: list | None = None,
     if suffix in MESHIO_SUFFIXES:
         return read_meshio(path, label_field)
     if suffix in LABELMAP_SUFFIXES:
-        return read_labelmap(path, breast_labels or [], lesion_labels or [])
+        return read_labelmap(path, breast_labels or [], lesion_labels or [],
+                             **labelmap_options)
     raise InputError(f"unsupported anatomy format {suffix!r}; use STL, OBJ, PLY, VTK, VTU, "
                      "NRRD, NIfTI or MHA", str(path))
 
@@ -137,69 +143,28 @@ def tet_boundary_faces(tets: np.ndarray) -> np.ndarray:
     return faces[counts[inv.ravel()] == 1]
 
 
-def read_labelmap(path: Path, breast_labels: list, lesion_labels: list) -> RawAnatomy:
-    """A segmented label map: breast surface by marching cubes, tissue labels, lesions."""
-    import SimpleITK as sitk
+def read_labelmap(path: Path, breast_labels: list, lesion_labels: list,
+                  chest_labels: list | None = None, side: str = "", spacing_mm: float = 0.0,
+                  smoothing_mm: float = 1.0) -> RawAnatomy:
+    """A segmented label map (:mod:`biopsynav.anatomy.labelmap`): one breast's smoothed
+    surface, tissue-label samples, lesions (one per connected component of a lesion label),
+    crop-face and chest-wall points, all in mm, RAS."""
+    from .labelmap import read_label_anatomy
 
-    if not breast_labels:
-        raise InputError("a label map needs --breast-labels (label values of breast tissue)",
-                         str(path))
-    try:
-        image = sitk.ReadImage(str(path))
-    except RuntimeError as exc:
-        raise InputError(f"cannot read label map: {str(exc).splitlines()[0]}",
-                         str(path)) from None
-    labels = image_array_to_xyz(sitk.GetArrayFromImage(image)).astype(np.int64)
-    present = set(np.unique(labels).tolist())
-    for value in list(breast_labels) + list(lesion_labels):
-        if value not in present:
-            raise InputError(f"label {value} is absent from the label map (present: "
-                             f"{sorted(present)})", str(path))
-    to_mm = _index_to_physical(image)
-    mask = np.isin(labels, list(breast_labels) + list(lesion_labels))
-    vertices, faces = _mask_surface(mask, to_mm)
-    ijk = np.argwhere(mask)
-    step = max(1, len(ijk) // 400_000)
-    label_points = to_mm(ijk[::step].astype(np.float64))
-    label_values = labels[tuple(ijk[::step].T)].astype(np.int32)
-    lesions = _label_lesions(labels, lesion_labels, to_mm)
-    return RawAnatomy(vertices, faces, label_points, label_values, lesions)
+    got = read_label_anatomy(path, breast_labels, lesion_labels, chest_labels or [], side,
+                             spacing_mm, smoothing_mm)
+    lesions = [_mask_lesion(i + 1, m, got.image) for i, m in enumerate(got.lesion_masks)]
+    return RawAnatomy(got.vertices, got.faces, got.label_points, got.label_values, lesions,
+                      got.crop_points, got.chest_points, got.facts, got.image.segments)
 
 
-def _index_to_physical(image):
-    origin = np.array(image.GetOrigin(), np.float64)
-    spacing = np.array(image.GetSpacing(), np.float64)
-    direction = np.array(image.GetDirection(), np.float64).reshape(3, 3)
+def _mask_lesion(lesion_id: int, mask: np.ndarray, image) -> Lesion:
+    """A lesion from its voxel mask: centre = voxel centroid, points = its surface (RAS)."""
+    from .labelmap import smooth_surface
 
-    def to_mm(ijk: np.ndarray) -> np.ndarray:
-        return origin + (np.asarray(ijk) * spacing) @ direction.T
-
-    return to_mm
-
-
-def _mask_surface(mask: np.ndarray, to_mm) -> tuple[np.ndarray, np.ndarray]:
-    from skimage.measure import marching_cubes
-
-    padded = np.pad(mask.astype(np.float32), 1)
-    verts, faces, _, _ = marching_cubes(padded, level=0.5)
-    verts = to_mm(verts - 1.0)
-    faces = faces[:, ::-1].astype(np.int64)  # skimage winds inward for a 1-inside mask
-    return verts, faces
-
-
-def _label_lesions(labels: np.ndarray, lesion_labels: list, to_mm) -> list[Lesion]:
-    from scipy import ndimage
-
-    lesions: list[Lesion] = []
-    for value in lesion_labels:
-        comps, n = ndimage.label(labels == value)
-        for c in range(1, n + 1):
-            comp = comps == c
-            v, _ = _mask_surface(comp, to_mm)
-            center = to_mm(np.argwhere(comp).mean(axis=0))
-            radius = float(np.linalg.norm(v - center, axis=1).mean())
-            lesions.append(Lesion(len(lesions) + 1, center, radius, v))
-    return lesions
+    v, _ = smooth_surface(mask, image, 0.0, 0.0)
+    center = image.to_ras(np.argwhere(mask).mean(axis=0)[None])[0]
+    return Lesion(lesion_id, center, float(np.linalg.norm(v - center, axis=1).mean()), v)
 
 
 def read_lesion_csv(path: str | Path, n_points: int) -> list[Lesion]:
@@ -231,6 +196,43 @@ def read_lesion_csv(path: str | Path, n_points: int) -> list[Lesion]:
     if len(set(ids)) != len(ids):
         raise InputError("lesion ids are not unique", str(path))
     return lesions
+
+
+def read_markups(path: Path, radius_mm: float, n_points: int) -> list[Lesion]:
+    """Lesions from the control points of a 3D Slicer markups file (``.mrk.json``): one
+    spherical lesion of ``radius_mm`` per point, id = its position in the file (from 1),
+    converted to RAS from the file's ``coordinateSystem``."""
+    import json
+
+    _require_file(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        markups = doc["markups"]
+        points = [(m.get("coordinateSystem", "LPS"), p["position"])
+                  for m in markups for p in m.get("controlPoints", [])]
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"not a Slicer markups file ({type(exc).__name__}: {exc})",
+                         str(path)) from None
+    if not points:
+        raise InputError("markups file has no control points", str(path))
+    lesions = []
+    for i, (frame, position) in enumerate(points, start=1):
+        center = _markup_position(frame, position, i, path)
+        lesions.append(Lesion(i, center, radius_mm, sphere_points(center, radius_mm, n_points)))
+    return lesions
+
+
+def _markup_position(frame: str, position, index: int, path: Path) -> np.ndarray:
+    """One control point (3,) in RAS from the markups' ``coordinateSystem`` (RAS or LPS)."""
+    try:
+        p = np.asarray(position, dtype=np.float64).reshape(3)
+    except (ValueError, TypeError):
+        raise InputError(f"control point {index}: position {position!r} is not three "
+                         "numbers", str(path)) from None
+    if frame not in ("RAS", "LPS") or not np.isfinite(p).all():
+        raise InputError(f"control point {index}: needs a finite position in RAS or LPS, got "
+                         f"{position!r} in {frame!r}", str(path))
+    return p * np.array([-1.0, -1.0, 1.0]) if frame == "LPS" else p
 
 
 def read_lesion_meshes(paths: list[Path]) -> list[Lesion]:

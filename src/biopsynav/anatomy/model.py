@@ -39,6 +39,11 @@ class Anatomy:
             pointing out of the breast (posterior).
         lesions: the lesions.
         label_points, label_values: (m, 3) and (m,) tissue-label samples (empty if unlabelled).
+        crop_vertices: (nv,) True where a label map's image (or a midline cut) ended the
+            breast: never a place to push.
+        chest_curved: the chest wall is the interface with a muscle label (fixed_vertices),
+            not the plane through ``chest_point``; the plane is then its mean.
+        segments: segment name -> label value of a Slicer segmentation (empty otherwise).
     """
 
     vertices: np.ndarray
@@ -50,6 +55,29 @@ class Anatomy:
     lesions: list[Lesion] = field(default_factory=list)
     label_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     label_values: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    crop_vertices: np.ndarray | None = None
+    chest_curved: bool = False
+    segments: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.crop_vertices is None:
+            self.crop_vertices = np.zeros(len(self.vertices), dtype=bool)
+
+    @property
+    def pushable(self) -> np.ndarray:
+        """(nv,) skin vertices a probe may touch: off the chest wall and off crop faces."""
+        return ~np.asarray(self.fixed_vertices, bool) & ~np.asarray(self.crop_vertices, bool)
+
+    def chest_depth(self, points: np.ndarray) -> np.ndarray:
+        """Distance (n,) in mm of ``points`` (n, 3) in front of the chest wall: along the
+        plane's normal, and no more than the distance to the nearest chest-wall vertex."""
+        from scipy.spatial import cKDTree
+
+        depth = -(np.asarray(points) - self.chest_point) @ self.chest_normal
+        if self.chest_curved:
+            near, _ = cKDTree(self.vertices[self.fixed_vertices]).query(points)
+            depth = np.minimum(np.abs(depth), near)
+        return depth
 
     @property
     def bounds(self) -> np.ndarray:
@@ -89,6 +117,10 @@ class Anatomy:
             "lesion_points": (np.vstack([les.points for les in self.lesions])
                               if self.lesions else np.zeros((0, 3))),
             "label_points": self.label_points, "label_values": self.label_values,
+            "crop_vertices": np.asarray(self.crop_vertices, bool),
+            "chest_curved": np.array(bool(self.chest_curved)),
+            "segment_names": np.array(list(self.segments), dtype=str),
+            "segment_values": np.array(list(self.segments.values()), dtype=np.int64),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -103,9 +135,13 @@ class Anatomy:
         lesions = [Lesion(int(i), c, float(r), p) for i, c, r, p in zip(
             a["lesion_ids"], a["lesion_centers"], a["lesion_radii"],
             np.split(a["lesion_points"], splits), strict=True)]
+        names = a.get("segment_names", np.zeros(0, str)).tolist()
         return cls(a["vertices"], a["faces"], a["normals"], a["fixed_vertices"],
                    a["chest_point"], a["chest_normal"], lesions, a["label_points"],
-                   a["label_values"])
+                   a["label_values"], a.get("crop_vertices"),
+                   bool(a.get("chest_curved", False)),
+                   dict(zip(names, a.get("segment_values", np.zeros(0, int)).tolist(),
+                            strict=True)))
 
 
 def surface_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -110,11 +110,11 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
 def preflight(case: Any) -> None:
     """Raise here, in the main process, what every worker would raise while setting up (a skin
     vertex outside the active cells, no push centre), instead of a pool that keeps crashing."""
-    from ..fem.model import cell_tissues
+    from ..fem.tissues import label_tissues
     from ..grid.embedding import surface_embedding
     from ..probe import eligible_centers
 
-    cell_tissues(case.grid.active_label(), case.cfg)
+    label_tissues(case.grid.label_values, case.cfg, case.anatomy)
     surface_embedding(case.grid, case.anatomy)
     eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
 

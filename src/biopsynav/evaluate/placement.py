@@ -76,7 +76,7 @@ def place_probe(anatomy: Anatomy, lesion_index: int) -> Placement:
     les = anatomy.lesions[lesion_index]
     c = np.asarray(les.center, dtype=np.float64)
     dist = np.linalg.norm(anatomy.vertices - c, axis=1)
-    dist[anatomy.fixed_vertices] = np.inf
+    dist[~anatomy.pushable] = np.inf
     v = int(np.argmin(dist))
     p = anatomy.vertices[v]
     z = (c - p) / max(dist[v], 1e-12)

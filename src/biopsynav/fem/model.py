@@ -15,13 +15,11 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ..errors import InputError
-from ..layout import CASE_FILE
 from ..materials import MATERIAL_LAWS, lame_constants
 from . import kernels
 
 if TYPE_CHECKING:
     from ..case import Case
-    from ..config import CaseConfig
 
 
 
@@ -104,32 +102,17 @@ class FEModel:
 
     @classmethod
     def from_case(cls, case: Case) -> FEModel:
-        """The model of a case: active grid cells, tissue per cell label, chest wall fixed."""
+        """The model of a case: active grid cells, each the volume-weighted mixture of its
+        tissues (:mod:`biopsynav.fem.tissues`), chest wall fixed."""
+        from .tissues import cell_lame, label_tissues, small_strain
+
         cfg, grid = case.cfg, case.grid
-        law = MATERIAL_LAWS[cfg.material.model]
-        names = cell_tissues(np.asarray(grid.active_label()), cfg)
-        params = {key: np.array([cfg.material.tissues[n][key] for n in names], dtype=np.float64)
-                  for key in law.parameters}
+        tissues = label_tissues(grid.label_values, cfg, case.anatomy)
+        mu, lam = cell_lame(grid.active_label_share(), tissues, cfg)
+        e_mpa, nu = small_strain(mu, lam)
         weight = np.clip(grid.active_fraction(), cfg.grid.min_fraction, 1.0)
-        e_mpa, nu = law.small_strain(params)
         return cls(grid.node_coords(), grid.active_hexes(), weight, e_mpa, nu,
-                   np.asarray(grid.fixed_nodes).ravel(), law.name, law.lame(params))
-
-
-def cell_tissues(labels: np.ndarray, cfg: CaseConfig) -> np.ndarray:
-    """Tissue name (object array, shape of ``labels``) of each active cell from its label
-    (-1: unlabelled, ``[material] default_tissue``); InputError listing every label that
-    ``[anatomy] tissue_labels`` does not map (checked at ``init`` and before generation)."""
-    names = np.full(labels.shape, cfg.material.default_tissue, dtype=object)
-    present = [int(v) for v in np.unique(labels[labels >= 0])]
-    unmapped = [v for v in present if str(v) not in cfg.anatomy.tissue_labels]
-    if unmapped:
-        raise InputError(f"the anatomy has cell labels {', '.join(map(str, unmapped))} with no "
-                         "entry in [anatomy] tissue_labels (init --tissue-labels "
-                         f"{','.join(f'{v}=fat' for v in unmapped)}, for example)", CASE_FILE)
-    for value in present:
-        names[labels == value] = cfg.anatomy.tissue_labels[str(value)]
-    return names
+                   np.asarray(grid.fixed_nodes).ravel(), cfg.material.model, (mu, lam))
 
 
 def _per_element(values: np.ndarray, n_el: int, name: str) -> np.ndarray:

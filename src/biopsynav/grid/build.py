@@ -21,10 +21,11 @@ _COLUMN_JITTER = np.array([np.sqrt(2.0) * 1e-7, np.sqrt(3.0) * 1e-7])
 
 
 def build_grid(anatomy: Anatomy, settings: GridSection, levels: int,
-               max_fixed_share: float = 1.0) -> Grid:
+               max_fixed_share: float = 1.0, chest_tol_mm: float = 1.0) -> Grid:
     """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm``; node counts are
-    padded to multiples of ``2**levels`` (the U-Net's pooling). InputError when the chest wall
-    fixes more than ``max_fixed_share`` of the active nodes."""
+    padded to multiples of ``2**levels`` (the U-Net's pooling). Nodes within ``chest_tol_mm``
+    of a curved chest wall, or behind it, are fixed. InputError when the chest wall fixes more
+    than ``max_fixed_share`` of the active nodes."""
     h = float(settings.cell_size_mm)
     origin, node_shape = _grid_frame(anatomy, h, settings.margin_cells, 2 ** levels)
     cshape = index.cell_shape(node_shape)
@@ -37,17 +38,20 @@ def build_grid(anatomy: Anatomy, settings: GridSection, levels: int,
     touched = _cells_touched(anatomy, origin, h, cshape)
     active = (fraction > settings.fraction_threshold) | touched
     status = np.where(fraction >= 1.0, 2, np.where((fraction > 0) | touched, 1, 0))
-    label = _grid_cell_labels(anatomy, inside, lattice, cshape, n, active)
+    values, share = _grid_label_shares(anatomy, inside, lattice, cshape, n, active)
     active_nodes = _nodes_of_cells(active, node_shape)
     coords = index.node_coordinates(origin, h, node_shape).reshape((*node_shape, 3))
-    behind = (coords - anatomy.chest_point) @ anatomy.chest_normal >= -1e-6 * h
-    fixed = active_nodes & (behind | _wall_layer(anatomy, node_shape))
+    if anatomy.chest_curved:
+        fixed = active_nodes & behind_curved_wall(anatomy, coords, chest_tol_mm)
+    else:
+        behind = (coords - anatomy.chest_point) @ anatomy.chest_normal >= -1e-6 * h
+        fixed = active_nodes & (behind | _wall_layer(anatomy, node_shape))
     if not fixed.any():
         raise InputError("no grid node lies on the chest wall; check [anatomy] chest_wall")
     check_fixed_share(int(fixed.sum()), int(active_nodes.sum()), max_fixed_share)
     return Grid(origin=origin, spacing=h, fraction=fraction.astype(np.float32),
-                label=label, active_cells=active, active_nodes=active_nodes,
-                fixed_nodes=fixed, status=status.astype(np.int8))
+                label_values=values, label_share=share, active_cells=active,
+                active_nodes=active_nodes, fixed_nodes=fixed, status=status.astype(np.int8))
 
 
 def check_fixed_share(n_fixed: int, n_active: int, max_share: float) -> None:
@@ -146,7 +150,7 @@ def _column_crossings(vertices: np.ndarray, faces: np.ndarray, xs: np.ndarray,
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = w1 / d, w2 / d
         hit = (d != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
-    z = a[:, 2] + u * (b[:, 2] - a[:, 2]) + v * (c[:, 2] - a[:, 2])
+        z = a[:, 2] + u * (b[:, 2] - a[:, 2]) + v * (c[:, 2] - a[:, 2])
     return (ix * len(ys) + iy)[hit], z[hit]
 
 
@@ -161,34 +165,42 @@ def _cells_touched(anatomy: Anatomy, origin: np.ndarray, h: float,
     return touched
 
 
-def _grid_cell_labels(anatomy: Anatomy, inside: np.ndarray, lattice: tuple, cshape, n: int,
-                 active: np.ndarray) -> np.ndarray:
-    """Majority tissue label of the inside samples of each cell (-1 without labels)."""
-    label = np.full(cshape, -1, dtype=np.int32)
-    if len(anatomy.label_values) == 0:
-        return label
+def behind_curved_wall(anatomy: Anatomy, coords: np.ndarray, tol: float) -> np.ndarray:
+    """Nodes (coords.shape[:-1]) on or behind a curved chest wall: their nearest surface
+    vertex is a chest-wall vertex and they lie on its outer side (along its normal) or within
+    ``tol`` mm inside."""
+    flat = coords.reshape(-1, 3)
+    _, nearest = cKDTree(anatomy.vertices).query(flat, workers=-1)
+    outward = np.einsum("ij,ij->i", flat - anatomy.vertices[nearest], anatomy.normals[nearest])
+    return (anatomy.fixed_vertices[nearest] & (outward >= -tol)).reshape(coords.shape[:-1])
+
+
+def _grid_label_shares(anatomy: Anatomy, inside: np.ndarray, lattice: tuple, cshape, n: int,
+                       active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Label values (k,) and the share (cshape + (k,)) of each cell's inside samples that has
+    each value (nearest label sample); an active cell with no inside sample takes the label
+    nearest its centre. Without labels: (0,) and (cshape + (0,))."""
+    values = np.unique(anatomy.label_values).astype(np.int64)
+    if len(values) == 0:
+        return values, np.zeros((*cshape, 0), np.float32)
+    tree = cKDTree(anatomy.label_points)
     ii, jj, kk = np.nonzero(inside)
-    pts = np.stack([lattice[0][ii], lattice[1][jj], lattice[2][kk]], axis=1)
-    _, nearest = cKDTree(anatomy.label_points).query(pts, workers=-1)
-    values = anatomy.label_values[nearest]
-    uniq, vidx = np.unique(values, return_inverse=True)
+    _, nearest = tree.query(np.stack([lattice[0][ii], lattice[1][jj], lattice[2][kk]], axis=1),
+                            workers=-1)
+    column = np.searchsorted(values, anatomy.label_values[nearest])
     cell = index.flat_index(np.stack([ii // n, jj // n, kk // n], axis=1), cshape)
-    votes = np.zeros((int(np.prod(cshape)), len(uniq)), dtype=np.int32)
-    np.add.at(votes, (cell, vidx.ravel()), 1)
-    has = votes.sum(axis=1) > 0
-    flat = np.full(int(np.prod(cshape)), -1, dtype=np.int32)
-    flat[has] = uniq[np.argmax(votes[has], axis=1)]
-    label = flat.reshape(cshape)
-    # active cells without an inside sample take the label of the nearest label sample
-    missing = active & (label < 0)
-    if missing.any():
-        centres = np.argwhere(missing)
-        origin = np.array([lattice[a][0] for a in range(3)]) - 0.5 * (lattice[0][1]
-                                                                      - lattice[0][0])
+    votes = np.zeros((int(np.prod(cshape)), len(values)), np.float64)
+    np.add.at(votes, (cell, column), 1.0)
+    total = votes.sum(axis=1, keepdims=True)
+    share = np.divide(votes, total, out=np.zeros_like(votes), where=total > 0)
+    empty = active.ravel() & (total[:, 0] == 0)
+    if empty.any():
         h = (lattice[0][1] - lattice[0][0]) * n
-        _, near = cKDTree(anatomy.label_points).query(origin + (centres + 0.5) * h)
-        label[missing] = anatomy.label_values[near]
-    return label
+        origin = np.array([lattice[a][0] for a in range(3)]) - 0.5 * h / n
+        centres = origin + (index.unflat_index(np.flatnonzero(empty), cshape) + 0.5) * h
+        _, near = tree.query(centres)
+        share[np.flatnonzero(empty), np.searchsorted(values, anatomy.label_values[near])] = 1.0
+    return values, share.reshape((*cshape, len(values))).astype(np.float32)
 
 
 def _nodes_of_cells(cells: np.ndarray, node_shape: tuple[int, int, int]) -> np.ndarray:

@@ -21,7 +21,10 @@ class Grid:
         origin: (3,) position of node (0, 0, 0).
         spacing: cell edge length.
         fraction: tissue volume fraction of each cell in [0, 1].
-        label: tissue label of each cell (-1: none, use the default tissue).
+        label_values: (k,) the tissue-label values of the anatomy (any integers; empty when
+            unlabelled).
+        label_share: (nx-1, ny-1, nz-1, k) share of each cell's tissue carrying each label
+            value (rows sum to 1 in labelled cells; all zero: the default tissue).
         active_cells: cells that carry finite elements.
         active_nodes: nodes of active cells.
         fixed_nodes: active nodes on or behind the chest wall (Dirichlet u = 0).
@@ -31,7 +34,8 @@ class Grid:
     origin: np.ndarray
     spacing: float
     fraction: np.ndarray
-    label: np.ndarray
+    label_values: np.ndarray
+    label_share: np.ndarray
     active_cells: np.ndarray
     active_nodes: np.ndarray
     fixed_nodes: np.ndarray
@@ -65,9 +69,9 @@ class Grid:
         """Volume fraction (n_active,) of the active cells."""
         return self.fraction[self.active_cells]
 
-    def active_label(self) -> np.ndarray:
-        """Tissue label (n_active,) of the active cells (-1: default tissue)."""
-        return self.label[self.active_cells]
+    def active_label_share(self) -> np.ndarray:
+        """Label shares (n_active, k) of the active cells, columns as ``label_values``."""
+        return self.label_share[self.active_cells]
 
     def fingerprint(self) -> str:
         """SHA-256 of every array and the geometry: changes whenever the grid changes."""
@@ -87,7 +91,21 @@ class Grid:
     @classmethod
     def load(cls, path: str | Path) -> Grid:
         """Read a grid written by :meth:`save`."""
-        data = load_npz(path, [f.name for f in fields(cls)], REBUILD)
+        data = _from_majority_labels(load_npz(path, [f.name for f in fields(cls)
+                                                     if not f.name.startswith("label_")],
+                                              REBUILD))
         kwargs = {f.name: data[f.name] for f in fields(cls)}
         kwargs["spacing"] = float(kwargs["spacing"])
         return cls(**kwargs)
+
+
+def _from_majority_labels(data: dict) -> dict:
+    """Grids written before label shares held one label per cell (-1: none): read that as a
+    share of 1."""
+    if "label_share" in data:
+        return data
+    label = data.pop("label", np.full(data["fraction"].shape, -1, np.int32))
+    values = np.unique(label[label >= 0]).astype(np.int64)
+    data["label_values"] = values
+    data["label_share"] = (label[..., None] == values).astype(np.float32)
+    return data

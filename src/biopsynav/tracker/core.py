@@ -400,7 +400,7 @@ class Tracker:
         fp = as_footprint(self.case.cfg.probe.footprint)
         behind = ((local[:, 2] < -PENETRATION_TOL_MM) & fp.inside(local[:, :2])
                   & (a.normals @ pose[:3, 2] < 0.0)
-                  & ~np.asarray(a.fixed_vertices, dtype=bool))
+                  & a.pushable)
         behind[self._contact] = False
         behind[touched] = False
         # nodes of the cells holding rest contact points move with the probe already: a

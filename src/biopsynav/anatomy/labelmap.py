@@ -1,0 +1,326 @@
+"""Label maps as clinicians have them: NRRD/NIfTI/MHA label images and 3D Slicer segmentations.
+
+* Frames: ITK files store physical points in LPS; a case lives in RAS (3D Slicer's frame), so
+  every point read here is converted (x and y negated) by :meth:`LabelImage.to_ras`.
+* Labels: any integer value, negative included, or a segment name of a Slicer ``.seg.nrrd``
+  (``Segment<i>_Name`` / ``Segment<i>_LabelValue``; several layers are merged when the
+  segments do not overlap).
+* One breast: several separate breasts (a bilateral image) are told apart by ``side`` (the
+  patient's left is RAS -x) or by the lesions they hold; one breast joined to the other across
+  the sternum is cut at the narrowest sagittal slab between them.
+* Surface: the breast mask (with what it encloses: a lesion not listed as breast tissue) is
+  resampled to isotropic voxels, lightly smoothed, and triangulated by marching cubes; its
+  volume is compared with the labelled volume.
+* Crop faces (where the image cuts the breast) and the chest-wall interface with a muscle label
+  are returned as point sets (mm, RAS) for the anatomy to mark surface vertices with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import InputError
+from ..grid.index import image_array_to_xyz
+
+LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
+MIN_COMPONENT_SHARE = 0.05  # components under this share of the largest are specks
+MAX_VOLUME_MISMATCH = 0.10  # surface volume against labelled volume
+MAX_SAMPLES = 400_000
+
+
+@dataclass
+class LabelImage:
+    """An integer label image in (x, y, z) index order with its geometry (ITK's LPS)."""
+
+    labels: np.ndarray
+    origin: np.ndarray
+    spacing: np.ndarray
+    direction: np.ndarray
+    segments: dict[str, int] = field(default_factory=dict)
+
+    def to_ras(self, ijk: np.ndarray) -> np.ndarray:
+        """RAS points (n, 3), mm, of continuous voxel indices ``ijk`` (n, 3)."""
+        lps = self.origin + (np.asarray(ijk, np.float64) * self.spacing) @ self.direction.T
+        return lps * LPS_TO_RAS
+
+    @property
+    def voxel_mm3(self) -> float:
+        """Volume of one voxel, mm^3."""
+        return float(np.prod(self.spacing))
+
+    def ras_axis_signs(self) -> np.ndarray:
+        """Change of RAS x (3,) per unit step of each index axis, mm."""
+        return (self.direction * self.spacing[None, :])[0] * LPS_TO_RAS[0]
+
+
+@dataclass
+class LabelAnatomy:
+    """What a label map gives the anatomy (mm, RAS)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    label_points: np.ndarray
+    label_values: np.ndarray
+    lesion_masks: list[np.ndarray]
+    crop_points: np.ndarray
+    chest_points: np.ndarray
+    image: LabelImage
+    facts: dict
+
+
+def read_label_image(path: Path) -> LabelImage:
+    """Read a label image; InputError when it is not one (channels, fractions, unreadable)."""
+    import SimpleITK as sitk
+
+    try:
+        image = sitk.ReadImage(str(path))
+    except RuntimeError as exc:
+        raise InputError(f"cannot read label map: {str(exc).strip().splitlines()[0]}",
+                         str(path)) from None
+    if image.GetDimension() != 3:
+        raise InputError(f"not a label map: {image.GetDimension()} dimensions, expected 3",
+                         str(path))
+    segments, layers = slicer_segments(image)
+    array = sitk.GetArrayFromImage(image)
+    if image.GetNumberOfComponentsPerPixel() > 1:
+        array = _merge_layers(array, layers, segments, path)
+    labels = image_array_to_xyz(_integer_labels(array, path))
+    return LabelImage(labels, np.array(image.GetOrigin(), np.float64),
+                      np.array(image.GetSpacing(), np.float64),
+                      np.array(image.GetDirection(), np.float64).reshape(3, 3), segments)
+
+
+def slicer_segments(image) -> tuple[dict[str, int], dict[str, int]]:
+    """Segment name -> label value and name -> layer of a Slicer ``.seg.nrrd`` (empty dicts
+    for a plain label map)."""
+    keys = set(image.GetMetaDataKeys())
+    names, layers = {}, {}
+    i = 0
+    while f"Segment{i}_Name" in keys:
+        name = image.GetMetaData(f"Segment{i}_Name").strip()
+        names[name] = int(image.GetMetaData(f"Segment{i}_LabelValue")) \
+            if f"Segment{i}_LabelValue" in keys else i + 1
+        layers[name] = int(image.GetMetaData(f"Segment{i}_Layer")) \
+            if f"Segment{i}_Layer" in keys else 0
+        i += 1
+    return names, layers
+
+
+def _merge_layers(array: np.ndarray, layers: dict[str, int], segments: dict[str, int],
+                  path: Path) -> np.ndarray:
+    """One label array (z, y, x) from a multi-layer array (z, y, x, layers) of a Slicer
+    segmentation whose segments do not overlap."""
+    n = array.shape[-1]
+    if not segments:
+        raise InputError(f"not a label map: {n} channels per voxel (an RGB or vector image?)",
+                         str(path))
+    occupied = (array != 0).sum(axis=-1)
+    if (occupied > 1).any():
+        raise InputError(f"segments overlap in {int((occupied > 1).sum())} voxels ({n} "
+                         "layers); in Slicer, make the segments exclusive (Segment Editor, "
+                         "masking: overwrite all) and save again", str(path))
+    merged = np.zeros(array.shape[:-1], np.int64)
+    for name, value in segments.items():
+        merged[array[..., layers[name]] == value] = value
+    return merged
+
+
+def _integer_labels(array: np.ndarray, path: Path) -> np.ndarray:
+    if np.issubdtype(array.dtype, np.integer):
+        return array.astype(np.int64)
+    if not np.all(np.isfinite(array)) or np.any(np.mod(array, 1) != 0):
+        raise InputError("not a label map: voxel values are not integers (an intensity "
+                         "image?)", str(path))
+    return array.astype(np.int64)
+
+
+def resolve_labels(spec: list, image: LabelImage, option: str, path: Path) -> list[int]:
+    """Label values of ``spec`` (integers or segment names), each present in the image."""
+    present = set(np.unique(image.labels).tolist())
+    values = []
+    for item in spec:
+        value = _label_value(item, image.segments, option, path)
+        if value not in present:
+            raise InputError(f"label {item} is absent from the label map (present: "
+                             f"{sorted(present)})", str(path))
+        values.append(value)
+    return values
+
+
+def _label_value(item, segments: dict[str, int], option: str, path: Path) -> int:
+    if isinstance(item, int) and not isinstance(item, bool):
+        return item
+    text = str(item).strip()
+    if text.lstrip("+-").isdigit():
+        return int(text)
+    lowered = {name.lower(): value for name, value in segments.items()}
+    if text.lower() in lowered:
+        return lowered[text.lower()]
+    known = ", ".join(f"{n}={v}" for n, v in segments.items()) or "none: a plain label map"
+    raise InputError(f"{option}: {text!r} is neither a label value nor a segment name "
+                     f"(segments: {known})", str(path))
+
+
+def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side: str,
+                       spacing_mm: float, smoothing_mm: float) -> LabelAnatomy:
+    """The breast of a label map: surface, label samples, lesion masks, crop and chest-wall
+    points (mm, RAS), and facts for ``info``."""
+    image = read_label_image(path)
+    if not breast:
+        raise InputError("a label map needs --breast-labels (label values or segment names of "
+                         "breast tissue)", str(path))
+    breast_v = resolve_labels(breast, image, "--breast-labels", path)
+    lesion_v = resolve_labels(lesion, image, "--lesion-labels", path)
+    chest_v = resolve_labels(chest, image, "--chest-labels", path)
+    mask = np.isin(image.labels, breast_v + lesion_v)
+    mask, cut, facts = select_breast(mask, np.isin(image.labels, lesion_v), side, image, path)
+    mask = ndimage.binary_fill_holes(mask)  # tissue of other labels enclosed by the breast
+    vertices, faces = smooth_surface(mask, image, spacing_mm, smoothing_mm)
+    facts.update(volume_facts(mask, vertices, faces, image, path))
+    ijk = np.argwhere(mask)[:: max(1, int(mask.sum()) // MAX_SAMPLES)]
+    lesions = _lesion_masks(image.labels, lesion_v, mask)
+    return LabelAnatomy(vertices, faces, image.to_ras(ijk),
+                        image.labels[tuple(ijk.T)].astype(np.int32), lesions,
+                        image.to_ras(crop_voxels(mask, cut)), chest_interface(
+                            mask, image, chest_v, path), image, facts)
+
+
+def select_breast(mask: np.ndarray, lesion_mask: np.ndarray, side: str, image: LabelImage,
+                  path: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The one breast of ``mask`` (xyz bool), the voxels of a midline cut made to free it, and
+    what was chosen."""
+    comps, n = ndimage.label(mask)
+    sizes = np.bincount(comps.ravel(), minlength=n + 1)[1:]
+    keep = [c + 1 for c in np.flatnonzero(sizes >= MIN_COMPONENT_SHARE * sizes.max())]
+    centres = [image.to_ras(np.argwhere(comps == c).mean(axis=0)[None])[0] for c in keep]
+    no_cut = np.zeros_like(mask)
+    if len(keep) == 1:
+        if side:
+            return _cut_at_midline(comps == keep[0], side, image)
+        return comps == keep[0], no_cut, {"breast": "the only breast"}
+    if side:
+        x = [c[0] for c in centres]
+        pick = keep[int(np.argmin(x) if side == "left" else np.argmax(x))]
+        return comps == pick, no_cut, {"breast": f"the {side} one of {len(keep)} breasts"}
+    holding = [c for c in keep if (lesion_mask & (comps == c)).any()]
+    if len(holding) == 1:
+        return comps == holding[0], no_cut, {"breast": f"the one of {len(keep)} breasts "
+                                                       "holding the lesions"}
+    where = "; ".join(f"{int(sizes[c - 1] * image.voxel_mm3 / 1000)} mL at RAS "
+                      f"{np.round(p, 1).tolist()}" for c, p in zip(keep, centres, strict=True))
+    raise InputError(f"the label map holds {len(keep)} separate breasts ({where}); give --side "
+                     "left or --side right", str(path))
+
+
+def _cut_at_midline(mask: np.ndarray, side: str, image: LabelImage
+                    ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One breast of a mask that joins both across the sternum: cut at the thinnest sagittal
+    slab between the two lobes (the index axis nearest RAS x), or the mask as it is when it
+    has one lobe."""
+    signs = image.ras_axis_signs()
+    axis = int(np.argmax(np.abs(signs)))
+    profile = mask.sum(axis=tuple(a for a in range(3) if a != axis)).astype(np.float64)
+    cut = _valley(profile)
+    if cut is None:
+        return mask, np.zeros_like(mask), {"breast": "the only breast"}
+    index = np.arange(mask.shape[axis]).reshape([-1 if a == axis else 1 for a in range(3)])
+    lower, upper = index < cut, index > cut
+    if signs[axis] < 0:  # a larger index is further to the patient's left (RAS -x)
+        lower, upper = upper, lower
+    keep = mask & (lower if side == "left" else upper)
+    keep = _largest_component(keep)
+    cut_face = keep & ndimage.binary_dilation(mask & ~keep)
+    return keep, cut_face, {"breast": f"the {side} breast, cut from the other at the midline"}
+
+
+def _valley(profile: np.ndarray) -> int | None:
+    """Index of a clear valley in a two-lobed profile (under half of both lobes), or None."""
+    nz = np.flatnonzero(profile)
+    if len(nz) < 6:
+        return None
+    lo, hi = nz[0], nz[-1]
+    inner = np.arange(lo + (hi - lo) // 4, hi - (hi - lo) // 4 + 1)
+    v = int(inner[np.argmin(profile[inner])])
+    if profile[v] < 0.5 * min(profile[lo:v].max(), profile[v + 1:hi + 1].max()):
+        return v
+    return None
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    comps, n = ndimage.label(mask)
+    if n <= 1:
+        return mask
+    return comps == 1 + int(np.argmax(np.bincount(comps.ravel())[1:]))
+
+
+def crop_voxels(mask: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """Indices (n, 3) of breast voxels where the image or a midline cut ends the breast."""
+    border = np.zeros_like(mask)
+    for axis in range(3):
+        for end in (0, -1):
+            index = [slice(None)] * 3
+            index[axis] = end
+            border[tuple(index)] = True
+    return np.argwhere((mask & border) | cut)
+
+
+def chest_interface(mask: np.ndarray, image: LabelImage, chest: list[int],
+                    path: Path) -> np.ndarray:
+    """RAS points (n, 3) of breast voxels touching a chest label (muscle): the fixed wall."""
+    if not chest:
+        return np.zeros((0, 3))
+    touching = mask & ndimage.binary_dilation(np.isin(image.labels, chest))
+    if not touching.any():
+        raise InputError(f"the chest labels {chest} do not touch the breast tissue; check "
+                         "--chest-labels", str(path))
+    return image.to_ras(np.argwhere(touching))
+
+
+def smooth_surface(mask: np.ndarray, image: LabelImage, spacing_mm: float,
+                   smoothing_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Marching-cubes surface (RAS vertices, faces) of ``mask`` resampled to isotropic voxels
+    of ``spacing_mm`` (0: the finest spacing of the image) and smoothed by a Gaussian of
+    ``smoothing_mm`` (standard deviation)."""
+    from skimage.measure import marching_cubes
+
+    lo = np.maximum(np.argwhere(mask).min(axis=0) - 2, 0)
+    hi = np.argwhere(mask).max(axis=0) + 3
+    box = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32)
+    iso = spacing_mm or float(image.spacing.min())
+    step = iso / image.spacing  # index units per new voxel
+    axes = [np.arange(-2.0, box.shape[a] + 1.0, step[a]) for a in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"))
+    fine = ndimage.map_coordinates(box, grid, order=1, mode="constant", cval=0.0)
+    if smoothing_mm > 0:
+        fine = ndimage.gaussian_filter(fine, smoothing_mm / iso, mode="constant")
+    verts, faces, _, _ = marching_cubes(fine, level=0.5)
+    ijk = lo + np.array([-2.0, -2.0, -2.0]) + verts * step
+    return image.to_ras(ijk), faces[:, ::-1].astype(np.int64)
+
+
+def volume_facts(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, image: LabelImage,
+                 path: Path) -> dict:
+    """The labelled and the surface volume (mL); InputError when they differ by more than
+    :data:`MAX_VOLUME_MISMATCH`."""
+    from .model import surface_volume
+
+    labelled = float(mask.sum()) * image.voxel_mm3 / 1000.0
+    surface = abs(surface_volume(vertices, faces)) / 1000.0
+    if abs(surface - labelled) > MAX_VOLUME_MISMATCH * labelled:
+        raise InputError(f"the breast surface encloses {surface:.1f} mL but its labels hold "
+                         f"{labelled:.1f} mL; lower [anatomy] labelmap_smoothing_mm", str(path))
+    return {"label_volume_ml": round(labelled, 3), "surface_volume_ml": round(surface, 3),
+            "voxel_mm": np.round(image.spacing, 4).tolist()}
+
+
+def _lesion_masks(labels: np.ndarray, lesion: list[int], breast: np.ndarray) -> list[np.ndarray]:
+    """One mask per connected component of the lesion labels inside the chosen breast."""
+    masks = []
+    for value in lesion:
+        comps, n = ndimage.label((labels == value) & breast)
+        masks += [comps == c for c in range(1, n + 1)]
+    return masks
