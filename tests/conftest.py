@@ -74,6 +74,7 @@ def base_case(tmp_path_factory) -> Path:
     make_phantom_case(case_dir, cell_size_mm=15.0)
     cfg = load_config(case_dir)
     cfg.dataset.n_train, cfg.dataset.n_test = DATASET_N_TRAIN, DATASET_N_TEST
+    cfg.probe.calibrate_force = False  # tests/dataset/test_calibrate.py calibrates
     save_config(case_dir, cfg)
     return case_dir
 

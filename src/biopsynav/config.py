@@ -213,6 +213,11 @@ class ProbeSection:
                               "5 kPa phantom up to ~46 mm probe displacement, of which [probe] "
                               "max_push_mm keeps up to 35 mm (docs/dataset.md).",
                          lo=0.0, hi=1e4)
+    calibrate_force: bool = opt(True, "Before generation, set the data set's force range "
+                                      "for the breast at hand: f_max_n is searched (from the "
+                                      "value above) until 90 % of 12 calibration pushes at "
+                                      "f_max_n reach max_push_mm, and recorded in the data "
+                                      "set (docs/dataset.md). false: f_max_n as given.")
     max_push_mm: float = opt(35.0, "Deepest training push (mm of probe displacement, the mean "
                                    "norm of the contact points' displacement): a draw that "
                                    "goes deeper is recorded and redrawn, like a failed solve, so "

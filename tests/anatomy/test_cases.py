@@ -129,10 +129,14 @@ def test_bad_inputs_exit_2_with_one_line_and_write_nothing(tmp_path, capsys, dom
     outside = _bad(tmp_path, "outside.csv", "id,x,y,z,radius_mm\n1,0,0,200,3\n")
     junk = _bad(tmp_path, "junk.stl", data=b"\x00garbage")
     random_stl = _bad(tmp_path, "random.stl", data=np.random.default_rng(0).bytes(3000))
+    cut_stl = _bad(tmp_path, "cut.stl", data=dome_stl.read_bytes()[:84 + 50 * 100 + 17])
+    random_obj = _bad(tmp_path, "random.obj", data=np.random.default_rng(0).bytes(3000))
     cases = [
         (["--surface", tmp_path / "missing.stl"], "missing.stl: file not found"),
-        (["--surface", junk], f"{junk}: file holds no triangles"),
-        (["--surface", random_stl], f"{random_stl}: not a readable STL surface mesh"),
+        (["--surface", junk], f"{junk}: not an STL file: 8 bytes"),
+        (["--surface", random_stl], f"{random_stl}: not an STL file: its header announces"),
+        (["--surface", cut_stl], f"{cut_stl}: binary STL truncated at triangle 101 of "),
+        (["--surface", random_obj], f"{random_obj}: not a readable OBJ surface mesh"),
         (["--surface", open_stl], "surface is not closed: 1 hole"),
         (["--surface", metres], "units look wrong"),
         (["--surface", dome_stl, "--lesions", outside],

@@ -159,7 +159,7 @@ class TetReference:
         on_chest = np.abs((locs - anatomy.chest_point) @ normal) <= chest_tol_mm
         _, nearest = cKDTree(anatomy.vertices).query(locs)
         skin = SimpleNamespace(vertices=locs, normals=anatomy.normals[nearest],
-                               fixed_vertices=on_chest)
+                               fixed_vertices=on_chest, pushable=~on_chest)
         return cls(nodes, elements, tets, grads, weights, float(mu[0]), float(lam[0]),
                    skin_nodes[on_chest], skin, skin_nodes)
 

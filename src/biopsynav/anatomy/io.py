@@ -76,10 +76,36 @@ def _reader_failure(exc: Exception) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
+def check_stl(path: Path) -> None:
+    """Refuse a file that is neither an ASCII STL nor a binary STL of consistent size, saying
+    which: too short, truncated at triangle N, or a triangle count that cannot be."""
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        head = fh.read(84)
+    if head[:5].lower() == b"solid" and b"\0" not in head[:80]:
+        return  # ASCII STL: trimesh reads it or says what is wrong
+    if size < 84:
+        raise InputError(f"not an STL file: {size} bytes, less than a binary STL's 84-byte "
+                         "header", str(path))
+    count = int(np.frombuffer(head[80:84], "<u4")[0])
+    expected = 84 + 50 * count
+    if count == 0:
+        raise InputError("binary STL holds no triangles", str(path))
+    if size < expected and expected <= 100 * size:
+        raise InputError(f"binary STL truncated at triangle {(size - 84) // 50 + 1} of {count} "
+                         f"({size} of {expected} bytes)", str(path))
+    if size < expected:
+        raise InputError(f"not an STL file: its header announces {count} triangles "
+                         f"({expected} bytes) but the file has {size} bytes", str(path))
+
+
 def read_surface_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles of a surface file via trimesh (vertices merged)."""
+    """Triangles of a surface file via trimesh (vertices merged); STL files are checked
+    first (:func:`check_stl`)."""
     import trimesh
 
+    if _suffix(path) == ".stl":
+        check_stl(path)
     try:
         mesh = trimesh.load(path, force="mesh", process=True)
     except Exception as exc:  # trimesh raises many kinds on broken files

@@ -91,7 +91,8 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
     preflight(case)  # input errors here, before a store or a worker exists
     store = prepare_store(case, n_train, n_test, overwrite)
-    spec = WorkerSpec(case, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
+    work = with_calibrated_force(case, store)
+    spec = WorkerSpec(work, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
     done = store.done_mask()
     todo = np.flatnonzero(~done)
     stats = Counter()
@@ -105,6 +106,26 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
     write_json_atomic(case.dir / SUMMARY_FILE, summary)
     plot_distributions(store, case.dir / PLOT_FILE)
     return summary
+
+
+def with_calibrated_force(case: Case, store: DatasetStore) -> Case:
+    """``case`` with ``[probe] f_max_n`` set by the force calibration
+    (:mod:`biopsynav.dataset.calibrate`), run once per data set and kept in its attributes; the
+    loaded case itself is left as it is. ``case`` unchanged when ``calibrate_force`` is off."""
+    import copy
+
+    from .calibrate import calibrate_force
+
+    if not case.cfg.probe.calibrate_force:
+        return case
+    found = store.group.attrs.get("force_calibration")
+    if found is None:
+        found = calibrate_force(case)
+        store.group.attrs["force_calibration"] = found
+    work = copy.copy(case)
+    work.cfg = copy.deepcopy(case.cfg)
+    work.cfg.probe.f_max_n = float(found["f_max_n"])
+    return work
 
 
 def preflight(case: Any) -> None:
@@ -431,6 +452,7 @@ def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "mean_max_disp_mm": stat("max_disp_mm", np.mean),
         "mean_disp_mm": stat("mean_disp_mm", np.mean),
         "max_probe_disp_mm": stat("probe_disp_mm", np.max),
+        "force_calibration": store.group.attrs.get("force_calibration"),
         "mean_probe_disp_mm": stat("probe_disp_mm", np.mean),
         "max_force_n": stat("force_n", np.max),
         "mean_newton_iters": stat("newton_iters", np.mean),

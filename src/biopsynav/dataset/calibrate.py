@@ -1,0 +1,140 @@
+"""A force range that fits the breast at hand: ``[probe] calibrate_force``.
+
+Before the first sample, :func:`calibrate_force` pushes :data:`CALIBRATION_PUSHES` probe
+patches of the protocol (centre, angle and tilt drawn as for samples, from their own seeds)
+with one total force and measures each probe displacement (mean contact-point displacement,
+mm). The force is searched (secant steps on log force against log displacement) until the
+:data:`QUANTILE` of those displacements is ``[probe] max_push_mm`` within
+:data:`TOLERANCE`; that force becomes the data set's ``f_max_n``. Forces are then drawn
+uniformly in ``[0, f_max_n]`` as before, so the probe displacements spread up to the clinical
+depth on a stiff breast and a soft one alike, and few draws go deeper than the limit. A
+push whose solve fails counts as deeper than any. The result is recorded in the data set,
+and a resumed job reuses it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import BiopsynavError, SolverError
+
+CALIBRATION_PUSHES = 12
+QUANTILE = 0.9
+TOLERANCE = 0.05
+MAX_ROUNDS = 8
+#: Calibration draws use sample indices from here on (never a sample's own).
+CALIBRATION_INDEX = 2 ** 40
+
+
+def calibrate_force(case: Any) -> dict:
+    """The calibrated ``f_max_n`` (N) of ``case`` and how it was found (plain dict)."""
+    from ..fem import FEModel, SolverSettings
+
+    start = time.perf_counter()
+    probe = case.cfg.probe
+    target = float(probe.max_push_mm)
+    model = FEModel.from_case(case)
+    settings = SolverSettings.from_config(case.cfg.solver)
+    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
+    pushes = calibration_pushes(case)
+    history: list[tuple[float, float]] = []
+    force = float(probe.f_max_n)
+    for _ in range(MAX_ROUNDS):
+        depths = calibration_depths(case, model, settings, pushes, force)
+        history.append((force, float(np.quantile(depths, QUANTILE, method="inverted_cdf"))))
+        if abs(history[-1][1] - target) <= TOLERANCE * target:
+            break
+        force = next_force(history, target)
+        if force is None:
+            break
+    chosen = best_force(history, target)
+    return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),
+            "quantile": QUANTILE, "target_mm": target, "pushes": len(pushes),
+            "rounds": _rounded(history), "seconds": round(time.perf_counter() - start, 1)}
+
+
+def calibration_pushes(case: Any) -> list:
+    """The calibration's probe pushes (their force magnitudes unused)."""
+    from ..probe import eligible_centers, push_for_sample
+
+    cfg = case.cfg
+    centers = eligible_centers(case.anatomy, cfg.probe.min_chest_distance_mm)
+    return [push_for_sample(case.anatomy, cfg.probe, cfg.dataset.seed, CALIBRATION_INDEX + i,
+                            0, centers) for i in range(CALIBRATION_PUSHES)]
+
+
+def calibration_depths(case: Any, model: Any, settings: Any, pushes: list, force_n: float
+                ) -> np.ndarray:
+    """Probe displacement (mm) of each push at ``force_n`` N total; inf where the solve
+    fails."""
+    from ..fem import Loads, solve
+    from ..grid.embedding import surface_embedding
+    from ..probe import nodal_forces
+
+    skin = surface_embedding(case.grid, case.anatomy).matrix
+    depths = np.full(len(pushes), np.inf)
+    for i, push in enumerate(pushes):
+        contact = skin[push.contact]
+        try:
+            u, _ = solve(model, Loads(forces=nodal_forces(contact, force_n * push.direction)),
+                         settings)
+        except SolverError:
+            continue
+        depths[i] = float(np.linalg.norm(contact @ u, axis=1).mean())
+    return depths
+
+
+def next_force(history: list[tuple[float, float]], target: float) -> float | None:
+    """The next force (N) to try, or None when the bracket is closed.
+
+    A secant step in log-log through the two nearest points (a proportional step from one),
+    kept inside the bracket of forces known to fall short of ``target`` and known to go
+    beyond it or fail (infinite depth): a step out of the bracket bisects it (geometric
+    mean). None when the bracket is narrower than :data:`TOLERANCE`.
+    """
+    short = [f for f, d in history if d < target]
+    beyond = [f for f, d in history if d >= target]
+    lo, hi = (max(short) if short else 0.0), (min(beyond) if beyond else math.inf)
+    if lo > 0 and hi < math.inf and hi / lo < 1.0 + TOLERANCE:
+        return None
+    force, depth = history[-1]
+    if math.isfinite(depth):
+        proposal = force * (target / max(depth, 1e-6)) ** (1.0 / _slope(history))
+        if lo < proposal < hi:
+            return proposal
+    if lo > 0 and hi < math.inf:
+        return math.sqrt(lo * hi)
+    return 0.5 * hi if lo == 0 else 2.0 * lo
+
+
+def _slope(history: list[tuple[float, float]]) -> float:
+    """d log depth / d log force through the two latest finite points (1 without them),
+    clipped to [0.3, 3]."""
+    finite = [(f, d) for f, d in history if math.isfinite(d) and d > 0]
+    if len(finite) < 2 or finite[-1][0] == finite[-2][0]:
+        return 1.0
+    (f0, d0), (f1, d1) = finite[-2], finite[-1]
+    return min(max(math.log(d1 / d0) / math.log(f1 / f0), 0.3), 3.0)
+
+
+def best_force(history: list[tuple[float, float]], target: float) -> tuple[float, float]:
+    """The (force, quantile depth) tried that comes nearest ``target`` without failing: the
+    one within :data:`TOLERANCE`, else the strongest whose depth fell short."""
+    within = [(f, d) for f, d in history if abs(d - target) <= TOLERANCE * target]
+    if within:
+        return within[-1]
+    short = [(f, d) for f, d in history if d < target]
+    if not short:
+        raise BiopsynavError(f"force calibration: every force tried pushed deeper than "
+                             f"{target:g} mm or failed (force, depth: {_rounded(history)}); "
+                             "set [probe] calibrate_force = false and choose f_max_n",
+                             "generate")
+    return max(short)
+
+
+def _rounded(history: list[tuple[float, float]]) -> list[list[float]]:
+    return [[round(f, 4), round(d, 2) if math.isfinite(d) else None] for f, d in history]

@@ -1,0 +1,59 @@
+"""The force range calibrated for the breast at hand ([probe] calibrate_force)."""
+
+from __future__ import annotations
+
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from biopsynav.config import load_config, save_config
+from biopsynav.dataset import calibrate
+from biopsynav.dataset.calibrate import best_force, next_force
+from biopsynav.dataset.generate import generate_case
+from biopsynav.dataset.store import open_store
+from biopsynav.errors import BiopsynavError
+
+
+def test_search_steps_stay_in_the_bracket():
+    # a response d = 10 f (linear): one proportional step lands on the target
+    assert next_force([(1.0, 10.0)], 35.0) == pytest.approx(3.5)
+    # a failed solve is beyond any depth: halve, then bisect between short and failed
+    assert next_force([(4.0, math.inf)], 35.0) == pytest.approx(2.0)
+    step = next_force([(4.0, math.inf), (2.0, 14.0)], 35.0)
+    assert step == pytest.approx(math.sqrt(8.0))  # 5 N proposed, outside (2, 4): bisected
+    # d = f^2: the secant slope 2 is found from two points
+    assert next_force([(1.0, 1.0), (2.0, 4.0)], 36.0) == pytest.approx(6.0)
+    assert next_force([(3.0, 30.0), (3.1, math.inf)], 35.0) is None  # bracket closed
+    assert best_force([(3.0, 30.0), (3.1, math.inf)], 35.0) == (3.0, 30.0)
+    assert best_force([(4.0, 36.0), (3.0, 30.0)], 35.0) == (4.0, 36.0)
+    with pytest.raises(BiopsynavError, match="every force tried"):
+        best_force([(4.0, math.inf), (2.0, 50.0)], 35.0)
+
+
+def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,
+                                                                    monkeypatch):
+    case_dir = tmp_path / "case"
+    shutil.copytree(base_case, case_dir)
+    cfg = load_config(case_dir)
+    cfg.probe.calibrate_force = True
+    cfg.probe.f_max_n = 40.0  # far too strong a first guess: the search must come down
+    cfg.dataset.n_train, cfg.dataset.n_test = 6, 2
+    save_config(case_dir, cfg)
+    summary = generate_case(case_dir, workers=1, progress=False)
+    found = summary["force_calibration"]
+    assert found["f_max_n"] < 40.0 and found["pushes"] == calibrate.CALIBRATION_PUSHES
+    assert abs(found["quantile_depth_mm"] - cfg.probe.max_push_mm) \
+        <= calibrate.TOLERANCE * cfg.probe.max_push_mm or found["rounds"][-1][1] is None
+    store = open_store(case_dir / "dataset.zarr")
+    assert store.group.attrs["force_calibration"] == found
+    assert store.read_meta()["force_n"].max() <= found["f_max_n"] + 1e-9
+    assert load_config(case_dir).probe.f_max_n == 40.0, "case.toml is left as the user wrote it"
+
+    def refuse(case):
+        raise AssertionError("calibrated again")
+
+    monkeypatch.setattr(calibrate, "calibrate_force", refuse)
+    again = generate_case(case_dir, workers=1, progress=False)
+    assert again["force_calibration"] == found and again["computed_this_run"] == 0
