@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import shutil
 
-import numpy as np
 import pytest
 
 from biopsynav.config import load_config, save_config
