@@ -32,13 +32,18 @@ def render_case(case: Case, out: str | Path | None = None) -> Path:
 
 
 def draw_anatomy_3d(ax, case: Case) -> None:
-    """Surface (grey), chest wall (red), lesions (coloured), active cell centres (blue)."""
+    """Surface (grey), chest wall (red; curved on a muscle interface), crop faces (purple,
+    never pushed), lesions (coloured), active cell centres (blue). Axes in RAS mm."""
     a, g = case.anatomy, case.grid
     v = a.vertices
     ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=a.faces, color="0.8", alpha=0.25,
                     linewidth=0)
     fv = v[a.fixed_vertices]
-    ax.scatter(fv[:, 0], fv[:, 1], fv[:, 2], s=1, c="red", label="chest wall")
+    ax.scatter(fv[:, 0], fv[:, 1], fv[:, 2], s=1, c="red",
+               label="chest wall (muscle)" if a.chest_curved else "chest wall")
+    cv = v[np.asarray(a.crop_vertices, bool)]
+    if len(cv):
+        ax.scatter(cv[:, 0], cv[:, 1], cv[:, 2], s=1, c="tab:purple", label="crop faces")
     centres = g.origin + (g.active_cell_ijk() + 0.5) * g.spacing
     ax.scatter(centres[:, 0], centres[:, 1], centres[:, 2], s=2, c="tab:blue", alpha=0.15,
                label="active cells")
@@ -46,9 +51,9 @@ def draw_anatomy_3d(ax, case: Case) -> None:
         p = les.points
         ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=4, c="tab:orange")
         ax.text(*les.center, str(les.id), color="k", fontsize=8)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
+    ax.set_xlabel("R (mm)")
+    ax.set_ylabel("A (mm)")
+    ax.set_zlabel("S (mm)")
     ax.set_box_aspect(np.ptp(v, axis=0))
     ax.legend(loc="upper left", fontsize=7)
 

@@ -227,3 +227,27 @@ def test_markups_and_csv_frames(segmentation, tmp_path, capsys):
     markups.write_text('{"markups": [{"controlPoints": [{"position": [1, 2]}]}]}')
     code, _, err = run(capsys, "init", tmp_path / "r", *common, "--lesions", markups)
     assert code == 2 and "control point 1" in err
+
+
+def test_labelled_volume_mesh_without_a_tissue_map_exits_2_at_init(tmp_path, capsys):
+    """Tissue labels of a volume mesh with no mapping (UC Davis without --tissue-labels): one
+    line at init naming them, with the option that maps them; nothing written."""
+    import meshio
+
+    from .test_readers import _box_tets
+
+    pts, tets = _box_tets()
+    labels = np.where(pts[tets].mean(axis=1)[:, 0] < 20, -5, 2)
+    path = tmp_path / "box.vtu"
+    meshio.write(path, meshio.Mesh(pts, [("tetra", tets)], cell_data={"materials": [labels]}))
+    code, _, err = run(capsys, "init", tmp_path / "c", "--surface", path, "--chest-wall",
+                       "z-min")
+    assert code == 2 and err.count("\n") == 1
+    assert "tissue labels -5, 2 with no tissue" in err and "--tissue-labels -5=fat" in err
+    assert not (tmp_path / "c").exists()
+    code, _, err = run(capsys, "init", tmp_path / "c", "--surface", path, "--chest-wall",
+                       "z-min", "--tissue-labels", "-5=gland,2=fat")
+    assert code == 0, err
+    rows = {t["label"]: t["tissue"] for t in json.loads(run(capsys, "info", tmp_path / "c",
+                                                               "--json")[1])["tissues"]}
+    assert rows == {"-5": "gland", "2": "fat"}

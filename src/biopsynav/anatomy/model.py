@@ -132,9 +132,9 @@ class Anatomy:
         """Read an anatomy written by :meth:`save`."""
         a = load_npz(path, ANATOMY_KEYS, REBUILD)
         splits = np.cumsum(a["lesion_counts"])[:-1]
+        points = np.split(a["lesion_points"], splits) if len(a["lesion_ids"]) else []
         lesions = [Lesion(int(i), c, float(r), p) for i, c, r, p in zip(
-            a["lesion_ids"], a["lesion_centers"], a["lesion_radii"],
-            np.split(a["lesion_points"], splits), strict=True)]
+            a["lesion_ids"], a["lesion_centers"], a["lesion_radii"], points, strict=True)]
         names = a.get("segment_names", np.zeros(0, str)).tolist()
         return cls(a["vertices"], a["faces"], a["normals"], a["fixed_vertices"],
                    a["chest_point"], a["chest_normal"], lesions, a["label_points"],
