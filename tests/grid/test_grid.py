@@ -94,3 +94,23 @@ def test_index_convention_round_trips():
 def test_trilinear_weights_corners():
     w = trilinear_weights(index.HEX_CORNERS.astype(float))
     np.testing.assert_allclose(w, np.eye(8))
+
+
+def test_unlabelled_grids_keep_their_fingerprint_from_before_label_shares(phantom_case):
+    """Grids held one label per cell (-1: none) before label shares; an unlabelled grid (the
+    phantom) must keep its fingerprint so that models trained on it still load."""
+    import hashlib
+    from dataclasses import fields
+
+    g = phantom_case.grid
+    assert len(g.label_values) == 0
+    h = hashlib.sha256()
+    for f in fields(g):
+        if f.name == "label_share":
+            continue
+        name, value = f.name, np.ascontiguousarray(getattr(g, f.name))
+        if name == "label_values":
+            name, value = "label", np.full(g.cell_shape, -1, np.int32)
+        h.update(name.encode() + str(value.dtype).encode() + str(value.shape).encode()
+                 + value.tobytes())
+    assert g.fingerprint() == h.hexdigest()

@@ -10,6 +10,8 @@ import numpy as np
 
 from ..fileio import load_npz, save_npz_atomic
 
+#: Arrays added on 2026-11-24 (label maps); left out of the fingerprint while at their defaults.
+LATER_KEYS = ("crop_vertices", "chest_curved", "segment_names", "segment_values")
 REBUILD = "rebuild the case with `biopsynav init CASE --overwrite` (same inputs)"
 ANATOMY_KEYS = ("vertices", "faces", "normals", "fixed_vertices", "chest_point", "chest_normal",
                 "lesion_ids", "lesion_centers", "lesion_radii", "lesion_points",
@@ -99,10 +101,16 @@ class Anatomy:
     def fingerprint(self) -> str:
         """SHA-256 of the geometry, chest wall, lesions and labels."""
         h = hashlib.sha256()
-        for arr in self._arrays().values():
+        for key, arr in self._arrays().items():
+            if key in LATER_KEYS and not self._later_keys_used():
+                continue  # unchanged fingerprints for anatomies that do not use them
+
             a = np.ascontiguousarray(arr)
             h.update(str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
         return h.hexdigest()
+
+    def _later_keys_used(self) -> bool:
+        return bool(np.any(self.crop_vertices) or self.chest_curved or self.segments)
 
     def _arrays(self) -> dict[str, np.ndarray]:
         counts = np.array([len(les.points) for les in self.lesions], dtype=np.int64)

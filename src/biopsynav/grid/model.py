@@ -77,8 +77,12 @@ class Grid:
         """SHA-256 of every array and the geometry: changes whenever the grid changes."""
         h = hashlib.sha256()
         for f in fields(self):
-            value = np.ascontiguousarray(getattr(self, f.name))
-            h.update(f.name.encode())
+            name, value = f.name, np.ascontiguousarray(getattr(self, f.name))
+            if name.startswith("label_") and len(self.label_values) == 0:
+                if name == "label_share":
+                    continue
+                name, value = "label", np.full(self.cell_shape, -1, np.int32)  # as before shares
+            h.update(name.encode())
             h.update(str(value.dtype).encode() + str(value.shape).encode())
             h.update(value.tobytes())
         return h.hexdigest()
