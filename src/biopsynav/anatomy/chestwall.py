@@ -69,8 +69,9 @@ def _largest_flat_face(vertices: np.ndarray, faces: np.ndarray,
         if area[flat].sum() > best_area:
             best_area, best = area[flat].sum(), flat
     if best is None or best_area < MIN_FLAT_SHARE * area.sum():
-        raise InputError("no flat posterior face found for the chest wall; give "
-                         "--chest-wall plane:px,py,pz,nx,ny,nz or z-min")
+        raise InputError("no flat posterior face found for the chest wall; give the muscle "
+                         "label of a label map (--chest-labels) or --chest-wall "
+                         "plane:px,py,pz,nx,ny,nz or z-min")
     n = (normal[best] * area[best, None]).sum(axis=0)
     n /= np.linalg.norm(n)
     point = (centroid[best] * area[best, None]).sum(axis=0) / area[best].sum()
