@@ -50,6 +50,15 @@ def test_defaults_round_trip(tmp_path):
     ({"probe": {"f_max_n": float("inf")}}, "must be a finite number"),
     ({"grid": {"cell_size_mm": float("nan")}}, "must be a finite number"),
     ({"igtl": {"listen": "::1:18945"}}, "needs brackets"),
+    ({"anatomy": {"breast_labels": [1, 2.5]}}, "[anatomy] breast_labels holds 2.5"),
+    ({"anatomy": {"chest_labels": [True]}}, "[anatomy] chest_labels holds True"),
+    ({"anatomy": {"lesion_labels": [""]}}, "[anatomy] lesion_labels holds ''"),
+    ({"anatomy": {"side": "middle"}}, "must be one of"),
+    ({"anatomy": {"input_frame": "ijk"}}, "must be one of"),
+    ({"anatomy": {"labelmap_smoothing_mm": -1.0}}, "below its minimum"),
+    ({"anatomy": {"labelmap_spacing_mm": 50.0}}, "above its maximum"),
+    ({"anatomy": {"lesion_radius_mm": 0.0}}, "below its minimum"),
+    ({"probe": {"calibrate_force": "yes"}}, "must be true or false"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:

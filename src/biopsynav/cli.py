@@ -20,19 +20,22 @@ LABEL_OPTIONS = ("--breast-labels", "--lesion-labels", "--chest-labels", "--tiss
 
 def _label_list(text: str) -> list[int | str]:
     """Comma-separated label values (any integer, negative included) or segment names."""
+    from .config import label_item
+
     items = [v.strip() for v in text.split(",") if v.strip()]
     if not items:
         raise argparse.ArgumentTypeError(f"expected label values or segment names, got {text!r}")
-    return [int(v) if v.lstrip("+-").isdigit() else v for v in items]
+    return [label_item(v) for v in items]
 
 
 def _tissue_map(text: str) -> dict[str, str]:
     """``LABEL=TISSUE,...`` (a label value, negative included, or a segment name)."""
+    from .config import label_item
+
     pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
     if not pairs or any(len(p) != 2 or not p[0].strip() or not p[1].strip() for p in pairs):
         raise argparse.ArgumentTypeError(f"expected LABEL=TISSUE,..., got {text!r}")
-    return {str(int(k)) if k.strip().lstrip("+-").isdigit() else k.strip(): v.strip()
-            for k, v in pairs}
+    return {str(label_item(k)): v.strip() for k, v in pairs}
 
 
 def join_label_values(argv: list[str]) -> list[str]:

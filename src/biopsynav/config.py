@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -512,6 +513,15 @@ def _check_value(section: str, f: dataclasses.Field, value: Any, where: str) -> 
         if meta.get("hi") is not None and value > meta["hi"]:
             raise InputError(f"{key} = {value} is above its maximum {meta['hi']}", where)
     return value
+
+
+def label_item(item: int | str) -> int | str:
+    """A label value (an integer, sign included) or a segment name (stripped) from ``item``,
+    as the command line, case.toml and a segmentation spell it."""
+    if isinstance(item, int) and not isinstance(item, bool):
+        return item
+    text = str(item).strip()
+    return int(text) if re.fullmatch(r"[+-]?\d+", text) else text
 
 
 def is_finite_number(value: Any) -> bool:

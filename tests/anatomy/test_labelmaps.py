@@ -174,6 +174,9 @@ def test_unmapped_and_unknown_labels_are_refused_at_init(tmp_path, capsys):
     code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
                        "fat")
     assert code == 2 and "'fat' is neither a label value nor a segment name" in err
+    code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
+                       "+-3")
+    assert code == 2 and "'+-3' is neither a label value nor a segment name" in err
     assert not (tmp_path / "c").exists()
 
 

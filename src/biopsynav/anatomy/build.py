@@ -29,15 +29,15 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
         lesion_source = str(case_dir / a.lesions)
         lesions = read_lesions(case_dir / a.lesions, a.lesion_points, a.input_frame,
                                a.lesion_radius_mm)
+    curved = len(raw.chest_points) > 0
     point, normal, fixed = chest_wall(vertices, faces, raw.chest_points, a, where)
     check_lesions_inside(lesions, vertices, faces, lesion_source)
     check_lesions_free(lesions, vertices[fixed], point, normal, a.chest_wall_tolerance_mm,
-                       len(raw.chest_points) > 0, lesion_source)
+                       curved, lesion_source)
     crop = near_points(vertices, raw.crop_points, _voxel_reach(raw)) & ~fixed
     anatomy = Anatomy(vertices, faces, vertex_normals(vertices, faces), fixed, point, normal,
                       lesions, np.asarray(raw.label_points, np.float64),
-                      np.asarray(raw.label_values, np.int32), crop, len(raw.chest_points) > 0,
-                      dict(raw.segments))
+                      np.asarray(raw.label_values, np.int32), crop, curved, dict(raw.segments))
     facts = {"pinch_vertices_split": n_pinch, "crop_vertices": int(crop.sum()),
              "chest_wall_kind": _chest_kind(a, raw), **raw.facts}
     return anatomy, facts

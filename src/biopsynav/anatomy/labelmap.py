@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from ..config import label_item
 from ..errors import InputError
 from ..grid.index import image_array_to_xyz
 
@@ -151,15 +152,20 @@ def resolve_labels(spec: list, image: LabelImage, option: str, path: Path) -> li
     return values
 
 
-def _label_value(item, segments: dict[str, int], option: str, path: Path) -> int:
-    if isinstance(item, int) and not isinstance(item, bool):
+def label_value(item: int | str, segments: dict[str, int]) -> int | None:
+    """The label value of ``item``: an integer as it is, a segment name (any case) looked up
+    in ``segments``; None for a name that is not a segment."""
+    item = label_item(item)
+    if isinstance(item, int):
         return item
+    return {name.lower(): value for name, value in segments.items()}.get(item.lower())
+
+
+def _label_value(item, segments: dict[str, int], option: str, path: Path) -> int:
+    value = label_value(item, segments)
+    if value is not None:
+        return value
     text = str(item).strip()
-    if text.lstrip("+-").isdigit():
-        return int(text)
-    lowered = {name.lower(): value for name, value in segments.items()}
-    if text.lower() in lowered:
-        return lowered[text.lower()]
     known = ", ".join(f"{n}={v}" for n, v in segments.items()) or "none: a plain label map"
     raise InputError(f"{option}: {text!r} is neither a label value nor a segment name "
                      f"(segments: {known})", str(path))
@@ -287,8 +293,9 @@ def smooth_surface(mask: np.ndarray, image: LabelImage, spacing_mm: float,
     ``smoothing_mm`` (standard deviation)."""
     from skimage.measure import marching_cubes
 
-    lo = np.maximum(np.argwhere(mask).min(axis=0) - 2, 0)
-    hi = np.argwhere(mask).max(axis=0) + 3
+    occupied = np.argwhere(mask)
+    lo = np.maximum(occupied.min(axis=0) - 2, 0)
+    hi = occupied.max(axis=0) + 3
     box = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32)
     iso = spacing_mm or float(image.spacing.min())
     step = iso / image.spacing  # index units per new voxel

@@ -101,10 +101,10 @@ class Anatomy:
     def fingerprint(self) -> str:
         """SHA-256 of the geometry, chest wall, lesions and labels."""
         h = hashlib.sha256()
+        skip = () if self._later_keys_used() else LATER_KEYS  # fingerprints as before them
         for key, arr in self._arrays().items():
-            if key in LATER_KEYS and not self._later_keys_used():
-                continue  # unchanged fingerprints for anatomies that do not use them
-
+            if key in skip:
+                continue
             a = np.ascontiguousarray(arr)
             h.update(str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
         return h.hexdigest()

@@ -33,6 +33,7 @@ CALIBRATION_INDEX = 2 ** 40
 def calibrate_force(case: Any) -> dict:
     """The calibrated ``f_max_n`` (N) of ``case`` and how it was found (plain dict)."""
     from ..fem import FEModel, SolverSettings
+    from ..grid.embedding import surface_embedding
 
     start = time.perf_counter()
     probe = case.cfg.probe
@@ -41,10 +42,12 @@ def calibrate_force(case: Any) -> dict:
     settings = SolverSettings.from_config(case.cfg.solver)
     settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
     pushes = calibration_pushes(case)
+    skin = surface_embedding(case.grid, case.anatomy).matrix
+    contacts = [(skin[push.contact], push.direction) for push in pushes]
     history: list[tuple[float, float]] = []
     force = float(probe.f_max_n)
     for _ in range(MAX_ROUNDS):
-        depths = calibration_depths(case, model, settings, pushes, force)
+        depths = calibration_depths(model, settings, contacts, force)
         history.append((force, float(np.quantile(depths, QUANTILE, method="inverted_cdf"))))
         if abs(history[-1][1] - target) <= TOLERANCE * target:
             break
@@ -67,20 +70,18 @@ def calibration_pushes(case: Any) -> list:
                             0, centers) for i in range(CALIBRATION_PUSHES)]
 
 
-def calibration_depths(case: Any, model: Any, settings: Any, pushes: list, force_n: float
-                ) -> np.ndarray:
+def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float
+                       ) -> np.ndarray:
     """Probe displacement (mm) of each push at ``force_n`` N total; inf where the solve
-    fails."""
+    fails. ``contacts``: per push, the contact points' embedding (CSR (n, n_nodes)) and the
+    unit force direction (3,)."""
     from ..fem import Loads, solve
-    from ..grid.embedding import surface_embedding
     from ..probe import nodal_forces
 
-    skin = surface_embedding(case.grid, case.anatomy).matrix
-    depths = np.full(len(pushes), np.inf)
-    for i, push in enumerate(pushes):
-        contact = skin[push.contact]
+    depths = np.full(len(contacts), np.inf)
+    for i, (contact, direction) in enumerate(contacts):
         try:
-            u, _ = solve(model, Loads(forces=nodal_forces(contact, force_n * push.direction)),
+            u, _ = solve(model, Loads(forces=nodal_forces(contact, force_n * direction)),
                          settings)
         except SolverError:
             continue

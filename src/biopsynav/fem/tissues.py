@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..anatomy.labelmap import label_value
 from ..errors import InputError
 from ..layout import CASE_FILE
 from ..materials import MATERIAL_LAWS
@@ -31,7 +32,7 @@ def label_tissues(values: np.ndarray, cfg: CaseConfig, anatomy: Anatomy) -> list
     """Tissue name of each label value of ``values`` (k,); InputError naming every label that
     has none."""
     names = {v: n for n, v in anatomy.segments.items()}
-    lesion_values = {_as_value(item, anatomy.segments) for item in cfg.anatomy.lesion_labels}
+    lesion_values = {label_value(item, anatomy.segments) for item in cfg.anatomy.lesion_labels}
     tissues, unmapped = [], []
     for value in (int(v) for v in values):
         tissue = _tissue_of(value, names.get(value, ""), value in lesion_values, cfg)
@@ -57,15 +58,6 @@ def _tissue_of(value: int, segment: str, is_lesion: bool, cfg: CaseConfig) -> st
     if by_name in tissues:
         return by_name
     return "lesion" if is_lesion and "lesion" in tissues else None
-
-
-def _as_value(item, segments: dict[str, int]) -> int | None:
-    if isinstance(item, int):
-        return item
-    text = str(item).strip()
-    if text.lstrip("+-").isdigit():
-        return int(text)
-    return {n.lower(): v for n, v in segments.items()}.get(text.lower())
 
 
 def cell_lame(share: np.ndarray, tissues: list[str], cfg: CaseConfig
