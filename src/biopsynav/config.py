@@ -235,6 +235,19 @@ class ProbeSection:
     contact_tolerance_mm: float = opt(2.0, "Tracker rest pose: skin points within this distance "
                                            "of the probe face plane (and under the footprint) "
                                            "are in contact.", lo=0.0, hi=50.0)
+    rigid_share: float = opt(0.0, "Share of the training samples pushed by the rigid probe "
+                                  "face instead of a force patch: the skin under the face at "
+                                  "rest (within contact_tolerance_mm, as the tracker takes it) "
+                                  "moves with the face by a depth drawn uniformly in [0, "
+                                  "max_push_mm] along a direction tilted as the force is, held "
+                                  "by [tracker] fem_contact constraints (docs/dataset.md). 0: "
+                                  "the paper's force patches only; 1: rigid pushes only.",
+                             lo=0.0, hi=1.0)
+    rigid_max_tilt_deg: float = opt(15.0, "Largest angle between a rigid push and the inward "
+                                          "normal. The skin sticks to the face, so a steeper "
+                                          "push drags it across the face by the push's "
+                                          "tangential part, which the grid does not follow "
+                                          "(docs/dataset.md).", lo=0.0, hi=89.0)
 
     @property
     def footprint(self) -> Footprint:
@@ -535,6 +548,9 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
         raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
                          f"{fp!r}", where)
+    if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
+        raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
+                         "set [probe] max_push_mm to the deepest push (mm), not 0", where)
     law = MATERIAL_LAWS[cfg.material.model]
     for name, tissue in cfg.material.tissues.items():
         problem = law.tissue_problem(tissue)

@@ -19,6 +19,12 @@ Paper section 2.3 (Mendizabal, Tagliabue et al. 2019), every number from ``[prob
    of the skin mesh; nodal forces are ``W_P^T (F / |P|)`` with ``W_P`` the trilinear
    embedding of ``P``.
 
+With ``[probe] rigid_share`` > 0 that share of the samples is a rigid-probe push instead
+(docs/dataset.md): contact points within ``contact_tolerance_mm`` of the face plane (the
+tracker's rest contact), avoiding skin in cells anchored to the chest wall; the direction
+tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
+``[0, max_push_mm]`` along it (prescribed, no force).
+
 Random numbers: one ``numpy.random.Generator`` per draw, seeded by
 ``SeedSequence([seed, sample_index, attempt])``, so a sample never depends on which worker
 made it, in which order, or how many draws other samples needed.
@@ -54,8 +60,10 @@ class ProbePush:
         contact: (n,) indices of the skin vertices in contact (the set ``P``).
         direction: (3,) unit force direction (into the tissue).
         tilt_deg: signed tilt of ``direction`` away from ``-normal``, degrees.
-        force_n: total probe force, N.
+        force_n: total probe force, N (0 for a rigid push).
         attempt: which draw of this sample index it is (0 first; a failed solve moves on).
+        push_mm: a rigid push (``[probe] rigid_share``): the contact points move by
+            ``push_mm * direction``, mm; 0 for a force patch.
     """
 
     vertex: int
@@ -68,6 +76,17 @@ class ProbePush:
     tilt_deg: float
     force_n: float
     attempt: int = 0
+    push_mm: float = 0.0
+
+    @property
+    def rigid(self) -> bool:
+        """Whether the face is pushed rigidly (prescribed displacement), not by a force."""
+        return self.push_mm > 0.0
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """(3,) prescribed displacement of every contact point of a rigid push, mm."""
+        return self.push_mm * self.direction
 
     @property
     def force(self) -> np.ndarray:
@@ -163,40 +182,79 @@ def sample_rng(seed: int, index: int, attempt: int) -> np.random.Generator:
 
 
 def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
-              centers: np.ndarray | None = None, attempt: int = 0) -> ProbePush:
-    """One random push following the protocol (module docstring).
+              centers: np.ndarray | None = None, attempt: int = 0,
+              rigid: bool = False, pinned: np.ndarray | None = None) -> ProbePush:
+    """One random push following the protocol (module docstring); ``rigid``: a rigid-probe
+    push instead (contact within ``contact_tolerance_mm`` of the face, tilt within
+    ``rigid_max_tilt_deg``, a depth uniform in ``[0, max_push_mm]`` instead of the force; a
+    patch holding a ``pinned`` skin vertex (:func:`pinned_skin`) is redrawn).
 
     ``centers``: the eligible centre vertices (:func:`eligible_centers`, precomputed by
     callers that draw many). The draw order (centre, in-plane angle, then tilt axis, tilt,
-    force) is part of the protocol: changing it changes every sample.
+    force or depth) is part of the protocol: changing it changes every sample.
     """
     if centers is None:
         centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
+    tol = probe.contact_tolerance_mm if rigid else probe.depth_tolerance_mm
     for _ in range(MAX_PATCH_DRAWS):
         vertex = int(centers[rng.integers(len(centers))])
         angle = rng.uniform(0.0, np.pi)  # a footprint is symmetric under a half turn
         normal = anatomy.normals[vertex] / np.linalg.norm(anatomy.normals[vertex])
         long_axis, short_axis = probe_frame(normal, angle)
-        contact = probe_patch(anatomy, vertex, long_axis, probe.footprint,
-                              probe.depth_tolerance_mm)
+        contact = probe_patch(anatomy, vertex, long_axis, probe.footprint, tol)
+        if rigid and pinned is not None and pinned[contact].any():
+            continue
         if len(contact) >= probe.min_contact_points:
             break
     else:
         raise InputError(f"no probe patch with {probe.min_contact_points} or more skin vertices "
                          f"in {MAX_PATCH_DRAWS} draws; the skin mesh is too coarse for the "
-                         "footprint", "[probe] min_contact_points")
+                         "footprint" + (" (a rigid push also avoids skin in grid cells anchored "
+                                        "to the chest wall)" if rigid else ""),
+                         "[probe] min_contact_points")
     axis_angle = rng.uniform(0.0, 2.0 * np.pi)
-    tilt = np.radians(rng.uniform(-probe.max_tilt_deg, probe.max_tilt_deg))
-    force_n = float(rng.uniform(0.0, probe.f_max_n))
+    max_tilt = probe.rigid_max_tilt_deg if rigid else probe.max_tilt_deg
+    tilt = np.radians(rng.uniform(-max_tilt, max_tilt))
+    amount = float(rng.uniform(0.0, probe.max_push_mm if rigid else probe.f_max_n))
     return ProbePush(vertex, anatomy.vertices[vertex].copy(), normal, long_axis, short_axis,
                      contact, tilted_direction(normal, tilt, axis_angle),
-                     float(np.degrees(tilt)), force_n, attempt)
+                     float(np.degrees(tilt)), 0.0 if rigid else amount, attempt,
+                     amount if rigid else 0.0)
+
+
+#: The stream that decides a sample's kind (``SeedSequence([seed, index, 0, RIGID_STREAM])``):
+#: apart from the draws themselves, so the force patches of ``rigid_share = 0`` are unchanged.
+RIGID_STREAM = 7
+
+
+def is_rigid_sample(probe: ProbeSection, seed: int, index: int) -> bool:
+    """Whether sample ``index`` is a rigid-probe push (``[probe] rigid_share``): decided once
+    per sample, whatever its attempt, so failed rigid draws are redrawn as rigid ones."""
+    if probe.rigid_share <= 0.0:
+        return False
+    if probe.rigid_share >= 1.0:
+        return True
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0, RIGID_STREAM]))
+    return bool(rng.uniform() < probe.rigid_share)
 
 
 def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int,
-                    attempt: int, centers: np.ndarray | None = None) -> ProbePush:
-    """The push of sample ``index``, draw ``attempt`` (deterministic)."""
-    return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt)
+                    attempt: int, centers: np.ndarray | None = None,
+                    rigid: bool | None = None, pinned: np.ndarray | None = None) -> ProbePush:
+    """The push of sample ``index``, draw ``attempt`` (deterministic); ``rigid``: its kind
+    (None: :func:`is_rigid_sample`); ``pinned``: see :func:`draw_push`."""
+    if rigid is None:
+        rigid = is_rigid_sample(probe, seed, index)
+    return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt, rigid,
+                     pinned)
+
+
+def pinned_skin(fixed_nodes: np.ndarray, skin_nodes: np.ndarray) -> np.ndarray:
+    """(n_vertices,) bool: skin vertices in a grid cell with a fixed node. A rigid face holding
+    one would drag a cell anchored to the chest wall, which inverts it; rigid training pushes
+    avoid them. ``fixed_nodes`` the grid's fixed-node mask, ``skin_nodes`` (n_vertices, 8) the
+    flat nodes of each skin vertex's cell (:class:`~biopsynav.grid.embedding.Embedding`)."""
+    return np.asarray(fixed_nodes, dtype=bool).ravel()[skin_nodes].any(axis=1)
 
 
 def nodal_forces(contact_matrix: sp.csr_matrix, force: np.ndarray) -> np.ndarray:
@@ -312,6 +370,6 @@ def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: st
 
 __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",
            "MIN_NORMAL_COSINE", "ProbePush", "contact_input", "contact_input_operator",
-           "draw_push", "eligible_centers",
+           "draw_push", "eligible_centers", "is_rigid_sample", "pinned_skin",
            "nodal_forces", "probe_frame", "probe_patch", "push_for_sample", "sample_rng",
            "skin_under_face", "tangent_basis", "tilted_direction"]

@@ -27,6 +27,8 @@ from biopsynav.probe import skin_under_face
 
 #: local vertex pairs of the six edge nodes of a 10-node tetrahedron (nodes 4-9)
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+NEWTON_ITERATIONS = 40
+LINE_SEARCH_HALVINGS = 8
 
 
 def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
@@ -235,7 +237,7 @@ class TetReference:
         try:
             return self._newton(u, contact, values, tol)
         except (FloatingPointError, RuntimeError):
-            if depth >= 4:
+            if depth >= 5:
                 raise
             half = 0.5 * (u[contact] + values)
             u = self._step(u, contact, half, tol, depth + 1)
@@ -245,7 +247,9 @@ class TetReference:
                 tol: float) -> np.ndarray:
         """Equilibrium with ``values`` (n_c, 3) mm at the ``contact`` nodes, from the
         equilibrium ``u``: the first iteration carries the prescribed increment through the
-        tangent (no element is distorted by moving the contact nodes alone)."""
+        tangent (no element is distorted by moving the contact nodes alone); the later ones
+        are damped by a backtracking line search on the residual norm that also refuses
+        inverted elements."""
         import pypardiso
 
         constrained = np.zeros(self.n_dofs, dtype=bool)
@@ -256,7 +260,7 @@ class TetReference:
         lift[contact] = values - u[contact]
         u = u.copy()
         r0 = None
-        for it in range(30):
+        for it in range(NEWTON_ITERATIONS):
             forces, stiff = self.forces_and_tangent(u)
             if it == 0:
                 rhs = -(forces + stiff @ lift.ravel())[free]
@@ -269,9 +273,27 @@ class TetReference:
             du = np.zeros(self.n_dofs)
             du[free] = pypardiso.spsolve(stiff[free][:, free].tocsr(), rhs)
             if it == 0:
-                du += lift.ravel()
-            u = u + du.reshape(u.shape)
+                u = u + (du + lift.ravel()).reshape(u.shape)
+            else:
+                u = self._line_search(u, du.reshape(u.shape), free, r_norm)
         raise RuntimeError("P2 reference: Newton did not converge")
+
+    def _line_search(self, u: np.ndarray, du: np.ndarray, free: np.ndarray,
+                     r_norm: float) -> np.ndarray:
+        """``u + a du`` for the largest ``a`` in 1, 1/2, 1/4, ... whose elements are not
+        inverted and whose free residual norm is at most ``r_norm``; RuntimeError when none
+        of ``LINE_SEARCH_HALVINGS`` halvings is."""
+        step = 1.0
+        for _ in range(LINE_SEARCH_HALVINGS):
+            trial = u + step * du
+            try:
+                forces = self.forces_and_tangent(trial, tangent=False)
+            except FloatingPointError:
+                forces = None
+            if forces is not None and np.linalg.norm(forces[free]) <= r_norm:
+                return trial
+            step *= 0.5
+        raise RuntimeError("P2 reference: the line search found no admissible decrease")
 
     def _interpolation(self, points: np.ndarray) -> sp.csr_matrix:
         """(k, n) P2 interpolation at ``points`` (k, 3) mm; ValueError outside the mesh."""

@@ -67,7 +67,7 @@ def calibration_pushes(case: Any) -> list:
     cfg = case.cfg
     centers = eligible_centers(case.anatomy, cfg.probe.min_chest_distance_mm)
     return [push_for_sample(case.anatomy, cfg.probe, cfg.dataset.seed, CALIBRATION_INDEX + i,
-                            0, centers) for i in range(CALIBRATION_PUSHES)]
+                            0, centers, rigid=False) for i in range(CALIBRATION_PUSHES)]
 
 
 def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float

@@ -35,7 +35,7 @@ def sample_contact_matrices(case: Case, dataset: str | Path,
 
     from ..config import config_from_dict
     from ..grid.embedding import surface_embedding
-    from ..probe import eligible_centers, push_for_sample
+    from ..probe import eligible_centers, pinned_skin, push_for_sample
     from .store import DATASET_NAME
 
     path = Path(dataset)
@@ -52,11 +52,13 @@ def sample_contact_matrices(case: Case, dataset: str | Path,
     except (KeyError, ValueError, OSError, TypeError) as exc:
         raise InputError(f"the data set has no readable probe protocol ({type(exc).__name__}: "
                          f"{exc})", str(path)) from None
-    skin = surface_embedding(case.grid, case.anatomy).matrix
+    embedding = surface_embedding(case.grid, case.anatomy)
+    skin, pinned = embedding.matrix, pinned_skin(case.grid.fixed_nodes, embedding.nodes)
     centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
     out = []
     for i in np.asarray(indices, dtype=np.int64).ravel():  # one redraw per requested sample
-        push = push_for_sample(case.anatomy, probe, seed, int(i), int(attempt[i]), centers)
+        push = push_for_sample(case.anatomy, probe, seed, int(i), int(attempt[i]), centers,
+                               pinned=pinned)
         if push.vertex != vertex[i] or push.n_contact != n_contact[i]:
             raise InputError(f"sample {i}: the redrawn push (vertex {push.vertex}, "
                              f"{push.n_contact} contact points) is not the stored one (vertex "

@@ -116,7 +116,7 @@ def with_calibrated_force(case: Case, store: DatasetStore) -> Case:
 
     from .calibrate import calibrate_force
 
-    if not case.cfg.probe.calibrate_force:
+    if not case.cfg.probe.calibrate_force or case.cfg.probe.rigid_share >= 1.0:
         return case
     found = store.group.attrs.get("force_calibration")
     if found is None:

@@ -69,21 +69,26 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     """Everything besides anatomy and grid that decides the samples' content.
 
     [material], the FE-model inputs of other sections ([anatomy] tissue_labels, [grid]
-    min_fraction), [solver] without ``backend`` and ``threads`` (speed and round-off only;
-    workers always factor on one thread), [probe] without the tracker's
-    ``contact_tolerance_mm``, and the seed, sizes, Newton budget and contact input of
-    [dataset].
+    min_fraction, and with rigid pushes [tracker] fem_contact), [solver] without ``backend``
+    and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
+    (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
+    protocol of force patches is what it was), and the seed, sizes, Newton budget and contact
+    input of [dataset].
     """
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
         solver.pop(key, None)
     probe = cfg.section_dict("probe")
-    probe.pop("contact_tolerance_mm", None)
+    fe_model = {"tissue_labels": cfg.anatomy.tissue_labels, "min_fraction": cfg.grid.min_fraction}
+    if probe.get("rigid_share", 0.0) > 0.0:  # rigid pushes: the tracker's contact set and holds
+        fe_model["fem_contact"] = cfg.tracker.fem_contact
+    else:  # force patches only: the protocol of before rigid pushes
+        probe.pop("contact_tolerance_mm", None)
+        probe.pop("rigid_share", None)
     if probe.get("shape") == "rectangle":  # the only shape before the registry: same protocol
         probe.pop("shape")
     return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
-            "fe_model": {"tissue_labels": cfg.anatomy.tissue_labels,
-                         "min_fraction": cfg.grid.min_fraction},
+            "fe_model": fe_model,
             "solver": solver, "probe": probe,
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
                         "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,

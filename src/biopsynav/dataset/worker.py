@@ -11,6 +11,7 @@ limits before numba and MKL load.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -44,13 +45,15 @@ class SampleContext:
     Attributes:
         model: the :class:`biopsynav.fem.FEModel` (its linear-solver analysis is cached on it).
         skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex.
+        skin_cells: (n_vertices,) the flat grid cell of each skin vertex.
+        pinned: (n_vertices,) skin a rigid push may not hold (:func:`biopsynav.probe.pinned_skin`).
         centers: (k,) skin vertices that may centre a push.
     """
 
     def __init__(self, case: Any) -> None:
         from ..fem import FEModel, SolverSettings
         from ..grid.embedding import surface_embedding
-        from ..probe import eligible_centers
+        from ..probe import eligible_centers, pinned_skin
 
         self.case = case
         self.model = FEModel.from_case(case)
@@ -58,7 +61,9 @@ class SampleContext:
         if hasattr(self.settings, "threads"):
             self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
         self.settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
-        self.skin = surface_embedding(case.grid, case.anatomy).matrix
+        skin = surface_embedding(case.grid, case.anatomy)
+        self.skin, self.skin_cells = skin.matrix, skin.cells
+        self.pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.node_shape = case.grid.node_shape
         self.active = np.asarray(case.grid.active_nodes, dtype=bool).ravel()
@@ -85,14 +90,17 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
 
     cfg = ctx.case.cfg
     push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
-                           ctx.centers)
+                           ctx.centers, pinned=ctx.pinned)
     contact = ctx.skin[push.contact]
     start = time.perf_counter()
     result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
                               **push_metadata(push)}
     try:
-        u, report = solve(ctx.model, Loads(forces=nodal_forces(contact, push.force)),
-                          ctx.settings)
+        if push.rigid:
+            u, report = solve(ctx.model, rigid_push_loads(ctx, push), rigid_push_settings(ctx))
+        else:
+            u, report = solve(ctx.model, Loads(forces=nodal_forces(contact, push.force)),
+                              ctx.settings)
     except SolverError as exc:
         result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
                       solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
@@ -100,7 +108,7 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         return result
     contact_u = np.asarray(contact @ u)
     probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
-    if too_deep(probe_disp, cfg.probe.max_push_mm):
+    if not push.rigid and too_deep(probe_disp, cfg.probe.max_push_mm):
         result.update(ok=False, kind=TOO_DEEP, probe_disp_mm=probe_disp,
                       error=f"probe displacement {probe_disp:.1f} mm is beyond [probe] "
                             f"max_push_mm = {cfg.probe.max_push_mm:g} mm",
@@ -122,6 +130,30 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         solve_s=float(time.perf_counter() - start),
     )
     return result
+
+
+#: A rigid push's Newton budget, in multiples of ``[dataset] newton_budget``: held contact
+#: points add augmented-Lagrangian updates, and a displacement-controlled push has no limit
+#: load whose neighbourhood the budget is meant to cut short.
+RIGID_BUDGET_FACTOR = 4
+
+
+def rigid_push_loads(ctx: SampleContext, push: Any) -> Any:
+    """The loads of a rigid push: the contact points moved by ``push.displacement`` through
+    the constraints of ``[tracker] fem_contact`` (as the FE tracker holds them)."""
+    from ..contact.constraints import constraint_rows
+    from ..fem import Loads
+
+    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, ctx.skin_cells[push.contact])
+    target = np.broadcast_to(push.displacement, (len(push.contact), 3))
+    return Loads(prescribed_matrix=rows @ ctx.skin[push.contact],
+                 prescribed_displacement=rows @ target)
+
+
+def rigid_push_settings(ctx: SampleContext) -> Any:
+    """The worker's solver settings with the Newton budget of a rigid push."""
+    return dataclasses.replace(ctx.settings, max_total_iterations=RIGID_BUDGET_FACTOR
+                               * ctx.settings.max_total_iterations)
 
 
 def too_deep(probe_disp_mm: float, max_push_mm: float) -> bool:

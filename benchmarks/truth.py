@@ -1,0 +1,211 @@
+"""Lesion tracking against an independent truth: the network tracker, the FE tracker (the
+network's teacher) and the rigid assumption against a P2 tetrahedral FE of the same pushes.
+
+    python benchmarks/truth.py CASE [--lesions 3] [--depths 10 20 30] [--tet-size 10]
+                                    [--tet-fine 4] [--reference CASE-p2.json] [--out FILE]
+
+The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
+over the list as Table 2 picks them) the probe is placed over it as in Table 2
+(:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
+truth is ``tests/peers/tet_reference.py``: quadratic tetrahedra of a gmsh mesh of the same
+surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
+default tissue, the chest-wall plane fixed, the skin under the face at rest moved rigidly with
+the probe (the tracker's boundary conditions). Nothing of it was used to train or choose the
+model. The methods:
+
+* ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
+* ``fem``: ``Tracker.load(case, engine="fem")``, the teacher's discretisation with the case's
+  ``[tracker] fem_contact`` and material law;
+* ``rigid``: the lesion stays where it was at rest.
+
+TRE = |predicted - true lesion centre| mm. A failed reference push leaves that push out (said
+in the table); a method that does not answer a push with a reference counts against
+``answered``. The reference's figures are kept in ``--reference`` (default
+``CASE/../<case>-p2.json``) after every lesion and reused when the case's anatomy, material,
+depths and reference mesh are the same: a stopped run resumes there, and a second model of the
+same case is compared without solving the reference again.
+
+The last line reads ``RESULT tre_d10_mm=... tre_d30_mm=... answered=N/M`` for the network
+(D10: pushes under 12.5 mm, D30: over 27.5 mm, the paper's Table 2 bins), then the same
+figures of the FE tracker and the rigid assumption.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from biopsynav.case import Case  # noqa: E402
+from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
+from biopsynav.fem import FEModel  # noqa: E402
+from biopsynav.fileio import write_text_atomic  # noqa: E402
+from biopsynav.tracker import Tracker  # noqa: E402
+from convergence import tet_pushes  # noqa: E402  (benchmarks/ is this script's folder)
+
+METHODS = ("net", "fem", "rigid")
+D10_BELOW_MM, D30_ABOVE_MM = 12.5, 27.5  # the paper's Table 2 bins D10 and D30
+
+
+def reference_material(case: Case) -> tuple[float, float, bool]:
+    """E (MPa) and nu of the case's default tissue, and whether the grid carries tissue
+    labels (the reference is homogeneous: a labelled case is compared with a warning)."""
+    mat = case.cfg.material
+    tissue = mat.tissues[mat.default_tissue]
+    return float(tissue["E_mpa"]), float(tissue["nu"]), case.grid.label_share.shape[-1] > 0
+
+
+def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
+    """What the reference figures depend on: reused only when all of it is the same."""
+    return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
+            "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
+            "tet_fine_mm": args.tet_fine, "footprint": repr(case.cfg.probe.footprint),
+            "contact_tolerance_mm": case.cfg.probe.contact_tolerance_mm}
+
+
+def load_reference(path: Path, key: dict) -> dict:
+    """The stored reference figures by lesion index (str) when ``path`` holds the same key."""
+    if not path.is_file():
+        return {}
+    stored = json.loads(path.read_text())
+    if stored.get("key") != key:
+        print(f"{path}: another anatomy, material, depth list or reference mesh; solving the "
+              "reference again", flush=True)
+        return {}
+    return stored.get("lesions", {})
+
+
+def method_trackers(case: Case) -> dict[str, Tracker]:
+    """The network tracker and the FE tracker of ``case`` (Table 2's solver settings)."""
+    return {"net": Tracker.load(case, engine="net"),
+            "fem": Tracker(case, "fem", fem_model=FEModel.from_case(case),
+                           fem_settings=evaluation_solver_settings(case))}
+
+
+def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
+                depths: list[float], truth: list) -> list[dict]:
+    """One row per depth: the reference displacement and each method's TRE (None: no
+    answer, with its status) for lesion index ``li``."""
+    rows = []
+    for tr in trackers.values():
+        tr.set_rest_pose(placement.pose)
+    for depth, true_disp in zip(depths, truth, strict=True):
+        row = {"lesion": int(case.anatomy.lesions[li].id), "depth_mm": depth,
+               "reference_mm": None if true_disp is None else float(np.linalg.norm(true_disp))}
+        if true_disp is None:
+            rows.append(row)
+            continue
+        row["tre_mm"] = {"rigid": float(np.linalg.norm(true_disp))}
+        row["status"] = {"rigid": "ok"}
+        for name, tr in trackers.items():
+            res = tr.update(placement.pushed(depth))
+            row["status"][name] = res.status if res.reliable else f"{res.status}: {res.reason}"
+            row["tre_mm"][name] = (float(np.linalg.norm(res.lesions[li].displacement
+                                                        - np.asarray(true_disp)))
+                                   if res.reliable else None)
+        rows.append(row)
+    return rows
+
+
+def run(args) -> dict:
+    case = Case.load(args.case_dir)
+    e_mpa, nu, labelled = reference_material(case)
+    if labelled:
+        print(f"warning: the reference is homogeneous ({e_mpa * 1e3:g} kPa, nu {nu:g}); the "
+              "case's grid mixes labelled tissues", flush=True)
+    key = reference_key(case, e_mpa, nu, args)
+    ref_path = args.reference or args.case_dir.resolve().parent / f"{args.case_dir.name}-p2.json"
+    stored = load_reference(ref_path, key)
+    lesions = select_lesions(len(case.anatomy.lesions), args.lesions)
+    placements = {li: place_probe(case.anatomy, li) for li in lesions}
+    for li in lesions:
+        if str(li) not in stored:
+            t0 = time.perf_counter()
+            disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args)
+            stored[str(li)] = {"displacement": disp, **facts}
+            write_text_atomic(ref_path, json.dumps({"key": key, "lesions": stored}, indent=1))
+            print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: {facts['tets']} "
+                  f"tetrahedra, {facts['dofs']} dofs, {time.perf_counter() - t0:.0f} s"
+                  + (f"; failed at {facts['failure']}" if facts["failure"] else ""), flush=True)
+    rows = []
+    if not args.reference_only:
+        trackers = method_trackers(case)
+        for li in lesions:
+            rows += lesion_rows(case, trackers, li, placements[li], args.depths,
+                                stored[str(li)]["displacement"])
+    return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": nu, "reference": str(ref_path),
+            "reference_facts": {k: {f: v for f, v in stored[k].items() if f != "displacement"}
+                                for k in map(str, lesions)},
+            "rows": rows}
+
+
+def print_table(rows: list[dict]) -> None:
+    head = "lesion  push  |u| P2   " + "  ".join(f"TRE {m:>5}" for m in METHODS)
+    print("\n" + head + "\n" + "-" * len(head))
+    for row in rows:
+        if row["reference_mm"] is None:
+            print(f"{row['lesion']:>6}  {row['depth_mm']:4g}  no reference (P2 failed)")
+            continue
+        cells = [f"{row['tre_mm'][m]:9.2f}" if row["tre_mm"][m] is not None else
+                 f"{row['status'][m].split(':')[0]:>9}" for m in METHODS]
+        print(f"{row['lesion']:>6}  {row['depth_mm']:4g}  {row['reference_mm']:7.2f}  "
+              + "  ".join(cells))
+
+
+def summary(rows: list[dict], method: str) -> dict:
+    """Mean TRE (mm) of ``method`` at D10 and D30 pushes, and its answered pushes."""
+    judged = [r for r in rows if r["reference_mm"] is not None]
+    answered = [r for r in judged if r["tre_mm"][method] is not None]
+
+    def mean_tre(keep) -> float:
+        values = [r["tre_mm"][method] for r in answered if keep(r["depth_mm"])]
+        return float(np.mean(values)) if values else float("nan")
+
+    return {"tre_d10_mm": mean_tre(lambda d: d < D10_BELOW_MM),
+            "tre_d30_mm": mean_tre(lambda d: d > D30_ABOVE_MM),
+            "tre_mean_mm": mean_tre(lambda d: True),
+            "answered": f"{len(answered)}/{len(judged)}"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
+    p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0],
+                   help="push depths, mm")
+    p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
+    p.add_argument("--tet-fine", type=float, default=4.0,
+                   help="reference tetrahedra within 35 mm of the probe, mm")
+    p.add_argument("--reference", type=Path, default=None,
+                   help="JSON of the reference's figures, read and extended (resumable)")
+    p.add_argument("--reference-only", action="store_true",
+                   help="solve and store the reference only (no trained model needed yet)")
+    p.add_argument("--out", type=Path, default=None, help="write the rows as JSON")
+    args = p.parse_args(argv)
+    start = time.perf_counter()
+    result = run(args)
+    if args.reference_only:
+        return 0
+    print_table(result["rows"])
+    result["summary"] = {m: summary(result["rows"], m) for m in METHODS}
+    result["seconds"] = time.perf_counter() - start
+    if args.out:
+        write_text_atomic(args.out, json.dumps(result, indent=1))
+    print(f"\ntotal {result['seconds'] / 60:.1f} min")
+    s = result["summary"]
+    print("RESULT " + " ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
+                               for k, v in s["net"].items() if k != "tre_mean_mm")
+          + " " + " ".join(f"{m}_{k}={v:.3f}" if isinstance(v, float) else f"{m}_{k}={v}"
+                           for m in ("fem", "rigid") for k, v in s[m].items()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

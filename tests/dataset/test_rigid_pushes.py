@@ -1,0 +1,91 @@
+"""Rigid-probe training pushes (``[probe] rigid_share``): the skin under the face at rest moves
+with the face, the kind is fixed per sample, and force patches stay what they were."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+from dataset_helpers import N_TEST, N_TRAIN, edit_config
+
+from biopsynav.case import Case
+from biopsynav.config import config_from_dict
+from biopsynav.dataset.contacts import sample_contact_matrices
+from biopsynav.dataset.generate import generate_case
+from biopsynav.dataset.store import protocol_dict, protocol_fingerprint
+from biopsynav.errors import InputError
+from biopsynav.grid.embedding import surface_embedding
+from biopsynav.grid.index import tensor_to_field
+from biopsynav.probe import eligible_centers, is_rigid_sample, pinned_skin, push_for_sample
+
+
+@pytest.fixture(scope="module")
+def mixed(base_case, tmp_path_factory):
+    """The coarse phantom with half of its samples pushed by the rigid face, generated."""
+    import shutil
+
+    dst = tmp_path_factory.mktemp("rigid") / "case"
+    shutil.copytree(base_case, dst)
+    edit_config(dst, probe={"rigid_share": 0.5})
+    generate_case(dst, workers=1, progress=False)
+    return dst
+
+
+def rigid_indices(case: Case) -> list[int]:
+    probe, seed = case.cfg.probe, case.cfg.dataset.seed
+    return [i for i in range(N_TRAIN + N_TEST) if is_rigid_sample(probe, seed, i)]
+
+
+def test_a_rigid_sample_moves_its_contact_with_the_face(mixed):
+    """Every contact point of a rigid sample moves by the drawn depth along the drawn
+    direction (within the solver's constraint tolerance); the points come from the rest
+    contact of the tracker: within contact_tolerance_mm of the face, never pinned skin."""
+    case = Case.load(mixed)
+    data = zarr.open_group(str(mixed / "dataset.zarr"), mode="r")
+    done = np.flatnonzero(data["done"][:])
+    rigid = [i for i in rigid_indices(case) if i in done]
+    assert 0 < len(rigid) < len(done)  # a mix
+    skin = surface_embedding(case.grid, case.anatomy)
+    pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
+    contacts = sample_contact_matrices(case, mixed, np.array(rigid))
+    tol = case.cfg.solver.constraint_tolerance_mm
+    for i, w in zip(rigid, contacts, strict=True):
+        push = push_for_sample(case.anatomy, case.cfg.probe, case.cfg.dataset.seed, i,
+                               int(data["attempt"][i]), pinned=pinned)
+        assert push.rigid and push.force_n == 0.0
+        assert 0.0 < push.push_mm <= case.cfg.probe.max_push_mm
+        assert abs(push.tilt_deg) <= case.cfg.probe.rigid_max_tilt_deg
+        assert not pinned[push.contact].any()
+        local = (case.anatomy.vertices[push.contact] - push.center) @ push.normal
+        assert np.all(np.abs(local) <= case.cfg.probe.contact_tolerance_mm + 1e-9)
+        u = tensor_to_field(np.asarray(data["targets"][i]))
+        moved = w @ u
+        assert np.abs(moved - push.displacement).max() <= 2 * tol
+        assert data["probe_disp_mm"][i] == pytest.approx(push.push_mm, abs=2 * tol)
+
+
+def test_the_kind_is_fixed_per_sample_and_a_share_of_zero_is_the_old_protocol(base_case):
+    case = Case.load(base_case)
+    probe = case.cfg.probe
+    centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
+    before = [push_for_sample(case.anatomy, probe, 0, i, 0, centers) for i in range(6)]
+    fp_before = protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST))
+    assert not any(p.rigid for p in before)
+    probe.rigid_share = 0.5
+    kinds = [is_rigid_sample(probe, 0, i) for i in range(200)]
+    assert 60 < sum(kinds) < 140
+    assert all(is_rigid_sample(probe, 0, i) == kinds[i] for i in range(200))
+    for i in range(6):  # a force patch of a mixed set is the force patch of before
+        push = push_for_sample(case.anatomy, probe, 0, i, 0, centers)
+        if not push.rigid:
+            assert push.vertex == before[i].vertex and push.force_n == before[i].force_n
+    assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) != fp_before
+    probe.rigid_share = 0.0
+    assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) == fp_before
+
+
+def test_rigid_pushes_need_a_depth_range():
+    with pytest.raises(InputError, match="max_push_mm"):
+        config_from_dict({"probe": {"rigid_share": 0.5, "max_push_mm": 0.0}})
+    with pytest.raises(InputError, match="rigid_share"):
+        config_from_dict({"probe": {"rigid_share": 1.5}})
