@@ -20,7 +20,7 @@ chest wall is fixed, the material is homogeneous neo-Hookean (E of the case's de
   point, or the mean of each cell's points) and each ``--laws`` hexahedral integration of the
   neo-Hookean energy (``neo-hookean``: 2x2x2 Gauss points; ``neo-hookean-sri``: its volumetric
   term at the cell centre, free of volumetric locking);
-* the reference, ``tests/peers/tet_reference.py``: quadratic tetrahedra of a gmsh mesh of the
+* the reference, ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the
   same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe), its own
   assembly and Newton loop.
 
@@ -94,7 +94,7 @@ def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float]) ->
 def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                depths: list[float], args) -> tuple[list, dict]:
     """The P2 reference's lesion displacements for each depth, and its mesh facts."""
-    from tests.peers.tet_reference import TetReference
+    from biopsynav.evaluate.p2 import TetReference
 
     t0 = time.perf_counter()
     ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,

@@ -7,7 +7,7 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
 The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
 over the list as Table 2 picks them) the probe is placed over it as in Table 2
 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
-truth is ``tests/peers/tet_reference.py``: quadratic tetrahedra of a gmsh mesh of the same
+truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the same
 surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
 default tissue, the chest-wall plane fixed, the skin under the face at rest moved rigidly with
 the probe (the tracker's boundary conditions). Nothing of it was used to train or choose the
@@ -66,7 +66,8 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     """What the reference figures depend on: reused only when all of it is the same."""
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
-            "tet_fine_mm": args.tet_fine, "footprint": repr(case.cfg.probe.footprint),
+            "tet_fine_mm": args.tet_fine,
+            "footprint": [case.cfg.probe.shape, *case.cfg.probe.footprint_mm],
             "contact_tolerance_mm": case.cfg.probe.contact_tolerance_mm}
 
 

@@ -25,6 +25,7 @@ from .footprint import Footprint, footprint_names, make_footprint
 from .inference.runtimes import runtime_choices
 from .layout import CASE_FILE
 from .materials import MATERIAL_LAWS, material_law_names
+from .reference_registry import reference_names
 
 
 def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
@@ -461,6 +462,17 @@ class EvaluateSection:
     max_lesions: int = opt(0, "Lesions evaluated in Table 2 by simulation (0: all; else this "
                               "many, spread over the lesion list) to bound the run time.",
                            lo=0, hi=10000)
+    reference: str = opt("fine_grid", "Ground truth of Table 2 by simulation "
+                                      "(biopsynav.evaluate.references registry): 'fine_grid' "
+                                      "(this FE on a grid reference_refinement times finer) or "
+                                      "'p2' (an independent FE: quadratic tetrahedra of a gmsh "
+                                      "mesh, one homogeneous material; minutes per push, kept "
+                                      "in eval/ and resumed; needs gmsh; docs/evaluation.md).",
+                         choices=reference_names)
+    p2_size_mm: float = opt(10.0, "P2 reference: tetrahedron size away from the probe.",
+                            lo=1.0, hi=100.0)
+    p2_fine_mm: float = opt(4.0, "P2 reference: tetrahedron size within 35 mm of the probe.",
+                            lo=0.5, hi=100.0)
 
 
 SECTIONS: dict[str, type] = {

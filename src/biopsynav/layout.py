@@ -31,6 +31,7 @@ EVAL_DIR = "eval"
 TABLE1_FILE = "table1.json"
 TABLE2 = "table2"  # by simulation: eval/table2.json and eval/table2.md
 TABLE2_MEASURED = "table2_measured"  # from user data: eval/table2_measured.json and .md
+TABLE2_REFERENCE_CACHE = "table2_p2_answers.json"  # the P2 reference's answers, by push
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
 REPORT_FILES = "report_files"  # figures the report makes, beside report.html
@@ -93,6 +94,11 @@ class CasePaths:
     def table2(self, stem: str = TABLE2) -> Path:
         """``eval/<stem>.json`` (``table2`` by simulation, ``table2_measured``)."""
         return self.eval / f"{stem}.json"
+
+    @property
+    def table2_reference_cache(self) -> Path:
+        """The P2 reference's answers by push (``[evaluate] reference = "p2"``)."""
+        return self.eval / TABLE2_REFERENCE_CACHE
 
     @property
     def report_html(self) -> Path:

@@ -68,6 +68,10 @@ def _source_line(result: dict) -> str:
         return (f"Ground truth: lesion positions measured by the user "
                 f"({result['inputs']['measured']}; poses {result['inputs']['poses']}).")
     ref = result["reference"]
+    if ref.get("kind") == "p2":
+        return (f"Ground truth: {ref['description']}; the same rigid-probe contact (training "
+                f"grid {ref['training_cell_size_mm']:g} mm, {ref['training_active_cells']} "
+                "cells).")
     return (f"Ground truth: FE model on a {ref['cell_size_mm']:.2f} mm grid "
             f"({ref['active_cells']} active cells; training grid {ref['training_cell_size_mm']:g}"
             f" mm, {ref['training_active_cells']} cells), same prescribed contact "

@@ -1,12 +1,13 @@
-"""Table 2 by simulation: probe above each lesion, four pushes, ground truth on a finer grid.
+"""Table 2 by simulation: probe above each lesion, four pushes, against a ground truth.
 
-Ground truth: the FE model of the same anatomy on a grid ``[evaluate] reference_refinement``
-times finer (half the cell size by default), driven by the same prescribed displacement of
-the same contact points (skin vertices, shared by both grids), so that the training-resolution
-FE model shows its discretisation error and the network shows that plus its learning error.
+Ground truth (``[evaluate] reference``, :mod:`biopsynav.evaluate.references`): by default the
+FE model of the same anatomy on a grid ``[evaluate] reference_refinement`` times finer (half
+the cell size by default), driven by the same prescribed displacement of the same contact
+points (skin vertices, shared by both grids), so that the training-resolution FE model shows
+its discretisation error and the network shows that plus its learning error; or ``p2``, an
+independent P2 tetrahedral FE of the same surface, which shows the formulation's error too.
 Methods: ``net`` (the U-Net tracker), ``fem`` (FE tracker at the training resolution) and
-``rigid`` (lesions stay where they were at rest). TRE = |predicted - ground-truth centre|.
-"""
+``rigid`` (lesions stay where they were at rest). TRE = |predicted - ground-truth centre|."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import numpy as np
 from ..case import Case, as_case
 from ..fem import FEModel, SolverSettings
 from ..grid.build import build_grid
+from ..reference_registry import build_reference
 from ..tracker.core import Tracker
 from ..tracker.result import TrackingResult
 from .placement import Placement, place_probe, push_depths
@@ -102,13 +104,9 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     case = as_case(case)
     setup = setup_for(case, quick)
     settings = evaluation_solver_settings(case)
-    t0 = time.perf_counter()
-    ref_case = reference_case(case, setup.refinement)
-    reference = fem_tracker(ref_case, settings)
-    t_ref_build = time.perf_counter() - t0
-    log(f"Table 2: reference grid {ref_case.grid.spacing:.2f} mm "
-        f"({int(ref_case.grid.active_cells.sum())} active cells, built in {t_ref_build:.1f} s); "
-        f"{len(setup.lesions)} lesions x {setup.pushes} pushes up to {setup.max_push_mm:g} mm")
+    reference = build_reference(case, setup, settings)
+    log(f"Table 2: ground truth {reference.describe()}; {len(setup.lesions)} lesions x "
+        f"{setup.pushes} pushes up to {setup.max_push_mm:g} mm")
     trackers = _method_trackers(case, methods, settings)
     records: list[Record] = []
     placements = []
@@ -133,15 +131,10 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
         | ({AGREEMENT: aggregate(records, AGREEMENT, lesion_ids).to_dict()}
            if {"net", "fem"} <= set(methods) else {}),
         "placements": placements,
-        "reference": {"cell_size_mm": float(ref_case.grid.spacing),
-                      "training_cell_size_mm": float(case.grid.spacing),
-                      "refinement": setup.refinement,
-                      "active_cells": int(ref_case.grid.active_cells.sum()),
-                      "training_active_cells": int(case.grid.active_cells.sum()),
-                      "n_equations": int(reference._fem_model.n_eq)},
+        "reference": reference.facts() | {"description": reference.describe()},
         "setup": dataclasses.asdict(setup) | {"quick": quick},
         "failures": [r.to_dict() for r in records if r.tre_mm is None],
-        "timing": _timing(records, t_ref_build, time.perf_counter() - t_start),
+        "timing": _timing(records, reference.build_s, time.perf_counter() - t_start),
     }
 
 
@@ -155,7 +148,7 @@ def _method_trackers(case: Case, methods: Sequence[str],
     return trackers
 
 
-def _set_rest(placement: Placement, reference: Tracker, trackers: dict[str, Tracker]) -> int:
+def _set_rest(placement: Placement, reference, trackers: dict[str, Tracker]) -> int:
     n = reference.set_rest_pose(placement.pose)
     for tr in trackers.values():
         tr.set_rest_pose(placement.pose)
@@ -163,7 +156,7 @@ def _set_rest(placement: Placement, reference: Tracker, trackers: dict[str, Trac
 
 
 def push_records(placement: Placement, lesion_index: int, push: int, depth_mm: float,
-                 reference: Tracker, trackers: dict[str, Tracker],
+                 reference, trackers: dict[str, Tracker],
                  methods: Sequence[str]) -> list[Record]:
     """Records of every method for one push of ``depth_mm`` (probe displacement) mm."""
     pose = placement.pushed(depth_mm)
@@ -172,7 +165,7 @@ def push_records(placement: Placement, lesion_index: int, push: int, depth_mm: f
             "bin": bin_name(displacement)}
     truth = reference.update(pose)
     if not truth.reliable:
-        reason = f"ground truth (fine FE): {truth.status}: {truth.reason}"
+        reason = f"ground truth: {truth.status}: {truth.reason}"
         return [Record(**base, method=m, tre_mm=None, status="no_reference", reason=reason)
                 for m in methods]
     true_centre = truth.lesions[lesion_index].center

@@ -66,7 +66,9 @@ def timing_rows(summary: dict | None, table1: dict | None,
     if "fem" in means:
         rows.append(("FE tracker, training grid, Table 2", float(means["fem"]), None))
     if "reference" in means:
-        rows.append(("FE reference, fine grid, Table 2", float(means["reference"]), None))
+        kind = (table2 or {}).get("reference", {}).get("kind", "fine_grid")
+        label = "P2 tetrahedral reference" if kind == "p2" else "FE reference, fine grid"
+        rows.append((f"{label}, Table 2", float(means["reference"]), None))
     if table1 and "predict_mean_ms" in table1:
         rows.append(("U-Net prediction, Table 1 (this machine)", float(table1["predict_mean_ms"]),
                      float(table1.get("predict_std_ms", 0.0))))

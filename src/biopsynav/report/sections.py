@@ -244,7 +244,7 @@ def timing_section(case_dir: Path, fig_dir: Path) -> Section:
                           "lighter bars: the paper's."))
     if t2 and "timing" in t2:
         s.blocks.append(Para(f"Table 2 by simulation took {t2['timing']['total_s']:.1f} s "
-                             f"(reference grid built in {t2['timing']['reference_build_s']:.1f}"
+                             f"(reference built in {t2['timing']['reference_build_s']:.1f}"
                              " s)."))
     return s
 

@@ -22,8 +22,8 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.sparse as sp
 
-from biopsynav.materials import lame_constants
-from biopsynav.probe import skin_under_face
+from ..materials import lame_constants
+from ..probe import skin_under_face
 
 #: local vertex pairs of the six edge nodes of a 10-node tetrahedron (nodes 4-9)
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.peers.tet_reference import TetReference, shape_values
+from biopsynav.evaluate.p2 import TetReference, shape_values
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,217 @@
+"""The ground truths of Table 2 by simulation, registered in
+:mod:`biopsynav.reference_registry` and chosen by ``[evaluate] reference``.
+
+A reference answers like a tracker (``set_rest_pose(pose) -> contact count``, ``update(pose)
+-> TrackingResult`` with every lesion's centre and displacement, mm) and describes itself
+(``facts() -> dict``, kept in ``table2.json`` and shown by the report). Registered:
+
+* ``fine_grid``: biopsynav's own FE on a grid ``[evaluate] reference_refinement`` times finer,
+  the same contact constraints. Cheap, but it shares the training FE's formulation: it shows
+  the network's learning error and the grid's discretisation error, not the formulation's.
+* ``p2``: an independent FE (:mod:`biopsynav.evaluate.p2`: quadratic tetrahedra of a gmsh mesh
+  of the same surface, refined under the probe, its own assembly and Newton), homogeneous
+  neo-Hookean with the default tissue's E and nu, the chest-wall plane fixed, the skin under
+  the face at rest moved rigidly with the probe. Minutes per push on two cores; its answers
+  are kept in ``eval/`` after every push, so a stopped evaluation resumes. Needs gmsh (the
+  ``reference`` extra) and a case of one material.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+
+class GridReference:
+    """biopsynav's FE tracker on a finer grid (``fine_grid``)."""
+
+    def __init__(self, case: Any, setup: Any, settings: Any) -> None:
+        from .simulation import fem_tracker, reference_case
+
+        t0 = time.perf_counter()
+        self.case = case
+        self.fine = reference_case(case, setup.refinement)
+        self.tracker = fem_tracker(self.fine, settings)
+        self.refinement = setup.refinement
+        self.build_s = time.perf_counter() - t0
+
+    def set_rest_pose(self, pose: np.ndarray) -> int:
+        return self.tracker.set_rest_pose(pose)
+
+    def update(self, pose: np.ndarray) -> Any:
+        return self.tracker.update(pose)
+
+    def facts(self) -> dict:
+        return {"kind": "fine_grid", "cell_size_mm": float(self.fine.grid.spacing),
+                "training_cell_size_mm": float(self.case.grid.spacing),
+                "refinement": self.refinement,
+                "active_cells": int(self.fine.grid.active_cells.sum()),
+                "training_active_cells": int(self.case.grid.active_cells.sum()),
+                "n_equations": int(self.tracker._fem_model.n_eq)}
+
+    def describe(self) -> str:
+        f = self.facts()
+        return (f"FE model on a {f['cell_size_mm']:.2f} mm grid ({f['active_cells']} active "
+                f"cells, built in {self.build_s:.1f} s)")
+
+
+class P2Reference:
+    """The independent P2 tetrahedral FE (``p2``), one mesh per rest pose (refined under the
+    face), pushes solved in turn from the last equilibrium of the same rest pose, answers
+    kept in ``cache`` (a JSON file) keyed by rest pose and pose."""
+
+    def __init__(self, case: Any, setup: Any, settings: Any) -> None:
+        require_gmsh()
+        self.case = case
+        ev = case.cfg.evaluate
+        self.size_mm, self.fine_mm = float(ev.p2_size_mm), float(ev.p2_fine_mm)
+        self.e_mpa, self.nu = homogeneous_material(case)
+        self.cache_path = case.paths.table2_reference_cache
+        self.key = self._key()
+        self.answers = self._read_cache()
+        self.centres = np.array([les.center for les in case.anatomy.lesions]).reshape(-1, 3)
+        self.ids = [les.id for les in case.anatomy.lesions]
+        self.meshes: list[dict] = []
+        self.build_s = 0.0
+        self._rest: np.ndarray | None = None
+        self._model = None
+        self._contact = None
+        self._last = None
+
+    def _key(self) -> str:
+        probe = self.case.cfg.probe
+        what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
+                "size_mm": self.size_mm, "fine_mm": self.fine_mm,
+                "footprint": [probe.shape, *probe.footprint_mm],
+                "contact_tolerance_mm": probe.contact_tolerance_mm}
+        return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
+
+    def _read_cache(self) -> dict:
+        if not self.cache_path.is_file():
+            return {}
+        try:
+            stored = json.loads(self.cache_path.read_text())
+        except (OSError, ValueError):
+            return {}  # a damaged cache is solved again, never trusted
+        return stored.get("answers", {}) if stored.get("key") == self.key else {}
+
+    def set_rest_pose(self, pose: np.ndarray) -> int:
+        from ..tracker.core import as_pose, contact_indices
+
+        self._rest = as_pose(pose)
+        self._model = self._contact = self._last = None
+        probe = self.case.cfg.probe
+        return len(contact_indices(self.case.anatomy, self._rest, probe.footprint,
+                                   probe.contact_tolerance_mm))
+
+    def update(self, pose: np.ndarray) -> Any:
+        from ..tracker import result as st
+        from ..tracker.core import as_pose
+
+        start = time.perf_counter()
+        pose = as_pose(pose)
+        name = _pose_key(self._rest, pose)
+        if name not in self.answers:
+            try:
+                disp = self._solve(pose)
+            except (FloatingPointError, RuntimeError) as exc:
+                self._last = None  # the next push starts from rest
+                return _result(self.ids, self.centres, None, st.SOLVER_FAILED,
+                               f"P2 reference: {exc}", start)
+            self.answers[name] = {"displacement_mm": disp,
+                                  "solve_ms": (time.perf_counter() - start) * 1e3}
+            self._write_cache()
+        answer = self.answers[name]
+        res = _result(self.ids, self.centres, np.asarray(answer["displacement_mm"]), st.OK, "",
+                      start)
+        res.latency_ms = float(answer["solve_ms"])  # the solve's, also when kept from before
+        return res
+
+    def _solve(self, pose: np.ndarray) -> list:
+        """Every lesion centre's displacement (n, 3) mm at ``pose``, as a list."""
+        if self._model is None:
+            self._build()
+        (disp,) = self._model.push(self._rest, [pose], self._contact, self.centres,
+                                   start=self._last)
+        self._last = self._model.last
+        return np.asarray(disp).tolist()
+
+    def _build(self) -> None:
+        from .p2 import TetReference
+
+        t0 = time.perf_counter()
+        probe = self.case.cfg.probe
+        self._model = TetReference.build(self.case.anatomy, self.size_mm, self.e_mpa,
+                                         self.nu, fine_at=self._rest[:3, 3],
+                                         fine_mm=self.fine_mm)
+        self._contact = self._model.contact(self._rest, probe.footprint,
+                                            probe.contact_tolerance_mm)
+        self.build_s += time.perf_counter() - t0
+        self.meshes.append({"tets": len(self._model.elements), "dofs": self._model.n_dofs,
+                            "contact_nodes": len(self._contact)})
+
+    def _write_cache(self) -> None:
+        from ..fileio import write_json_atomic
+
+        write_json_atomic(self.cache_path, {"key": self.key, "answers": self.answers})
+
+    def facts(self) -> dict:
+        return {"kind": "p2", "E_mpa": self.e_mpa, "nu": self.nu, "size_mm": self.size_mm,
+                "fine_mm": self.fine_mm, "meshes": self.meshes,
+                "training_cell_size_mm": float(self.case.grid.spacing),
+                "training_active_cells": int(self.case.grid.active_cells.sum())}
+
+    def describe(self) -> str:
+        tets = [m["tets"] for m in self.meshes]
+        size = f"{min(tets)}-{max(tets)} tetrahedra" if tets else "answers kept from before"
+        return (f"independent P2 tetrahedral FE ({self.size_mm:g} mm, {self.fine_mm:g} mm under "
+                f"the probe; {size}), homogeneous {self.e_mpa * 1e3:g} kPa, nu {self.nu:g}")
+
+
+def require_gmsh() -> None:
+    """InputError unless gmsh (the P2 reference's mesher) imports."""
+    try:
+        import gmsh  # noqa: F401
+    except ImportError as exc:
+        raise InputError(f"the P2 reference meshes with gmsh, which does not import ({exc}); "
+                         "install it with pip install 'biopsynav[reference]', or use "
+                         "[evaluate] reference = \"fine_grid\"", "[evaluate] reference") from None
+
+
+def homogeneous_material(case: Any) -> tuple[float, float]:
+    """E (MPa) and nu of the case's default tissue; InputError when the grid carries tissue
+    labels (the P2 reference has one material)."""
+    if case.grid.label_share.shape[-1] > 0:
+        raise InputError("the P2 reference has one material, and this case's grid mixes "
+                         f"labelled tissues ({case.grid.label_share.shape[-1]} labels); use "
+                         "[evaluate] reference = \"fine_grid\"", "[evaluate] reference")
+    mat = case.cfg.material
+    tissue = mat.tissues[mat.default_tissue]
+    return float(tissue["E_mpa"]), float(tissue["nu"])
+
+
+def _pose_key(rest: np.ndarray, pose: np.ndarray) -> str:
+    """A cache key of a push: rest pose and pose rounded to 1e-6 mm (and rotation entries)."""
+    both = np.round(np.concatenate([rest[:3].ravel(), pose[:3].ravel()]), 6) + 0.0
+    return hashlib.sha256(both.tobytes()).hexdigest()[:32]
+
+
+def _result(ids: list[int], centres: np.ndarray, disp: np.ndarray | None, status: str,
+            reason: str, start: float) -> Any:
+    """A TrackingResult of lesion ``ids`` at rest ``centres`` (n, 3) moved by ``disp`` (n, 3)
+    mm (None: not answered, NaN)."""
+    from ..tracker.result import LesionResult, TrackingResult
+
+    if disp is None:
+        disp = np.full_like(centres, np.nan)
+        centres = disp
+    lesions = [LesionResult(i, c + d, d, status) for i, c, d in
+               zip(ids, centres, disp, strict=True)]
+    return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
+

@@ -1,0 +1,43 @@
+"""The registry of Table 2's ground truths, read by ``[evaluate] reference``
+(:mod:`biopsynav.evaluate.references` holds the built-in ones and describes what a reference
+does).
+
+A builder is a callable ``builder(case, setup, settings)`` or the ``"module:attribute"`` path
+of one, imported when first built: the configuration reads the names from here without
+importing the evaluation stage.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any
+
+#: name -> builder(case, setup, settings) of a Table 2 ground truth, or its "module:attr" path
+REFERENCES: dict[str, Callable[..., Any] | str] = {}
+
+
+def register_reference(name: str, builder: Callable[..., Any] | str) -> None:
+    """Make ``name`` an ``[evaluate] reference``: ``builder(case, setup, settings)`` (or its
+    ``"module:attribute"`` path) returns an object with ``set_rest_pose(pose) -> int``,
+    ``update(pose) -> TrackingResult``, ``facts() -> dict``, ``describe() -> str`` and
+    ``build_s`` (seconds spent building)."""
+    REFERENCES[name] = builder
+
+
+def reference_names() -> tuple[str, ...]:
+    """The registered references: the allowed ``[evaluate] reference`` values."""
+    return tuple(REFERENCES)
+
+
+def build_reference(case: Any, setup: Any, settings: Any) -> Any:
+    """The ``[evaluate] reference`` of ``case`` for a Table 2 run of ``setup``."""
+    builder = REFERENCES[case.cfg.evaluate.reference]
+    if isinstance(builder, str):
+        module, _, attr = builder.partition(":")
+        builder = getattr(importlib.import_module(module), attr)
+    return builder(case, setup, settings)
+
+
+register_reference("fine_grid", "biopsynav.evaluate.references:GridReference")
+register_reference("p2", "biopsynav.evaluate.references:P2Reference")
