@@ -30,13 +30,26 @@ def reference_names() -> tuple[str, ...]:
     return tuple(REFERENCES)
 
 
-def build_reference(case: Any, setup: Any, settings: Any) -> Any:
-    """The ``[evaluate] reference`` of ``case`` for a Table 2 run of ``setup``."""
-    builder = REFERENCES[case.cfg.evaluate.reference]
+def reference_builder(name: str) -> Callable[..., Any]:
+    """The builder registered as ``name``, imported when given as a path."""
+    builder = REFERENCES[name]
     if isinstance(builder, str):
         module, _, attr = builder.partition(":")
         builder = getattr(importlib.import_module(module), attr)
-    return builder(case, setup, settings)
+    return builder
+
+
+def build_reference(case: Any, setup: Any, settings: Any) -> Any:
+    """The ``[evaluate] reference`` of ``case`` for a Table 2 run of ``setup``."""
+    return reference_builder(case.cfg.evaluate.reference)(case, setup, settings)
+
+
+def check_reference(case: Any) -> None:
+    """Raise InputError now when ``case``'s ``[evaluate] reference`` cannot serve it (the
+    builder's ``check(case)``, where it has one): before an evaluation spends its time."""
+    check = getattr(reference_builder(case.cfg.evaluate.reference), "check", None)
+    if check is not None:
+        check(case)
 
 
 register_reference("fine_grid", "biopsynav.evaluate.references:GridReference")

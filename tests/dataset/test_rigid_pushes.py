@@ -3,6 +3,8 @@ with the face, the kind is fixed per sample, and force patches stay what they we
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import zarr
@@ -45,6 +47,8 @@ def test_a_rigid_sample_moves_its_contact_with_the_face(mixed):
     done = np.flatnonzero(data["done"][:])
     rigid = [i for i in rigid_indices(case) if i in done]
     assert 0 < len(rigid) < len(done)  # a mix
+    summary = json.loads(case.paths.dataset_summary.read_text())
+    assert summary["rigid_pushes"] == len(rigid)
     skin = surface_embedding(case.grid, case.anatomy)
     pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
     contacts = sample_contact_matrices(case, mixed, np.array(rigid))

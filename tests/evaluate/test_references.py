@@ -58,10 +58,13 @@ def test_a_damaged_answer_file_is_solved_again_not_trusted(p2_case):
     assert ref.answers == {}
 
 
-def test_the_p2_reference_refuses_a_case_of_several_tissues():
-    labelled = SimpleNamespace(grid=SimpleNamespace(label_share=np.zeros((2, 2, 2, 3))))
+def test_the_p2_reference_refuses_a_case_of_several_tissues_before_it_starts():
+    labelled = SimpleNamespace(grid=SimpleNamespace(label_share=np.zeros((2, 2, 2, 3))),
+                               cfg=config_from_dict({"evaluate": {"reference": "p2"}}))
     with pytest.raises(InputError, match="one material"):
-        references.homogeneous_material(labelled)
+        reference_registry.check_reference(labelled)
+    labelled.cfg.evaluate.reference = "fine_grid"
+    reference_registry.check_reference(labelled)  # any case
 
 
 def test_the_reference_choices_come_from_the_registry():

@@ -455,6 +455,7 @@ def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "force_calibration": store.group.attrs.get("force_calibration"),
         "mean_probe_disp_mm": stat("probe_disp_mm", np.mean),
         "max_force_n": stat("force_n", np.max),
+        "rigid_pushes": int(np.count_nonzero(meta["force_n"] == 0.0)),  # force patches: > 0 N
         "mean_newton_iters": stat("newton_iters", np.mean),
     }
 

@@ -67,7 +67,7 @@ class P2Reference:
     kept in ``cache`` (a JSON file) keyed by rest pose and pose."""
 
     def __init__(self, case: Any, setup: Any, settings: Any) -> None:
-        require_gmsh()
+        self.check(case)
         self.case = case
         ev = case.cfg.evaluate
         self.size_mm, self.fine_mm = float(ev.p2_size_mm), float(ev.p2_fine_mm)
@@ -83,6 +83,12 @@ class P2Reference:
         self._model = None
         self._contact = None
         self._last = None
+
+    @staticmethod
+    def check(case: Any) -> None:
+        """InputError when gmsh is missing or the case has several tissues."""
+        require_gmsh()
+        homogeneous_material(case)
 
     def _key(self) -> str:
         probe = self.case.cfg.probe

@@ -9,6 +9,7 @@ from ..case import Case, as_case
 from ..errors import InputError
 from ..fileio import write_json_atomic, write_text_atomic
 from ..layout import EVAL_DIR, TABLE2, TABLE2_MEASURED, CasePaths
+from ..reference_registry import check_reference
 from .measured import evaluate_measured
 from .paper import PAPER_TABLE2_COL_MEAN, PAPER_TABLE2_MAX_ROW_MEAN
 from .simulation import run_simulation
@@ -39,6 +40,8 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
                          "lesion positions measured in those frames", "evaluate")
     case = as_case(case)
     require_model(case.dir)
+    if table2 and measured is None:
+        check_reference(case)
     from ..network.evaluate import evaluate_network_case as table1_case
     from ..network.evaluate import format_table1
 
