@@ -93,3 +93,20 @@ def test_rigid_pushes_need_a_depth_range():
         config_from_dict({"probe": {"rigid_share": 0.5, "max_push_mm": 0.0}})
     with pytest.raises(InputError, match="rigid_share"):
         config_from_dict({"probe": {"rigid_share": 1.5}})
+
+
+def test_a_model_taught_by_force_patches_still_loads_in_a_case_that_asks_for_rigid_pushes(
+        trained_case, tmp_path):
+    """Rigid pushes change the data set's protocol, not the anatomy or grid: a model trained
+    before (force patches only) loads as it is, and says what taught it."""
+    import shutil
+
+    from biopsynav.tracker import Tracker
+
+    case_dir = tmp_path / "case"
+    shutil.copytree(trained_case, case_dir)
+    edit_config(case_dir, probe={"rigid_share": 0.5})
+    tracker = Tracker.load(case_dir, engine="net")
+    assert tracker.engine == "net"
+    meta = json.loads(Case.load(case_dir).paths.model_meta.read_text())
+    assert meta["teacher"]["rigid_share"] == 0.0

@@ -48,6 +48,7 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
                                   "y*out_scale*active out"},
         "envelope": envelope,
         "contact_input": _contact_input(data),
+        "teacher": teacher(data),
         "baseline": baseline or {"kind": "none"},
         "training": {k: v for k, v in training.items() if k != "history"},
         "inference": {"precision": "fp32", "runtime": runtime,
@@ -61,6 +62,18 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
     write_json_atomic(out / META, meta)
     write_json_atomic(out / HISTORY, training.get("history", []))
     return meta
+
+
+def teacher(data: Dataset) -> dict:
+    """What taught the model: the data set's protocol fingerprint, its material law, and its
+    share of rigid-probe pushes (0: the paper's force patches only) with their contact
+    constraints."""
+    protocol = data.attrs.get("protocol") or {}
+    probe = protocol.get("probe", {})
+    return {"protocol_fingerprint": data.attrs.get("protocol_fingerprint"),
+            "material_model": protocol.get("material", {}).get("model"),
+            "rigid_share": float(probe.get("rigid_share", 0.0)),
+            "fem_contact": protocol.get("fe_model", {}).get("fem_contact")}
 
 
 def _contact_input(data: Dataset) -> str:
