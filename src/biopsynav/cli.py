@@ -14,6 +14,7 @@ from pathlib import Path
 
 from .errors import BiopsynavError, InputError
 from .fileio import json_default
+from .reference_registry import reference_names
 
 LABEL_OPTIONS = ("--breast-labels", "--lesion-labels", "--chest-labels", "--tissue-labels")
 
@@ -158,8 +159,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_case
 
-    evaluate_case(loaded_case(args), table2=not args.table1_only, measured=args.measured,
-                  poses=args.poses)
+    case = loaded_case(args)
+    if args.reference is not None:  # this run only; case.toml keeps its own
+        case.cfg.evaluate.reference = args.reference
+    evaluate_case(case, table2=not args.table1_only, measured=args.measured, poses=args.poses)
     return 0
 
 
@@ -283,6 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poses", type=Path, help="poses CSV of a measured experiment")
     p.add_argument("--measured", type=Path, help="measured lesion positions CSV "
                    "(frame,lesion_id,x,y,z) for Table 2 from user data")
+    p.add_argument("--reference", choices=reference_names(),
+                   help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
+                        "reference): fine_grid, or p2, an independent tetrahedral FE")
 
     p = add("track", cmd_track, "Track lesions along a CSV of probe poses.")
     p.add_argument("case_dir", type=Path)

@@ -13,6 +13,7 @@ from biopsynav.case import Case, make_phantom_case
 from biopsynav.config import config_from_dict, load_config, save_config
 from biopsynav.errors import InputError
 from biopsynav.evaluate import p2, references
+from biopsynav.evaluate.run import table2_text
 from biopsynav.evaluate.simulation import run_simulation
 
 
@@ -41,6 +42,7 @@ def test_table2_against_the_p2_reference_keeps_and_reuses_its_answers(p2_case, m
     assert all(m < d for m, d in zip(rigid, depths, strict=True))  # less than the probe
     cache = Case.load(p2_case).paths.table2_reference_cache
     assert cache.is_file()
+    assert "Ground truth: independent P2 tetrahedral FE" in table2_text(result)
 
     def no_mesh(*args, **kwargs):
         raise AssertionError("the kept answers should have been used")
