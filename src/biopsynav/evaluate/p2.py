@@ -183,7 +183,7 @@ class TetReference:
         ue = u[self.elements]  # (t, 10, 3)
         n_el = len(self.elements)
         f = np.zeros((n_el, 10, 3))
-        k = np.zeros((n_el, 10, 3, 10, 3)) if tangent else None
+        points = []  # per quadrature point: weight, spatial gradients, tau, m (the tangent's)
         for g0, w in zip(self.grads, self.weights, strict=True):
             defo = np.eye(3) + np.einsum("tai,taj->tij", ue, g0)
             det = np.linalg.det(defo)
@@ -194,12 +194,12 @@ class TetReference:
             m = self.mu - self.lam * np.log(det)
             tau = self.mu * (b - np.eye(3)) + (self.lam * np.log(det))[:, None, None] * np.eye(3)
             f += w[:, None, None] * np.einsum("tij,taj->tai", tau, g)
-            if tangent:
-                k += w[:, None, None, None, None] * _element_tangent(g, tau, self.lam, m)
+            points.append((w, g, tau, m))
         rows = (3 * self.elements[:, :, None] + np.arange(3)).reshape(n_el, 30)
         forces = np.bincount(rows.ravel(), f.ravel(), minlength=self.n_dofs)
         if not tangent:
             return forces
+        k = _element_tangents(points, self.lam)
         r = np.repeat(rows, 30, axis=1).ravel()
         c = np.tile(rows, (1, 30)).ravel()
         stiff = sp.csr_matrix((k.reshape(n_el, 900).ravel(), (r, c)),
@@ -250,8 +250,6 @@ class TetReference:
         tangent (no element is distorted by moving the contact nodes alone); the later ones
         are damped by a backtracking line search on the residual norm that also refuses
         inverted elements."""
-        import pypardiso
-
         constrained = np.zeros(self.n_dofs, dtype=bool)
         constrained[(3 * np.concatenate([contact, self.fixed_nodes])[:, None]
                      + np.arange(3)).ravel()] = True
@@ -271,7 +269,7 @@ class TetReference:
                     return u
                 rhs = -forces[free]
             du = np.zeros(self.n_dofs)
-            du[free] = pypardiso.spsolve(stiff[free][:, free].tocsr(), rhs)
+            du[free] = solve_symmetric(stiff[free][:, free], rhs)
             if it == 0:
                 u = u + (du + lift.ravel()).reshape(u.shape)
             else:
@@ -314,15 +312,43 @@ class TetReference:
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
 
 
-def _element_tangent(g: np.ndarray, tau: np.ndarray, lam: float, m: np.ndarray) -> np.ndarray:
-    """(t, 10, 3, 10, 3) spatial tangent per unit weight: the stress term (g_a . tau g_b)
-    delta_ik and the material term lam g_ai g_bk + m (delta_ik g_a . g_b + g_ak g_bi)."""
-    gg = np.einsum("tai,tbi->tab", g, g)
-    geo = np.einsum("tai,tij,tbj->tab", g, tau, g) + m[:, None, None] * gg
-    out = (lam * np.einsum("tai,tbk->taibk", g, g)
-           + m[:, None, None, None, None] * np.einsum("tak,tbi->taibk", g, g))
-    out += geo[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
-    return out
+_SYMMETRIC_SOLVER = None  # one Pardiso instance (several at once can crash the library)
+
+
+def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
+    """``matrix^-1 rhs`` for a symmetric ``matrix`` (the tangent: positive definite, or
+    indefinite past a limit point) with MKL Pardiso in its symmetric indefinite mode
+    (``mtype = -2``, the upper triangle): half the storage and work of a general LU."""
+    global _SYMMETRIC_SOLVER
+    import pypardiso
+
+    if _SYMMETRIC_SOLVER is None:
+        _SYMMETRIC_SOLVER = pypardiso.PyPardisoSolver(mtype=-2)
+    upper = sp.triu(matrix, format="csr")
+    upper.sort_indices()
+    return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
+
+
+def _element_tangents(points: list, lam: float) -> np.ndarray:
+    """(t, 10, 3, 10, 3) spatial tangents summed over the quadrature ``points`` (weight (t,),
+    spatial gradients g (t, 10, 3), Kirchhoff stress tau (t, 3, 3), m = mu - lam ln J (t,)):
+    the stress term (g_a . tau g_b) delta_ik and the material term lam g_ai g_bk
+    + m (delta_ik g_a . g_b + g_ak g_bi). The products of gradients are summed over the points
+    as batched (30 x q) (q x 30) matrix products."""
+    n_el = points[0][1].shape[0]
+    grads = np.stack([g.reshape(n_el, 30) for _, g, _, _ in points], axis=1)  # (t, q, 30)
+    w = np.stack([w for w, _, _, _ in points], axis=1)  # (t, q)
+    wm = np.stack([w * m for w, _, _, m in points], axis=1)
+    gram = grads.transpose(0, 2, 1)
+    material = lam * ((gram * w[:, None, :]) @ grads).reshape(n_el, 10, 3, 10, 3)
+    swapped = ((gram * wm[:, None, :]) @ grads).reshape(n_el, 10, 3, 10, 3)
+    material += swapped.transpose(0, 1, 4, 3, 2)  # g_ak g_bi
+    geo = np.zeros((n_el, 10, 10))
+    for wq, g, tau, m in points:
+        gt = g.transpose(0, 2, 1)
+        geo += wq[:, None, None] * ((g @ tau) @ gt + m[:, None, None] * (g @ gt))
+    material += geo[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+    return material
 
 
 def _barycentric_gradients(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
