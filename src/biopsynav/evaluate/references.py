@@ -175,7 +175,10 @@ class P2Reference:
 
     def describe(self) -> str:
         tets = [m["tets"] for m in self.meshes]
-        size = f"{min(tets)}-{max(tets)} tetrahedra" if tets else "answers kept from before"
+        if tets:
+            size = f"{min(tets)}-{max(tets)} tetrahedra"
+        else:
+            size = "answers of an earlier run" if self.answers else "one mesh per placement"
         return (f"independent P2 tetrahedral FE ({self.size_mm:g} mm, {self.fine_mm:g} mm under "
                 f"the probe; {size}), homogeneous {self.e_mpa * 1e3:g} kPa, nu {self.nu:g}")
 
