@@ -75,7 +75,11 @@ def load_reference(path: Path, key: dict) -> dict:
     """The stored reference figures by lesion index (str) when ``path`` holds the same key."""
     if not path.is_file():
         return {}
-    stored = json.loads(path.read_text())
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:  # never overwrite what cannot be read
+        raise SystemExit(f"{path}: not a readable reference file ({exc}); move it away or "
+                         "give another --reference") from None
     if stored.get("key") != key:
         print(f"{path}: another anatomy, material, depth list or reference mesh; solving the "
               "reference again", flush=True)

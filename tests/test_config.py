@@ -59,6 +59,12 @@ def test_defaults_round_trip(tmp_path):
     ({"anatomy": {"labelmap_spacing_mm": 50.0}}, "above its maximum"),
     ({"anatomy": {"lesion_radius_mm": 0.0}}, "below its minimum"),
     ({"probe": {"calibrate_force": "yes"}}, "must be true or false"),
+    ({"probe": {"rigid_share": "half"}}, "rigid_share"),
+    ({"probe": {"rigid_share": -0.1}}, "below its minimum"),
+    ({"probe": {"rigid_max_tilt_deg": 95.0}}, "above its maximum"),
+    ({"evaluate": {"reference": "oracle"}}, "must be one of"),
+    ({"evaluate": {"p2_size_mm": 0.0}}, "below its minimum"),
+    ({"evaluate": {"p2_fine_mm": "fine"}}, "p2_fine_mm"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:
