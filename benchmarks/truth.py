@@ -14,8 +14,9 @@ the probe (the tracker's boundary conditions). Nothing of it was used to train o
 model. The methods:
 
 * ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
-* ``fem``: ``Tracker.load(case, engine="fem")``, the teacher's discretisation with the case's
-  ``[tracker] fem_contact`` and material law;
+* ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the teacher's
+  grid (``[dataset] teacher_refine``) with the case's ``[tracker] fem_contact`` and material
+  law, Table 2's solver tolerances;
 * ``rigid``: the lesion stays where it was at rest.
 
 TRE = |predicted - true lesion centre| mm. A failed reference push leaves that push out (said
@@ -45,9 +46,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
-from biopsynav.fem import FEModel  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
+from biopsynav.info import model_teacher  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
+from biopsynav.tracker.core import fem_engine  # noqa: E402
 from convergence import tet_pushes  # noqa: E402  (benchmarks/ is this script's folder)
 
 METHODS = ("net", "fem", "rigid")
@@ -90,8 +92,7 @@ def load_reference(path: Path, key: dict) -> dict:
 def method_trackers(case: Case) -> dict[str, Tracker]:
     """The network tracker and the FE tracker of ``case`` (Table 2's solver settings)."""
     return {"net": Tracker.load(case, engine="net"),
-            "fem": Tracker(case, "fem", fem_model=FEModel.from_case(case),
-                           fem_settings=evaluation_solver_settings(case))}
+            "fem": fem_engine(case, evaluation_solver_settings(case))}
 
 
 def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
@@ -146,6 +147,7 @@ def run(args) -> dict:
             rows += lesion_rows(case, trackers, li, placements[li], args.depths,
                                 stored[str(li)]["displacement"])
     return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": nu, "reference": str(ref_path),
+            "teacher": model_teacher(case),
             "reference_facts": {k: {f: v for f, v in stored[k].items() if f != "displacement"}
                                 for k in map(str, lesions)},
             "rows": rows}
@@ -198,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     result = run(args)
     if args.reference_only:
         return 0
+    print(f"\nnet: the trained model, taught by: {result['teacher']}\nfem: the FE engine on "
+          "the teacher's grid ([dataset] teacher_refine)")
     print_table(result["rows"])
     result["summary"] = {m: summary(result["rows"], m) for m in METHODS}
     result["seconds"] = time.perf_counter() - start

@@ -280,6 +280,14 @@ class DatasetSection:
                                  "iterations and then mostly fail anyway; the budget keeps them "
                                  "from costing most of the compute (docs/dataset.md). 0: no "
                                  "limit.", lo=0, hi=100000)
+    teacher_refine: int = opt(1, "The teacher's grid: each sample is solved on cells this many "
+                                 "times smaller than [grid] cell_size_mm and brought to the "
+                                 "case grid by a least-squares fit over the tissue "
+                                 "(biopsynav.grid.transfer); the network still predicts on the "
+                                 "case grid. 1: solve on the case grid itself. 2 halves the "
+                                 "cells (8x the unknowns): nearer the converged answer under the "
+                                 "probe, each solve about 10x slower (docs/dataset.md).",
+                              lo=1, hi=4)
     chunk_samples: int = opt(1, "Samples per storage chunk of inputs and targets (1: a chunk "
                                 "per sample; 'done' always has one chunk per sample).",
                              lo=1, hi=4096)

@@ -45,8 +45,29 @@ def case_summary(case: Case | str | Path) -> dict:
         "label_map": {k: facts[k] for k in ("breast", "label_volume_ml", "surface_volume_ml",
                                             "voxel_mm") if k in facts},
         "stages": case.stages_done(),
+        "model_teacher": model_teacher(case),
         "fingerprint": case.fingerprint()[:16],
     }
+
+
+def model_teacher(case: Case) -> str:
+    """What taught the case's trained model, in words; empty when there is no model. Models
+    written before the teacher was recorded load as they are: they were taught by the case
+    grid's FE with force patches, the only teacher of their time."""
+    meta = read_json(case.paths.model_meta, "retrain with `biopsynav train CASE`",
+                     missing_ok=True)
+    if not meta:
+        return ""
+    t = meta.get("teacher")
+    if not t:
+        return (f"case grid ({case.grid.spacing:g} mm cells), force patches (not recorded: "
+                "a model trained before teachers were recorded)")
+    refine = int(t.get("teacher_refine", 1))
+    grid = (f"case grid ({case.grid.spacing:g} mm cells)" if refine == 1 else
+            f"grid of {case.grid.spacing / refine:g} mm cells fitted to the case grid")
+    rigid = float(t.get("rigid_share", 0.0))
+    pushes = "force patches" if rigid == 0 else f"{rigid:.0%} rigid-probe pushes"
+    return f"{grid}, {t.get('material_model')}, {pushes}"
 
 
 def tissue_table(case: Case) -> list[dict]:
@@ -104,6 +125,8 @@ def format_summary(s: dict) -> str:
           for t in s["tissues"]],
         "  stages    " + ", ".join(f"{k} {'done' if v else '-'}" for k, v in s["stages"].items()),
     ]
+    if s.get("model_teacher"):
+        lines.append(f"  teacher   {s['model_teacher']}")
     return "\n".join(lines)
 
 

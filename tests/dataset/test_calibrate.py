@@ -56,3 +56,21 @@ def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tm
     monkeypatch.setattr(calibrate, "calibrate_force", refuse)
     again = generate_case(case_dir, workers=1, progress=False)
     assert again["force_calibration"] == found and again["computed_this_run"] == 0
+
+
+def test_a_refined_teacher_starts_its_search_from_the_case_grid(base_case, tmp_path):
+    """With [dataset] teacher_refine = 2 the search runs on the case grid first and the
+    teacher's own rounds start from its answer."""
+    from biopsynav.case import Case
+
+    case_dir = tmp_path / "case"
+    shutil.copytree(base_case, case_dir)
+    cfg = load_config(case_dir)
+    cfg.dataset.teacher_refine = 2
+    save_config(case_dir, cfg)
+    found = calibrate.calibrate_force(Case.load(case_dir))
+    coarse = found["case_grid_rounds"]
+    assert coarse and found["rounds"][0][0] == pytest.approx(
+        calibrate.best_force([(f, d if d is not None else math.inf) for f, d in coarse],
+                             cfg.probe.max_push_mm)[0], rel=1e-3)
+    assert len(found["rounds"]) <= len(coarse) + 1

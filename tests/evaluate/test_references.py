@@ -69,6 +69,15 @@ def test_the_p2_reference_refuses_a_case_of_several_tissues_before_it_starts():
     reference_registry.check_reference(labelled)  # any case
 
 
+def test_a_fine_grid_reference_no_finer_than_the_teacher_is_refused():
+    case = SimpleNamespace(cfg=config_from_dict({"evaluate": {"reference": "fine_grid"},
+                                                 "dataset": {"teacher_refine": 2}}))
+    with pytest.raises(InputError, match="no finer than the teacher"):
+        reference_registry.check_reference(case)
+    case.cfg.evaluate.reference_refinement = 4.0
+    reference_registry.check_reference(case)
+
+
 def test_the_reference_choices_come_from_the_registry():
     assert set(reference_registry.reference_names()) >= {"fine_grid", "p2"}
     with pytest.raises(InputError, match="reference"):

@@ -232,3 +232,31 @@ def test_fe_engine_holds_skin_that_the_face_reaches(phantom_case):
     moved = np.array([les.displacement for les in r_follow.lesions])
     rest_only = np.array([les.displacement for les in r_plain.lesions])
     assert np.abs(moved - rest_only).max() > 0.5
+
+
+def test_the_fe_engine_solves_on_a_refined_teacher_grid(coarse_case):
+    """With [dataset] teacher_refine = 2 the FE engine solves on the teacher's grid (about 8x
+    the cells) and answers on the case grid: the central lesion moves the same way, by a
+    similar amount (the two grids' discretisation errors differ)."""
+    import copy
+
+    from biopsynav.case import Case
+    from biopsynav.fem import SolverSettings
+    from biopsynav.tracker.core import fem_engine
+
+    cfg = copy.deepcopy(coarse_case.cfg)
+    cfg.dataset.teacher_refine = 2
+    refined = Case(coarse_case.dir, cfg, coarse_case.anatomy, coarse_case.grid)
+    settings = SolverSettings.from_config(cfg.solver)
+    answers = {}
+    for refine, case in ((1, coarse_case), (2, refined)):
+        tracker = fem_engine(case, settings)
+        assert (tracker._teacher is None) == (refine == 1)
+        tracker.set_rest_pose(TOP)
+        r = tracker.update(pushed(8.0))
+        assert r.status == "ok", r.reason
+        answers[refine] = np.array(r.lesions[0].displacement)
+    assert len(tracker._fem_model.hexes) > 6 * coarse_case.grid.active_cells.sum()
+    a, b = answers[1], answers[2]
+    assert np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)) > 0.95
+    assert 0.5 < np.linalg.norm(b) / np.linalg.norm(a) < 1.5

@@ -31,21 +31,43 @@ CALIBRATION_INDEX = 2 ** 40
 
 
 def calibrate_force(case: Any) -> dict:
-    """The calibrated ``f_max_n`` (N) of ``case`` and how it was found (plain dict)."""
+    """The calibrated ``f_max_n`` (N) of ``case`` and how it was found (plain dict).
+
+    With a refined teacher (``[dataset] teacher_refine`` > 1) the search runs on the case
+    grid first, where a round costs a fraction of the teacher's, and the teacher's own search
+    starts from that force (``case_grid_rounds`` in the record)."""
     from ..fem import FEModel, SolverSettings
     from ..grid.embedding import surface_embedding
+    from .teacher import build_teacher
 
     start = time.perf_counter()
-    probe = case.cfg.probe
-    target = float(probe.max_push_mm)
-    model = FEModel.from_case(case)
+    target = float(case.cfg.probe.max_push_mm)
     settings = SolverSettings.from_config(case.cfg.solver)
     settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
     pushes = calibration_pushes(case)
-    skin = surface_embedding(case.grid, case.anatomy).matrix
-    contacts = [(skin[push.contact], push.direction) for push in pushes]
+    teacher = build_teacher(case)
+    force, record = float(case.cfg.probe.f_max_n), {}
+    if teacher.transfer is not None:
+        skin = surface_embedding(case.grid, case.anatomy).matrix
+        coarse = search_force(FEModel.from_case(case), settings,
+                              [(skin[p.contact], p.direction) for p in pushes], force, target)
+        force, record = best_force(coarse, target)[0], {"case_grid_rounds": _rounded(coarse)}
+    history = search_force(teacher.model, settings,
+                           [(teacher.skin[p.contact], p.direction) for p in pushes], force,
+                           target)
+    chosen = best_force(history, target)
+    return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),
+            "quantile": QUANTILE, "target_mm": target, "pushes": len(pushes),
+            "rounds": _rounded(history), **record,
+            "seconds": round(time.perf_counter() - start, 1)}
+
+
+def search_force(model: Any, settings: Any, contacts: list, force: float, target: float
+                 ) -> list[tuple[float, float]]:
+    """The (force N, quantile depth mm) rounds of the search from ``force`` until the
+    :data:`QUANTILE` depth of the ``contacts`` pushes (see :func:`calibration_depths`) is
+    within :data:`TOLERANCE` of ``target``, the bracket closes, or :data:`MAX_ROUNDS` pass."""
     history: list[tuple[float, float]] = []
-    force = float(probe.f_max_n)
     for _ in range(MAX_ROUNDS):
         depths = calibration_depths(model, settings, contacts, force)
         history.append((force, float(np.quantile(depths, QUANTILE, method="inverted_cdf"))))
@@ -54,10 +76,7 @@ def calibrate_force(case: Any) -> dict:
         force = next_force(history, target)
         if force is None:
             break
-    chosen = best_force(history, target)
-    return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),
-            "quantile": QUANTILE, "target_mm": target, "pushes": len(pushes),
-            "rounds": _rounded(history), "seconds": round(time.perf_counter() - start, 1)}
+    return history
 
 
 def calibration_pushes(case: Any) -> list:

@@ -92,7 +92,15 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
             "solver": solver, "probe": probe,
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
                         "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,
-                        "contact_input": cfg.dataset.contact_input}}
+                        "contact_input": cfg.dataset.contact_input,
+                        **teacher_protocol(cfg)}}
+
+
+def teacher_protocol(cfg: CaseConfig) -> dict:
+    """The teacher grid's part of the protocol: nothing for the case grid itself (the protocol
+    of before ``[dataset] teacher_refine``), else the refinement."""
+    refine = int(cfg.dataset.teacher_refine)
+    return {} if refine == 1 else {"teacher_refine": refine}
 
 
 def protocol_fingerprint(protocol: dict) -> str:

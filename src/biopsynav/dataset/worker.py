@@ -39,24 +39,30 @@ class WorkerSpec:
 
 
 class SampleContext:
-    """Per-worker precomputation: FE model, solver settings, skin embedding, eligible centres,
-    and the contact compliance of the elastic contact input (``Z`` of the candidate dofs).
+    """Per-worker precomputation: the teacher FE model, solver settings, skin embeddings,
+    eligible centres, and the contact compliance of the elastic contact input (``Z`` of the
+    candidate dofs).
 
     Attributes:
-        model: the :class:`biopsynav.fem.FEModel` (its linear-solver analysis is cached on it).
-        skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex.
-        skin_cells: (n_vertices,) the flat grid cell of each skin vertex.
+        teacher: the :class:`~biopsynav.dataset.teacher.Teacher` (its model's linear-solver
+            analysis is cached on it): the case grid's FE model, or a finer grid's.
+        model: the teacher's :class:`biopsynav.fem.FEModel`.
+        skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex in the case
+            grid (the network input).
+        skin_cells: (n_vertices,) the case grid's flat cell of each skin vertex.
         pinned: (n_vertices,) skin a rigid push may not hold (:func:`biopsynav.probe.pinned_skin`).
         centers: (k,) skin vertices that may centre a push.
     """
 
     def __init__(self, case: Any) -> None:
-        from ..fem import FEModel, SolverSettings
+        from ..fem import SolverSettings
         from ..grid.embedding import surface_embedding
         from ..probe import eligible_centers, pinned_skin
+        from .teacher import build_teacher
 
         self.case = case
-        self.model = FEModel.from_case(case)
+        self.teacher = build_teacher(case)
+        self.model = self.teacher.model
         self.settings = SolverSettings.from_config(case.cfg.solver)
         if hasattr(self.settings, "threads"):
             self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
@@ -91,7 +97,7 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     cfg = ctx.case.cfg
     push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
                            ctx.centers, pinned=ctx.pinned)
-    contact = ctx.skin[push.contact]
+    contact, loaded = ctx.skin[push.contact], ctx.teacher.skin[push.contact]
     start = time.perf_counter()
     result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
                               **push_metadata(push)}
@@ -99,14 +105,14 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         if push.rigid:
             u, report = solve(ctx.model, rigid_push_loads(ctx, push), rigid_push_settings(ctx))
         else:
-            u, report = solve(ctx.model, Loads(forces=nodal_forces(contact, push.force)),
+            u, report = solve(ctx.model, Loads(forces=nodal_forces(loaded, push.force)),
                               ctx.settings)
     except SolverError as exc:
         result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
                       solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
                       newton_iters=len(exc.log))
         return result
-    contact_u = np.asarray(contact @ u)
+    contact_u = np.asarray(loaded @ u)
     probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
     if not push.rigid and too_deep(probe_disp, cfg.probe.max_push_mm):
         result.update(ok=False, kind=TOO_DEEP, probe_disp_mm=probe_disp,
@@ -115,6 +121,7 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
                       solve_s=time.perf_counter() - start, diagnostics=[],
                       newton_iters=int(report.iterations))
         return result
+    u = ctx.teacher.case_field(u)
     node_disp = np.linalg.norm(u, axis=1)
     result.update(
         ok=True,
@@ -139,14 +146,16 @@ RIGID_BUDGET_FACTOR = 4
 
 
 def rigid_push_loads(ctx: SampleContext, push: Any) -> Any:
-    """The loads of a rigid push: the contact points moved by ``push.displacement`` through
-    the constraints of ``[tracker] fem_contact`` (as the FE tracker holds them)."""
+    """The loads of a rigid push on the teacher's grid: the contact points moved by
+    ``push.displacement`` through the constraints of ``[tracker] fem_contact`` (as the FE
+    tracker holds them)."""
     from ..contact.constraints import constraint_rows
     from ..fem import Loads
 
-    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, ctx.skin_cells[push.contact])
+    teacher = ctx.teacher
+    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, teacher.skin_cells[push.contact])
     target = np.broadcast_to(push.displacement, (len(push.contact), 3))
-    return Loads(prescribed_matrix=rows @ ctx.skin[push.contact],
+    return Loads(prescribed_matrix=rows @ teacher.skin[push.contact],
                  prescribed_displacement=rows @ target)
 
 

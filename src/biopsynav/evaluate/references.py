@@ -36,10 +36,23 @@ class GridReference:
 
         t0 = time.perf_counter()
         self.case = case
+        self.check(case)
         self.fine = reference_case(case, setup.refinement)
-        self.tracker = fem_tracker(self.fine, settings)
+        self.tracker = fem_tracker(self.fine, settings, on_teacher=False)
         self.refinement = setup.refinement
         self.build_s = time.perf_counter() - t0
+
+    @staticmethod
+    def check(case: Any) -> None:
+        """InputError when the reference grid is no finer than the teacher's: it would be
+        the network's own teacher, not a truth."""
+        ev, refine = case.cfg.evaluate, int(case.cfg.dataset.teacher_refine)
+        if ev.reference_refinement <= refine:
+            raise InputError(f"the fine_grid reference ({ev.reference_refinement:g} times finer "
+                             f"than the case grid) is no finer than the teacher ([dataset] "
+                             f"teacher_refine = {refine}): raise [evaluate] "
+                             "reference_refinement or use reference = \"p2\"",
+                             "[evaluate] reference")
 
     def set_rest_pose(self, pose: np.ndarray) -> int:
         return self.tracker.set_rest_pose(pose)

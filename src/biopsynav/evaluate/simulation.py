@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from ..case import Case, as_case
-from ..fem import FEModel, SolverSettings
+from ..fem import SolverSettings
 from ..grid.build import build_grid
 from ..reference_registry import build_reference
-from ..tracker.core import Tracker
+from ..tracker.core import Tracker, fem_engine
 from ..tracker.result import TrackingResult
 from .placement import Placement, place_probe, push_depths
 from .table import AGREEMENT, BIN_NAMES, Record, aggregate, bin_name
@@ -57,9 +57,11 @@ def reference_case(case: Case, refinement: float) -> Case:
     return Case(case.dir, case.cfg, case.anatomy, grid)
 
 
-def fem_tracker(case: Case, settings: SolverSettings) -> Tracker:
-    """A tracker backed by the FE model of ``case`` (whatever its grid)."""
-    return Tracker(case, "fem", fem_model=FEModel.from_case(case), fem_settings=settings)
+def fem_tracker(case: Case, settings: SolverSettings, on_teacher: bool = True) -> Tracker:
+    """A tracker backed by the FE model of ``case``: Table 2's FE method solves on the
+    network's teacher grid (``[dataset] teacher_refine``); a reference (``on_teacher``
+    False) on ``case``'s own grid, whatever it is."""
+    return fem_engine(case, settings, on_teacher)
 
 
 def select_lesions(n_lesions: int, max_lesions: int) -> list[int]:

@@ -19,7 +19,10 @@ from ..materials import MATERIAL_LAWS, lame_constants
 from . import kernels
 
 if TYPE_CHECKING:
+    from ..anatomy.model import Anatomy
     from ..case import Case
+    from ..config import CaseConfig
+    from ..grid.model import Grid
 
 
 
@@ -104,10 +107,15 @@ class FEModel:
     def from_case(cls, case: Case) -> FEModel:
         """The model of a case: active grid cells, each the volume-weighted mixture of its
         tissues (:mod:`biopsynav.fem.tissues`), chest wall fixed."""
+        return cls.from_grid(case.grid, case.cfg, case.anatomy)
+
+    @classmethod
+    def from_grid(cls, grid: Grid, cfg: CaseConfig, anatomy: Anatomy) -> FEModel:
+        """The model of ``anatomy`` on ``grid`` (the case's grid, or a finer teacher grid)
+        with the materials, law and chest wall of ``cfg``."""
         from .tissues import cell_lame, label_tissues, small_strain
 
-        cfg, grid = case.cfg, case.grid
-        tissues = label_tissues(grid.label_values, cfg, case.anatomy)
+        tissues = label_tissues(grid.label_values, cfg, anatomy)
         mu, lam = cell_lame(grid.active_label_share(), tissues, cfg)
         e_mpa, nu = small_strain(mu, lam)
         weight = np.clip(grid.active_fraction(), cfg.grid.min_fraction, 1.0)

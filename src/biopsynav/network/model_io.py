@@ -65,15 +65,16 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
 
 
 def teacher(data: Dataset) -> dict:
-    """What taught the model: the data set's protocol fingerprint, its material law, and its
+    """What taught the model: the data set's protocol fingerprint, its material law, its
     share of rigid-probe pushes (0: the paper's force patches only) with their contact
-    constraints."""
+    constraints, and the teacher grid's refinement (1: the case grid)."""
     protocol = data.attrs.get("protocol") or {}
     probe = protocol.get("probe", {})
     return {"protocol_fingerprint": data.attrs.get("protocol_fingerprint"),
             "material_model": protocol.get("material", {}).get("model"),
             "rigid_share": float(probe.get("rigid_share", 0.0)),
-            "fem_contact": protocol.get("fe_model", {}).get("fem_contact")}
+            "fem_contact": protocol.get("fe_model", {}).get("fem_contact"),
+            "teacher_refine": int(protocol.get("dataset", {}).get("teacher_refine", 1))}
 
 
 def _contact_input(data: Dataset) -> str:

@@ -102,8 +102,14 @@ class Tracker:
     """Lesion tracker of one case, backed by the U-Net (``engine="net"``) or the FE model."""
 
     def __init__(self, case: Case, engine: str, surrogate=None, fem_model=None,
-                 fem_settings=None) -> None:
+                 fem_settings=None, teacher=None) -> None:
+        """``teacher``: a refined :class:`~biopsynav.dataset.teacher.Teacher` whose grid the FE
+        engine solves on (``fem_model`` is its model), its answer fitted to the case grid;
+        None: the FE engine solves on the case grid."""
         self.case = case
+        self._teacher = teacher
+        self._fem_contact: Embedding | None = None  # contact points in the FE engine's grid
+        self._fem_surface: Embedding | None = None
         self.engine = engine
         self._surrogate = surrogate
         self._fem_model = fem_model
@@ -168,10 +174,9 @@ class Tracker:
                                  else threads)
             return cls(case, engine, surrogate=sur)
         if engine == "fem":
-            from ..fem import FEModel, SolverSettings
+            from ..fem import SolverSettings
 
-            return cls(case, engine, fem_model=FEModel.from_case(case),
-                       fem_settings=SolverSettings.from_config(case.cfg.solver))
+            return fem_engine(case, SolverSettings.from_config(case.cfg.solver))
         raise InputError(f"unknown engine {engine!r}; use net or fem", "tracker")
 
     @property
@@ -202,7 +207,7 @@ class Tracker:
         self._contact = idx
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
-        self._input_op = self._fem_rows = None
+        self._input_op = self._fem_rows = self._fem_contact = None
         self._lesion_op = self._centre_op = self._projection = None
         self._input[:] = 0.0
         if len(idx):
@@ -221,7 +226,7 @@ class Tracker:
         """Forget the rest pose (and its contact set); ``update`` answers ``no_rest_pose``."""
         self._rest = None
         self._contact = np.zeros(0, dtype=np.int64)
-        self._contact_emb = self._input_op = self._fem_rows = None
+        self._contact_emb = self._input_op = self._fem_rows = self._fem_contact = None
         self._lesion_op = self._centre_op = self._projection = None
 
     def _set_lesion_operators(self, contact) -> None:
@@ -356,7 +361,9 @@ class Tracker:
         contact_follows_pose`` skin that the face reaches is added as frictionless contact
         (an active set: solve, find skin behind the face plane under the footprint, hold it
         on the plane along the beam, free to slide, and solve again; at most
-        ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added."""
+        ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added. With a
+        refined teacher the solve runs on its grid and the answer is fitted to the case
+        grid."""
         touched = np.zeros(0, dtype=np.int64)
         u = self._fem_solve(u_c, pose, touched)
         if self.case.cfg.tracker.contact_follows_pose:
@@ -367,7 +374,7 @@ class Tracker:
                 touched = np.concatenate([touched, new])
                 u = self._fem_solve(u_c, pose, touched)
         self.last_touched = touched
-        return u
+        return u if self._teacher is None else self._teacher.case_field(u)
 
     def _fem_solve(self, u_c: np.ndarray, pose: np.ndarray, touched: np.ndarray) -> np.ndarray:
         """One solve: the rest contact points prescribed to ``u_c`` and the skin vertices
@@ -375,13 +382,13 @@ class Tracker:
         from ..fem import Loads, solve
 
         rows = self._constraint_rows()
-        w, g = rows @ self._contact_emb.matrix, rows @ u_c
+        w, g = rows @ self._fem_contact_embedding().matrix, rows @ u_c
         normals = None
         if len(touched):
             beam = pose[:3, 2]
             rest = self.case.anatomy.vertices[touched]
             depth = (rest - pose[:3, 3]) @ beam  # < 0: behind the face, rest position
-            w = sp.vstack([w, self._surface_embedding().subset(touched).matrix]).tocsr()
+            w = sp.vstack([w, self._fem_surface_embedding().subset(touched).matrix]).tocsr()
             g = np.vstack([g, -depth[:, None] * beam])
             normals = np.vstack([np.zeros((rows.shape[0], 3)), np.tile(beam, (len(touched), 1))])
         u, self.last_solve = solve(self._fem_model, Loads(
@@ -392,10 +399,12 @@ class Tracker:
     def _skin_behind_face(self, u: np.ndarray, pose: np.ndarray, touched: np.ndarray
                           ) -> np.ndarray:
         """Skin vertices not yet held (off the chest wall, facing the probe, not in a cell of
-        the rest contact set) that the displacement ``u`` (n_nodes, 3) mm puts under the
-        footprint and more than ``PENETRATION_TOL_MM`` behind the face plane at ``pose``."""
+        the rest contact set) that the displacement ``u`` (n_fem_nodes, 3) mm of the FE
+        engine's grid puts under the footprint and more than ``PENETRATION_TOL_MM`` behind the
+        face plane at ``pose``."""
         a = self.case.anatomy
-        moved = a.vertices + self._surface_embedding().interpolate(u)
+        skin = self._fem_surface_embedding()
+        moved = a.vertices + skin.interpolate(u)
         local = (moved - pose[:3, 3]) @ pose[:3, :3]
         fp = as_footprint(self.case.cfg.probe.footprint)
         behind = ((local[:, 2] < -PENETRATION_TOL_MM) & fp.inside(local[:, :2])
@@ -406,10 +415,27 @@ class Tracker:
         # nodes of the cells holding rest contact points move with the probe already: a
         # constraint on a point of a cell sharing them could only contradict them (and, with a
         # small weight on the other nodes, invert the cell)
-        pinned = np.zeros(self.case.grid.n_nodes, dtype=bool)
-        pinned[self._contact_emb.nodes] = True
-        behind &= ~pinned[self._surface_embedding().nodes].any(axis=1)
+        pinned = np.zeros(len(u), dtype=bool)
+        pinned[self._fem_contact_embedding().nodes] = True
+        behind &= ~pinned[skin.nodes].any(axis=1)
         return np.flatnonzero(behind)
+
+    def _fem_contact_embedding(self) -> Embedding:
+        """The rest contact points in the FE engine's grid (the teacher's, or the case's)."""
+        if self._teacher is None:
+            return self._contact_emb
+        if self._fem_contact is None:
+            self._fem_contact = Embedding.build(self._teacher.grid, self._contact_points,
+                                                where="contact points")
+        return self._fem_contact
+
+    def _fem_surface_embedding(self) -> Embedding:
+        """Every skin vertex in the FE engine's grid."""
+        if self._teacher is None:
+            return self._surface_embedding()
+        if self._fem_surface is None:
+            self._fem_surface = surface_embedding(self._teacher.grid, self.case.anatomy)
+        return self._fem_surface
 
     def _constraint_rows(self):
         """The FE engine's constraint rows (n_constraints, n_contact) for the rest pose's
@@ -418,7 +444,7 @@ class Tracker:
             from ..contact.constraints import constraint_rows
 
             self._fem_rows = constraint_rows(self.case.cfg.tracker.fem_contact,
-                                             self._contact_emb.cells)
+                                             self._fem_contact_embedding().cells)
         return self._fem_rows
 
     def _set_input(self, u_c: np.ndarray) -> None:
@@ -471,3 +497,16 @@ class Tracker:
         lesions = [LesionResult(i, nan.copy(), nan.copy(), status) for i in self._lesion_ids]
         return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
 
+
+def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
+    """A tracker backed by the FE model with solver ``settings``: on the teacher's grid when
+    ``on_teacher`` and ``[dataset] teacher_refine`` > 1 (the FE that taught the network),
+    else on ``case``'s own grid."""
+    from ..dataset.teacher import build_teacher
+    from ..fem import FEModel
+
+    if on_teacher and int(case.cfg.dataset.teacher_refine) > 1:
+        teacher = build_teacher(case)
+        return Tracker(case, "fem", fem_model=teacher.model, fem_settings=settings,
+                       teacher=teacher)
+    return Tracker(case, "fem", fem_model=FEModel.from_case(case), fem_settings=settings)

@@ -1,0 +1,116 @@
+"""A finer teacher grid for the same anatomy, and its displacement fields on the case grid.
+
+The network predicts on the case grid (real-time), but that grid's FE is not converged under a
+10 mm probe face (docs/fem.md). With ``[dataset] teacher_refine = r`` the training samples are
+solved on a grid of cells ``r`` times smaller (:func:`refined_grid`), and each solution is
+brought to the case grid by :class:`FieldTransfer`: the case-grid node field whose trilinear
+interpolation is nearest, in the least-squares sense, to the fine field over the tissue (the
+centre of every fine active cell, weighted by its tissue volume), with a small penalty on
+differences between neighbouring nodes so that nodes the tissue barely touches follow their
+neighbours. Fixed (chest-wall) nodes stay zero. The operator is factorised once per grid pair.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from ..anatomy.model import Anatomy
+from ..config import GridSection
+from ..errors import InputError
+from . import index
+from .build import build_grid
+from .embedding import Embedding
+from .model import Grid
+
+#: weight of the neighbour-difference penalty, relative to the mean diagonal of the data term
+SMOOTHING = 1e-3
+
+
+def refined_grid(anatomy: Anatomy, settings: GridSection, refine: int,
+                 max_fixed_share: float = 1.0, chest_tol_mm: float = 1.0) -> Grid:
+    """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm / refine`` (no
+    padding: no network runs on it)."""
+    if int(refine) < 1:
+        raise InputError(f"the teacher's refinement must be a positive integer, got {refine}",
+                         "[dataset] teacher_refine")
+    fine = dataclasses.replace(settings, cell_size_mm=settings.cell_size_mm / int(refine))
+    return build_grid(anatomy, fine, 0, max_fixed_share, chest_tol_mm)
+
+
+class FieldTransfer:
+    """Fine-grid node fields (n_fine_nodes, 3) -> case-grid node fields (n_nodes, 3), mm.
+
+    Attributes:
+        free: (n_free,) flat case-grid nodes that carry values (active, not fixed).
+        n_points: fine active cells used as sample points.
+    """
+
+    def __init__(self, coarse: Grid, fine: Grid, smoothing: float = SMOOTHING) -> None:
+        centres, weight, sample = fine_cell_samples(fine)
+        emb = Embedding.build(coarse, centres, require_active=False, where="teacher grid")
+        keep = coarse.active_cells.ravel()[emb.cells]
+        self.n_nodes = coarse.n_nodes
+        self.free = np.flatnonzero(np.asarray(coarse.active_nodes & ~coarse.fixed_nodes).ravel())
+        col = np.full(coarse.n_nodes, -1, dtype=np.int64)
+        col[self.free] = np.arange(len(self.free))
+        n = _restricted(emb.matrix[keep], col, len(self.free))  # (n_pts, n_free)
+        data = n.T @ sp.diags(weight[keep]) @ n
+        scale = float(data.diagonal().mean()) if data.nnz else 1.0
+        diff = neighbour_differences(coarse, col, len(self.free))
+        self._lu = splu((data + smoothing * scale * (diff.T @ diff)).tocsc())
+        self._rhs = (n.T @ sp.diags(weight[keep]) @ sample[keep]).tocsr()
+        self.n_points = int(keep.sum())
+
+    def __call__(self, fine_field: np.ndarray) -> np.ndarray:
+        """The case-grid field (n_nodes, 3) mm of a fine node field (n_fine_nodes, 3) mm."""
+        values = self._lu.solve(np.asarray(self._rhs @ np.asarray(fine_field, np.float64)))
+        out = np.zeros((self.n_nodes, 3))
+        out[self.free] = values
+        return out
+
+
+def fine_cell_samples(fine: Grid) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
+    """Centres (n, 3) mm of the fine active cells, their tissue volume fractions (n,), and
+    the CSR (n, n_fine_nodes) matrix averaging each cell's 8 nodes (the field at the centre)."""
+    ijk = fine.active_cell_ijk()
+    centres = fine.origin + (ijk + 0.5) * fine.spacing
+    hexes = index.hex_connectivity(ijk, fine.node_shape)
+    rows = np.repeat(np.arange(len(ijk)), 8)
+    sample = sp.csr_matrix((np.full(rows.size, 0.125), (rows, hexes.ravel())),
+                           shape=(len(ijk), fine.n_nodes))
+    return centres, fine.active_fraction().astype(np.float64), sample
+
+
+def _restricted(matrix: sp.csr_matrix, col: np.ndarray, n_free: int) -> sp.csr_matrix:
+    """Columns of ``matrix`` (n, n_nodes) renumbered to the free nodes; fixed or inactive
+    columns dropped (they hold zero)."""
+    m = matrix.tocoo()
+    c = col[m.col]
+    ok = c >= 0
+    return sp.csr_matrix((m.data[ok], (m.row[ok], c[ok])), shape=(m.shape[0], n_free))
+
+
+def neighbour_differences(grid: Grid, col: np.ndarray, n_free: int) -> sp.csr_matrix:
+    """Rows ``u_a - u_b`` (n_edges, n_free) for every grid edge between active nodes with at
+    least one free end (a fixed end contributes ``u_a - 0``)."""
+    active = np.asarray(grid.active_nodes).ravel()
+    flat = np.arange(grid.n_nodes).reshape(grid.node_shape)
+    rows, cols, vals, r = [], [], [], 0
+    for axis in range(3):
+        a = np.moveaxis(flat, axis, 0)[:-1].ravel()
+        b = np.moveaxis(flat, axis, 0)[1:].ravel()
+        keep = active[a] & active[b] & ((col[a] >= 0) | (col[b] >= 0))
+        a, b = a[keep], b[keep]
+        edge = r + np.arange(len(a))
+        for node, sign in ((a, 1.0), (b, -1.0)):
+            free = col[node] >= 0
+            rows.append(edge[free])
+            cols.append(col[node][free])
+            vals.append(np.full(int(free.sum()), sign))
+        r += len(a)
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(r, n_free))

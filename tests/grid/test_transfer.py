@@ -1,0 +1,67 @@
+"""The teacher grid and the fit of its fields to the case grid (biopsynav.grid.transfer)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from biopsynav.case import Case
+from biopsynav.errors import InputError
+from biopsynav.grid.embedding import Embedding
+from biopsynav.grid.transfer import FieldTransfer, refined_grid
+
+
+@pytest.fixture(scope="module")
+def grids(base_case):
+    case = Case.load(base_case)
+    fine = refined_grid(case.anatomy, case.cfg.grid, 2, 1.0,
+                        case.cfg.anatomy.chest_wall_tolerance_mm)
+    return case, fine, FieldTransfer(case.grid, fine)
+
+
+def _interior_points(case, fine, clearance_mm):
+    """Centres of full fine cells at least ``clearance_mm`` in front of the chest wall."""
+    ijk = np.argwhere(fine.active_cells & (fine.fraction >= 1.0))
+    pts = fine.origin + (ijk + 0.5) * fine.spacing
+    a = case.anatomy
+    depth = (a.chest_point - pts) @ a.chest_normal
+    return pts[depth > clearance_mm]
+
+
+def test_refined_grid_halves_the_cells(grids):
+    case, fine, _ = grids
+    assert fine.spacing == pytest.approx(case.grid.spacing / 2)
+    tissue = lambda g: float((g.fraction * g.spacing ** 3).sum())  # noqa: E731
+    assert tissue(fine) == pytest.approx(tissue(case.grid), rel=0.03)
+
+
+def test_a_linear_field_comes_through(grids):
+    """A field linear in space, zero on the chest-wall plane, is in both grids' spaces: the fit
+    returns it inside the tissue up to the small smoothing."""
+    case, fine, transfer = grids
+    a = case.anatomy
+
+    def field(points):
+        depth = (a.chest_point - points) @ a.chest_normal  # > 0 in front of the wall
+        return depth[:, None] * np.array([0.05, -0.02, 0.1])
+
+    coarse = transfer(field(fine.node_coords()))
+    pts = _interior_points(case, fine, 2 * case.grid.spacing)
+    got = Embedding.build(case.grid, pts).interpolate(coarse)
+    want = field(pts)
+    assert np.abs(got - want).max() < 0.01 * np.abs(want).max()
+
+
+def test_fixed_nodes_stay_zero_and_zero_maps_to_zero(grids):
+    case, fine, transfer = grids
+    rng = np.random.default_rng(0)
+    out = transfer(rng.normal(size=(fine.n_nodes, 3)))
+    assert np.all(out[np.asarray(case.grid.fixed_nodes).ravel()] == 0.0)
+    assert np.all(out[~np.asarray(case.grid.active_nodes).ravel()] == 0.0)
+    assert np.all(transfer(np.zeros((fine.n_nodes, 3))) == 0.0)
+
+
+def test_refinement_below_one_is_refused(grids):
+    case, _, _ = grids
+    with pytest.raises(InputError, match="teacher_refine"):
+        refined_grid(case.anatomy, case.cfg.grid, 0)

@@ -1,0 +1,38 @@
+"""``biopsynav info``: what taught the trained model, and models written before that was
+recorded (they load and track as they are)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+
+from biopsynav.evaluate.placement import place_probe
+from biopsynav.inference.model_files import meta_checksum
+from biopsynav.info import case_summary, format_summary
+from biopsynav.tracker import Tracker
+
+
+def test_info_names_the_teacher(trained_case):
+    s = case_summary(trained_case)
+    assert s["model_teacher"].startswith("case grid (15 mm cells), neo-hookean, force patches")
+    assert "teacher   case grid" in format_summary(s)
+
+
+def test_a_model_from_before_teachers_were_recorded_still_loads_and_tracks(trained_case,
+                                                                           tmp_path):
+    case_dir = tmp_path / "case"
+    shutil.copytree(trained_case, case_dir)
+    meta_path = case_dir / "model" / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["teacher"]
+    meta["checksum"] = meta_checksum(meta)
+    meta_path.write_text(json.dumps(meta))
+    assert "not recorded" in case_summary(case_dir)["model_teacher"]
+    tracker = Tracker.load(case_dir, engine="net")
+    placement = place_probe(tracker.case.anatomy, 0)
+    assert tracker.set_rest_pose(placement.pose) > 0
+    result = tracker.update(placement.pushed(5.0))
+    assert result.status == "ok"
+    assert np.isfinite([les.displacement for les in result.lesions]).all()
