@@ -61,3 +61,19 @@ def test_refined_targets_live_on_the_case_grid(base_case, refined, reference):
         assert not np.allclose(u_f, u_c, atol=1e-3)
         compared += 1
     assert compared >= 2
+
+
+def test_training_rebuilds_a_refined_sample_s_input_from_its_target(refined):
+    """The stored input comes from the stored (fitted) field at the contact points, so the
+    projection's set-up, which rebuilds it from the target, accepts every sample."""
+    from biopsynav.contact.baseline import LinearElasticBaseline
+    from biopsynav.contact.projection import sample_projections
+    from biopsynav.dataset.contacts import sample_contact_matrices
+
+    case = Case.load(refined)
+    data = zarr.open_group(str(refined / "dataset.zarr"), mode="r")
+    samples = np.flatnonzero(data["done"][:])
+    out = sample_projections(LinearElasticBaseline.from_case(case, spring=None),
+                             sample_contact_matrices(case, refined, samples),
+                             data["inputs"][:], data["targets"][:], samples, str(refined))
+    assert len(out) == len(samples) == 3

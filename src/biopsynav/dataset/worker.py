@@ -123,9 +123,12 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         return result
     u = ctx.teacher.case_field(u)
     node_disp = np.linalg.norm(u, axis=1)
+    # the input from the stored field at the contact points (a refined teacher's field as
+    # fitted to the case grid), so that training rebuilds it from the target
+    case_contact_u = contact_u if ctx.teacher.transfer is None else np.asarray(contact @ u)
     result.update(
         ok=True,
-        inputs=field_to_tensor(contact_input(contact, contact_u, ctx.contact_input,
+        inputs=field_to_tensor(contact_input(contact, case_contact_u, ctx.contact_input,
                                              ctx.compliance), ctx.node_shape)
         .astype(np.float32),
         targets=field_to_tensor(u, ctx.node_shape).astype(np.float32),
