@@ -37,8 +37,8 @@ def calibrate_force(case: Any) -> dict:
     grid first, where a round costs a fraction of the teacher's, and the teacher's own search
     starts from that force (``case_grid_rounds`` in the record)."""
     from ..fem import FEModel, SolverSettings
+    from ..fem.teacher import build_teacher
     from ..grid.embedding import surface_embedding
-    from .teacher import build_teacher
 
     start = time.perf_counter()
     target = float(case.cfg.probe.max_push_mm)

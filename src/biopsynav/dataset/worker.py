@@ -44,7 +44,7 @@ class SampleContext:
     candidate dofs).
 
     Attributes:
-        teacher: the :class:`~biopsynav.dataset.teacher.Teacher` (its model's linear-solver
+        teacher: the :class:`~biopsynav.fem.teacher.Teacher` (its model's linear-solver
             analysis is cached on it): the case grid's FE model, or a finer grid's.
         model: the teacher's :class:`biopsynav.fem.FEModel`.
         skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex in the case
@@ -56,9 +56,9 @@ class SampleContext:
 
     def __init__(self, case: Any) -> None:
         from ..fem import SolverSettings
+        from ..fem.teacher import build_teacher
         from ..grid.embedding import surface_embedding
         from ..probe import eligible_centers, pinned_skin
-        from .teacher import build_teacher
 
         self.case = case
         self.teacher = build_teacher(case)

@@ -44,10 +44,11 @@ class GridReference:
 
     @staticmethod
     def check(case: Any) -> None:
-        """InputError when the reference grid is no finer than the teacher's: it would be
-        the network's own teacher, not a truth."""
+        """InputError when the network has a refined teacher (``[dataset] teacher_refine``
+        > 1) and the reference grid is no finer than it: it would be the network's own
+        teacher, not a truth."""
         ev, refine = case.cfg.evaluate, int(case.cfg.dataset.teacher_refine)
-        if ev.reference_refinement <= refine:
+        if refine > 1 and ev.reference_refinement <= refine:
             raise InputError(f"the fine_grid reference ({ev.reference_refinement:g} times finer "
                              f"than the case grid) is no finer than the teacher ([dataset] "
                              f"teacher_refine = {refine}): raise [evaluate] "

@@ -103,7 +103,7 @@ class Tracker:
 
     def __init__(self, case: Case, engine: str, surrogate=None, fem_model=None,
                  fem_settings=None, teacher=None) -> None:
-        """``teacher``: a refined :class:`~biopsynav.dataset.teacher.Teacher` whose grid the FE
+        """``teacher``: a refined :class:`~biopsynav.fem.teacher.Teacher` whose grid the FE
         engine solves on (``fem_model`` is its model), its answer fitted to the case grid;
         None: the FE engine solves on the case grid."""
         self.case = case
@@ -502,8 +502,8 @@ def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
     """A tracker backed by the FE model with solver ``settings``: on the teacher's grid when
     ``on_teacher`` and ``[dataset] teacher_refine`` > 1 (the FE that taught the network),
     else on ``case``'s own grid."""
-    from ..dataset.teacher import build_teacher
     from ..fem import FEModel
+    from ..fem.teacher import build_teacher
 
     if on_teacher and int(case.cfg.dataset.teacher_refine) > 1:
         teacher = build_teacher(case)

@@ -41,9 +41,9 @@ class Teacher:
 def build_teacher(case: Any) -> Teacher:
     """The teacher of ``case``: its own grid's FE model, or with ``[dataset] teacher_refine``
     > 1 the model of the refined grid and the transfer back."""
-    from ..fem import FEModel
     from ..grid.embedding import surface_embedding
     from ..grid.transfer import FieldTransfer, refined_grid
+    from .model import FEModel
 
     cfg, refine = case.cfg, int(case.cfg.dataset.teacher_refine)
     if refine == 1:
