@@ -3,13 +3,15 @@ derivative of its forces, rigid motions cost nothing, and it interpolates P2 fie
 
 from __future__ import annotations
 
+import signal
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import trimesh
 
-from biopsynav.evaluate.p2 import TetReference, shape_values
+from biopsynav.evaluate.p2 import TetReference, shape_values, tet_mesh
 
 
 @pytest.fixture(scope="module")
@@ -64,3 +66,23 @@ def test_a_push_moves_the_contact_with_the_probe_and_pulls_the_centre(cube):
     assert np.allclose(cube.nodes[contact, 2], 15.0) and len(contact) >= 9
     (centre,) = cube.push(rest, [pushed], contact, np.zeros((1, 3)))
     assert -3.0 < centre[0, 2] < -0.5 and np.abs(centre[0, :2]).max() < 0.05  # mesh asymmetry
+
+
+def _sigpipe_ignored() -> bool:
+    """Whether the process ignores SIGPIPE at the system level (/proc/self/status SigIgn)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("SigIgn:"):
+            return bool(int(line.split()[1], 16) >> (signal.SIGPIPE - 1) & 1)
+    raise AssertionError("no SigIgn line")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
+def test_meshing_leaves_sigpipe_ignored():
+    """gmsh's initialisation resets SIGPIPE to terminate the process; after a meshing the
+    process ignores it again, as Python does (a write to a vanished peer raises
+    BrokenPipeError instead of killing a service or the test run)."""
+    assert _sigpipe_ignored()
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    points, tets = tet_mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces), 10.0)
+    assert len(tets) > 0
+    assert _sigpipe_ignored()

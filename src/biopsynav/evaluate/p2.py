@@ -14,10 +14,15 @@ rigidly with the probe; the rest free. Used by ``benchmarks/convergence.py``; ne
 
 from __future__ import annotations
 
+import signal
 import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,6 +36,34 @@ NEWTON_ITERATIONS = 40
 LINE_SEARCH_HALVINGS = 8
 
 
+@contextmanager
+def gmsh_session() -> Iterator[Any]:
+    """The ``gmsh`` module, initialised for one meshing and finalised after. gmsh's
+    initialisation resets the process's SIGPIPE disposition to the system default
+    (terminate); Python's own (ignore: a write to a closed socket or pipe raises
+    ``BrokenPipeError``) is put back, or a service or test run in the same process would die
+    silently when a peer goes away."""
+    import gmsh
+
+    pipe = getattr(signal, "SIGPIPE", None)
+    handler = signal.getsignal(pipe) if pipe is not None else None
+    gmsh.initialize(interruptible=False)
+    try:
+        _restore_signal(pipe, handler)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+        _restore_signal(pipe, handler)
+
+
+def _restore_signal(signum: Any, handler: Any) -> None:
+    """Set ``handler`` for ``signum`` again (where the platform has it and, as Python
+    requires, from the main thread)."""
+    if signum is not None and handler is not None \
+            and threading.current_thread() is threading.main_thread():
+        signal.signal(signum, handler)
+
+
 def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
              fine_at: np.ndarray | None = None, fine_mm: float = 2.0, fine_radius_mm: float = 35.0
              ) -> tuple[np.ndarray, np.ndarray]:
@@ -38,30 +71,25 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
     ``size_mm``, and of ``fine_mm`` within ``fine_radius_mm`` of ``fine_at`` (3,) mm when
     given (under the probe): points (p, 3) mm and tetrahedra (t, 4), positively oriented
     (gmsh: the surface reparametrised and remeshed, then filled)."""
-    import gmsh
     import trimesh
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, gmsh_session() as gmsh:
         stl = Path(tmp) / "surface.stl"
         trimesh.Trimesh(vertices, faces, process=False).export(stl)
-        gmsh.initialize(interruptible=False)
-        try:
-            gmsh.option.setNumber("General.Terminal", 0)
-            gmsh.merge(str(stl))
-            gmsh.model.mesh.classifySurfaces(np.radians(40.0), True, True, np.pi)
-            gmsh.model.mesh.createGeometry()
-            loop = gmsh.model.geo.addSurfaceLoop([t for _, t in gmsh.model.getEntities(2)])
-            gmsh.model.geo.addVolume([loop])
-            gmsh.model.geo.synchronize()
-            gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
-            gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-            if fine_at is not None:
-                _ball_field(fine_at, fine_mm, size_mm, fine_radius_mm)
-            gmsh.model.mesh.generate(3)
-            tags, coords, _ = gmsh.model.mesh.getNodes()
-            _, elem_nodes = gmsh.model.mesh.getElementsByType(4)  # 4-node tetrahedra
-        finally:
-            gmsh.finalize()
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.merge(str(stl))
+        gmsh.model.mesh.classifySurfaces(np.radians(40.0), True, True, np.pi)
+        gmsh.model.mesh.createGeometry()
+        loop = gmsh.model.geo.addSurfaceLoop([t for _, t in gmsh.model.getEntities(2)])
+        gmsh.model.geo.addVolume([loop])
+        gmsh.model.geo.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        if fine_at is not None:
+            _ball_field(fine_at, fine_mm, size_mm, fine_radius_mm)
+        gmsh.model.mesh.generate(3)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, elem_nodes = gmsh.model.mesh.getElementsByType(4)  # 4-node tetrahedra
     index = np.full(int(tags.max()) + 1, -1)
     index[tags.astype(np.int64)] = np.arange(len(tags))
     tets = index[np.asarray(elem_nodes, dtype=np.int64).reshape(-1, 4)]
