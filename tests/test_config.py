@@ -65,6 +65,9 @@ def test_defaults_round_trip(tmp_path):
     ({"evaluate": {"reference": "oracle"}}, "must be one of"),
     ({"evaluate": {"p2_size_mm": 0.0}}, "below its minimum"),
     ({"evaluate": {"p2_fine_mm": "fine"}}, "p2_fine_mm"),
+    ({"dataset": {"teacher_refine": 0}}, "below its minimum"),
+    ({"dataset": {"teacher_refine": 5}}, "above its maximum"),
+    ({"dataset": {"teacher_refine": 1.5}}, "teacher_refine"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:

@@ -286,7 +286,8 @@ class DatasetSection:
                                  "(biopsynav.grid.transfer); the network still predicts on the "
                                  "case grid. 1: solve on the case grid itself. 2 halves the "
                                  "cells (8x the unknowns): nearer the converged answer under the "
-                                 "probe, each solve about 10x slower (docs/dataset.md).",
+                                 "probe, each solve 10-35x slower on the phantom "
+                                 "(docs/dataset.md).",
                               lo=1, hi=4)
     chunk_samples: int = opt(1, "Samples per storage chunk of inputs and targets (1: a chunk "
                                 "per sample; 'done' always has one chunk per sample).",

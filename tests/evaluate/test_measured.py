@@ -8,7 +8,8 @@ import pytest
 from biopsynav.errors import InputError
 from biopsynav.evaluate import evaluate_case, evaluate_measured, read_measured
 from biopsynav.evaluate.placement import place_probe
-from biopsynav.evaluate.simulation import evaluation_solver_settings, fem_tracker
+from biopsynav.evaluate.simulation import evaluation_solver_settings
+from biopsynav.tracker.core import fem_engine
 from biopsynav.tracker.csvtrack import MATRIX_COLUMNS
 
 LESION = 2  # index of the lesion under the probe (id 3)
@@ -32,7 +33,7 @@ def experiment(coarse_phantom, tmp_path_factory):
     pl = place_probe(a, LESION)
     depths = [0.0, 10.0, 15.0]
     poses = [pl.pushed(d) for d in depths]
-    fem = fem_tracker(coarse_phantom, evaluation_solver_settings(coarse_phantom))
+    fem = fem_engine(coarse_phantom, evaluation_solver_settings(coarse_phantom))
     fem.set_rest_pose(poses[0])
     disp = [np.zeros(3)] + [fem.update(p).lesions[LESION].displacement for p in poses[1:]]
     centre = a.lesions[LESION].center

@@ -8,13 +8,12 @@ import pytest
 from biopsynav.evaluate.placement import place_probe, push_depths
 from biopsynav.evaluate.simulation import (
     evaluation_solver_settings,
-    fem_tracker,
     push_records,
     reference_case,
     select_lesions,
 )
 from biopsynav.evaluate.table import BIN_NAMES, bin_name
-from biopsynav.tracker.core import contact_indices
+from biopsynav.tracker.core import contact_indices, fem_engine
 from biopsynav.tracker.result import LesionResult, TrackingResult
 
 
@@ -98,8 +97,8 @@ def test_fine_reference_moves_the_lesion_and_fem_tracks_it(coarse_phantom):
     ref = reference_case(coarse_phantom, 1.5)
     assert ref.grid.spacing == pytest.approx(10.0)
     assert ref.grid.active_cells.sum() > coarse_phantom.grid.active_cells.sum()
-    reference = fem_tracker(ref, settings)
-    fem = fem_tracker(coarse_phantom, settings)
+    reference = fem_engine(ref, settings, on_teacher=False)
+    fem = fem_engine(coarse_phantom, settings)
     pl = place_probe(coarse_phantom.anatomy, 2)
     n_ref = reference.set_rest_pose(pl.pose)
     assert fem.set_rest_pose(pl.pose) == n_ref > 0  # same skin vertices on both grids

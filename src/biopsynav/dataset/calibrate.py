@@ -53,7 +53,7 @@ def calibrate_force(case: Any) -> dict:
                               [(skin[p.contact], p.direction) for p in pushes], force, target)
         force, record = best_force(coarse, target)[0], {"case_grid_rounds": _rounded(coarse)}
     history = search_force(teacher.model, settings,
-                           [(teacher.skin[p.contact], p.direction) for p in pushes], force,
+                           [(teacher.skin.matrix[p.contact], p.direction) for p in pushes], force,
                            target)
     chosen = best_force(history, target)
     return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),

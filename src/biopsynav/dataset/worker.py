@@ -48,8 +48,7 @@ class SampleContext:
             analysis is cached on it): the case grid's FE model, or a finer grid's.
         model: the teacher's :class:`biopsynav.fem.FEModel`.
         skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex in the case
-            grid (the network input).
-        skin_cells: (n_vertices,) the case grid's flat cell of each skin vertex.
+            grid (the network input; the teacher's own when it solves on the case grid).
         pinned: (n_vertices,) skin a rigid push may not hold (:func:`biopsynav.probe.pinned_skin`).
         centers: (k,) skin vertices that may centre a push.
     """
@@ -67,8 +66,9 @@ class SampleContext:
         if hasattr(self.settings, "threads"):
             self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
         self.settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
-        skin = surface_embedding(case.grid, case.anatomy)
-        self.skin, self.skin_cells = skin.matrix, skin.cells
+        skin = (self.teacher.skin if self.teacher.transfer is None
+                else surface_embedding(case.grid, case.anatomy))
+        self.skin = skin.matrix
         self.pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.node_shape = case.grid.node_shape
@@ -97,7 +97,7 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     cfg = ctx.case.cfg
     push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
                            ctx.centers, pinned=ctx.pinned)
-    contact, loaded = ctx.skin[push.contact], ctx.teacher.skin[push.contact]
+    contact, loaded = ctx.skin[push.contact], ctx.teacher.skin.matrix[push.contact]
     start = time.perf_counter()
     result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
                               **push_metadata(push)}
@@ -124,11 +124,11 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     u = ctx.teacher.case_field(u)
     node_disp = np.linalg.norm(u, axis=1)
     # the input from the stored field at the contact points (a refined teacher's field as
-    # fitted to the case grid), so that training rebuilds it from the target
-    case_contact_u = contact_u if ctx.teacher.transfer is None else np.asarray(contact @ u)
+    # fitted to the case grid; on the case grid, contact_u itself), so that training
+    # rebuilds it from the target
     result.update(
         ok=True,
-        inputs=field_to_tensor(contact_input(contact, case_contact_u, ctx.contact_input,
+        inputs=field_to_tensor(contact_input(contact, np.asarray(contact @ u), ctx.contact_input,
                                              ctx.compliance), ctx.node_shape)
         .astype(np.float32),
         targets=field_to_tensor(u, ctx.node_shape).astype(np.float32),
@@ -156,9 +156,9 @@ def rigid_push_loads(ctx: SampleContext, push: Any) -> Any:
     from ..fem import Loads
 
     teacher = ctx.teacher
-    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, teacher.skin_cells[push.contact])
+    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, teacher.skin.cells[push.contact])
     target = np.broadcast_to(push.displacement, (len(push.contact), 3))
-    return Loads(prescribed_matrix=rows @ teacher.skin[push.contact],
+    return Loads(prescribed_matrix=rows @ teacher.skin.matrix[push.contact],
                  prescribed_displacement=rows @ target)
 
 

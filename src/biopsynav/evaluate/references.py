@@ -32,13 +32,14 @@ class GridReference:
     """biopsynav's FE tracker on a finer grid (``fine_grid``)."""
 
     def __init__(self, case: Any, setup: Any, settings: Any) -> None:
-        from .simulation import fem_tracker, reference_case
+        from ..tracker.core import fem_engine
+        from .simulation import reference_case
 
         t0 = time.perf_counter()
         self.case = case
         self.check(case)
         self.fine = reference_case(case, setup.refinement)
-        self.tracker = fem_tracker(self.fine, settings, on_teacher=False)
+        self.tracker = fem_engine(self.fine, settings, on_teacher=False)
         self.refinement = setup.refinement
         self.build_s = time.perf_counter() - t0
 

@@ -57,13 +57,6 @@ def reference_case(case: Case, refinement: float) -> Case:
     return Case(case.dir, case.cfg, case.anatomy, grid)
 
 
-def fem_tracker(case: Case, settings: SolverSettings, on_teacher: bool = True) -> Tracker:
-    """A tracker backed by the FE model of ``case``: Table 2's FE method solves on the
-    network's teacher grid (``[dataset] teacher_refine``); a reference (``on_teacher``
-    False) on ``case``'s own grid, whatever it is."""
-    return fem_engine(case, settings, on_teacher)
-
-
 def select_lesions(n_lesions: int, max_lesions: int) -> list[int]:
     """Indices of the lesions evaluated: all, or ``max_lesions`` spread evenly over the list."""
     if max_lesions <= 0 or max_lesions >= n_lesions:
@@ -146,7 +139,7 @@ def _method_trackers(case: Case, methods: Sequence[str],
     if "net" in methods:
         trackers["net"] = Tracker.load(case, engine="net")
     if "fem" in methods:
-        trackers["fem"] = fem_tracker(case, settings)
+        trackers["fem"] = fem_engine(case, settings)  # on the network's teacher grid
     return trackers
 
 

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 
 
 @dataclass
@@ -17,21 +16,17 @@ class Teacher:
 
     Attributes:
         model: the :class:`biopsynav.fem.FEModel` solved.
-        skin: CSR (n_vertices, n_model_nodes) trilinear embedding of every skin vertex in the
+        grid: the model's :class:`~biopsynav.grid.model.Grid`.
+        skin: the :class:`~biopsynav.grid.embedding.Embedding` of every skin vertex in the
             model's grid (loads and contact displacements).
-        skin_cells: (n_vertices,) the model grid's flat cell of each skin vertex.
         transfer: model node field (n_model_nodes, 3) mm -> case-grid node field (n_nodes, 3)
             mm; None when the model is on the case grid.
-        cell_mm: the model grid's cell size, mm.
-        grid: the model's :class:`~biopsynav.grid.model.Grid`.
     """
 
     model: Any
-    skin: sp.csr_matrix
-    skin_cells: np.ndarray
+    grid: Any
+    skin: Any
     transfer: Any
-    cell_mm: float
-    grid: Any = None
 
     def case_field(self, u: np.ndarray) -> np.ndarray:
         """A solution (n_model_nodes, 3) mm on the case grid (n_nodes, 3) mm."""
@@ -52,6 +47,5 @@ def build_teacher(case: Any) -> Teacher:
         grid = refined_grid(case.anatomy, cfg.grid, refine, 1.0,
                             cfg.anatomy.chest_wall_tolerance_mm)
         transfer = FieldTransfer(case.grid, grid)
-    skin = surface_embedding(grid, case.anatomy)
-    return Teacher(FEModel.from_grid(grid, cfg, case.anatomy), skin.matrix, skin.cells,
-                   transfer, float(grid.spacing), grid)
+    return Teacher(FEModel.from_grid(grid, cfg, case.anatomy), grid,
+                   surface_embedding(grid, case.anatomy), transfer)

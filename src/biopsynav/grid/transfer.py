@@ -46,7 +46,6 @@ class FieldTransfer:
 
     Attributes:
         free: (n_free,) flat case-grid nodes that carry values (active, not fixed).
-        n_points: fine active cells used as sample points.
     """
 
     def __init__(self, coarse: Grid, fine: Grid, smoothing: float = SMOOTHING) -> None:
@@ -63,7 +62,6 @@ class FieldTransfer:
         diff = neighbour_differences(coarse, col, len(self.free))
         self._lu = splu((data + smoothing * scale * (diff.T @ diff)).tocsc())
         self._rhs = (n.T @ sp.diags(weight[keep]) @ sample[keep]).tocsr()
-        self.n_points = int(keep.sum())
 
     def __call__(self, fine_field: np.ndarray) -> np.ndarray:
         """The case-grid field (n_nodes, 3) mm of a fine node field (n_fine_nodes, 3) mm."""
