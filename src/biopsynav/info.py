@@ -43,7 +43,8 @@ def case_summary(case: Case | str | Path) -> dict:
         "tissues": tissue_table(case),
         "crop_vertices": int(np.asarray(a.crop_vertices).sum()),
         "label_map": {k: facts[k] for k in ("breast", "label_volume_ml", "surface_volume_ml",
-                                            "voxel_mm") if k in facts},
+                                            "voxel_mm", "unlabelled_holes_voxels")
+                      if k in facts},
         "stages": case.stages_done(),
         "model_teacher": model_teacher(case),
         "fingerprint": case.fingerprint()[:16],
@@ -138,4 +139,6 @@ def _label_map_lines(s: dict) -> list[str]:
         return []
     return [f"  labelmap  {m.get('breast', '')}; voxels {m.get('voxel_mm')} mm; labels "
             f"{m.get('label_volume_ml')} mL, surface {m.get('surface_volume_ml')} mL; "
-            f"{s['crop_vertices']} surface vertices on crop faces (never pushed)"]
+            f"{s['crop_vertices']} surface vertices on crop faces (never pushed)"
+            + (f"; {m['unlabelled_holes_voxels']} unlabelled voxels inside the breast take "
+               "the nearest labelled tissue" if m.get("unlabelled_holes_voxels") else "")]

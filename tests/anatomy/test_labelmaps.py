@@ -232,6 +232,46 @@ def test_markups_and_csv_frames(segmentation, tmp_path, capsys):
     assert code == 2 and "control point 1" in err
 
 
+def test_markup_lesions_pick_the_breast_that_holds_them(segmentation, tmp_path, capsys):
+    """Without --side, lesions given as markups choose the breast as lesion labels do."""
+    path, lab = segmentation
+    markups = tmp_path / "lesions.mrk.json"
+    lps = (to_ras(np.argwhere(lab == -4).mean(axis=0)) * LPS_TO_RAS).tolist()
+    markups.write_text(json.dumps({"markups": [{"coordinateSystem": "LPS",
+                                                "controlPoints": [{"position": lps}]}]}))
+    code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
+                       "fat,skin,benign", "--chest-labels", "muscle", "--tissue-labels",
+                       "-4=lesion", "--lesions", markups)
+    assert code == 0, err
+    case = Case.load(tmp_path / "c")
+    assert case.anatomy.vertices[:, 0].min() > -90.0  # the patient's right breast
+    facts = json.loads(case.paths.facts.read_text())
+    assert "holding the lesions" in facts["breast"]
+
+
+def test_unlabelled_gaps_inside_the_breast_take_the_nearest_tissue(tmp_path, capsys):
+    """Background voxels enclosed by the breast (gaps a segmentation leaves) are breast, with
+    the tissue of their neighbours: never an unmapped label 0; info counts them."""
+    lab = bilateral_labels()
+    from scipy import ndimage
+
+    fat = np.argwhere(ndimage.binary_erosion(lab == 1, iterations=2, border_value=0))
+    gaps = fat[np.random.default_rng(0).choice(len(fat), 40, replace=False)]
+    lab[tuple(gaps.T)] = 0
+    path = tmp_path / "gaps.seg.nrrd"
+    write_segmentation(path, lab)
+    code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--side", "left",
+                       "--breast-labels", "fat,skin", "--chest-labels", "muscle")
+    assert code == 0, err
+    case = Case.load(tmp_path / "c")
+    assert 0 not in set(np.unique(case.anatomy.label_values).tolist())
+    left = (gaps[:, 0] * SPACING[0] > 85.0).sum()
+    facts = json.loads(case.paths.facts.read_text())
+    assert facts["unlabelled_holes_voxels"] == left > 0
+    code, out, _ = run(capsys, "info", tmp_path / "c")
+    assert f"{left} unlabelled voxels inside the breast" in out
+
+
 def test_labelled_volume_mesh_without_a_tissue_map_exits_2_at_init(tmp_path, capsys):
     """Tissue labels of a volume mesh with no mapping (UC Davis without --tissue-labels): one
     line at init naming them, with the option that maps them; nothing written."""

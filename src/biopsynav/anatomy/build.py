@@ -19,16 +19,14 @@ from .surface import check_units, close_surface, split_pinch_vertices
 def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
     """Read, repair and check the anatomy of a case (mm, RAS); also return facts for ``info``."""
     a = cfg.anatomy
-    raw, where = read_raw(cfg, case_dir)
+    lesions = (read_lesions(case_dir / a.lesions, a.lesion_points, a.input_frame,
+                            a.lesion_radius_mm) if a.lesions else [])
+    raw, where = read_raw(cfg, case_dir, np.array([les.center for les in lesions]))
     check_units(raw.vertices, where)
     vertices, faces = close_surface(raw.vertices, raw.faces, where)
     vertices, faces, n_pinch = split_pinch_vertices(vertices, faces)
-    lesions = raw.lesions
-    lesion_source = where
-    if a.lesions:
-        lesion_source = str(case_dir / a.lesions)
-        lesions = read_lesions(case_dir / a.lesions, a.lesion_points, a.input_frame,
-                               a.lesion_radius_mm)
+    lesion_source = str(case_dir / a.lesions) if a.lesions else where
+    lesions = lesions or raw.lesions
     curved = len(raw.chest_points) > 0
     point, normal, fixed = chest_wall(vertices, faces, raw.chest_points, a, where)
     check_lesions_inside(lesions, vertices, faces, lesion_source)
@@ -43,8 +41,10 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
     return anatomy, facts
 
 
-def read_raw(cfg: CaseConfig, case_dir: Path) -> tuple[RawAnatomy, str]:
-    """The anatomy input of ``cfg`` in RAS, and the name errors give it."""
+def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None = None
+             ) -> tuple[RawAnatomy, str]:
+    """The anatomy input of ``cfg`` in RAS, and the name errors give it; ``lesion_centres``
+    (n, 3) mm RAS, from a lesion file, pick the breast of a bilateral label map."""
     a = cfg.anatomy
     if a.source == "phantom":
         vertices, faces = phantom_surface()
@@ -53,7 +53,8 @@ def read_raw(cfg: CaseConfig, case_dir: Path) -> tuple[RawAnatomy, str]:
     path = case_dir / a.path
     raw = read_anatomy(path, a.breast_labels, a.lesion_labels, a.label_field,
                        chest_labels=a.chest_labels, side=a.side,
-                       spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm)
+                       spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm,
+                       lesion_centres=lesion_centres)
     if a.source != "labelmap" and a.input_frame == "lps":
         raw.vertices = raw.vertices * LPS_TO_RAS
         raw.label_points = raw.label_points * LPS_TO_RAS

@@ -48,6 +48,19 @@ class LabelImage:
         lps = self.origin + (np.asarray(ijk, np.float64) * self.spacing) @ self.direction.T
         return lps * LPS_TO_RAS
 
+    def voxels_at(self, ras: np.ndarray | None) -> np.ndarray:
+        """Mask (labels' shape) of the voxels that hold the points ``ras`` (n, 3) mm; points
+        outside the image mark nothing."""
+        mask = np.zeros(self.labels.shape, bool)
+        if ras is None or len(ras) == 0:
+            return mask
+        lps = np.asarray(ras, np.float64).reshape(-1, 3) * LPS_TO_RAS
+        ijk = np.rint(np.linalg.solve(self.direction, (lps - self.origin).T).T
+                      / self.spacing).astype(np.int64)
+        ok = ((ijk >= 0) & (ijk < np.array(self.labels.shape))).all(axis=1)
+        mask[tuple(ijk[ok].T)] = True
+        return mask
+
     @property
     def voxel_mm3(self) -> float:
         """Volume of one voxel, mm^3."""
@@ -172,9 +185,11 @@ def _label_value(item, segments: dict[str, int], option: str, path: Path) -> int
 
 
 def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side: str,
-                       spacing_mm: float, smoothing_mm: float) -> LabelAnatomy:
+                       spacing_mm: float, smoothing_mm: float,
+                       lesion_centres: np.ndarray | None = None) -> LabelAnatomy:
     """The breast of a label map: surface, label samples, lesion masks, crop and chest-wall
-    points (mm, RAS), and facts for ``info``."""
+    points (mm, RAS), and facts for ``info``. The lesion labels' voxels and the voxels at
+    ``lesion_centres`` (n, 3) mm RAS tell which breast holds the lesions."""
     image = read_label_image(path)
     if not breast:
         raise InputError("a label map needs --breast-labels (label values or segment names of "
@@ -183,16 +198,30 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     lesion_v = resolve_labels(lesion, image, "--lesion-labels", path)
     chest_v = resolve_labels(chest, image, "--chest-labels", path)
     mask = np.isin(image.labels, breast_v + lesion_v)
-    mask, cut, facts = select_breast(mask, np.isin(image.labels, lesion_v), side, image, path)
+    held = np.isin(image.labels, lesion_v) | image.voxels_at(lesion_centres)
+    mask, cut, facts = select_breast(mask, held, side, image, path)
+    labelled = mask
     mask = ndimage.binary_fill_holes(mask)  # tissue of other labels enclosed by the breast
     vertices, faces = smooth_surface(mask, image, spacing_mm, smoothing_mm)
     facts.update(volume_facts(mask, vertices, faces, image, path))
-    ijk = np.argwhere(mask)[:: max(1, int(mask.sum()) // MAX_SAMPLES)]
+    sampled = mask & ~unlabelled_holes(labelled, mask, image.labels, breast_v + lesion_v)
+    facts["unlabelled_holes_voxels"] = int(mask.sum() - sampled.sum())
+    ijk = np.argwhere(sampled)[:: max(1, int(sampled.sum()) // MAX_SAMPLES)]
     lesions = _lesion_masks(image.labels, lesion_v, mask)
     return LabelAnatomy(vertices, faces, image.to_ras(ijk),
                         image.labels[tuple(ijk.T)].astype(np.int32), lesions,
                         image.to_ras(crop_voxels(mask, cut)), chest_interface(
                             mask, image, chest_v, path), image, facts)
+
+
+def unlabelled_holes(labelled: np.ndarray, filled: np.ndarray, labels: np.ndarray,
+                     listed: list[int]) -> np.ndarray:
+    """Background voxels (label 0, when 0 is not a listed label) that the breast encloses:
+    gaps in a segmentation. They are inside the breast but carry no tissue; the grid gives
+    them the tissue of the nearest labelled voxel."""
+    if 0 in listed:
+        return np.zeros_like(filled)
+    return filled & ~labelled & (labels == 0)
 
 
 def select_breast(mask: np.ndarray, lesion_mask: np.ndarray, side: str, image: LabelImage,
