@@ -36,6 +36,7 @@ import numpy as np
 
 from ..config import CaseConfig
 from ..errors import FingerprintError, InputError
+from ..fem.teacher import teacher_refinement
 from ..layout import DATASET_NAME
 
 FORMAT = "biopsynav-dataset/1"
@@ -99,7 +100,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
 def teacher_protocol(cfg: CaseConfig) -> dict:
     """The teacher grid's part of the protocol: nothing for the case grid itself (the protocol
     of before ``[dataset] teacher_refine``), else the refinement."""
-    refine = int(cfg.dataset.teacher_refine)
+    refine = teacher_refinement(cfg)
     return {} if refine == 1 else {"teacher_refine": refine}
 
 

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..fem.teacher import teacher_refinement
 
 
 class GridReference:
@@ -48,7 +49,7 @@ class GridReference:
         """InputError when the network has a refined teacher (``[dataset] teacher_refine``
         > 1) and the reference grid is no finer than it: it would be the network's own
         teacher, not a truth."""
-        ev, refine = case.cfg.evaluate, int(case.cfg.dataset.teacher_refine)
+        ev, refine = case.cfg.evaluate, teacher_refinement(case.cfg)
         if refine > 1 and ev.reference_refinement <= refine:
             raise InputError(f"the fine_grid reference ({ev.reference_refinement:g} times finer "
                              f"than the case grid) is no finer than the teacher ([dataset] "

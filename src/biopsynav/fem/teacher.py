@@ -33,6 +33,12 @@ class Teacher:
         return u if self.transfer is None else self.transfer(u)
 
 
+def teacher_refinement(cfg: Any) -> int:
+    """How many times finer than the case grid the teacher's cells are (``[dataset]
+    teacher_refine``; 1: the case grid itself)."""
+    return int(cfg.dataset.teacher_refine)
+
+
 def build_teacher(case: Any) -> Teacher:
     """The teacher of ``case``: its own grid's FE model, or with ``[dataset] teacher_refine``
     > 1 the model of the refined grid and the transfer back."""
@@ -40,7 +46,7 @@ def build_teacher(case: Any) -> Teacher:
     from ..grid.transfer import FieldTransfer, refined_grid
     from .model import FEModel
 
-    cfg, refine = case.cfg, int(case.cfg.dataset.teacher_refine)
+    cfg, refine = case.cfg, teacher_refinement(case.cfg)
     if refine == 1:
         grid, transfer = case.grid, None
     else:

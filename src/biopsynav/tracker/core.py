@@ -503,9 +503,9 @@ def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
     ``on_teacher`` and ``[dataset] teacher_refine`` > 1 (the FE that taught the network),
     else on ``case``'s own grid."""
     from ..fem import FEModel
-    from ..fem.teacher import build_teacher
+    from ..fem.teacher import build_teacher, teacher_refinement
 
-    if on_teacher and int(case.cfg.dataset.teacher_refine) > 1:
+    if on_teacher and teacher_refinement(case.cfg) > 1:
         teacher = build_teacher(case)
         return Tracker(case, "fem", fem_model=teacher.model, fem_settings=settings,
                        teacher=teacher)
