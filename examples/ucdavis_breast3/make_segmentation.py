@@ -4,17 +4,18 @@
 Writes, into OUT (default ``ucd-slicer``):
 
 * ``Segmentation.seg.nrrd``: a bilateral label image as 3D Slicer saves it (one layer, LPS
-  geometry, ``Segment<i>_Name`` / ``_LabelValue`` / ``_Layer`` / ``_ID`` / ``_Color`` fields), 1 mm
-  voxels: segments ``fat``, ``gland`` and ``skin`` voxelised from the breast CT mesh's tissue
-  labels (nearest tetrahedron), ``tumour`` (a 5 mm sphere at example lesion 1) and
-  ``pectoralis`` (a 6 mm slab behind each breast's chest-wall face). The patient's other breast
-  is the mirror image across a sagittal plane 12 mm beside this one, so ``--side`` matters.
+  geometry, ``Segment<i>_Name`` / ``_LabelValue`` / ``_Layer`` / ``_ID`` / ``_Color``
+  fields), 1 mm voxels by default: segments ``fat``, ``gland`` and ``skin`` voxelised from the
+  breast CT mesh's tissue labels (the tetrahedron holding each voxel centre), ``tumour`` (a
+  5 mm sphere at example lesion 1) and ``pectoralis`` (a 6 mm slab behind each breast's
+  chest-wall face). The patient's other breast is the mirror image across a sagittal plane
+  beside this one, so ``--side`` matters.
 * ``lesions.mrk.json``: the five example lesions of ``lesions.csv`` as a markups point list in
   LPS (Slicer's file frame), for ``--lesions``.
 
 The mesh's own frame (mm) is taken as RAS. Units: mm.
 
-    python examples/ucdavis_breast3/make_segmentation.py [MESH] [--out DIR]
+    python examples/ucdavis_breast3/make_segmentation.py [MESH] [--out DIR] [--voxel-mm 1]
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ MESH = HERE.parents[2] / "shared" / "data" / "ucdavis_breast3" / "volmesh3.vtk"
 SEGMENTS = (("fat", 1, "0.90 0.75 0.55"), ("gland", 2, "0.85 0.45 0.45"),
             ("skin", 3, "0.95 0.80 0.70"), ("tumour", 4, "0.40 0.60 0.90"),
             ("pectoralis", 5, "0.70 0.20 0.20"))
-VOXEL_MM = 1.0
+VOXEL_MM = 1.0  # default voxel size
 MUSCLE_MM = 6.0
 GAP_MM = 12.0  # sagittal distance from the mesh's lowest x to the mirror plane
 MARGIN_MM = 6.0
@@ -81,11 +82,12 @@ def add_tumour(labels: np.ndarray, axes: tuple, centre: np.ndarray, radius: floa
     labels[ball & (labels > 0)] = 4
 
 
-def add_muscle(labels: np.ndarray, axes: tuple, base_z: float) -> None:
+def add_muscle(labels: np.ndarray, axes: tuple, base_z: float, voxel: float) -> None:
     """A pectoralis slab MUSCLE_MM thick under the breast's footprint, up to its chest face."""
-    footprint = (labels[:, :, axes[2] < base_z + 2.0] > 0).any(axis=2)
-    footprint = ndimage.binary_dilation(footprint, iterations=int(MARGIN_MM / VOXEL_MM))
-    slab = (axes[2] < base_z + VOXEL_MM) & (axes[2] >= base_z - MUSCLE_MM)
+    k0 = int(np.flatnonzero((labels > 0).any(axis=(0, 1)))[0])  # the breast's lowest slice
+    footprint = (labels[:, :, k0:k0 + 2] > 0).any(axis=2)
+    footprint = ndimage.binary_dilation(footprint, iterations=max(1, int(MARGIN_MM / voxel)))
+    slab = (axes[2] < base_z + voxel) & (axes[2] >= base_z - MUSCLE_MM)
     labels[footprint[:, :, None] & slab[None, None, :] & (labels == 0)] = 5
 
 
@@ -98,11 +100,12 @@ def bilateral(labels: np.ndarray, gap_voxels: int) -> np.ndarray:
     return np.concatenate([mirror, gap, labels], axis=0)
 
 
-def write_seg_nrrd(labels: np.ndarray, origin_ras: np.ndarray, path: Path) -> None:
-    """``labels`` (x, y, z) on 1 mm voxels whose first centre is ``origin_ras`` (mm), as a
-    Slicer ``.seg.nrrd``: ITK's LPS geometry with index axes along RAS x, y, z."""
+def write_seg_nrrd(labels: np.ndarray, origin_ras: np.ndarray, voxel: float, path: Path) -> None:
+    """``labels`` (x, y, z) on cubic voxels of ``voxel`` mm whose first centre is
+    ``origin_ras`` (mm), as a Slicer ``.seg.nrrd``: ITK's LPS geometry with index axes along
+    RAS x, y, z."""
     image = sitk.GetImageFromArray(np.ascontiguousarray(labels.transpose(2, 1, 0)))
-    image.SetSpacing((VOXEL_MM,) * 3)
+    image.SetSpacing((voxel,) * 3)
     image.SetDirection((-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0))
     image.SetOrigin(tuple(float(v) for v in origin_ras * np.array([-1.0, -1.0, 1.0])))
     extent = " ".join(f"0 {n - 1}" for n in labels.shape)
@@ -129,33 +132,41 @@ def write_markups(lesions: np.ndarray, path: Path) -> None:
     path.write_text(json.dumps(doc, indent=2))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("mesh", nargs="?", default=str(MESH))
-    ap.add_argument("--out", default="ucd-slicer")
-    args = ap.parse_args()
-    mesh = meshio.read(args.mesh)
+def make_segmentation(mesh_path: str | Path, out: str | Path, voxel: float = VOXEL_MM) -> dict:
+    """Write ``out/Segmentation.seg.nrrd`` and ``out/lesions.mrk.json`` from the breast CT
+    mesh at ``mesh_path``; return each segment's volume, mL."""
+    mesh = meshio.read(mesh_path)
     tets = mesh.cells_dict["tetra"]
     materials = np.concatenate(mesh.cell_data["materials"]).ravel().astype(np.int16)
     lo, hi = mesh.points.min(axis=0), mesh.points.max(axis=0)
     lo = lo - np.array([MARGIN_MM, MARGIN_MM, MUSCLE_MM + 2.0])
-    axes = tuple(np.arange(lo[a], hi[a] + MARGIN_MM, VOXEL_MM) for a in range(3))
+    axes = tuple(np.arange(lo[a], hi[a] + MARGIN_MM, voxel) for a in range(3))
     labels = breast_labels(mesh.points, tets, materials, axes)
     lesions = np.loadtxt(HERE / "lesions.csv", delimiter=",", skiprows=1)
     add_tumour(labels, axes, lesions[0, 1:4], lesions[0, 4])
-    add_muscle(labels, axes, float(mesh.points[:, 2].min()))
-    gap = int(round((GAP_MM - MARGIN_MM) / VOXEL_MM))
+    add_muscle(labels, axes, float(mesh.points[:, 2].min()), voxel)
+    gap = max(1, int(round((GAP_MM - MARGIN_MM) / voxel)))
     both = bilateral(labels, gap)
-    origin = np.array([axes[0][0] - (labels.shape[0] + 2 * gap) * VOXEL_MM,
-                       axes[1][0], axes[2][0]])
-    out = Path(args.out)
+    origin = np.array([axes[0][0] - (labels.shape[0] + 2 * gap) * voxel, axes[1][0],
+                       axes[2][0]])
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_seg_nrrd(both, origin, out / "Segmentation.seg.nrrd")
+    write_seg_nrrd(both, origin, voxel, out / "Segmentation.seg.nrrd")
     write_markups(lesions[:, 1:4], out / "lesions.mrk.json")
-    counts = {name: int((both == value).sum()) for name, value, _ in SEGMENTS}
-    print(f"wrote {out}/Segmentation.seg.nrrd ({both.shape}, 1 mm voxels; mL per segment: "
-          + ", ".join(f"{k} {v / 1000:.1f}" for k, v in counts.items())
-          + f") and {out}/lesions.mrk.json ({len(lesions)} points, LPS)")
+    return {name: float((both == value).sum() * voxel ** 3 / 1000.0)
+            for name, value, _ in SEGMENTS}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("mesh", nargs="?", default=str(MESH))
+    ap.add_argument("--out", default="ucd-slicer")
+    ap.add_argument("--voxel-mm", type=float, default=VOXEL_MM)
+    args = ap.parse_args()
+    volumes = make_segmentation(args.mesh, args.out, args.voxel_mm)
+    print(f"wrote {args.out}/Segmentation.seg.nrrd ({args.voxel_mm:g} mm voxels; mL per "
+          "segment: " + ", ".join(f"{k} {v:.1f}" for k, v in volumes.items())
+          + f") and {args.out}/lesions.mrk.json (LPS)")
 
 
 if __name__ == "__main__":

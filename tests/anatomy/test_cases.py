@@ -11,6 +11,7 @@ import trimesh
 from biopsynav.anatomy.chestwall import chest_wall_plane
 from biopsynav.anatomy.model import winding_number
 from biopsynav.anatomy.phantom import PHANTOM_LESIONS, SEMI_AXES_MM
+from biopsynav.case import Case
 from biopsynav.cli import main
 
 from ..conftest import dome_surface
@@ -203,3 +204,41 @@ def test_ucdavis_coarse_grid_embeds_the_whole_skin(tmp_path, capsys, ucdavis_dir
     still = case.grid.fixed_nodes.ravel() | ~case.grid.active_nodes.ravel()  # never move
     assert np.all(still[emb.nodes[behind]] | (emb.weights[behind] < 1e-9))
     preflight(case)
+
+
+def test_readme_walkthrough_on_the_ucdavis_segmentation(tmp_path, capsys, ucdavis_dir):
+    """README "Your own patient" on a Slicer segmentation made from the UC Davis breast
+    (examples/ucdavis_breast3/make_segmentation.py, 2 mm voxels here): init by segment names
+    with --side and the pectoralis, the tumour segment as the lesion; and with the markups
+    file instead, which alone picks the breast."""
+    import importlib.util
+    from pathlib import Path
+
+    script = (Path(__file__).resolve().parents[2] / "examples" / "ucdavis_breast3"
+              / "make_segmentation.py")
+    spec = importlib.util.spec_from_file_location("make_segmentation", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    volumes = module.make_segmentation(ucdavis_dir / "volmesh3.vtk", tmp_path / "seg", 2.0)
+    breast_ml = sum(volumes[k] for k in ("fat", "gland", "skin", "tumour")) / 2
+    assert breast_ml == pytest.approx(599, rel=0.03)
+    seg, markups = tmp_path / "seg" / "Segmentation.seg.nrrd", tmp_path / "seg" / "lesions.mrk.json"
+    code, _, err = run(capsys, "init", tmp_path / "a", "--labelmap", seg, "--side", "right",
+                       "--breast-labels", "fat,gland,skin", "--lesion-labels", "tumour",
+                       "--chest-labels", "pectoralis")
+    assert code == 0, err
+    info = json.loads(run(capsys, "info", tmp_path / "a", "--json")[1])
+    assert info["n_lesions"] == 1
+    assert info["chest_wall"]["kind"].startswith("interface with the chest labels")
+    assert "the right one of 2 breasts" in info["label_map"]["breast"]
+    assert info["volume_ml"] == pytest.approx(599, rel=0.03)
+    tissues = {t["segment"]: t["tissue"] for t in info["tissues"]}
+    assert tissues == {"fat": "fat", "gland": "gland", "skin": "skin", "tumour": "lesion"}
+    a = Case.load(tmp_path / "a").anatomy
+    np.testing.assert_allclose(a.lesions[0].center, [90.0, 105.0, 30.0], atol=1.0)
+    code, _, err = run(capsys, "init", tmp_path / "b", "--labelmap", seg, "--breast-labels",
+                       "fat,gland,skin,tumour", "--chest-labels", "pectoralis", "--lesions",
+                       markups)
+    assert code == 0, err
+    b = Case.load(tmp_path / "b").anatomy
+    assert len(b.lesions) == 5 and b.vertices[:, 0].min() > 25.0  # the breast of the lesions
