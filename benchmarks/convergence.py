@@ -12,7 +12,9 @@ For each evaluated lesion the probe is placed over it as in Table 2
 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
 skin the face touches at rest follows the probe rigidly (the tracker's contact model), the
 chest wall is fixed, the material is homogeneous neo-Hookean (E of the case's default tissue,
-``--nu``). Two discretisations answer:
+``--nu``). In the reference the probe is a rigid body: skin the face reaches during the push
+slides on it, none passes through it; the hexahedral FE adds that contact when the case sets
+``[tracker] contact_follows_pose``. Two discretisations answer:
 
 * biopsynav's FE (``Tracker(engine="fem")``: immersed hexahedra, prescribed contact-point
   displacements) on grids of each ``--cells`` size, the first being the default 7.3 mm, with
@@ -107,7 +109,7 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
         try:
             (u,) = ref.push(rest, [placement.pushed(depth)], contact, centre,
-                            start=ref.last if disp else None)
+                            start=ref.last if disp else None, footprint=probe.footprint)
         except (FloatingPointError, RuntimeError) as exc:
             failure = f"{depth:g} mm: {exc}"
             break

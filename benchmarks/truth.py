@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.references import P2_PROBE  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402
@@ -70,7 +71,7 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
             "tet_fine_mm": args.tet_fine,
             "footprint": [case.cfg.probe.shape, *case.cfg.probe.footprint_mm],
-            "contact_tolerance_mm": case.cfg.probe.contact_tolerance_mm}
+            "contact_tolerance_mm": case.cfg.probe.contact_tolerance_mm, "probe": P2_PROBE}
 
 
 def load_reference(path: Path, key: dict) -> dict:

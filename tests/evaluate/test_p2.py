@@ -68,6 +68,49 @@ def test_a_push_moves_the_contact_with_the_probe_and_pulls_the_centre(cube):
     assert -3.0 < centre[0, 2] < -0.5 and np.abs(centre[0, :2]).max() < 0.05  # mesh asymmetry
 
 
+def _tilted_face_over_the_top(tilt_deg: float) -> np.ndarray:
+    """A rest pose whose 60 x 60 mm face touches the cube's top only along its y = +15 edge
+    and tilts away from it by ``tilt_deg`` (beam into the cube)."""
+    a = -np.radians(tilt_deg)  # the face rises away from the edge
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    pose = np.eye(4)
+    pose[:3, :3] = rx @ np.diag([1.0, -1.0, -1.0])
+    pose[:3, 3] = [0.0, 15.0, 15.0]
+    return pose
+
+
+def test_the_rigid_face_takes_the_skin_it_reaches(cube):
+    """A tilted face pushed 4 mm: at rest it touches a strip of the top; without contact the
+    rest of the top passes through the face, with the face as a rigid body (footprint) every
+    skin node it reaches is held on its plane (sliding) and the cube's centre is pushed
+    further."""
+    from biopsynav.evaluate.p2 import PENETRATION_TOL_MM
+    from biopsynav.footprint import make_footprint
+
+    face = make_footprint("rectangle", (60.0, 60.0))
+    rest = _tilted_face_over_the_top(10.0)
+    pushed = rest.copy()
+    pushed[:3, 3] += 4.0 * rest[:3, 2]
+    contact = cube.contact(rest, face, 0.5)
+    skin = cube.skin_nodes
+    under = (cube.nodes[skin] - pushed[:3, 3]) @ pushed[:3, :3]
+    top = face.inside(under[:, :2]) & (cube.nodes[skin, 2] > 14.9)
+    assert 0 < len(contact) < 0.5 * top.sum(), "at rest the face touches a strip"
+
+    def depth_behind_face(u):
+        local = (cube.nodes[skin] + u[skin] - pushed[:3, 3]) @ pushed[:3, :3]
+        return local[top, 2]
+
+    (free,) = cube.push(rest, [pushed], contact, np.zeros((1, 3)))
+    assert depth_behind_face(cube.last).min() < -1.0, "without contact the skin passes"
+    (held,) = cube.push(rest, [pushed], contact, np.zeros((1, 3)), footprint=face)
+    assert depth_behind_face(cube.last).min() >= -PENETRATION_TOL_MM - 1e-9
+    assert len(cube.sliding) > len(contact)
+    on_plane = (cube.nodes[cube.sliding] + cube.last[cube.sliding] - pushed[:3, 3]) @ pushed[:3, 2]
+    assert np.abs(on_plane).max() < 1e-6
+    assert held[0, 2] < free[0, 2] < 0.0, "the face pushes the centre further"
+
+
 def _sigpipe_ignored() -> bool:
     """Whether the process ignores SIGPIPE at the system level (/proc/self/status SigIgn)."""
     for line in Path("/proc/self/status").read_text().splitlines():

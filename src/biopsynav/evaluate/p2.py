@@ -6,10 +6,15 @@ immersed hexahedral grid), another element (P2 tetrahedra, 11-point degree-4 rul
 scikit-fem), another formulation (spatial: Kirchhoff stress ``tau = mu (b - I) + lam ln J I`` and
 its tangent ``c = lam I x I + 2 (mu - lam ln J) II``, on spatial shape-function gradients; the
 biopsynav kernel works in the reference configuration), its own vectorised assembly and
-Newton loop (MKL Pardiso for the linear solves). The boundary conditions are the tracker's: the
-chest-wall plane fixed, and the skin the probe face touches at the rest pose (within the contact
-tolerance, under the footprint, facing the probe; :func:`biopsynav.probe.skin_under_face`) moved
-rigidly with the probe; the rest free. Used by ``benchmarks/convergence.py``; needs gmsh.
+Newton loop (MKL Pardiso for the linear solves). The boundary conditions: the chest-wall
+plane fixed; the skin the probe face touches at the rest pose (within the contact tolerance,
+under the footprint, facing the probe; :func:`biopsynav.probe.skin_under_face`) moved rigidly
+with the probe (stuck to it, as the tracker's contact points); and, given the face's
+footprint, the probe a rigid body: skin that a load step pushes behind the face plane is put
+on the plane and slides on it without friction (an active set, grown until no skin passes
+the face), so that no skin passes through the probe; the rest free. Used by
+``benchmarks/convergence.py``, ``benchmarks/truth.py`` and Table 2's ``p2`` reference; needs
+gmsh.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import tempfile
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -34,6 +39,8 @@ from ..probe import skin_under_face
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 NEWTON_ITERATIONS = 40
 LINE_SEARCH_HALVINGS = 8
+CONTACT_ROUNDS = 6  # solves of one load step while skin still reaches the face
+PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
 
 
 @contextmanager
@@ -107,13 +114,13 @@ def _ball_field(centre: np.ndarray, fine_mm: float, size_mm: float, radius_mm: f
     ``size_mm`` over another radius."""
     import gmsh
 
-    field = gmsh.model.mesh.field
-    tag = field.add("Ball")
+    mesh_field = gmsh.model.mesh.field
+    tag = mesh_field.add("Ball")
     for key, value in (("Radius", radius_mm), ("Thickness", radius_mm), ("VIn", fine_mm),
                        ("VOut", size_mm), ("XCenter", centre[0]), ("YCenter", centre[1]),
                        ("ZCenter", centre[2])):
-        field.setNumber(tag, key, float(value))
-    field.setAsBackgroundMesh(tag)
+        mesh_field.setNumber(tag, key, float(value))
+    mesh_field.setAsBackgroundMesh(tag)
     gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
     gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
     gmsh.option.setNumber("Mesh.MeshSizeMin", fine_mm)
@@ -238,14 +245,23 @@ class TetReference:
 
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
              points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
-             start: np.ndarray | None = None) -> list[np.ndarray]:
+             start: np.ndarray | None = None, footprint: Any = None) -> list[np.ndarray]:
         """Displacements (k, 3) mm at ``points`` (k, 3) for each of ``poses`` (in turn, each
         solve starting from the last; the first from ``start``, an equilibrium (n, 3) mm of
         the same contact set, or from rest): the contact nodes follow the probe rigidly from
-        ``rest``, in load steps of at most ``step_mm`` (halved where a step fails)."""
+        ``rest``, in load steps of at most ``step_mm`` (halved where a step fails).
+
+        With ``footprint`` (the face's :class:`~biopsynav.footprint.Footprint`) the probe is
+        a rigid body: skin that a load step puts more than ``PENETRATION_TOL_MM`` behind the
+        face plane, under the footprint, is held on the plane, free to slide on it
+        (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS`` times);
+        ``self.sliding`` lists those nodes. Without it, skin may pass through the face."""
         x0 = self.nodes[contact]
         u = np.zeros_like(self.nodes) if start is None else np.array(start, dtype=np.float64)
         done = u[contact].copy()
+        if start is None:
+            self.sliding, self.last_rel = np.zeros(0, dtype=np.int64), None
+        done_rel = np.eye(4) if self.last_rel is None else self.last_rel
         out = []
         interp = self._interpolation(np.asarray(points, dtype=np.float64))
         for pose in poses:
@@ -253,62 +269,121 @@ class TetReference:
             target = x0 @ rel[:3, :3].T + rel[:3, 3] - x0
             steps = max(1, int(np.ceil(np.abs(target - done).max() / step_mm)))
             for s in range(1, steps + 1):
-                u = self._step(u, contact, done + (target - done) * s / steps, tol)
-            done = target
-            self.last = u
+                frac = s / steps
+                face = (done_rel + (rel - done_rel) * frac) @ np.asarray(rest)
+                u = self._contact_step(u, contact, done + (target - done) * frac, tol,
+                                       face, footprint)
+            done, done_rel = target, rel
+            self.last, self.last_rel = u, rel
             out.append(interp @ u)
         return out
 
+    #: skin nodes held on the face plane (the last push's); the last push's pose relative to
+    #: its rest pose
+    sliding: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    last_rel: np.ndarray | None = None
+
+    def _contact_step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
+                      tol: float, face: np.ndarray, footprint: Any) -> np.ndarray:
+        """One load step with the probe face at ``face`` (4, 4): solve, then, with a
+        ``footprint``, put the skin that passed the face plane on it and solve again."""
+        if footprint is None:
+            return self._step(u, contact, values, tol, Sliding.none())
+        start = u
+        for _ in range(CONTACT_ROUNDS):
+            slide = Sliding.on_face(self, self.sliding, face)
+            u = self._step(start, contact, values, tol, slide)
+            new = self._behind_face(u, face, footprint, contact)
+            if not len(new):
+                return u
+            self.sliding = np.union1d(self.sliding, new)
+        raise RuntimeError(f"P2 reference: skin still passes the probe face after "
+                           f"{CONTACT_ROUNDS} contact rounds")
+
+    def _behind_face(self, u: np.ndarray, face: np.ndarray, footprint: Any,
+                     contact: np.ndarray) -> np.ndarray:
+        """Skin nodes (not held) under ``footprint`` that ``u`` puts more than
+        ``PENETRATION_TOL_MM`` behind the face plane of ``face`` (4, 4), facing the probe."""
+        nodes = self.skin_nodes
+        local = (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
+        behind = ((local[:, 2] < -PENETRATION_TOL_MM) & footprint.inside(local[:, :2])
+                  & (self.skin.normals @ face[:3, 2] < 0.0) & self.skin.pushable)
+        held = np.concatenate([contact, self.fixed_nodes, self.sliding])
+        return np.setdiff1d(nodes[behind], held)
+
     def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
-              depth: int = 0) -> np.ndarray:
+              slide: Sliding, depth: int = 0) -> np.ndarray:
         """One load step to ``values`` at the contact nodes; split in two when it fails."""
         try:
-            return self._newton(u, contact, values, tol)
+            return self._newton(u, contact, values, tol, slide)
         except (FloatingPointError, RuntimeError):
             if depth >= 5:
                 raise
             half = 0.5 * (u[contact] + values)
-            u = self._step(u, contact, half, tol, depth + 1)
-            return self._step(u, contact, values, tol, depth + 1)
+            mid = slide.halfway(u)
+            u = self._step(u, contact, half, tol, mid, depth + 1)
+            return self._step(u, contact, values, tol, slide, depth + 1)
 
     def _newton(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
-                tol: float) -> np.ndarray:
-        """Equilibrium with ``values`` (n_c, 3) mm at the ``contact`` nodes, from the
-        equilibrium ``u``: the first iteration carries the prescribed increment through the
-        tangent (no element is distorted by moving the contact nodes alone); the later ones
-        are damped by a backtracking line search on the residual norm that also refuses
-        inverted elements."""
-        constrained = np.zeros(self.n_dofs, dtype=bool)
-        constrained[(3 * np.concatenate([contact, self.fixed_nodes])[:, None]
-                     + np.arange(3)).ravel()] = True
-        free = np.flatnonzero(~constrained)
+                tol: float, slide: Sliding) -> np.ndarray:
+        """Equilibrium with ``values`` (n_c, 3) mm at the ``contact`` nodes and the sliding
+        nodes on their planes, from the equilibrium ``u``: the first iteration carries the
+        prescribed increment through the tangent (no element is distorted by moving the
+        held nodes alone); the later ones are damped by a backtracking line search on the
+        residual norm that also refuses inverted elements. Increments live in the span of
+        :meth:`_basis` (every dof of a free node, the plane of a sliding node)."""
+        basis = self._basis(np.concatenate([contact, self.fixed_nodes]), slide)
         lift = np.zeros_like(u)
         lift[contact] = values - u[contact]
+        lift[slide.nodes] = slide.lift(u)
         u = u.copy()
         r0 = None
         for it in range(NEWTON_ITERATIONS):
             forces, stiff = self.forces_and_tangent(u)
             if it == 0:
-                rhs = -(forces + stiff @ lift.ravel())[free]
+                rhs = -(basis.T @ (forces + stiff @ lift.ravel()))
             else:
-                r_norm = float(np.linalg.norm(forces[free]))
+                r_norm = float(np.linalg.norm(basis.T @ forces))
                 r0 = r_norm if r0 is None else r0
                 if r_norm <= tol * r0 or r_norm < 1e-12:
                     return u
-                rhs = -forces[free]
-            du = np.zeros(self.n_dofs)
-            du[free] = solve_symmetric(stiff[free][:, free], rhs)
+                rhs = -(basis.T @ forces)
+            du = basis @ solve_symmetric((basis.T @ stiff @ basis).tocsr(), rhs)
             if it == 0:
                 u = u + (du + lift.ravel()).reshape(u.shape)
             else:
-                u = self._line_search(u, du.reshape(u.shape), free, r_norm)
+                u = self._line_search(u, du.reshape(u.shape), basis, r_norm)
         raise RuntimeError("P2 reference: Newton did not converge")
 
-    def _line_search(self, u: np.ndarray, du: np.ndarray, free: np.ndarray,
+    def _basis(self, held: np.ndarray, slide: Sliding) -> sp.csr_matrix:
+        """(3 n, r) basis of admissible increments: the unit vectors of every dof of a node
+        neither ``held`` nor sliding, and the two in-plane directions of each sliding node;
+        with no sliding node, the selection of the free dofs in their order."""
+        n = len(self.nodes)
+        kind = np.zeros(n, dtype=np.int8)
+        kind[slide.nodes] = 1
+        kind[held] = 2
+        free = np.flatnonzero(np.repeat(kind == 0, 3))
+        rows, cols, vals = [free], [np.arange(len(free))], [np.ones(len(free))]
+        on_plane = kind[slide.nodes] == 1
+        nodes, normals = slide.nodes[on_plane], slide.normals[on_plane]
+        if len(nodes):
+            t1, t2 = _in_plane_directions(normals)
+            col = len(free) + np.arange(2 * len(nodes)).reshape(-1, 2)
+            for k, t in enumerate((t1, t2)):
+                rows.append((3 * nodes[:, None] + np.arange(3)).ravel())
+                cols.append(np.repeat(col[:, k], 3))
+                vals.append(t.ravel())
+        width = len(free) + 2 * len(nodes)
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                     np.concatenate(cols))),
+                             shape=(self.n_dofs, width))
+
+    def _line_search(self, u: np.ndarray, du: np.ndarray, basis: sp.csr_matrix,
                      r_norm: float) -> np.ndarray:
         """``u + a du`` for the largest ``a`` in 1, 1/2, 1/4, ... whose elements are not
-        inverted and whose free residual norm is at most ``r_norm``; RuntimeError when none
-        of ``LINE_SEARCH_HALVINGS`` halvings is."""
+        inverted and whose residual norm in the span of ``basis`` is at most ``r_norm``;
+        RuntimeError when none of ``LINE_SEARCH_HALVINGS`` halvings is."""
         step = 1.0
         for _ in range(LINE_SEARCH_HALVINGS):
             trial = u + step * du
@@ -316,7 +391,7 @@ class TetReference:
                 forces = self.forces_and_tangent(trial, tangent=False)
             except FloatingPointError:
                 forces = None
-            if forces is not None and np.linalg.norm(forces[free]) <= r_norm:
+            if forces is not None and np.linalg.norm(basis.T @ forces) <= r_norm:
                 return trial
             step *= 0.5
         raise RuntimeError("P2 reference: the line search found no admissible decrease")
@@ -338,6 +413,46 @@ class TetReference:
             cols += list(self.elements[el])
             vals += list(shape_values(bary[el][None])[0])
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
+
+
+@dataclass
+class Sliding:
+    """Skin nodes held on the probe face's plane, free to slide on it: ``nodes`` (m,),
+    unit plane ``normals`` (m, 3) and ``offsets`` (m,) mm, so that a node's displacement
+    ``u`` satisfies ``u . normal = offset``."""
+
+    nodes: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+    @classmethod
+    def none(cls) -> Sliding:
+        return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0))
+
+    @classmethod
+    def on_face(cls, ref: TetReference, nodes: np.ndarray, face: np.ndarray) -> Sliding:
+        """``nodes`` of ``ref`` held on the face plane of the pose ``face`` (4, 4)."""
+        normal = face[:3, 2] / np.linalg.norm(face[:3, 2])
+        offsets = (face[:3, 3] - ref.nodes[nodes]) @ normal
+        return cls(nodes, np.tile(normal, (len(nodes), 1)), offsets)
+
+    def lift(self, u: np.ndarray) -> np.ndarray:
+        """The move (m, 3) mm along the normals that puts the nodes of ``u`` on the plane."""
+        gap = self.offsets - np.einsum("mi,mi->m", u[self.nodes], self.normals)
+        return gap[:, None] * self.normals
+
+    def halfway(self, u: np.ndarray) -> Sliding:
+        """The same nodes on a plane halfway between where ``u`` has them and this one."""
+        now = np.einsum("mi,mi->m", u[self.nodes], self.normals)
+        return Sliding(self.nodes, self.normals, 0.5 * (now + self.offsets))
+
+
+def _in_plane_directions(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (m, 3) each, orthogonal to each other and to ``normals`` (m, 3)."""
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(normals, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(normals, t1)
 
 
 _SYMMETRIC_SOLVER = None  # one Pardiso instance (several at once can crash the library)

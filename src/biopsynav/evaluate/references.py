@@ -77,10 +77,16 @@ class GridReference:
                 f"cells, built in {self.build_s:.1f} s)")
 
 
+#: The probe of the P2 reference, in its answers' cache key: answers of another probe model
+#: are solved again.
+P2_PROBE = "rigid face: rest contact held, skin it reaches slides on it"
+
+
 class P2Reference:
     """The independent P2 tetrahedral FE (``p2``), one mesh per rest pose (refined under the
-    face), pushes solved in turn from the last equilibrium of the same rest pose, answers
-    kept in ``cache`` (a JSON file) keyed by rest pose and pose."""
+    face), pushes solved in turn from the last equilibrium of the same rest pose with the
+    probe a rigid face (:meth:`~biopsynav.evaluate.p2.TetReference.push` with its
+    footprint), answers kept in ``cache`` (a JSON file) keyed by rest pose and pose."""
 
     def __init__(self, case: Any, setup: Any, settings: Any) -> None:
         self.check(case)
@@ -111,7 +117,8 @@ class P2Reference:
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
                 "footprint": [probe.shape, *probe.footprint_mm],
-                "contact_tolerance_mm": probe.contact_tolerance_mm}
+                "contact_tolerance_mm": probe.contact_tolerance_mm,
+                "probe": P2_PROBE}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _read_cache(self) -> dict:
@@ -160,7 +167,7 @@ class P2Reference:
         if self._model is None:
             self._build()
         (disp,) = self._model.push(self._rest, [pose], self._contact, self.centres,
-                                   start=self._last)
+                                   start=self._last, footprint=self.case.cfg.probe.footprint)
         self._last = self._model.last
         return np.asarray(disp).tolist()
 
