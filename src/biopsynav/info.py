@@ -106,8 +106,10 @@ def format_summary(s: dict) -> str:
         f"case {s['case']} ({s['case_dir']})",
         f"  anatomy   {s['n_vertices']} vertices, {s['n_faces']} faces, {s['volume_ml']:.1f} mL, "
         f"box {bb[0]} .. {bb[1]} mm",
-        f"  chest     {s['chest_wall']['n_surface_vertices']} surface vertices on the plane "
-        f"through {s['chest_wall']['point_mm']} with outward normal {s['chest_wall']['normal']}",
+        f"  chest     {s['chest_wall']['n_surface_vertices']} surface vertices on "
+        + ("the muscle interface, whose mean plane runs "
+           if s["chest_wall"]["kind"].startswith("interface") else "the plane ")
+        + f"through {s['chest_wall']['point_mm']} with outward normal {s['chest_wall']['normal']}",
         f"            ({s['chest_wall']['kind']})",
         f"  lesions   {s['n_lesions']}",
     ]
