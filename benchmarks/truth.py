@@ -44,8 +44,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
+from biopsynav.evaluate.p2 import P2_PROBE  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
-from biopsynav.evaluate.references import P2_PROBE  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402

@@ -39,6 +39,9 @@ from ..probe import skin_under_face
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 NEWTON_ITERATIONS = 40
 LINE_SEARCH_HALVINGS = 8
+#: The probe of this reference (:meth:`TetReference.push` with a footprint), in the answer
+#: caches' keys: answers of another probe model are solved again.
+P2_PROBE = "rigid face: rest contact held, skin it reaches slides on it"
 CONTACT_ROUNDS = 6  # solves of one load step while skin still reaches the face
 PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
 
@@ -242,6 +245,9 @@ class TetReference:
         return forces, stiff
 
     last: np.ndarray | None = None  # the nodal displacement of the last push (n, 3) mm
+    last_rel: np.ndarray | None = None  # the last push's pose relative to its rest pose
+    #: skin nodes held on the face plane in the last push
+    sliding: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
              points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
@@ -277,11 +283,6 @@ class TetReference:
             self.last, self.last_rel = u, rel
             out.append(interp @ u)
         return out
-
-    #: skin nodes held on the face plane (the last push's); the last push's pose relative to
-    #: its rest pose
-    sliding: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    last_rel: np.ndarray | None = None
 
     def _contact_step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
                       tol: float, face: np.ndarray, footprint: Any) -> np.ndarray:

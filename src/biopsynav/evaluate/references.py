@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fem.teacher import teacher_refinement
+from .p2 import P2_PROBE
 
 
 class GridReference:
@@ -75,11 +76,6 @@ class GridReference:
         f = self.facts()
         return (f"FE model on a {f['cell_size_mm']:.2f} mm grid ({f['active_cells']} active "
                 f"cells, built in {self.build_s:.1f} s)")
-
-
-#: The probe of the P2 reference, in its answers' cache key: answers of another probe model
-#: are solved again.
-P2_PROBE = "rigid face: rest contact held, skin it reaches slides on it"
 
 
 class P2Reference:
