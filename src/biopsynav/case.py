@@ -22,6 +22,7 @@ from .grid.build import build_grid
 from .grid.model import Grid
 from .layout import (
     ANATOMY_FILE,
+    CASE_FILE,
     DATASET_NAME,
     EVAL_DIR,
     GRID_FILE,
@@ -88,7 +89,8 @@ def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     anatomy, facts = build_anatomy(cfg, case_dir)
     grid = build_grid(anatomy, cfg.grid, cfg.network.levels, cfg.anatomy.max_fixed_share,
                       cfg.anatomy.chest_wall_tolerance_mm)
-    label_tissues(grid.label_values, cfg, anatomy)  # every label has a material, or refused
+    source = str(case_dir / cfg.anatomy.path) if cfg.anatomy.path else CASE_FILE
+    label_tissues(grid.label_values, cfg, anatomy, source)  # every label mapped, or refused
     save_config(case_dir, cfg)
     paths = CasePaths(case_dir)
     anatomy.save(paths.anatomy)

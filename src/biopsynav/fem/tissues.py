@@ -28,9 +28,10 @@ TISSUE_NAMES = {"fat": "fat", "adipose": "fat", "gland": "gland", "glandular": "
                 "tumor": "lesion", "tumour": "lesion", "mass": "lesion"}
 
 
-def label_tissues(values: np.ndarray, cfg: CaseConfig, anatomy: Anatomy) -> list[str]:
+def label_tissues(values: np.ndarray, cfg: CaseConfig, anatomy: Anatomy,
+                  where: str = CASE_FILE) -> list[str]:
     """Tissue name of each label value of ``values`` (k,); InputError naming every label that
-    has none."""
+    has none, reported against ``where`` (the file the labels came from at ``init``)."""
     names = {v: n for n, v in anatomy.segments.items()}
     lesion_values = {label_value(item, anatomy.segments) for item in cfg.anatomy.lesion_labels}
     tissues, unmapped = [], []
@@ -43,7 +44,7 @@ def label_tissues(values: np.ndarray, cfg: CaseConfig, anatomy: Anatomy) -> list
         raise InputError(f"the anatomy has tissue labels {', '.join(unmapped)} with no tissue: "
                          "map them in [anatomy] tissue_labels (init --tissue-labels "
                          f"{','.join(f'{u.split()[0]}=fat' for u in unmapped)}, for example)",
-                         CASE_FILE)
+                         where)
     return tissues  # type: ignore[return-value]
 
 
