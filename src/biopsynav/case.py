@@ -12,7 +12,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from .anatomy.build import build_anatomy
+from .anatomy.build import anatomy_source, build_anatomy
 from .anatomy.model import Anatomy
 from .anatomy.phantom import phantom_lesions_csv
 from .config import CaseConfig, load_config, save_config
@@ -22,7 +22,6 @@ from .grid.build import build_grid
 from .grid.model import Grid
 from .layout import (
     ANATOMY_FILE,
-    CASE_FILE,
     DATASET_NAME,
     EVAL_DIR,
     GRID_FILE,
@@ -89,8 +88,8 @@ def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     anatomy, facts = build_anatomy(cfg, case_dir)
     grid = build_grid(anatomy, cfg.grid, cfg.network.levels, cfg.anatomy.max_fixed_share,
                       cfg.anatomy.chest_wall_tolerance_mm)
-    source = str(case_dir / cfg.anatomy.path) if cfg.anatomy.path else CASE_FILE
-    label_tissues(grid.label_values, cfg, anatomy, source)  # every label mapped, or refused
+    # every label mapped, or refused naming the user's anatomy file
+    label_tissues(grid.label_values, cfg, anatomy, anatomy_source(cfg, case_dir))
     save_config(case_dir, cfg)
     paths = CasePaths(case_dir)
     anatomy.save(paths.anatomy)

@@ -41,6 +41,14 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
     return anatomy, facts
 
 
+def anatomy_source(cfg: CaseConfig, case_dir: Path) -> str:
+    """The name errors give the anatomy input of ``cfg``: its file in ``case_dir`` (which
+    ``init`` reports as the user's own file), or the built-in phantom."""
+    if cfg.anatomy.source == "phantom":
+        return "built-in phantom"
+    return str(case_dir / cfg.anatomy.path)
+
+
 def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None = None
              ) -> tuple[RawAnatomy, str]:
     """The anatomy input of ``cfg`` in RAS, and the name errors give it; ``lesion_centres``
@@ -49,8 +57,8 @@ def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None 
     if a.source == "phantom":
         vertices, faces = phantom_surface()
         return (RawAnatomy(vertices, faces, np.zeros((0, 3)), np.zeros(0, np.int32), []),
-                "built-in phantom")
-    path = case_dir / a.path
+                anatomy_source(cfg, case_dir))
+    path = Path(anatomy_source(cfg, case_dir))
     raw = read_anatomy(path, a.breast_labels, a.lesion_labels, a.label_field,
                        chest_labels=a.chest_labels, side=a.side,
                        spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm,
@@ -58,7 +66,7 @@ def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None 
     if a.source != "labelmap" and a.input_frame == "lps":
         raw.vertices = raw.vertices * LPS_TO_RAS
         raw.label_points = raw.label_points * LPS_TO_RAS
-    return raw, str(path)
+    return raw, anatomy_source(cfg, case_dir)
 
 
 def _voxel_reach(raw: RawAnatomy) -> float:
