@@ -44,8 +44,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
-from biopsynav.evaluate.p2 import P2_PROBE  # noqa: E402
+from biopsynav.evaluate.p2 import probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.references import default_tissue_material  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402
@@ -60,18 +61,14 @@ D10_BELOW_MM, D30_ABOVE_MM = 12.5, 27.5  # the paper's Table 2 bins D10 and D30
 def reference_material(case: Case) -> tuple[float, float, bool]:
     """E (MPa) and nu of the case's default tissue, and whether the grid carries tissue
     labels (the reference is homogeneous: a labelled case is compared with a warning)."""
-    mat = case.cfg.material
-    tissue = mat.tissues[mat.default_tissue]
-    return float(tissue["E_mpa"]), float(tissue["nu"]), case.grid.label_share.shape[-1] > 0
+    return *default_tissue_material(case), case.grid.label_share.shape[-1] > 0
 
 
 def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     """What the reference figures depend on: reused only when all of it is the same."""
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
-            "tet_fine_mm": args.tet_fine,
-            "footprint": [case.cfg.probe.shape, *case.cfg.probe.footprint_mm],
-            "contact_tolerance_mm": case.cfg.probe.contact_tolerance_mm, "probe": P2_PROBE}
+            "tet_fine_mm": args.tet_fine, **probe_key(case.cfg.probe)}
 
 
 def load_reference(path: Path, key: dict) -> dict:

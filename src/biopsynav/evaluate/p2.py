@@ -46,6 +46,14 @@ CONTACT_ROUNDS = 6  # solves of one load step while skin still reaches the face
 PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
 
 
+def probe_key(probe: Any) -> dict:
+    """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``): the part of every
+    answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``) that names the
+    probe."""
+    return {"footprint": [probe.shape, *probe.footprint_mm],
+            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE}
+
+
 @contextmanager
 def gmsh_session() -> Iterator[Any]:
     """The ``gmsh`` module, initialised for one meshing and finalised after. gmsh's

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fem.teacher import teacher_refinement
-from .p2 import P2_PROBE
+from .p2 import probe_key
 
 
 class GridReference:
@@ -109,12 +109,9 @@ class P2Reference:
         homogeneous_material(case)
 
     def _key(self) -> str:
-        probe = self.case.cfg.probe
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
-                "footprint": [probe.shape, *probe.footprint_mm],
-                "contact_tolerance_mm": probe.contact_tolerance_mm,
-                "probe": P2_PROBE}
+                **probe_key(self.case.cfg.probe)}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _read_cache(self) -> dict:
@@ -219,6 +216,12 @@ def homogeneous_material(case: Any) -> tuple[float, float]:
         raise InputError("the P2 reference has one material, and this case's grid mixes "
                          f"labelled tissues ({case.grid.label_share.shape[-1]} labels); use "
                          "[evaluate] reference = \"fine_grid\"", "[evaluate] reference")
+    return default_tissue_material(case)
+
+
+def default_tissue_material(case: Any) -> tuple[float, float]:
+    """E (MPa) and nu of the case's default tissue: the material of the homogeneous P2
+    reference."""
     mat = case.cfg.material
     tissue = mat.tissues[mat.default_tissue]
     return float(tissue["E_mpa"]), float(tissue["nu"])
