@@ -12,7 +12,9 @@ Files in ``model_dir`` (``CASE_DIR/model`` by default), all written atomically:
 
 Determinism: batches and learning rates are pure functions of (seed, iteration), so a run killed
 at any point and restarted from its last checkpoint ends with the same weights as an
-uninterrupted one (same machine, same thread count).
+uninterrupted one (same machine, same thread count, each run in a process of its own: oneDNN
+picks convolution kernels by what the process ran before, so two trainings in one process
+after other convolutions may differ in the last bits).
 """
 
 from __future__ import annotations
