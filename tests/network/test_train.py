@@ -177,7 +177,7 @@ def test_weight_decay_shrinks_the_weights_and_is_part_of_the_signature(synth_cas
 
 
 _TRAIN_IN_A_PROCESS = """
-import dataclasses, json, sys
+import json, sys
 from biopsynav.config import NetworkSection
 from biopsynav.network.train import train
 case, out, stop, kw = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), json.loads(sys.argv[4])

@@ -54,19 +54,19 @@ def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None 
     """The anatomy input of ``cfg`` in RAS, and the name errors give it; ``lesion_centres``
     (n, 3) mm RAS, from a lesion file, pick the breast of a bilateral label map."""
     a = cfg.anatomy
+    source = anatomy_source(cfg, case_dir)
     if a.source == "phantom":
         vertices, faces = phantom_surface()
         return (RawAnatomy(vertices, faces, np.zeros((0, 3)), np.zeros(0, np.int32), []),
-                anatomy_source(cfg, case_dir))
-    path = Path(anatomy_source(cfg, case_dir))
-    raw = read_anatomy(path, a.breast_labels, a.lesion_labels, a.label_field,
+                source)
+    raw = read_anatomy(Path(source), a.breast_labels, a.lesion_labels, a.label_field,
                        chest_labels=a.chest_labels, side=a.side,
                        spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm,
                        lesion_centres=lesion_centres)
     if a.source != "labelmap" and a.input_frame == "lps":
         raw.vertices = raw.vertices * LPS_TO_RAS
         raw.label_points = raw.label_points * LPS_TO_RAS
-    return raw, anatomy_source(cfg, case_dir)
+    return raw, source
 
 
 def _voxel_reach(raw: RawAnatomy) -> float:
