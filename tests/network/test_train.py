@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from biopsynav.network.data import load_dataset
-from biopsynav.network.train import CHECKPOINT, batch_indices, lr_at, train
+from biopsynav.network.train import CHECKPOINT, batch_indices, lr_at, train, use_bf16
 
 from .conftest import tiny_settings
 
@@ -224,3 +224,23 @@ def test_training_through_the_projection_resumes_exactly(reference, tmp_path):
     g = zarr.open_group(str(reference / "dataset.zarr"), mode="r")
     n_train = int(g.attrs["n_train"])
     assert meta["envelope"]["max_probe_disp_mm"] == float(g["probe_disp_mm"][:n_train].max())
+
+
+def test_precision_setting_picks_the_forward_arithmetic():
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert use_bf16("bf16", cpu) and not use_bf16("fp32", cpu) and not use_bf16("fp32", cuda)
+    assert use_bf16("auto", cuda) and not use_bf16("auto", cpu)
+
+
+def test_bf16_training_learns_and_exports_an_fp32_model(synth_case, tmp_path):
+    """A bf16 forward pass on the CPU trains as fp32 does (to bf16's precision), and the
+    exported model is fp32 with the arithmetic recorded."""
+    runs = {p: train(synth_case, settings=tiny_settings(iterations=40, val_interval=20,
+                                                        precision=p),
+                     model_dir=tmp_path / p, progress=False) for p in ("fp32", "bf16")}
+    assert all(r.finished for r in runs.values())
+    assert runs["bf16"].best_val_e_mm < 1.25 * runs["fp32"].best_val_e_mm
+    meta = json.loads((tmp_path / "bf16" / "meta.json").read_text())
+    assert meta["training"]["precision"] == "bf16"
+    state = torch.load(tmp_path / "bf16" / CHECKPOINT, weights_only=False)["model"]
+    assert {v.dtype for v in state.values() if v.is_floating_point()} == {torch.float32}

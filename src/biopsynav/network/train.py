@@ -85,6 +85,15 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def use_bf16(precision: str, dev: torch.device) -> bool:
+    """Whether training autocasts its forward pass to bfloat16 on ``dev``: always for
+    'bf16', never for 'fp32', on CUDA only for 'auto' (on the CPU it trades accuracy for
+    speed: docs/network.md, "Training arithmetic")."""
+    if precision != "auto":
+        return precision == "bf16"
+    return dev.type == "cuda"
+
+
 def lr_at(it: int, s: NetworkSection) -> float:
     """Learning rate of iteration ``it``: linear warm-up, then cosine decay to 1 % of the peak."""
     peak = s.learning_rate
@@ -283,6 +292,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                     training={"iterations": s.iterations, "batch_size": s.batch_size,
                               "learning_rate": s.learning_rate, "loss": s.loss,
                               "seed": s.seed, "device": dev.type, "threads": threads,
+                              "precision": "bf16" if runner.amp else "fp32",
                               "train_time_s": state["elapsed_s"],
                               # the baseline and projections of every sample, before the loop
                               "setup_s": float(baseline_meta.get("setup_s", 0.0)
@@ -395,7 +405,7 @@ class TrainingLoop:
         self.y_train = data.targets[data.train_idx].to(dev) / scale  # normalised targets
         self.x_test = data.inputs[data.test_idx].to(dev)
         self.y_test = data.targets[data.test_idx].to(dev)
-        self.amp = dev.type == "cuda"
+        self.amp = use_bf16(s.precision, dev)
         # channels-last convolutions train 1.4x faster on one CPU thread and 2x on two
         # (oneDNN; measured on the 2-core machine, docs/network.md); GPUs keep their default
         self.memory_format = (torch.channels_last_3d if dev.type == "cpu"
@@ -491,4 +501,4 @@ def train_case(case: Case | str | Path, preset: str | None = None, iterations: i
 
 
 __all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",
-           "resolve_device", "set_threads", "build_optimizer"]
+           "resolve_device", "set_threads", "build_optimizer", "use_bf16"]
