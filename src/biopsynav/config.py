@@ -335,8 +335,8 @@ class NetworkSection:
                             "on the normalised displacement.", choices=("norm", "mse", "l1"))
     val_interval: int = opt(500, "Validate on the held-out samples (and write a resumable "
                                  "checkpoint) every this many iterations.", lo=1, hi=10**7)
-    seed: int = opt(0, "Training seed: the same seed, data and thread count give the same "
-                       "model.", lo=0, hi=2**63 - 1)
+    seed: int = opt(0, "Training seed: the same seed, data, thread count and precision give "
+                       "the same model.", lo=0, hi=2**63 - 1)
     device: str = opt("auto", "Training device ('auto': CUDA when present, with bf16 mixed "
                               "precision, else CPU).", choices=("auto", "cpu", "cuda"))
     precision: str = opt("auto", "Arithmetic of the training's forward pass: 'fp32', "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -191,7 +192,6 @@ def _train_in_a_process(case: Path, out: Path, settings, stop_after: int | None 
     """:func:`train` in a new Python process, as a user's run and its resumption are (oneDNN
     picks its convolution kernels by what the process ran before, so two trainings in one
     process that ran other convolutions first need not agree to the last bit)."""
-    import dataclasses
     from types import SimpleNamespace
 
     args = [str(case), str(out), json.dumps(stop_after), json.dumps(dataclasses.asdict(settings))]
@@ -244,3 +244,8 @@ def test_bf16_training_learns_and_exports_an_fp32_model(synth_case, tmp_path):
     assert meta["training"]["precision"] == "bf16"
     state = torch.load(tmp_path / "bf16" / CHECKPOINT, weights_only=False)["model"]
     assert {v.dtype for v in state.values() if v.is_floating_point()} == {torch.float32}
+    s = tiny_settings(iterations=40, val_interval=20, precision="fp32")
+    train(synth_case, settings=s, model_dir=tmp_path / "x", progress=False, stop_after=20)
+    again = train(synth_case, settings=dataclasses.replace(s, precision="bf16"),
+                  model_dir=tmp_path / "x", progress=False)
+    assert again.resumed_from == 0  # another arithmetic trains afresh

@@ -129,11 +129,13 @@ def build_optimizer(params: Iterable[torch.nn.Parameter],
     return torch.optim.Adam(params, lr=s.learning_rate)
 
 
-def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset) -> dict:
-    """Settings that must match for a checkpoint to be resumed."""
+def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset, bf16: bool) -> dict:
+    """Settings that must match for a checkpoint to be resumed (``bf16``: the forward
+    pass's arithmetic, :func:`use_bf16`)."""
     keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
             "val_interval", "baseline")
     extra = {"weight_decay": s.weight_decay} if s.weight_decay > 0 else {}  # old checkpoints
+    extra.update({"precision": "bf16"} if bf16 else {})
     return {"spec": spec.to_dict(), "fingerprint": data.fingerprint,
             "n_train": int(data.train_idx.numel()), "n_test": int(data.test_idx.numel()),
             **{k: getattr(s, k) for k in keys}, **extra}
@@ -252,7 +254,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     if baseline_meta["kind"] != "none":
         out_scale = target_rms(data)  # the residual's RMS over active nodes
     quad_scale = quadratic_scale(data, in_scale) if spec.features == "quadratic" else None
-    signature = _signature(s, spec, data)
+    signature = _signature(s, spec, data, use_bf16(s.precision, dev))
     signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
                                   if not k.endswith("_s")}  # not its timings
     if projections is not None:
