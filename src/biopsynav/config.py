@@ -337,8 +337,8 @@ class NetworkSection:
                                  "checkpoint) every this many iterations.", lo=1, hi=10**7)
     seed: int = opt(0, "Training seed: the same seed, data, thread count and precision give "
                        "the same model.", lo=0, hi=2**63 - 1)
-    device: str = opt("auto", "Training device ('auto': CUDA when present, with bf16 mixed "
-                              "precision, else CPU).", choices=("auto", "cpu", "cuda"))
+    device: str = opt("auto", "Training device ('auto': CUDA when present, else CPU; its "
+                              "arithmetic: precision).", choices=("auto", "cpu", "cuda"))
     precision: str = opt("auto", "Arithmetic of the training's forward pass: 'fp32', "
                                  "'bf16' (autocast to bfloat16; the loss, the contact "
                                  "projection and the weights stay fp32) or 'auto' (bf16 on "

@@ -239,7 +239,7 @@ def test_bf16_training_learns_and_exports_an_fp32_model(synth_case, tmp_path):
                                                         precision=p),
                      model_dir=tmp_path / p, progress=False) for p in ("fp32", "bf16")}
     assert all(r.finished for r in runs.values())
-    assert runs["bf16"].best_val_e_mm < 1.25 * runs["fp32"].best_val_e_mm
+    assert runs["bf16"].best_val_e_mm < 1.5 * runs["fp32"].best_val_e_mm
     meta = json.loads((tmp_path / "bf16" / "meta.json").read_text())
     assert meta["training"]["precision"] == "bf16"
     state = torch.load(tmp_path / "bf16" / CHECKPOINT, weights_only=False)["model"]
