@@ -37,6 +37,8 @@ def test_defaults_round_trip(tmp_path):
     ({"network": {"weight_decay": -0.1}}, "below its minimum"),
     ({"network": {"loss": "huber"}}, "must be one of"),
     ({"network": {"features": "cubic"}}, "must be one of"),
+    ({"network": {"precision": "fp16"}}, "must be one of"),
+    ({"network": {"precision": 16}}, "precision"),
     ({"network": {"weight_decay": "strong"}}, "weight_decay"),
     ({"igtl": {"inference_threads": -1}}, "below its minimum"),
     ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
