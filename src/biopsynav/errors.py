@@ -24,6 +24,10 @@ class SolverError(BiopsynavError):
         self.log = log or []
 
 
+class TrainingError(BiopsynavError):
+    """A training that cannot go on: its loss or validation error is no longer finite."""
+
+
 class FingerprintError(BiopsynavError):
     """Data or a model made for another anatomy or grid than the case at hand."""
 

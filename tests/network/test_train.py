@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from biopsynav.errors import TrainingError
 from biopsynav.network.data import load_dataset
 from biopsynav.network.train import CHECKPOINT, batch_indices, lr_at, train, use_bf16
 
@@ -251,3 +252,32 @@ def test_bf16_training_learns_and_exports_an_fp32_model(synth_case, tmp_path):
     again = train(synth_case, settings=dataclasses.replace(s, precision="bf16"),
                   model_dir=tmp_path / "x", progress=False)
     assert again.resumed_from == 0  # another arithmetic trains afresh
+
+
+def test_a_diverging_training_stops_with_an_error_naming_the_iteration(synth_case, tmp_path):
+    """A learning rate far too large makes the loss NaN: training stops at once with one
+    error naming the iteration and the model folder, and writes no model."""
+    s = tiny_settings(iterations=30, val_interval=10, learning_rate=1e6, warmup_iterations=0)
+    with pytest.raises(TrainingError, match=r"loss became nan at iteration 2: .*diverged; "
+                                            r"no checkpoint was written; lower .*learning_rate"):
+        train(synth_case, settings=s, model_dir=tmp_path, progress=False)
+    assert not (tmp_path / "meta.json").exists() and not (tmp_path / CHECKPOINT).exists()
+
+
+def test_a_divergence_after_a_checkpoint_leaves_it_as_it_was(synth_case, tmp_path):
+    """Weights that overflow after iteration 10 (one set to 1e30 in the checkpoint): the
+    resumed run stops at iteration 11 naming the checkpoint's iteration, and the checkpoint's
+    bytes are untouched."""
+    s = tiny_settings(iterations=30, val_interval=10)
+    train(synth_case, settings=s, model_dir=tmp_path, progress=False, stop_after=10)
+    ckpt = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    name = next(k for k, v in ckpt["model"].items() if v.is_floating_point() and v.ndim == 5)
+    ckpt["model"][name].fill_(1e30)
+    torch.save(ckpt, tmp_path / CHECKPOINT)
+    before = (tmp_path / CHECKPOINT).read_bytes()
+    with pytest.raises(TrainingError, match=rf"at iteration 11: .*{CHECKPOINT} keeps "
+                                            r"iteration 10") as err:
+        train(synth_case, settings=s, model_dir=tmp_path, progress=False)
+    assert err.value.where == str(tmp_path)
+    assert (tmp_path / CHECKPOINT).read_bytes() == before
+    assert not (tmp_path / "meta.json").exists()

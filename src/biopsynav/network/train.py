@@ -35,7 +35,7 @@ import torch
 from ..case import Case, as_case
 from ..config import NetworkSection
 from ..contact.projection import BatchProjection, sample_projections
-from ..errors import InputError
+from ..errors import InputError, TrainingError
 from ..fileio import remove_partial_writes, write_bytes_atomic
 from ..inference.runtimes import ONNX, TORCHSCRIPT
 from ..layout import BEST, CHECKPOINT, HISTORY, LOSS_CURVE, META, MODEL_DIR
@@ -408,6 +408,7 @@ class TrainingLoop:
         self.x_test = data.inputs[data.test_idx].to(dev)
         self.y_test = data.targets[data.test_idx].to(dev)
         self.amp = use_bf16(s.precision, dev)
+        self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
         # channels-last convolutions train 1.4x faster on one CPU thread and 2x on two
         # (oneDNN; measured on the 2-core machine, docs/network.md); GPUs keep their default
         self.memory_format = (torch.channels_last_3d if dev.type == "cpu"
@@ -443,7 +444,11 @@ class TrainingLoop:
         self.net.train()
         while st["iteration"] < end:
             it = st["iteration"]
-            st["loss_sum"] += self.step(it)
+            loss = self.step(it)
+            if not math.isfinite(loss):
+                bar.close()
+                raise self.diverged(f"the training loss became {loss}", it + 1)
+            st["loss_sum"] += loss
             st["loss_n"] += 1
             st["iteration"] = it + 1
             bar.update(1)
@@ -473,6 +478,8 @@ class TrainingLoop:
         e = validate(self.net, self.x_test, self.y_test, self.active,
                      memory_format=self.memory_format, projection=self.test_proj)
         mean_e = float(e.mean())
+        if not math.isfinite(mean_e):
+            raise self.diverged(f"the held-out error became {mean_e} mm", st["iteration"])
         st["history"].append({"iteration": st["iteration"],
                               "train_loss": st["loss_sum"] / max(1, st["loss_n"]),
                               "val_mean_e_mm": mean_e, "val_max_e_mm": float(e.max()),
@@ -489,7 +496,17 @@ class TrainingLoop:
 
         plot_loss_curve(st["history"], self.out / LOSS_CURVE)
 
+    def diverged(self, what: str, iteration: int) -> TrainingError:
+        """The error that stops a diverged training at 1-based ``iteration``: nothing of it is
+        written, the checkpoint (if any) keeps the last finite state."""
+        kept = (f"{CHECKPOINT} keeps iteration {self.saved_at}, from which the same settings "
+                "diverge again" if self.saved_at else "no checkpoint was written")
+        cure = "set [network] precision = \"fp32\" or lower" if self.amp else "lower"
+        return TrainingError(f"{what} at iteration {iteration}: the network diverged; {kept}; "
+                             f"{cure} [network] learning_rate and train again", str(self.out))
+
     def save_checkpoint(self) -> None:
+        self.saved_at = self.state["iteration"]
         _save_torch({"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
                      "state": self.state, "signature": self.signature}, self.out / CHECKPOINT)
 
