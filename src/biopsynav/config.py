@@ -135,7 +135,10 @@ class MaterialSection:
                                     "'neo-hookean' (compressible, default: stable under large "
                                     "pushes), 'neo-hookean-sri' (the same energy, its "
                                     "volumetric term integrated at the cell centre: free of "
-                                    "volumetric locking, docs/fem.md) or 'svk' (Saint "
+                                    "volumetric locking, docs/fem.md), "
+                                    "'neo-hookean-split-sri' (the decoupled energy, "
+                                    "isochoric part at 2x2x2 points, volumetric at the "
+                                    "centre) or 'svk' (Saint "
                                     "Venant-Kirchhoff, the paper's; collapses under large "
                                     "pushes on soft tissue).",
                      choices=material_law_names)
@@ -280,6 +283,13 @@ class DatasetSection:
                                  "iterations and then mostly fail anyway; the budget keeps them "
                                  "from costing most of the compute (docs/dataset.md). 0: no "
                                  "limit.", lo=0, hi=100000)
+    max_edge_stretch: float = opt(8.0, "A solved push is not kept when it stretches an edge "
+                                        "of a cell more than this many times its rest length: "
+                                        "a state no tissue reaches (in practice the lone node "
+                                        "of a nearly empty cell flung by the push). It is "
+                                        "logged as 'implausible' and redrawn, and counts "
+                                        "against max_failure_share on its own (docs/dataset.md)."
+                                        " 0: no check.", lo=0.0, hi=1e6)
     teacher_refine: int = opt(1, "The teacher's grid: each sample is solved on cells this many "
                                  "times smaller than [grid] cell_size_mm and brought to the "
                                  "case grid by a least-squares fit over the tissue "

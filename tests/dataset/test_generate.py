@@ -241,6 +241,44 @@ def test_too_many_failures_stop_the_job(fresh_case):
     assert len(open_data(fresh_case).attrs["failures"]) > 0.25 * N
 
 
+def _edge_stretches(case_dir: Path) -> np.ndarray:
+    """The largest cell-edge stretch of every stored sample (n,)."""
+    from biopsynav.fem import FEModel, largest_edge_stretch
+
+    model = FEModel.from_case(Case.load(case_dir))
+    targets = open_data(case_dir)["targets"]
+    return np.array([largest_edge_stretch(model, tensor_to_field(np.asarray(t, np.float64)))
+                     for t in targets])
+
+
+def test_implausible_solutions_are_logged_and_redrawn(fresh_case, reference):
+    """With [dataset] max_edge_stretch below half the reference's samples, those draws are
+    logged as 'implausible' with the stretch named, redrawn, and no kept sample exceeds it;
+    the limit is part of the protocol (the default is not, as before the check)."""
+    from biopsynav.dataset.store import protocol_dict
+
+    stretch = _edge_stretches(reference)
+    limit = float(np.median(stretch))
+    edit_config(fresh_case, dataset={"max_edge_stretch": limit, "max_failure_share": 1.0})
+    summary = generate_case(fresh_case, workers=2, progress=False)
+    bad = [f for f in open_data(fresh_case).attrs["failures"] if f["kind"] == "implausible"]
+    assert len(bad) == summary["implausible"] == summary["implausible_total"]
+    assert len(bad) >= (stretch > limit + 1e-4).sum() > 0
+    assert all("max_edge_stretch" in f["error"] and "times its rest length" in f["error"]
+               for f in bad)
+    assert _edge_stretches(fresh_case).max() <= limit + 1e-4
+    cfg = Case.load(fresh_case).cfg
+    assert protocol_dict(cfg, N_TRAIN, N_TEST)["dataset"]["max_edge_stretch"] == limit
+    cfg.dataset.max_edge_stretch = 8.0
+    assert "max_edge_stretch" not in protocol_dict(cfg, N_TRAIN, N_TEST)["dataset"]
+
+
+def test_too_many_implausible_solutions_stop_the_job(fresh_case):
+    edit_config(fresh_case, dataset={"max_edge_stretch": 1.0, "max_failure_share": 0.25})
+    with pytest.raises(BiopsynavError, match="states no tissue reaches.*max_edge_stretch"):
+        generate_case(fresh_case, workers=1, progress=False)
+
+
 def test_guard_against_mixing(reference, tmp_path):
     case_dir = tmp_path / "case"
     shutil.copytree(reference, case_dir)

@@ -87,3 +87,13 @@ def test_half_filled_element_contributes_half_stiffness():
     assert np.allclose(k_full - k_half, 0.5 * k_el_free, atol=1e-14)
     uniform = FEModel(nodes, hexes, 0.5, E_MPA, NU, fixed)
     assert np.allclose(tangent_matrix(uniform, u).toarray(), 0.5 * k_full, atol=1e-15)
+
+
+def test_largest_edge_stretch_of_a_stretched_and_a_resting_box():
+    from biopsynav.fem import largest_edge_stretch
+
+    nodes, hexes = distorted_box()
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, np.zeros(len(nodes), bool))
+    assert largest_edge_stretch(model, np.zeros_like(nodes)) == 1.0
+    stretched = nodes @ (np.diag([2.5, 1.0, 0.8]) - np.eye(3)).T  # every x extent 2.5 times
+    assert abs(largest_edge_stretch(model, stretched) - 2.5) < 1e-12

@@ -37,6 +37,7 @@ from .store import (
     remove_store,
 )
 from .worker import (
+    IMPLAUSIBLE,
     NOT_CONVERGED,
     SINGLE_THREAD_ENV,
     TOO_DEEP,
@@ -47,6 +48,8 @@ from .worker import (
 )
 
 SUMMARY_FILE, PLOT_FILE = DATASET_SUMMARY, DATASET_PLOT
+#: The summary's counter of each kind of draw not kept.
+STAT_OF_KIND = {NOT_CONVERGED: "failures", TOO_DEEP: "too_deep", IMPLAUSIBLE: "implausible"}
 #: The failure share is judged once this many draws (or all requested, if fewer) were made.
 MIN_DRAWS_FOR_SHARE = 20
 #: A sample whose draw crashes the worker pool this many times stops the job.
@@ -331,9 +334,9 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     bar.update(1)
                 else:
                     store.add_failures([_failure_record(result)])
-                    stats["too_deep" if result["kind"] == TOO_DEEP else "failures"] += 1
+                    stats[STAT_OF_KIND.get(result["kind"], "failures")] += 1
                     bar.set_postfix(failed=stats["failures"], too_deep=stats["too_deep"],
-                                    refresh=False)
+                                    implausible=stats["implausible"], refresh=False)
                     queue.appendleft((index, attempt + 1))
                     _check_failure_share(store, max_failure_share, n_total)
     finally:
@@ -392,14 +395,15 @@ def _plain(obj: Any) -> Any:
 
 
 def failure_counts(records: list[dict]) -> Counter:
-    """How many logged draws were not kept for each reason (``NOT_CONVERGED``, ``TOO_DEEP``;
+    """How many logged draws were not kept for each reason (``NOT_CONVERGED``, ``TOO_DEEP``,
+    ``IMPLAUSIBLE``;
     records written before ``kind`` existed were all non-converged solves)."""
     return Counter(str(r.get("kind", NOT_CONVERGED)) for r in records)
 
 
 def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> None:
-    """Stop when more than ``share`` of all draws so far failed to converge, or went deeper
-    than ``[probe] max_push_mm`` (each on its own; after enough draws)."""
+    """Stop when more than ``share`` of all draws so far failed to converge, went deeper
+    than ``[probe] max_push_mm``, or were implausible (each on its own; after enough draws)."""
     records = store.failures()
     draws = len(records) + int(store.done_mask().sum())
     if draws < min(MIN_DRAWS_FOR_SHARE, n_total):
@@ -418,6 +422,14 @@ def _check_failure_share(store: DatasetStore, share: float, n_total: int) -> Non
             f"more than [dataset] max_failure_share = {share:g}: this breast is softer than "
             "[probe] f_max_n assumes; lower f_max_n (dataset.png and dataset_summary.json show "
             "the probe displacements kept)", "generate")
+    if kinds[IMPLAUSIBLE] > share * draws:
+        raise BiopsynavError(
+            f"{kinds[IMPLAUSIBLE]} of {draws} probe pushes converged to states no tissue "
+            f"reaches (a cell edge stretched beyond [dataset] max_edge_stretch), more than "
+            f"[dataset] max_failure_share = {share:g}: the material law or the grid's nearly "
+            "empty cells do not hold these pushes; use [material] model = \"neo-hookean\" or "
+            "raise [grid] min_fraction (the failures log in dataset.zarr attrs 'failures' names "
+            "each)", "generate")
 
 
 # ----- summary and plot ---------------------------------------------------------------------
@@ -444,6 +456,8 @@ def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "failures_total": kinds[NOT_CONVERGED],
         "too_deep": int(stats["too_deep"]),
         "too_deep_total": kinds[TOO_DEEP],
+        "implausible": int(stats["implausible"]),
+        "implausible_total": kinds[IMPLAUSIBLE],
         "pool_restarts": int(stats["pool_restarts"]),
         "minutes": round(minutes, 3),
         "samples_per_min": round(computed / minutes, 2) if computed and minutes > 0 else 0.0,
@@ -479,7 +493,7 @@ def plot_distributions(store: DatasetStore, path: Path) -> Path:
         ax.set_ylabel("samples")
     kinds = failure_counts(store.failures())
     fig.suptitle(f"{meta['index'].size} samples; redrawn: {kinds[NOT_CONVERGED]} not converged, "
-                 f"{kinds[TOO_DEEP]} too deep")
+                 f"{kinds[TOO_DEEP]} too deep, {kinds[IMPLAUSIBLE]} implausible")
     fig.tight_layout()
     return save_figure_atomic(fig, path)
 

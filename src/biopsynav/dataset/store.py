@@ -13,7 +13,8 @@ Layout (a Zarr v3 group; N = n_train + n_test; node arrays follow
 * per-sample metadata (N,) or (N, 3): see :data:`META_FIELDS`;
 * attrs: ``n_train``, ``n_test``, ``fingerprint`` (anatomy + grid), ``protocol_fingerprint``,
   ``protocol`` (what it hashes), ``node_shape``, ``format``, ``failures`` (the draws not kept:
-  index, attempt, ``kind`` ``not_converged`` or ``too_deep``, message, last Newton iterations).
+  index, attempt, ``kind`` ``not_converged``, ``too_deep`` or ``implausible``, message, last
+  Newton iterations).
 
 Samples ``[0, n_train)`` are for training, ``[n_train, N)`` held out. Every chunk carries a
 CRC-32C (:func:`checked_compressors`; stores written before it have none and are read unchecked).
@@ -34,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import CaseConfig
+from ..config import CaseConfig, DatasetSection
 from ..errors import FingerprintError, InputError
 from ..fem.teacher import teacher_refinement
 from ..layout import DATASET_NAME
@@ -42,6 +43,9 @@ from ..layout import DATASET_NAME
 FORMAT = "biopsynav-dataset/1"
 #: Bump when the protocol (draw order, input encoding) changes: old data is then refused.
 PROTOCOL_VERSION = 1
+#: ``[dataset] max_edge_stretch`` by default: not in the protocol (that of data sets made
+#: before the check), any other value is.
+DEFAULT_MAX_EDGE_STRETCH = DatasetSection().max_edge_stretch
 
 #: name -> (trailing shape, dtype) of the per-sample metadata arrays.
 META_FIELDS: dict[str, tuple[tuple[int, ...], str]] = {
@@ -88,13 +92,15 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
         probe.pop("rigid_share", None)
     if probe.get("shape") == "rectangle":  # the only shape before the registry: same protocol
         probe.pop("shape")
+    stretch = cfg.dataset.max_edge_stretch
+    checks = {} if stretch == DEFAULT_MAX_EDGE_STRETCH else {"max_edge_stretch": stretch}
     return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
             "fe_model": fe_model,
             "solver": solver, "probe": probe,
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
                         "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,
                         "contact_input": cfg.dataset.contact_input,
-                        **teacher_protocol(cfg)}}
+                        **teacher_protocol(cfg), **checks}}
 
 
 def teacher_protocol(cfg: CaseConfig) -> dict:

@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
-#: Why a draw was not kept (``kind`` of its failure record): its solve did not converge, or
-#: it pushed deeper than ``[probe] max_push_mm``.
-NOT_CONVERGED, TOO_DEEP = "not_converged", "too_deep"
+#: Why a draw was not kept (``kind`` of its failure record): its solve did not converge, it
+#: pushed deeper than ``[probe] max_push_mm``, or its solution stretches a cell edge beyond
+#: ``[dataset] max_edge_stretch``.
+NOT_CONVERGED, TOO_DEEP, IMPLAUSIBLE = "not_converged", "too_deep", "implausible"
 
 #: Environment of a worker process: one MKL/OpenMP thread keeps Pardiso's results
 #: bit-identical whatever the number of workers.
@@ -86,8 +87,9 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
 
     Returns a dict with ``index``, ``attempt``, ``ok``; when ok: ``inputs`` (4, nx, ny, nz)
     float32, ``targets`` (3, nx, ny, nz) float32 and the per-sample metadata; when the draw
-    was not kept: ``kind`` (:data:`NOT_CONVERGED` or :data:`TOO_DEEP`), ``error`` (message)
-    and ``diagnostics`` (last Newton iterations; empty for a push that was too deep).
+    was not kept: ``kind`` (:data:`NOT_CONVERGED`, :data:`TOO_DEEP` or :data:`IMPLAUSIBLE`),
+    ``error`` (message) and ``diagnostics`` (last Newton iterations; empty for a push that
+    was solved).
     """
     from ..errors import SolverError
     from ..fem import Loads, solve
@@ -118,6 +120,12 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         result.update(ok=False, kind=TOO_DEEP, probe_disp_mm=probe_disp,
                       error=f"probe displacement {probe_disp:.1f} mm is beyond [probe] "
                             f"max_push_mm = {cfg.probe.max_push_mm:g} mm",
+                      solve_s=time.perf_counter() - start, diagnostics=[],
+                      newton_iters=int(report.iterations))
+        return result
+    why = implausible(ctx.model, u, cfg.dataset.max_edge_stretch)
+    if why:
+        result.update(ok=False, kind=IMPLAUSIBLE, probe_disp_mm=probe_disp, error=why,
                       solve_s=time.perf_counter() - start, diagnostics=[],
                       newton_iters=int(report.iterations))
         return result
@@ -172,6 +180,19 @@ def too_deep(probe_disp_mm: float, max_push_mm: float) -> bool:
     """Whether a solved push (mean contact-point displacement norm, mm) goes beyond the
     data set's deepest push ``[probe] max_push_mm`` (0: no limit)."""
     return max_push_mm > 0 and probe_disp_mm > max_push_mm
+
+
+def implausible(model: Any, u: np.ndarray, max_stretch: float) -> str:
+    """Why the solution ``u`` (n_nodes, 3) mm of ``model`` is not kept, or "": a cell edge
+    stretched more than ``max_stretch`` times its rest length (0: no check)."""
+    from ..fem import largest_edge_stretch
+
+    stretch = largest_edge_stretch(model, u) if max_stretch > 0 else 0.0
+    if stretch <= max_stretch:
+        return ""
+    return (f"the solve converged to a state no tissue reaches: a cell edge stretched "
+            f"{stretch:.1f} times its rest length, more than [dataset] max_edge_stretch = "
+            f"{max_stretch:g} (the lone node of a nearly empty cell flung by the push?)")
 
 
 def push_metadata(push: Any) -> dict:

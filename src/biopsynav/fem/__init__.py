@@ -10,10 +10,11 @@ from .solver import (
     SolveReport,
     SolverSettings,
     internal_forces,
+    largest_edge_stretch,
     smallest_det_f,
     solve,
     tangent_matrix,
 )
 
 __all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "internal_forces", "lame_constants",
-           "smallest_det_f", "solve", "tangent_matrix"]
+           "largest_edge_stretch", "smallest_det_f", "solve", "tangent_matrix"]

@@ -10,6 +10,9 @@ Materials (``mu``, ``lam``: Lame constants, MPa):
 * ``NEO_HOOKEAN`` (1): ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``,
   ``S = mu (I - C^-1) + lam ln(J) C^-1``,
   ``CC = lam C^-1 (x) C^-1 + 2 (mu - lam ln J) I_{C^-1}``.
+* ``ISOCHORIC`` (an integration-point law of ``NEO_HOOKEAN_SPLIT_SRI``, not a material):
+  ``W = mu/2 (J^-2/3 I1 - 3)``, ``S = mu J^-2/3 (I - I1/3 C^-1)``,
+  ``CC = 2 mu J^-2/3 / 3 (I1 I_{C^-1} + I1/3 C^-1 (x) C^-1 - I (x) C^-1 - C^-1 (x) I)``.
 """
 
 from __future__ import annotations
@@ -18,11 +21,18 @@ import numpy as np
 from numba import njit, prange
 
 from ..grid.index import HEX_CORNERS
-from ..materials import KERNEL_NEO_HOOKEAN, KERNEL_NEO_HOOKEAN_SRI, KERNEL_SVK
+from ..materials import (
+    KERNEL_NEO_HOOKEAN,
+    KERNEL_NEO_HOOKEAN_SPLIT_SRI,
+    KERNEL_NEO_HOOKEAN_SRI,
+    KERNEL_SVK,
+)
 
 SVK = KERNEL_SVK  # the branch ids of biopsynav.materials
 NEO_HOOKEAN = KERNEL_NEO_HOOKEAN
 NEO_HOOKEAN_SRI = KERNEL_NEO_HOOKEAN_SRI
+NEO_HOOKEAN_SPLIT_SRI = KERNEL_NEO_HOOKEAN_SPLIT_SRI
+ISOCHORIC = -1  # the isochoric neo-Hookean point law of NEO_HOOKEAN_SPLIT_SRI
 
 GAUSS_POINTS = (2.0 * HEX_CORNERS - 1.0) / np.sqrt(3.0)  # (8, 3) natural coordinates
 NATURAL_CORNERS = 2.0 * HEX_CORNERS - 1.0  # (8, 3) corners of the reference cube [-1, 1]^3
@@ -78,8 +88,8 @@ def _stress_svk(f, mu, lam, s, d):
 
 
 @njit(cache=True, inline="always")
-def _stress_neo_hookean(f, det_f, mu, lam, s, d, pairs):
-    """Compressible neo-Hookean: fill S (3, 3) and Voigt tangent d (6, 6)."""
+def _right_cauchy_green_inverse(f, det_f):
+    """C = F^T F (3, 3) and its inverse (3, 3)."""
     c = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
@@ -98,6 +108,13 @@ def _stress_neo_hookean(f, det_f, mu, lam, s, d, pairs):
     ci[1, 0] = ci[0, 1]
     ci[2, 0] = ci[0, 2]
     ci[2, 1] = ci[1, 2]
+    return c, ci
+
+
+@njit(cache=True, inline="always")
+def _stress_neo_hookean(f, det_f, mu, lam, s, d, pairs):
+    """Compressible neo-Hookean: fill S (3, 3) and Voigt tangent d (6, 6)."""
+    _, ci = _right_cauchy_green_inverse(f, det_f)
     log_j = np.log(det_f)
     for i in range(3):
         for j in range(3):
@@ -110,6 +127,30 @@ def _stress_neo_hookean(f, det_f, mu, lam, s, d, pairs):
             k = pairs[q, 0]
             m = pairs[q, 1]
             v = lam * ci[i, j] * ci[k, m] + g * (ci[i, k] * ci[j, m] + ci[i, m] * ci[j, k])
+            d[p, q] = v
+            d[q, p] = v
+
+
+@njit(cache=True, inline="always")
+def _stress_isochoric(f, det_f, mu, s, d, pairs):
+    """Isochoric neo-Hookean ``mu/2 (J^-2/3 I1 - 3)``: fill S (3, 3) and Voigt tangent d."""
+    c, ci = _right_cauchy_green_inverse(f, det_f)
+    i1 = c[0, 0] + c[1, 1] + c[2, 2]
+    j23 = det_f ** (-2.0 / 3.0)
+    for i in range(3):
+        for j in range(3):
+            s[i, j] = mu * j23 * ((1.0 if i == j else 0.0) - i1 / 3.0 * ci[i, j])
+    a = 2.0 * mu * j23 / 3.0
+    for p in range(6):
+        i = pairs[p, 0]
+        j = pairs[p, 1]
+        dij = 1.0 if i == j else 0.0
+        for q in range(p, 6):
+            k = pairs[q, 0]
+            m = pairs[q, 1]
+            dkm = 1.0 if k == m else 0.0
+            v = a * (0.5 * i1 * (ci[i, k] * ci[j, m] + ci[i, m] * ci[j, k])
+                     + i1 / 3.0 * ci[i, j] * ci[k, m] - dij * ci[k, m] - ci[i, j] * dkm)
             d[p, q] = v
             d[q, p] = v
 
@@ -134,6 +175,8 @@ def _strain_energy(f, det_f, mu, lam, material):
     for i in range(3):
         for j in range(3):
             i1 += f[i, j] * f[i, j]
+    if material == ISOCHORIC:
+        return 0.5 * mu * (det_f ** (-2.0 / 3.0) * i1 - 3.0)
     log_j = np.log(det_f)
     return 0.5 * mu * (i1 - 3.0) - mu * log_j + 0.5 * lam * log_j * log_j
 
@@ -157,6 +200,8 @@ def _add_point(ue, dn, w, mu, lam, material, want_tangent, f_el, k_el, f, s, d, 
         return 0.0, det_f
     if material == SVK:
         _stress_svk(f, mu, lam, s, d)
+    elif material == ISOCHORIC:
+        _stress_isochoric(f, det_f, mu, s, d, pairs)
     else:
         _stress_neo_hookean(f, det_f, mu, lam, s, d, pairs)
     energy = w * _strain_energy(f, det_f, mu, lam, material)
@@ -223,7 +268,11 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
             NEO_HOOKEAN_SRI (the neo-Hookean energy with its ``lam`` term integrated at one
             point with the cell's whole weight and the volume average of the shape gradients,
             ``(1/V) int grad N dV``: selective reduced integration, free of volumetric
-            locking; the ``mu`` terms keep the 2x2x2 rule, so no hourglass modes).
+            locking; the ``mu`` terms keep the 2x2x2 rule, so no hourglass modes) or
+            NEO_HOOKEAN_SPLIT_SRI (the decoupled energy ``mu/2 (J^-2/3 I1 - 3)`` at the 2x2x2
+            points plus ``K/2 (ln J)^2``, ``K = lam + 2 mu / 3``, at that one point: the
+            same small-strain response, but a corner crushed at constant cell volume costs
+            shear energy without bound).
         want_tangent: fill ``ke`` too.
     Outputs (filled in place): fe (n_el, 24) N; ke (n_el, 24, 24) N/mm; min_det (n_el,);
     energy (n_el,) mJ (N mm). An element with det F <= 0 at an integration point gets an
@@ -250,9 +299,11 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
         w_c = 0.0
         dmin = np.inf
         gset = elem_set[e]
-        split = material == NEO_HOOKEAN_SRI
-        law = NEO_HOOKEAN if split else material
+        decoupled = material == NEO_HOOKEAN_SPLIT_SRI
+        split = decoupled or material == NEO_HOOKEAN_SRI
+        law = ISOCHORIC if decoupled else (NEO_HOOKEAN if split else material)
         lam_g = 0.0 if split else lam[e]
+        lam_c = lam[e] + 2.0 / 3.0 * mu[e] if decoupled else lam[e]
         for g in range(8):
             w = jw[gset, g] * scale[e]
             en, det_f = _add_point(ue, grads[gset, g], w, mu[e], lam_g, law, want_tangent,
@@ -268,7 +319,7 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
             for a in range(8):
                 for i in range(3):
                     dn_c[a, i] /= w_c
-            en, det_f = _add_point(ue, dn_c, w_c, 0.0, lam[e], NEO_HOOKEAN, want_tangent,
+            en, det_f = _add_point(ue, dn_c, w_c, 0.0, lam_c, NEO_HOOKEAN, want_tangent,
                                    f_el, k_el, f, s, d, b, db, gsn, sv, pairs)
             w_el += en
             dmin = min(dmin, det_f)

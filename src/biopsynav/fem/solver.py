@@ -504,6 +504,20 @@ def smallest_det_f(model: FEModel, u: np.ndarray) -> np.ndarray:
     return min_det
 
 
+#: The 12 edges of a hexahedron, as pairs of its corners (VTK order).
+HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                      [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64)
+
+
+def largest_edge_stretch(model: FEModel, u: np.ndarray) -> float:
+    """The largest ratio of deformed to rest length over every edge of every element at
+    displacement ``u`` (n_nodes, 3) mm (1 at rest)."""
+    a, b = model.hexes[:, HEX_EDGES[:, 0]], model.hexes[:, HEX_EDGES[:, 1]]
+    rest = np.linalg.norm(model.nodes[b] - model.nodes[a], axis=2)
+    x = model.nodes + u
+    return float((np.linalg.norm(x[b] - x[a], axis=2) / rest).max())
+
+
 def tangent_matrix(model: FEModel, u: np.ndarray):
     """The full symmetric tangent (n_eq, n_eq) N/mm (CSR) at displacement ``u`` (n_nodes, 3)."""
     from .linsolve import full_matrix
