@@ -352,9 +352,8 @@ class NetworkSection:
     precision: str = opt("auto", "Arithmetic of the training's forward pass: 'fp32', "
                                  "'bf16' (autocast to bfloat16; the loss, the contact "
                                  "projection and the weights stay fp32) or 'auto' (bf16 on "
-                                 "CUDA, fp32 on the CPU). Measured on UC Davis, 2 CPU cores "
-                                 "with native bf16: 'bf16' steps 1.3x faster and ended with "
-                                 "mean / max e 0.0470 / 0.345 mm against 0.0464 / 0.318 "
+                                 "CUDA, fp32 on the CPU). 'bf16' on the CPU is refused: "
+                                 "oneDNN's bf16 kernels turned the loss NaN at random "
                                  "(docs/network.md). Inference is always fp32.",
                          choices=("auto", "fp32", "bf16"))
     threads: int = opt(0, "CPU threads for training and inference (0: all cores).",

@@ -94,6 +94,16 @@ def use_bf16(precision: str, dev: torch.device) -> bool:
     return dev.type == "cuda"
 
 
+def check_precision(precision: str, dev: torch.device) -> None:
+    """Refuse bf16 training on the CPU (InputError naming ``[network] precision``): oneDNN's
+    bf16 kernels there turned losses NaN at random (docs/network.md, "Training arithmetic")."""
+    if precision == "bf16" and dev.type == "cpu":
+        raise InputError("bf16 training on the CPU is refused: oneDNN's bf16 kernels turned "
+                         "the loss NaN at random (in 2-5 of 8 short trainings on a CPU with "
+                         "native bf16; none with oneDNN off, which is 28 times slower); use "
+                         "'fp32' or 'auto' on the CPU, 'bf16' on CUDA", "[network] precision")
+
+
 def lr_at(it: int, s: NetworkSection) -> float:
     """Learning rate of iteration ``it``: linear warm-up, then cosine decay to 1 % of the peak."""
     peak = s.learning_rate
@@ -243,6 +253,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     spec = preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
                        activation=s.activation, features=s.features)
     dev = resolve_device(s.device)
+    check_precision(s.precision, dev)
     threads = set_threads(s.threads)
 
     full = load_dataset(dataset if dataset is not None else case_dir)
@@ -520,4 +531,4 @@ def train_case(case: Case | str | Path, preset: str | None = None, iterations: i
 
 
 __all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",
-           "resolve_device", "set_threads", "build_optimizer", "use_bf16"]
+           "resolve_device", "set_threads", "build_optimizer", "use_bf16", "check_precision"]
