@@ -138,7 +138,9 @@ class MaterialSection:
                                     "volumetric locking, docs/fem.md), "
                                     "'neo-hookean-split-sri' (the decoupled energy, "
                                     "isochoric part at 2x2x2 points, volumetric at the "
-                                    "centre) or 'svk' (Saint "
+                                    "centre), 'neo-hookean-split-sri-inner' (that in the "
+                                    "cells wholly inside the tissue, 'neo-hookean' in the "
+                                    "cells the surface cuts) or 'svk' (Saint "
                                     "Venant-Kirchhoff, the paper's; collapses under large "
                                     "pushes on soft tissue).",
                      choices=material_law_names)

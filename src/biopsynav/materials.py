@@ -6,15 +6,18 @@ ranges, turns per-element parameter arrays into the numba kernel's per-element L
 (mu, lambda) in MPa, gives the small-strain (E, nu) that the linear-elastic baseline and the
 contact compliance use, and names the kernel branch that evaluates it (the kernels keep their
 branches: ``KERNEL_SVK``, ``KERNEL_NEO_HOOKEAN``, ``KERNEL_NEO_HOOKEAN_SRI``,
-``KERNEL_NEO_HOOKEAN_SPLIT_SRI``; a law with a new energy adds one there).
+``KERNEL_NEO_HOOKEAN_SPLIT_SRI``, ``KERNEL_NEO_HOOKEAN_SPLIT_SRI_INNER``; a law with a new
+energy adds one there).
 
 Registered: ``neo-hookean`` (compressible, ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``),
 ``neo-hookean-sri`` (the same energy, its ``lam`` term integrated at the cell centre:
 selective reduced integration, free of volumetric locking near nu = 0.5),
 ``neo-hookean-split-sri`` (the decoupled neo-Hookean ``mu/2 (J^-2/3 I1 - 3) + K/2 (ln J)^2``,
 ``K = lam + 2 mu / 3``, its volumetric term at the cell centre: the same small-strain
-response as the others, and no cheap crushing of a cell's corner at constant cell volume)
-and ``svk``.
+response as the others, and no cheap crushing of a cell's corner at constant cell volume),
+``neo-hookean-split-sri-inner`` (that law in the cells wholly inside the tissue, the
+compressible ``neo-hookean`` at 2x2x2 points in the cells the surface cuts, whose centre
+and averaged gradients say little about their tissue) and ``svk``.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ KERNEL_SVK = 0
 KERNEL_NEO_HOOKEAN = 1
 KERNEL_NEO_HOOKEAN_SRI = 2
 KERNEL_NEO_HOOKEAN_SPLIT_SRI = 3
+KERNEL_NEO_HOOKEAN_SPLIT_SRI_INNER = 4
 
 Arrays = dict[str, np.ndarray]
 
@@ -95,4 +99,7 @@ register_material_law(MaterialLaw("neo-hookean-sri", KERNEL_NEO_HOOKEAN_SRI,
                                   ELASTIC_PARAMETERS, _lame, _e_nu))
 register_material_law(MaterialLaw("neo-hookean-split-sri", KERNEL_NEO_HOOKEAN_SPLIT_SRI,
                                   ELASTIC_PARAMETERS, _lame, _e_nu))
+register_material_law(MaterialLaw("neo-hookean-split-sri-inner",
+                                  KERNEL_NEO_HOOKEAN_SPLIT_SRI_INNER, ELASTIC_PARAMETERS, _lame,
+                                  _e_nu))
 register_material_law(MaterialLaw("svk", KERNEL_SVK, ELASTIC_PARAMETERS, _lame, _e_nu))

@@ -23,7 +23,7 @@ def pk1_exact(material: str, f: np.ndarray, e_mpa: float = E_MPA, nu: float = NU
         return f @ (lam * np.trace(e) * np.eye(3) + 2 * mu * e)
     f_inv_t = np.linalg.inv(f).T
     j = np.linalg.det(f)
-    if material == "neo-hookean-split-sri":  # mu/2 (J^-2/3 I1 - 3) + K/2 (ln J)^2
+    if material.startswith("neo-hookean-split-sri"):  # mu/2 (J^-2/3 I1 - 3) + K/2 (ln J)^2
         i1 = float(np.sum(f * f))
         return (mu * j ** (-2 / 3) * (f - i1 / 3 * f_inv_t)
                 + (lam + 2 * mu / 3) * np.log(j) * f_inv_t)
@@ -40,6 +40,7 @@ def distorted_box(cells=(2, 2, 2), size=20.0):
     return nodes, hexes
 
 
-@pytest.fixture(params=["neo-hookean", "neo-hookean-sri", "neo-hookean-split-sri", "svk"])
+@pytest.fixture(params=["neo-hookean", "neo-hookean-sri", "neo-hookean-split-sri",
+                        "neo-hookean-split-sri-inner", "svk"])
 def material(request) -> str:
     return request.param

@@ -97,3 +97,18 @@ def test_largest_edge_stretch_of_a_stretched_and_a_resting_box():
     assert largest_edge_stretch(model, np.zeros_like(nodes)) == 1.0
     stretched = nodes @ (np.diag([2.5, 1.0, 0.8]) - np.eye(3)).T  # every x extent 2.5 times
     assert abs(largest_edge_stretch(model, stretched) - 2.5) < 1e-12
+
+
+def test_inner_law_is_split_sri_in_whole_cells_and_neo_hookean_in_cut_cells():
+    nodes, hexes = box_mesh((1, 1, 1), (10, 10, 10))
+    u = nodes @ (F_AFFINE - np.eye(3)).T + np.random.default_rng(1).uniform(-1, 1, nodes.shape)
+
+    def forces(law: str, weight: float) -> np.ndarray:
+        model = FEModel(nodes, hexes, weight, E_MPA, NU, np.zeros(len(nodes), bool), law)
+        return internal_forces(model, u)
+
+    inner_whole, inner_cut = forces("neo-hookean-split-sri-inner", 1.0), forces(
+        "neo-hookean-split-sri-inner", 0.5)
+    assert np.array_equal(inner_whole, forces("neo-hookean-split-sri", 1.0))
+    assert np.array_equal(inner_cut, forces("neo-hookean", 0.5))
+    assert not np.allclose(inner_whole, forces("neo-hookean", 1.0))

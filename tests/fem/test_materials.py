@@ -41,6 +41,7 @@ def test_a_registered_law_takes_its_own_tissue_parameters(monkeypatch, phantom_c
     with pytest.raises(InputError, match="needs exactly mu_mpa and K_mpa"):
         config_from_dict({"material": {"model": law.name}}, "t")  # E_mpa/nu tissues refused
     with pytest.raises(InputError,
-                       match="one of neo-hookean, neo-hookean-sri, neo-hookean-split-sri, svk, "
+                       match="one of neo-hookean, neo-hookean-sri, neo-hookean-split-sri, "
+                             "neo-hookean-split-sri-inner, svk, "
                              "neo-hookean-mu-k"):
         config_from_dict({"material": {"model": "ogden"}}, "t")

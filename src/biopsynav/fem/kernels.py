@@ -24,6 +24,7 @@ from ..grid.index import HEX_CORNERS
 from ..materials import (
     KERNEL_NEO_HOOKEAN,
     KERNEL_NEO_HOOKEAN_SPLIT_SRI,
+    KERNEL_NEO_HOOKEAN_SPLIT_SRI_INNER,
     KERNEL_NEO_HOOKEAN_SRI,
     KERNEL_SVK,
 )
@@ -32,6 +33,9 @@ SVK = KERNEL_SVK  # the branch ids of biopsynav.materials
 NEO_HOOKEAN = KERNEL_NEO_HOOKEAN
 NEO_HOOKEAN_SRI = KERNEL_NEO_HOOKEAN_SRI
 NEO_HOOKEAN_SPLIT_SRI = KERNEL_NEO_HOOKEAN_SPLIT_SRI
+NEO_HOOKEAN_SPLIT_SRI_INNER = KERNEL_NEO_HOOKEAN_SPLIT_SRI_INNER
+#: Tissue fraction from which a cell counts as wholly inside the tissue (the inner law).
+WHOLE_CELL = 0.999
 ISOCHORIC = -1  # the isochoric neo-Hookean point law of NEO_HOOKEAN_SPLIT_SRI
 
 GAUSS_POINTS = (2.0 * HEX_CORNERS - 1.0) / np.sqrt(3.0)  # (8, 3) natural coordinates
@@ -272,7 +276,8 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
             NEO_HOOKEAN_SPLIT_SRI (the decoupled energy ``mu/2 (J^-2/3 I1 - 3)`` at the 2x2x2
             points plus ``K/2 (ln J)^2``, ``K = lam + 2 mu / 3``, at that one point: the
             same small-strain response, but a corner crushed at constant cell volume costs
-            shear energy without bound).
+            shear energy without bound) or NEO_HOOKEAN_SPLIT_SRI_INNER (that in the cells
+            whose ``scale`` is at least WHOLE_CELL, NEO_HOOKEAN in the cut cells).
         want_tangent: fill ``ke`` too.
     Outputs (filled in place): fe (n_el, 24) N; ke (n_el, 24, 24) N/mm; min_det (n_el,);
     energy (n_el,) mJ (N mm). An element with det F <= 0 at an integration point gets an
@@ -299,9 +304,10 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
         w_c = 0.0
         dmin = np.inf
         gset = elem_set[e]
-        decoupled = material == NEO_HOOKEAN_SPLIT_SRI
+        inner = material == NEO_HOOKEAN_SPLIT_SRI_INNER
+        decoupled = material == NEO_HOOKEAN_SPLIT_SRI or (inner and scale[e] >= WHOLE_CELL)
         split = decoupled or material == NEO_HOOKEAN_SRI
-        law = ISOCHORIC if decoupled else (NEO_HOOKEAN if split else material)
+        law = ISOCHORIC if decoupled else (NEO_HOOKEAN if split or inner else material)
         lam_g = 0.0 if split else lam[e]
         lam_c = lam[e] + 2.0 / 3.0 * mu[e] if decoupled else lam[e]
         for g in range(8):
