@@ -116,16 +116,9 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         return result
     contact_u = np.asarray(loaded @ u)
     probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
-    if not push.rigid and too_deep(probe_disp, cfg.probe.max_push_mm):
-        result.update(ok=False, kind=TOO_DEEP, probe_disp_mm=probe_disp,
-                      error=f"probe displacement {probe_disp:.1f} mm is beyond [probe] "
-                            f"max_push_mm = {cfg.probe.max_push_mm:g} mm",
-                      solve_s=time.perf_counter() - start, diagnostics=[],
-                      newton_iters=int(report.iterations))
-        return result
-    why = implausible(ctx.model, u, cfg.dataset.max_edge_stretch)
-    if why:
-        result.update(ok=False, kind=IMPLAUSIBLE, probe_disp_mm=probe_disp, error=why,
+    rejected = solved_rejection(ctx, push, probe_disp, u)
+    if rejected is not None:
+        result.update(ok=False, kind=rejected[0], error=rejected[1], probe_disp_mm=probe_disp,
                       solve_s=time.perf_counter() - start, diagnostics=[],
                       newton_iters=int(report.iterations))
         return result
@@ -180,6 +173,18 @@ def too_deep(probe_disp_mm: float, max_push_mm: float) -> bool:
     """Whether a solved push (mean contact-point displacement norm, mm) goes beyond the
     data set's deepest push ``[probe] max_push_mm`` (0: no limit)."""
     return max_push_mm > 0 and probe_disp_mm > max_push_mm
+
+
+def solved_rejection(ctx: SampleContext, push: Any, probe_disp: float, u: np.ndarray
+                     ) -> tuple[str, str] | None:
+    """Why a converged push is not kept, as (:data:`TOO_DEEP` or :data:`IMPLAUSIBLE`,
+    message), or None: ``probe_disp`` mm, ``u`` (n_model_nodes, 3) mm on the teacher's grid."""
+    cfg = ctx.case.cfg
+    if not push.rigid and too_deep(probe_disp, cfg.probe.max_push_mm):
+        return TOO_DEEP, (f"probe displacement {probe_disp:.1f} mm is beyond [probe] "
+                          f"max_push_mm = {cfg.probe.max_push_mm:g} mm")
+    why = implausible(ctx.model, u, cfg.dataset.max_edge_stretch)
+    return (IMPLAUSIBLE, why) if why else None
 
 
 def implausible(model: Any, u: np.ndarray, max_stretch: float) -> str:
