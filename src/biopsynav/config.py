@@ -376,6 +376,12 @@ class NetworkSection:
                                          "mean / max e 0.0420 / 0.498 mm trained through it, "
                                          "0.0475 / 0.619 projected after training, 0.0509 / "
                                          "0.668 without (docs/network.md).")
+    init_from: str = opt("", "A trained model folder (absolute, or relative to the case "
+                             "folder) training starts from: its best weights and its "
+                             "normalisation, the same network and grid required. For "
+                             "multi-fidelity training: a model taught by many samples of the "
+                             "case grid, trained further on a few of a finer teacher "
+                             "([dataset] teacher_refine). '' (default): from scratch.")
     runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
                                "(frozen, optimize_for_inference), 'openvino' (fp32 forced) or "
                                "'auto' (the fastest installed; see docs/network.md). Always "

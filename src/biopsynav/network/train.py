@@ -54,6 +54,7 @@ from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import write_model
 from .unet import UNetSpec, check_node_shape, count_parameters, preset_spec
+from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
 #: Every file training writes into the model folder (all atomically).
 MODEL_FILES = (CHECKPOINT, BEST, LOSS_CURVE, TORCHSCRIPT, ONNX, META, HISTORY)
@@ -261,19 +262,21 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     check_node_shape(full.node_shape, spec.levels)
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
                                                         s.contact_projection)
-    in_scale, out_scale = normalisation_stats(data)
-    if baseline_meta["kind"] != "none":
-        out_scale = target_rms(data)  # the residual's RMS over active nodes
-    quad_scale = quadratic_scale(data, in_scale) if spec.features == "quadratic" else None
+    source = source_model(case_dir, s, spec, full, baseline_meta["kind"])
+    in_scale, out_scale, quad_scale = network_scales(data, spec, baseline_meta["kind"], source)
     signature = _signature(s, spec, data, use_bf16(s.precision, dev))
     signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
                                   if not k.endswith("_s")}  # not its timings
+    if source is not None:
+        signature["init_from"] = source.checksum
     if projections is not None:
         projections = tuple(p.to(dev) for p in projections)
 
     torch.manual_seed(s.seed)
     net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy(), quad_scale).to(dev)
-    if baseline_meta["kind"] != "none":
+    if source is not None:
+        net.unet.load_state_dict(source.weights)
+    elif baseline_meta["kind"] != "none":
         # residual net starts as exactly zero: the model starts as the physics baseline
         torch.nn.init.zeros_(net.unet.head.weight)
         torch.nn.init.zeros_(net.unet.head.bias)
@@ -287,8 +290,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     resumed_from = state["iteration"]
 
     runner = TrainingLoop(net, opt, data, s, dev, out, signature, state, projections)
-    if ckpt is None and baseline_meta["kind"] != "none":
-        runner.keep_initial()  # the baseline alone is the model to beat
+    if ckpt is None and (source is not None or baseline_meta["kind"] != "none"):
+        runner.keep_initial()  # the source model, or the baseline alone, is the one to beat
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True, warn_only=True)
     try:
@@ -300,7 +303,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
         if state["best_state"] is not None:
             net.unet.load_state_dict(state["best_state"])
         net.to(memory_format=torch.contiguous_format)
-        write_model(out, net.cpu(), spec, data, in_scale, out_scale, envelope(full),
+        write_model(out, net.cpu(), spec, data, in_scale, out_scale,
+                    merged_envelope(envelope(full), source),
                     quad_scale=quad_scale,
                     training={"iterations": s.iterations, "batch_size": s.batch_size,
                               "learning_rate": s.learning_rate, "loss": s.loss,
@@ -312,12 +316,36 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                                                + baseline_meta.get("all_samples_s", 0.0)),
                               "best_val_e_mm": state["best_val"],
                               "best_iteration": state["best_iteration"],
-                              "history": state["history"]},
+                              "history": state["history"],
+                              **({} if source is None else {"init_from": source.summary()})},
                     runtime=s.runtime, baseline=baseline_meta)
     last = state["history"][-1]["val_mean_e_mm"] if state["history"] else math.nan
     return TrainSummary(out, state["iteration"], s.iterations, state["best_val"],
                         state["best_iteration"], last, state["elapsed_s"], resumed_from,
                         finished, spec.to_dict(), count_parameters(spec))
+
+
+def source_model(case_dir: Path, s: NetworkSection, spec: UNetSpec, full: Dataset,
+                 baseline: str) -> SourceModel | None:
+    """The model ``[network] init_from`` names, checked against this training, or None."""
+    path = resolve_source(case_dir, s.init_from)
+    if path is None:
+        return None
+    return load_source(path, spec.to_dict(), tuple(full.node_shape), baseline,
+                       dataset_contact_input(full))
+
+
+def network_scales(data: Dataset, spec: UNetSpec, baseline: str, source: SourceModel | None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Input, output and quadratic-feature scales: the source model's when training starts
+    from one (its weights expect them), else from the training samples."""
+    if source is not None:
+        return source.in_scale, source.out_scale, source.quad_scale
+    in_scale, out_scale = normalisation_stats(data)
+    if baseline != "none":
+        out_scale = target_rms(data)  # the residual's RMS over active nodes
+    quad = quadratic_scale(data, in_scale) if spec.features == "quadratic" else None
+    return in_scale, out_scale, quad
 
 
 def residual_dataset(data: Dataset, kind: str, case: Case | str | Path,
