@@ -36,3 +36,20 @@ def test_a_model_from_before_teachers_were_recorded_still_loads_and_tracks(train
     result = tracker.update(placement.pushed(5.0))
     assert result.status == "ok"
     assert np.isfinite([les.displacement for les in result.lesions]).all()
+
+
+def test_info_names_the_model_a_training_started_from(trained_case, tmp_path):
+    case_dir = tmp_path / "case"
+    shutil.copytree(trained_case, case_dir)
+    meta_path = case_dir / "model" / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    meta["training"]["init_from"] = {"path": "/data/coarse/model", "checksum": "sha256:0",
+                                     "teacher": {"material_model": "neo-hookean",
+                                                 "rigid_share": 0.0, "teacher_refine": 1}}
+    meta["teacher"]["teacher_refine"] = 3
+    meta["checksum"] = meta_checksum(meta)
+    meta_path.write_text(json.dumps(meta))
+    words = case_summary(case_dir)["model_teacher"]
+    assert words.startswith("grid of 5 mm cells fitted to the case grid")
+    assert words.endswith("started from the model in /data/coarse/model, taught by case grid "
+                          "(15 mm cells), neo-hookean, force patches")

@@ -63,9 +63,20 @@ def model_teacher(case: Case) -> str:
     if not t:
         return (f"case grid ({case.grid.spacing:g} mm cells), force patches (not recorded: "
                 "a model trained before teachers were recorded)")
+    words = teacher_words(t, case.grid.spacing)
+    source = (meta.get("training") or {}).get("init_from")
+    if source:  # [network] init_from: trained further from another model
+        words += (f"; started from the model in {source.get('path')}, taught by "
+                  f"{teacher_words(source.get('teacher') or {}, case.grid.spacing)}")
+    return words
+
+
+def teacher_words(t: dict, spacing: float) -> str:
+    """A model's recorded teacher (meta.json ``teacher``) in words; ``spacing``: the case
+    grid's cell size, mm."""
     refine = int(t.get("teacher_refine", 1))
-    grid = (f"case grid ({case.grid.spacing:g} mm cells)" if refine == 1 else
-            f"grid of {case.grid.spacing / refine:g} mm cells fitted to the case grid")
+    grid = (f"case grid ({spacing:g} mm cells)" if refine == 1 else
+            f"grid of {spacing / refine:g} mm cells fitted to the case grid")
     rigid = float(t.get("rigid_share", 0.0))
     pushes = "force patches" if rigid == 0 else f"{rigid:.0%} rigid-probe pushes"
     return f"{grid}, {t.get('material_model')}, {pushes}"
