@@ -71,4 +71,20 @@ def test_a_missing_source_is_refused_naming_its_path(second_case, tmp_path):
     s = tiny_settings(iterations=2, init_from=str(tmp_path / "nowhere"))
     with pytest.raises(InputError) as err:
         train(second_case, settings=s, model_dir=tmp_path / "m", progress=False)
-    assert "nowhere" in str(err.value)
+    assert "nowhere" in str(err.value) and err.value.where == "[network] init_from"
+
+
+def test_a_source_with_unreadable_weights_is_refused_and_left_as_it_was(trained, second_case,
+                                                                        tmp_path):
+    import shutil
+
+    source_case, _ = trained
+    source = tmp_path / "source"
+    shutil.copytree(source_case / "model", source)
+    (source / "best.pt").write_bytes(b"not a torch file")
+    s = tiny_settings(iterations=2, init_from=str(source))
+    with pytest.raises(InputError) as err:
+        train(second_case, settings=s, model_dir=tmp_path / "m", progress=False)
+    assert "best.pt" in str(err.value) and err.value.where == "[network] init_from"
+    assert (source / "best.pt").read_bytes() == b"not a torch file"
+    assert not (tmp_path / "m" / "checkpoint.pt").exists()

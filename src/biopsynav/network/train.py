@@ -260,9 +260,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
     check_node_shape(full.node_shape, spec.levels)
+    source = source_model(case_dir, s, spec, full)  # checked before the baselines' work
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
                                                         s.contact_projection)
-    source = source_model(case_dir, s, spec, full, baseline_meta["kind"])
     in_scale, out_scale, quad_scale = network_scales(data, spec, baseline_meta["kind"], source)
     signature = _signature(s, spec, data, use_bf16(s.precision, dev))
     signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
@@ -325,13 +325,14 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                         finished, spec.to_dict(), count_parameters(spec))
 
 
-def source_model(case_dir: Path, s: NetworkSection, spec: UNetSpec, full: Dataset,
-                 baseline: str) -> SourceModel | None:
-    """The model ``[network] init_from`` names, checked against this training, or None."""
+def source_model(case_dir: Path, s: NetworkSection, spec: UNetSpec, full: Dataset
+                 ) -> SourceModel | None:
+    """The model ``[network] init_from`` names, checked against this training (``s``,
+    ``spec``, the data set ``full``), or None."""
     path = resolve_source(case_dir, s.init_from)
     if path is None:
         return None
-    return load_source(path, spec.to_dict(), tuple(full.node_shape), baseline,
+    return load_source(path, spec.to_dict(), tuple(full.node_shape), s.baseline,
                        dataset_contact_input(full))
 
 

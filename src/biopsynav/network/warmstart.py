@@ -62,7 +62,10 @@ def load_source(path: Path, spec: dict, node_shape: tuple, baseline: str,
                 contact_input: str) -> SourceModel:
     """The model in ``path``, checked against the new training's architecture ``spec``, grid
     ``node_shape``, baseline kind and contact input; InputError naming what differs."""
-    meta = read_meta(path)
+    try:
+        meta = read_meta(path)
+    except InputError as exc:  # its advice is for the case's own model: name this option
+        raise InputError(f"{path} is not a usable trained model: {exc.what}", WHERE) from None
     expected = {"architecture": spec, "node_shape": list(node_shape),
                 "baseline kind": baseline, "contact input": contact_input}
     found = {"architecture": meta.get("architecture"), "node_shape": meta.get("node_shape"),
