@@ -301,6 +301,14 @@ class DatasetSection:
                                  "probe, each solve 10-35x slower on the phantom "
                                  "(docs/dataset.md).",
                               lo=1, hi=4)
+    teacher_min_fraction: float = opt(0.2, "With teacher_refine > 1: the lower bound of the "
+                                           "fraction that scales the integration weights of "
+                                           "the teacher's cells ([grid] min_fraction is the "
+                                           "case grid's). On the phantom's 3.65 mm cells 0.2 "
+                                           "keeps the nearly empty skin cells under a rigid "
+                                           "face from buckling (an unstable equilibrium at "
+                                           "0.05) and moves the lesions by 0.01 mm against "
+                                           "the P2 truth (docs/dataset.md).", lo=0.0, hi=1.0)
     chunk_samples: int = opt(1, "Samples per storage chunk of inputs and targets (1: a chunk "
                                 "per sample; 'done' always has one chunk per sample).",
                              lo=1, hi=4096)

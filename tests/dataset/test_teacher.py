@@ -34,7 +34,23 @@ def test_the_protocol_names_the_teacher_only_when_refined(base_case, refined, re
     assert teacher(load_dataset(reference))["teacher_refine"] == 1
     data = zarr.open_group(str(refined / "dataset.zarr"), mode="r")
     assert data.attrs["protocol"]["dataset"]["teacher_refine"] == 2
+    assert data.attrs["protocol"]["dataset"]["teacher_min_fraction"] == 0.2
     assert teacher(load_dataset(refined))["teacher_refine"] == 2
+
+
+def test_the_teacher_s_cells_have_their_own_weight_floor(refined):
+    """[dataset] teacher_min_fraction floors the refined teacher's cell weights; the case
+    grid keeps [grid] min_fraction."""
+    from biopsynav.fem import FEModel
+    from biopsynav.fem.teacher import build_teacher
+
+    case = Case.load(refined)
+    fraction = case.grid.active_fraction()
+    assert fraction.min() < case.cfg.grid.min_fraction
+    assert FEModel.from_case(case).weight.min() == pytest.approx(case.cfg.grid.min_fraction)
+    case.cfg.dataset.teacher_min_fraction = 0.3
+    weight = build_teacher(case).model.weight
+    assert weight.min() == pytest.approx(0.3) and weight.max() == pytest.approx(1.0)
 
 
 def test_refined_targets_live_on_the_case_grid(base_case, refined, reference):
@@ -77,3 +93,26 @@ def test_training_rebuilds_a_refined_sample_s_input_from_its_target(refined):
                              sample_contact_matrices(case, refined, samples),
                              data["inputs"][:], data["targets"][:], samples, str(refined))
     assert len(out) == len(samples) == 3
+
+
+def test_a_refined_rigid_push_moves_its_stored_contact_points_with_the_probe(base_case,
+                                                                              tmp_path):
+    """The fit of a rigid push holds its contact points: on the case grid every one moves by
+    the same vector, along the push, as the probe face does (the input the tracker builds)."""
+    from biopsynav.dataset.contacts import sample_contact_matrices
+
+    dst = tmp_path / "case"
+    shutil.copytree(base_case, dst)
+    edit_config(dst, dataset={"teacher_refine": 2, "n_train": 1, "n_test": 1},
+                probe={"rigid_share": 1.0})
+    generate_case(dst, workers=1, progress=False)
+    data = zarr.open_group(str(dst / "dataset.zarr"), mode="r")
+    samples = np.flatnonzero(data["done"][:])
+    assert data.attrs["protocol"]["dataset"]["teacher_fit"] == "holds-rigid-contact"
+    for i, w in zip(samples, sample_contact_matrices(Case.load(dst), dst, samples),
+                    strict=True):
+        moved = w @ tensor_to_field(data["targets"][i])
+        push = moved.mean(axis=0)
+        assert np.linalg.norm(push) > 1.0
+        assert np.abs(moved - push).max() < 0.01  # without the hold: 0.4-0.7 mm (phantom)
+        assert push @ data["direction"][i] == pytest.approx(np.linalg.norm(push), rel=1e-3)

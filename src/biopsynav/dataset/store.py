@@ -103,11 +103,22 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
                         **teacher_protocol(cfg), **checks}}
 
 
+#: How a refined teacher's solutions reach the case grid: a least-squares fit that holds the
+#: contact points of a rigid push (:class:`biopsynav.grid.transfer.FieldTransfer`); data sets
+#: of before it (the fit alone) have no such key.
+TEACHER_FIT = "holds-rigid-contact"
+
+
 def teacher_protocol(cfg: CaseConfig) -> dict:
     """The teacher grid's part of the protocol: nothing for the case grid itself (the protocol
-    of before ``[dataset] teacher_refine``), else the refinement."""
+    of before ``[dataset] teacher_refine``), else the refinement, the floor of its cells'
+    weights (absent from data sets made before ``teacher_min_fraction``: 0.05 then) and how
+    its solutions are fitted to the case grid (:data:`TEACHER_FIT`)."""
     refine = teacher_refinement(cfg)
-    return {} if refine == 1 else {"teacher_refine": refine}
+    if refine == 1:
+        return {}
+    return {"teacher_refine": refine, "teacher_min_fraction": cfg.dataset.teacher_min_fraction,
+            "teacher_fit": TEACHER_FIT}
 
 
 def protocol_fingerprint(protocol: dict) -> str:

@@ -122,7 +122,9 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
                       solve_s=time.perf_counter() - start, diagnostics=[],
                       newton_iters=int(report.iterations))
         return result
-    u = ctx.teacher.case_field(u)
+    # a rigid push's contact points move by the push itself, which the case grid can hold
+    # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
+    u = ctx.teacher.case_field(u, held=(contact, contact_u) if push.rigid else None)
     node_disp = np.linalg.norm(u, axis=1)
     # the input from the stored field at the contact points (a refined teacher's field as
     # fitted to the case grid; on the case grid, contact_u itself), so that training

@@ -110,15 +110,18 @@ class FEModel:
         return cls.from_grid(case.grid, case.cfg, case.anatomy)
 
     @classmethod
-    def from_grid(cls, grid: Grid, cfg: CaseConfig, anatomy: Anatomy) -> FEModel:
+    def from_grid(cls, grid: Grid, cfg: CaseConfig, anatomy: Anatomy,
+                  min_fraction: float | None = None) -> FEModel:
         """The model of ``anatomy`` on ``grid`` (the case's grid, or a finer teacher grid)
-        with the materials, law and chest wall of ``cfg``."""
+        with the materials, law and chest wall of ``cfg``; the cells' integration weights are
+        their tissue fractions, at least ``min_fraction`` (default ``[grid] min_fraction``)."""
         from .tissues import cell_lame, label_tissues, small_strain
 
         tissues = label_tissues(grid.label_values, cfg, anatomy)
         mu, lam = cell_lame(grid.active_label_share(), tissues, cfg)
         e_mpa, nu = small_strain(mu, lam)
-        weight = np.clip(grid.active_fraction(), cfg.grid.min_fraction, 1.0)
+        floor = cfg.grid.min_fraction if min_fraction is None else min_fraction
+        weight = np.clip(grid.active_fraction(), floor, 1.0)
         return cls(grid.node_coords(), grid.active_hexes(), weight, e_mpa, nu,
                    np.asarray(grid.fixed_nodes).ravel(), cfg.material.model, (mu, lam))
 

@@ -28,9 +28,12 @@ class Teacher:
     skin: Any
     transfer: Any
 
-    def case_field(self, u: np.ndarray) -> np.ndarray:
-        """A solution (n_model_nodes, 3) mm on the case grid (n_nodes, 3) mm."""
-        return u if self.transfer is None else self.transfer(u)
+    def case_field(self, u: np.ndarray, held: tuple | None = None) -> np.ndarray:
+        """A solution (n_model_nodes, 3) mm on the case grid (n_nodes, 3) mm; ``held``: the
+        probe's contact points, (case-grid weights (m, n_nodes), displacements (m, 3) mm),
+        which the fit moves as the solution does (:class:`~biopsynav.grid.transfer.
+        FieldTransfer`)."""
+        return u if self.transfer is None else self.transfer(u, held)
 
 
 def teacher_refinement(cfg: Any) -> int:
@@ -41,7 +44,8 @@ def teacher_refinement(cfg: Any) -> int:
 
 def build_teacher(case: Any) -> Teacher:
     """The teacher of ``case``: its own grid's FE model, or with ``[dataset] teacher_refine``
-    > 1 the model of the refined grid and the transfer back."""
+    > 1 the model of the refined grid (cell weights at least ``[dataset]
+    teacher_min_fraction``) and the transfer back."""
     from ..grid.embedding import surface_embedding
     from ..grid.transfer import FieldTransfer, refined_grid
     from .model import FEModel
@@ -53,5 +57,6 @@ def build_teacher(case: Any) -> Teacher:
         grid = refined_grid(case.anatomy, cfg.grid, refine, 1.0,
                             cfg.anatomy.chest_wall_tolerance_mm)
         transfer = FieldTransfer(case.grid, grid)
-    return Teacher(FEModel.from_grid(grid, cfg, case.anatomy), grid,
+    floor = None if refine == 1 else cfg.dataset.teacher_min_fraction
+    return Teacher(FEModel.from_grid(grid, cfg, case.anatomy, floor), grid,
                    surface_embedding(grid, case.anatomy), transfer)

@@ -374,7 +374,9 @@ class Tracker:
                 touched = np.concatenate([touched, new])
                 u = self._fem_solve(u_c, pose, touched)
         self.last_touched = touched
-        return u if self._teacher is None else self._teacher.case_field(u)
+        if self._teacher is None:
+            return u
+        return self._teacher.case_field(u, held=(self._contact_emb.matrix, u_c))
 
     def _fem_solve(self, u_c: np.ndarray, pose: np.ndarray, touched: np.ndarray) -> np.ndarray:
         """One solve: the rest contact points prescribed to ``u_c`` and the skin vertices
