@@ -307,8 +307,9 @@ class DatasetSection:
                                            "case grid's). On the phantom's 3.65 mm cells 0.2 "
                                            "keeps the nearly empty skin cells under a rigid "
                                            "face from buckling (an unstable equilibrium at "
-                                           "0.05) and moves the lesions by 0.01 mm against "
-                                           "the P2 truth (docs/dataset.md).", lo=0.0, hi=1.0)
+                                           "0.05) and changes the FE's mean lesion error "
+                                           "against the P2 truth by 0.01 mm "
+                                           "(docs/dataset.md).", lo=0.0, hi=1.0)
     chunk_samples: int = opt(1, "Samples per storage chunk of inputs and targets (1: a chunk "
                                 "per sample; 'done' always has one chunk per sample).",
                              lo=1, hi=4096)
