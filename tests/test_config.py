@@ -70,6 +70,8 @@ def test_defaults_round_trip(tmp_path):
     ({"dataset": {"teacher_refine": 0}}, "below its minimum"),
     ({"dataset": {"teacher_refine": 5}}, "above its maximum"),
     ({"dataset": {"teacher_refine": 1.5}}, "teacher_refine"),
+    ({"dataset": {"teacher_min_fraction": 1.5}}, "above its maximum"),
+    ({"dataset": {"teacher_min_fraction": "some"}}, "teacher_min_fraction"),
     ({"dataset": {"max_edge_stretch": -1.0}}, "below its minimum"),
     ({"dataset": {"max_edge_stretch": "loose"}}, "max_edge_stretch"),
     ({"dataset": {"max_edge_stretch": float("nan")}}, "must be a finite number"),

@@ -71,9 +71,9 @@ def test_held_contact_points_move_as_asked_and_the_rest_barely_changes(grids):
     """A rigid probe-like push: the fine field moves a patch of skin points by 10 mm and
     decays within about a case cell. Alone, the fit smooths it and moves the points less than
     10 mm; holding them, it moves them by the push (a constant is in the trilinear space), and
-    inside the tissue
-    two case cells away the field is as before to a few tenths of a millimetre (99th
-    percentile; 0.29 mm on the tests' 15 mm grid, where 45 points share a few cells)."""
+    inside the tissue two case cells away the field is as before to a few tenths of a
+    millimetre (99th percentile; 0.29 mm on the tests' 15 mm grid, where 45 points share a few
+    cells)."""
     case, fine, transfer = grids
     a = case.anatomy
     away = (a.chest_point - a.vertices) @ a.chest_normal
@@ -97,3 +97,15 @@ def test_held_contact_points_move_as_asked_and_the_rest_barely_changes(grids):
     change = np.abs(far.interpolate(held) - far.interpolate(transfer(fine_field)))
     assert np.percentile(change, 99) < 0.5
     assert np.all(held[np.asarray(case.grid.fixed_nodes).ravel()] == 0.0)
+
+
+def test_points_held_on_fixed_nodes_only_leave_the_fit_as_it_was(grids):
+    """Points that sit on chest-wall nodes cannot move: holding them changes nothing and does
+    not fail (no singular system)."""
+    case, fine, transfer = grids
+    fixed = np.flatnonzero(np.asarray(case.grid.fixed_nodes).ravel())[:5]
+    emb = Embedding.build(case.grid, case.grid.node_coords()[fixed], require_active=False)
+    rng = np.random.default_rng(1)
+    fine_field = rng.normal(size=(fine.n_nodes, 3))
+    held = transfer(fine_field, held=(emb.matrix, np.full((len(fixed), 3), 5.0)))
+    assert np.array_equal(held, transfer(fine_field))

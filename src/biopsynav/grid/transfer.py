@@ -96,8 +96,13 @@ class FieldTransfer:
         """The free values (n_free, 3) corrected so that the points move by ``target``: the
         minimiser of the fit plus a stiff penalty on ``W u - g``, by the Woodbury identity
         on the factorised fit (``u0 + Y (S + s I)^-1 (g - C u0)``, ``Y = K^-1 C^T``,
-        ``S = C Y``)."""
+        ``S = C Y``). Points on fixed or inactive nodes only cannot be moved and are left out."""
         c = _restricted(sp.csr_matrix(weights), self._col, len(self.free))
+        c.eliminate_zeros()
+        movable = np.diff(c.indptr) > 0
+        if not movable.any():
+            return values
+        c, target = c[movable], target[movable]
         y = self._lu.solve(np.asarray(c.T.todense()))
         schur = np.asarray(c @ y)
         soft = HOLD_SOFTNESS * float(np.mean(np.diag(schur)))
