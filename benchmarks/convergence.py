@@ -72,7 +72,7 @@ def hex_tracker(case: Case, cell_mm: float, variant: str = "neo-hookean/points"
     (``law/contact``: material law and contact constraints); its active cells."""
     law, contact = variant.split("/")
     section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
-    grid = build_grid(case.anatomy, section, levels=0,
+    grid = build_grid(case.anatomy, section,
                       chest_tol_mm=case.cfg.anatomy.chest_wall_tolerance_mm)
     cfg = copy.deepcopy(case.cfg)
     cfg.tracker.fem_contact = contact

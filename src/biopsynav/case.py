@@ -86,7 +86,7 @@ def build_case(case_dir: Path, cfg: CaseConfig) -> Case:
     from .fem.tissues import label_tissues
 
     anatomy, facts = build_anatomy(cfg, case_dir)
-    grid = build_grid(anatomy, cfg.grid, cfg.network.levels, cfg.anatomy.max_fixed_share,
+    grid = build_grid(anatomy, cfg.grid, cfg.anatomy.max_fixed_share,
                       cfg.anatomy.chest_wall_tolerance_mm)
     # every label mapped, or refused naming the user's anatomy file
     label_tissues(grid.label_values, cfg, anatomy, anatomy_source(cfg, case_dir))

@@ -136,11 +136,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from .dataset.generate import generate_case
+    from .dataset.generate import format_run_summary, generate_case
 
     summary = generate_case(loaded_case(args), workers=args.workers, scheduler=args.scheduler,
                             overwrite=args.overwrite)
-    print(json.dumps(summary, indent=2, default=json_default))
+    print(json.dumps(summary, indent=2, default=json_default) if args.json
+          else format_run_summary(summary))
     return 0
 
 
@@ -273,6 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--overwrite", action="store_true", help="discard data made for another "
                    "anatomy, grid or protocol")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (as in "
+                   "CASE_DIR/dataset_summary.json)")
 
     p = add("train", cmd_train, "Train the U-Net surrogate (resumable).")
     p.add_argument("case_dir", type=Path)

@@ -115,10 +115,11 @@ class AnatomySection:
 @dataclass
 class GridSection:
     cell_size_mm: float = opt(7.3, "Edge of the cubic hexahedral cells. The default gives the "
-                                   "built-in phantom 2,225 active cells on 24 x 24 x 16 nodes "
+                                   "built-in phantom 2,225 active cells on 24 x 20 x 13 nodes "
                                    "(the paper: 2,174).",
                               lo=0.5, hi=100.0)
-    margin_cells: int = opt(1, "Empty cells kept around the anatomy before padding.", lo=0, hi=8)
+    margin_cells: int = opt(1, "Empty cells kept around the anatomy (on the chest wall's axis, on "
+                                  "the far side only).", lo=0, hi=8)
     samples_per_axis: int = opt(5, "Sub-cell sample points per axis for the tissue volume "
                                    "fraction (n^3 per cell).", lo=1, hi=16)
     fraction_threshold: float = opt(0.01, "Cells with a tissue volume fraction above this are "
@@ -324,8 +325,8 @@ class NetworkSection:
                                  "ReLU, ~90 M parameters) or 'custom' (levels, base_channels, "
                                  "norm, activation, features below).",
                      choices=("default", "paper", "custom"))
-    levels: int = opt(3, "U-Net levels k of the custom preset; grid node counts must be "
-                         "multiples of 2^k.", lo=1, hi=6)
+    levels: int = opt(3, "U-Net levels k of the custom preset (any grid node counts: an odd "
+                         "count's last pooling window is partial).", lo=1, hi=6)
     base_channels: int = opt(16, "Channels of the first level (custom preset); they double "
                                  "per level.", lo=1, hi=512)
     norm: str = opt("none", "Normalisation layer (custom preset).",
@@ -354,6 +355,11 @@ class NetworkSection:
                             "paper's e, eq. 3, in mm; measured on the phantom: mean e 0.0599 "
                             "against 0.0697 mm with 'mse'), 'mse' (the paper's eq. 1) or 'l1' "
                             "on the normalised displacement.", choices=("norm", "mse", "l1"))
+    depth_sampling: float = opt(0.0, "Training batches draw each sample with probability "
+                                     "proportional to its probe displacement (mm, at least "
+                                     "1) to this power, with replacement; 0: every sample once "
+                                     "per epoch (the paper). Deep pushes are few and make the "
+                                     "largest errors (docs/network.md).", lo=0.0, hi=4.0)
     val_interval: int = opt(500, "Validate on the held-out samples (and write a resumable "
                                  "checkpoint) every this many iterations.", lo=1, hi=10**7)
     seed: int = opt(0, "Training seed: the same seed, data, thread count and precision give "

@@ -67,7 +67,7 @@ def test_init_info_show_phantom(tmp_path, capsys):
     for key in ("volume_ml", "grid_shape", "cell_size_mm", "active_cells", "n_lesions",
                 "n_fixed_nodes"):
         assert key in info
-    assert info["grid_shape"] == [24, 24, 16] and info["n_lesions"] == 10
+    assert info["grid_shape"] == [24, 20, 13] and info["n_lesions"] == 10
     code, out, _ = run(capsys, "info", case)
     assert "2225 active cells" in out and "stages" in out
     code, out, _ = run(capsys, "show", case)

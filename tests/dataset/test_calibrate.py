@@ -10,7 +10,7 @@ import pytest
 from biopsynav.config import load_config, save_config
 from biopsynav.dataset import calibrate
 from biopsynav.dataset.calibrate import best_force, next_force
-from biopsynav.dataset.generate import generate_case
+from biopsynav.dataset.generate import format_run_summary, generate_case
 from biopsynav.dataset.store import open_store
 from biopsynav.errors import BiopsynavError
 
@@ -49,6 +49,10 @@ def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tm
     assert store.group.attrs["force_calibration"] == found
     assert store.read_meta()["force_n"].max() <= found["f_max_n"] + 1e-9
     assert load_config(case_dir).probe.f_max_n == 40.0, "case.toml is left as the user wrote it"
+    text = format_run_summary(summary)  # what `biopsynav generate` prints
+    assert f"up to {found['f_max_n']:.2f} N, calibrated" in text
+    assert text.startswith(f"data set: 8 of 8 samples (6 training, 2 held out) in {case_dir}")
+    assert "{" not in text and str(case_dir / "dataset.png") in text
 
     def refuse(case):
         raise AssertionError("calibrated again")

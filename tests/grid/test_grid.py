@@ -39,7 +39,14 @@ def test_box_volume_fraction_is_exact():
 
 def test_phantom_grid(phantom_case):
     g, a = phantom_case.grid, phantom_case.anatomy
-    assert all(n % 8 == 0 for n in g.node_shape)  # 2^levels, levels = 3
+    # the anatomy's box (150 x 120 x 75 mm) in 7.3 mm cells plus one empty cell around it,
+    # none behind the chest wall; no padding for the network
+    assert g.node_shape == (24, 20, 13)
+    coords = g.node_coords().reshape(*g.node_shape, 3)
+    lo, hi = a.bounds
+    assert np.all(coords[0, 0, 0, :2] <= lo[:2] - g.spacing + 1e-9)
+    assert coords[0, 0, 0, 2] == pytest.approx(0.0)  # a node plane on the chest wall
+    assert np.all(coords[-1, -1, -1] >= hi + g.spacing - 1e-9)
     assert 2000 <= g.active_cells.sum() <= 2400
     assert g.fraction.sum() * g.spacing ** 3 == pytest.approx(abs(a.volume_ml()) * 1000,
                                                               rel=0.01)

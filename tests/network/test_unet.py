@@ -10,7 +10,6 @@ from biopsynav.network.unet import (
     PRESETS,
     UNet3d,
     UNetSpec,
-    check_node_shape,
     count_parameters,
     preset_spec,
 )
@@ -53,9 +52,42 @@ def test_custom_norm_and_activation(norm, act):
     assert net(torch.zeros(2, 4, 8, 8, 4)).shape == (2, 3, 8, 8, 4)
 
 
-def test_bad_preset_and_shape():
+def test_bad_preset():
     with pytest.raises(InputError, match="unknown network preset"):
         preset_spec("huge")
-    with pytest.raises(InputError, match="multiples of 2\\^3"):
-        check_node_shape((32, 24, 12), 3)
-    check_node_shape((32, 24, 16), 3)
+
+
+def _uncropped_forward(net: UNet3d, x: torch.Tensor) -> torch.Tensor:
+    """The forward pass of before any node count was allowed: floor pooling, no crop."""
+    skips = []
+    for block in net.down:
+        x = block(x)
+        skips.append(x)
+        x = torch.nn.functional.max_pool3d(x, 2)
+    x = net.bottleneck(x)
+    for i, (up, dec) in enumerate(zip(net.up, net.dec, strict=True)):
+        x = dec(torch.cat([up(x), skips[len(skips) - 1 - i]], dim=1))
+    return net.head(x)
+
+
+def test_multiples_of_two_to_the_levels_give_the_network_of_before():
+    torch.manual_seed(0)
+    net = UNet3d(UNetSpec(base_channels=4, levels=3)).eval()
+    x = torch.randn(2, 4, 16, 8, 24)
+    with torch.no_grad():
+        assert torch.equal(net(x), _uncropped_forward(net, x))
+
+
+@pytest.mark.parametrize("shape", [(21, 20, 15), (9, 7, 5), (2, 3, 2)])
+def test_any_node_counts(shape):
+    torch.manual_seed(0)
+    net = UNet3d(UNetSpec(base_channels=4, levels=3)).eval()
+    x = torch.randn(1, 4, *shape)
+    with torch.no_grad():
+        y = net(x)
+        # each output node depends on the input near it: the last corner sees its own input
+        x2 = x.clone()
+        x2[0, :, -1, -1, -1] += 1.0
+        y2 = net(x2)
+    assert y.shape == (1, 3, *shape) and torch.isfinite(y).all()
+    assert not torch.equal(y[0, :, -1, -1, -1], y2[0, :, -1, -1, -1])

@@ -474,6 +474,33 @@ def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
     }
 
 
+def format_run_summary(s: dict) -> str:
+    """The summary of :func:`run_summary` as a few lines for people (mm, N, minutes)."""
+    folder = Path(s["dataset"]).parent
+    lines = [f"data set: {s['count']} of {s['requested']} samples ({s['n_train']} training, "
+             f"{s['n_test']} held out) in {s['dataset']}",
+             f"  this run: {s['computed_this_run']} samples in {s['minutes']:.1f} min "
+             f"({s['samples_per_min']:.0f} per min, mean solve {s['mean_solve_s']:.2f} s)",
+             f"  redrawn this run: {s['failures']} not converged, {s['too_deep']} deeper than "
+             f"[probe] max_push_mm, {s['implausible']} implausible (in all runs: "
+             f"{s['failures_total']}, {s['too_deep_total']}, {s['implausible_total']})",
+             f"  pushes: probe displacement up to {s['max_probe_disp_mm']:.1f} mm (mean "
+             f"{s['mean_probe_disp_mm']:.1f}), largest nodal displacement "
+             f"{s['max_disp_mm']:.1f} mm, {s['rigid_pushes']} by the rigid probe face"]
+    lines += _calibration_line(s.get("force_calibration"))
+    lines.append(f"  figures: {folder / SUMMARY_FILE}, histograms: {folder / PLOT_FILE}")
+    return "\n".join(lines)
+
+
+def _calibration_line(found: dict | None) -> list[str]:
+    """The force calibration's line of :func:`format_run_summary` (none when it did not run)."""
+    if not found:
+        return []
+    return [f"  force range: up to {found['f_max_n']:.2f} N, calibrated ({found['pushes']} "
+            f"pushes, {100 * found['quantile']:.0f}th percentile depth "
+            f"{found['quantile_depth_mm']:.1f} mm for a target of {found['target_mm']:.1f} mm)"]
+
+
 def plot_distributions(store: DatasetStore, path: Path) -> Path:
     """PNG with histograms of force, tilt, maximal nodal and probe displacement."""
     import matplotlib
@@ -499,4 +526,5 @@ def plot_distributions(store: DatasetStore, path: Path) -> Path:
 
 
 __all__ = ["generate_case", "make_runner", "plot_distributions", "prepare_store", "run_summary",
+           "format_run_summary",
            "protocol_fingerprint"]

@@ -52,7 +52,7 @@ def reference_case(case: Case, refinement: float) -> Case:
     """An in-memory case with the same anatomy and a grid ``refinement`` times finer."""
     section = dataclasses.replace(case.cfg.grid,
                                   cell_size_mm=case.cfg.grid.cell_size_mm / refinement)
-    grid = build_grid(case.anatomy, section, levels=0,
+    grid = build_grid(case.anatomy, section,
                       chest_tol_mm=case.cfg.anatomy.chest_wall_tolerance_mm)
     return Case(case.dir, case.cfg, case.anatomy, grid)
 

@@ -20,14 +20,15 @@ from .model import Grid
 _COLUMN_JITTER = np.array([np.sqrt(2.0) * 1e-7, np.sqrt(3.0) * 1e-7])
 
 
-def build_grid(anatomy: Anatomy, settings: GridSection, levels: int,
-               max_fixed_share: float = 1.0, chest_tol_mm: float = 1.0) -> Grid:
-    """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm``; node counts are
-    padded to multiples of ``2**levels`` (the U-Net's pooling). Nodes within ``chest_tol_mm``
+def build_grid(anatomy: Anatomy, settings: GridSection, max_fixed_share: float = 1.0,
+               chest_tol_mm: float = 1.0) -> Grid:
+    """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm``: the anatomy's
+    box plus ``settings.margin_cells`` (the network takes any node counts). Nodes within
+    ``chest_tol_mm``
     of a curved chest wall, or behind it, are fixed. InputError when the chest wall fixes more
     than ``max_fixed_share`` of the active nodes."""
     h = float(settings.cell_size_mm)
-    origin, node_shape = _grid_frame(anatomy, h, settings.margin_cells, 2 ** levels)
+    origin, node_shape = _grid_frame(anatomy, h, settings.margin_cells)
     cshape = index.cell_shape(node_shape)
     if int(np.prod(cshape)) > 5_000_000:
         raise InputError(f"grid of {cshape} cells is too large; increase [grid] cell_size_mm")
@@ -63,9 +64,9 @@ def check_fixed_share(n_fixed: int, n_active: int, max_share: float) -> None:
                          "breast's base only; is its normal reversed? ([anatomy] chest_wall)")
 
 
-def _grid_frame(anatomy: Anatomy, h: float, margin: int,
-                multiple: int) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """Origin and node shape: the box around the anatomy plus margins, padded to ``multiple``.
+def _grid_frame(anatomy: Anatomy, h: float,
+                margin: int) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """Origin and node shape: the box around the anatomy plus ``margin`` cells.
 
     When the chest wall is perpendicular to an axis, a node plane is put on it and no margin is
     added behind it, so that fixed nodes sit exactly on the chest wall.
@@ -80,13 +81,9 @@ def _grid_frame(anatomy: Anatomy, h: float, margin: int,
         if ax in walls:
             wall = float(anatomy.chest_point[ax])
             nodes = cells + margin + 1
-            pad = (-nodes) % multiple
-            nodes += pad
             start = wall if n_ax < 0 else wall - (nodes - 1) * h
         else:
             nodes = cells + 2 * margin + 1
-            pad = (-nodes) % multiple
-            nodes += pad
             centre = 0.5 * (lo[ax] + hi[ax])
             start = centre - 0.5 * (nodes - 1) * h
         origin[ax] = start

@@ -44,13 +44,12 @@ HOLD_SOFTNESS = 1e-6
 
 def refined_grid(anatomy: Anatomy, settings: GridSection, refine: int,
                  max_fixed_share: float = 1.0, chest_tol_mm: float = 1.0) -> Grid:
-    """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm / refine`` (no
-    padding: no network runs on it)."""
+    """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm / refine``."""
     if int(refine) < 1:
         raise InputError(f"the teacher's refinement must be a positive integer, got {refine}",
                          "[dataset] teacher_refine")
     fine = dataclasses.replace(settings, cell_size_mm=settings.cell_size_mm / int(refine))
-    return build_grid(anatomy, fine, 0, max_fixed_share, chest_tol_mm)
+    return build_grid(anatomy, fine, max_fixed_share, chest_tol_mm)
 
 
 class FieldTransfer:

@@ -6,7 +6,10 @@ stages of two padded 3x3x3 convolutions followed by a 2x2x2 max pooling; the bot
 concatenation with the matching encoder features (skip connection) and two padded 3x3x3
 convolutions; a final 1x1x1 convolution maps to the output channels. Channels double per level
 (``base_channels * 2**level``), so the paper preset (128, 3 levels) has a 1024-channel bottleneck.
-Node counts must be multiples of ``2**levels`` (the grid stage pads them so).
+Any node counts work: a pooling of an odd count keeps the last, partial window
+(``ceil_mode``), and each transposed convolution's output is cropped to its skip connection's
+shape, so the grid is not padded for the network (a grid whose counts are multiples of
+``2**levels`` gives exactly the network of before, when they had to be).
 
 ``features = "quadratic"`` widens the first convolution by the 6 pairwise products of the three
 displacement channels (built by :class:`~biopsynav.network.export.SurrogateNet`): the residual
@@ -128,7 +131,7 @@ class UNet3d(nn.Module):
         for c in ch[:-1]:
             self.down.append(double_conv(c_prev, c, spec.norm, spec.activation))
             c_prev = c
-        self.pool = nn.MaxPool3d(2)
+        self.pool = nn.MaxPool3d(2, ceil_mode=True)
         self.bottleneck = double_conv(ch[-2], ch[-1], spec.norm, spec.activation)
         self.up = nn.ModuleList()
         self.dec = nn.ModuleList()
@@ -145,8 +148,9 @@ class UNet3d(nn.Module):
             x = self.pool(x)
         x = self.bottleneck(x)
         for i, (up, dec) in enumerate(zip(self.up, self.dec, strict=True)):
-            x = up(x)
-            x = dec(torch.cat([x, skips[len(skips) - 1 - i]], dim=1))
+            skip = skips[len(skips) - 1 - i]
+            x = up(x)[:, :, :skip.shape[2], :skip.shape[3], :skip.shape[4]]
+            x = dec(torch.cat([x, skip], dim=1))
         return self.head(x)
 
 
@@ -156,10 +160,3 @@ def count_parameters(spec: UNetSpec) -> int:
         model = UNet3d(spec)
     return sum(p.numel() for p in model.parameters())
 
-
-def check_node_shape(node_shape: tuple[int, ...], levels: int) -> None:
-    """Raise InputError unless every node count is a multiple of ``2**levels``."""
-    f = 2**levels
-    if any(int(n) % f for n in node_shape):
-        raise InputError(f"grid node counts {tuple(node_shape)} must be multiples of 2^{levels} "
-                         f"= {f} for a {levels}-level U-Net", "grid")
