@@ -355,11 +355,6 @@ class NetworkSection:
                             "paper's e, eq. 3, in mm; measured on the phantom: mean e 0.0599 "
                             "against 0.0697 mm with 'mse'), 'mse' (the paper's eq. 1) or 'l1' "
                             "on the normalised displacement.", choices=("norm", "mse", "l1"))
-    depth_sampling: float = opt(0.0, "Training batches draw each sample with probability "
-                                     "proportional to its probe displacement (mm, at least "
-                                     "1) to this power, with replacement; 0: every sample once "
-                                     "per epoch (the paper). Deep pushes are few and make the "
-                                     "largest errors (docs/network.md).", lo=0.0, hi=4.0)
     val_interval: int = opt(500, "Validate on the held-out samples (and write a resumable "
                                  "checkpoint) every this many iterations.", lo=1, hi=10**7)
     seed: int = opt(0, "Training seed: the same seed, data, thread count and precision give "

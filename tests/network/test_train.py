@@ -17,14 +17,7 @@ import torch
 
 from biopsynav.errors import InputError, TrainingError
 from biopsynav.network.data import load_dataset
-from biopsynav.network.train import (
-    CHECKPOINT,
-    batch_indices,
-    lr_at,
-    sampling_weights,
-    train,
-    use_bf16,
-)
+from biopsynav.network.train import CHECKPOINT, batch_indices, lr_at, train, use_bf16
 
 from .conftest import tiny_settings
 
@@ -51,30 +44,6 @@ def test_schedule_and_batches_are_pure_functions():
     assert sorted(seen[:10].tolist()) == list(range(10))
     assert sorted(seen[10:].tolist()) == list(range(10))
     assert torch.equal(batch_indices(3, 4, 10, 3), batch_indices(3, 4, 10, 3))
-
-
-def test_depth_sampling_draws_by_weight_and_is_stateless():
-    """[network] depth_sampling: positions drawn with replacement in proportion to their
-    weights, the same for the same (seed, iteration), never one of weight 0."""
-    w = torch.tensor([0.0, 1.0, 3.0, 0.0])
-    draws = torch.cat([batch_indices(i, 4, 4, 5, w) for i in range(2000)])
-    counts = torch.bincount(draws, minlength=4)
-    assert counts[0] == 0 and counts[3] == 0
-    assert counts[2] / counts[1] == pytest.approx(3.0, rel=0.1)
-    assert torch.equal(batch_indices(17, 4, 4, 5, w), batch_indices(17, 4, 4, 5, w))
-    assert not torch.equal(batch_indices(17, 4, 4, 5, w), batch_indices(18, 4, 4, 5, w))
-
-
-def test_depth_sampling_weights_come_from_the_probe_displacement(synth_case):
-    data = load_dataset(synth_case)  # synthetic: no probe pushes recorded
-    assert sampling_weights(data, 0.0) is None
-    with pytest.raises(InputError, match="depth_sampling"):
-        sampling_weights(data, 1.0)
-    data.probe_disp_mm = np.linspace(0.0, 30.0, data.inputs.shape[0])
-    w = sampling_weights(data, 2.0)
-    depth = np.maximum(data.probe_disp_mm[data.train_idx.numpy()], 1.0)
-    assert depth.min() == 1.0 and depth.max() > 20.0
-    np.testing.assert_allclose(w.numpy(), depth ** 2)
 
 
 def _weights(model_dir: Path) -> dict:

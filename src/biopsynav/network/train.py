@@ -115,18 +115,12 @@ def lr_at(it: int, s: NetworkSection) -> float:
     return peak * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
 
 
-def batch_indices(it: int, batch: int, n: int, seed: int,
-                  weights: torch.Tensor | None = None) -> torch.Tensor:
+def batch_indices(it: int, batch: int, n: int, seed: int) -> torch.Tensor:
     """Positions (batch,) into the training list for iteration ``it``.
 
     Epochs are random permutations seeded by (seed, epoch); iteration ``it`` takes the positions
-    ``it*batch ... it*batch+batch-1`` of their concatenation. With ``weights`` (n,) (relative
-    probabilities) each position is drawn with replacement, seeded by (seed, it). Stateless,
-    hence resumable.
+    ``it*batch ... it*batch+batch-1`` of their concatenation. Stateless, hence resumable.
     """
-    if weights is not None:
-        g = torch.Generator().manual_seed(seed * 1_000_003 + 7_919 * it + 1)
-        return torch.multinomial(weights, batch, replacement=True, generator=g)
     start = it * batch
     out = []
     while len(out) < batch:
@@ -156,7 +150,6 @@ def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset, bf16: bool) -> 
     keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
             "val_interval", "baseline")
     extra = {"weight_decay": s.weight_decay} if s.weight_decay > 0 else {}  # old checkpoints
-    extra.update({"depth_sampling": s.depth_sampling} if s.depth_sampling > 0 else {})
     extra.update({"precision": "bf16"} if bf16 else {})
     return {"spec": spec.to_dict(), "fingerprint": data.fingerprint,
             "n_train": int(data.train_idx.numel()), "n_test": int(data.test_idx.numel()),
@@ -439,20 +432,6 @@ def _projected_baselines(base, case, data: Dataset, idx: torch.Tensor
                               BatchProjection(base, projections[n_train:]))
 
 
-def sampling_weights(data: Dataset, power: float) -> torch.Tensor | None:
-    """Relative probabilities (n_train,) of the training samples for ``[network]
-    depth_sampling = power``: probe displacement (mm, at least 1) to ``power``; None for 0.
-    InputError when the data set does not record its pushes' depth."""
-    if power <= 0:
-        return None
-    if data.probe_disp_mm is None:
-        raise InputError("[network] depth_sampling needs each sample's probe displacement, "
-                         "which this data set does not record; set it to 0 or regenerate "
-                         "the data", str(data.path))
-    depth = np.maximum(data.probe_disp_mm[data.train_idx.numpy()], 1.0)
-    return torch.from_numpy(depth ** power)
-
-
 class TrainingLoop:
     """The optimisation loop with validation, checkpoints and the progress bar."""
 
@@ -470,7 +449,6 @@ class TrainingLoop:
         self.x_train = data.inputs[data.train_idx].to(dev)
         self.y_train = data.targets[data.train_idx].to(dev) / scale  # normalised targets
         self.x_test = data.inputs[data.test_idx].to(dev)
-        self.weights = sampling_weights(data, s.depth_sampling)
         self.y_test = data.targets[data.test_idx].to(dev)
         self.amp = use_bf16(s.precision, dev)
         self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
@@ -482,8 +460,7 @@ class TrainingLoop:
 
     def step(self, it: int) -> float:
         s = self.s
-        idx = batch_indices(it, s.batch_size, self.x_train.shape[0], s.seed,
-                            self.weights).to(self.dev)
+        idx = batch_indices(it, s.batch_size, self.x_train.shape[0], s.seed).to(self.dev)
         for group in self.opt.param_groups:
             group["lr"] = lr_at(it, s)
         x = self.x_train[idx].contiguous(memory_format=self.memory_format)
