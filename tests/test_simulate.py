@@ -9,7 +9,7 @@ import pytest
 
 from biopsynav.errors import InputError
 from biopsynav.fem import FEModel
-from biopsynav.simulate import patch_at, simulate
+from biopsynav.simulate import format_simulation, patch_at, simulate
 
 
 def test_simulate_writes_surface_and_figure(phantom_case, tmp_path):
@@ -23,6 +23,10 @@ def test_simulate_writes_surface_and_figure(phantom_case, tmp_path):
     assert 0.5 < summary["max_surface_displacement_mm"] < 50
     assert json.loads((out / "simulate.json").read_text())["newton_iterations"] > 0
     assert not list(out.glob(".*.tmp"))
+    text = format_simulation(summary)  # what `biopsynav simulate` prints
+    assert text.startswith(f"push of (0.1, 0, -0.5) N on {summary['patch_points']} skin points")
+    assert f"{summary['max_surface_displacement_mm']:.2f} mm on the skin" in text
+    assert str(out) in text and "{" not in text
 
 
 def test_simulate_zero_force_gives_rest_shape(phantom_case, tmp_path):

@@ -127,11 +127,12 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from .simulate import simulate
+    from .simulate import format_simulation, simulate
 
     out = Path(args.out) if args.out else Path(args.case_dir) / "simulate"
     result = simulate(loaded_case(args), args.force, args.at, out)
-    print(json.dumps(result, indent=2, default=json_default))
+    print(json.dumps(result, indent=2, default=json_default) if args.json
+          else format_simulation(result))
     return 0
 
 
@@ -266,6 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"),
                    help="probe centre near the skin, mm")
     p.add_argument("--out", type=Path, help="output folder (default CASE_DIR/simulate)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (as in "
+                   "simulate.json)")
 
     p = add("generate", cmd_generate, "Generate the training data (random probe pushes).")
     p.add_argument("case_dir", type=Path)

@@ -113,6 +113,22 @@ def simulate(case: Case | str | Path, force_n: np.ndarray, at_mm: np.ndarray,
     return summary
 
 
+def format_simulation(s: dict) -> str:
+    """The summary of :func:`simulate` as a few lines for people (mm, N, s)."""
+    force = ", ".join(f"{v:.3g}" for v in np.asarray(s["force_n"]).ravel())
+    centre = ", ".join(f"{v:.1f}" for v in np.asarray(s["patch_center_mm"]).ravel())
+    folder = Path(s["files"]["vtu"]).parent
+    return "\n".join([
+        f"push of ({force}) N on {s['patch_points']} skin points around ({centre}) mm",
+        f"  largest displacement: {s['max_surface_displacement_mm']:.2f} mm on the skin, "
+        f"{s['max_node_displacement_mm']:.2f} mm at a grid node",
+        f"  solve: {s['newton_iterations']} Newton iterations in {s['load_increments']} load "
+        f"increment{'' if s['load_increments'] == 1 else 's'}, {s['solve_time_s']:.2f} s, "
+        f"smallest det F {s['min_det_F']:.3f}",
+        f"  written to {folder}: displaced_surface.vtu, displaced_surface.stl, simulate.png, "
+        "simulate.json"])
+
+
 def _report_summary(report: SolveReport) -> dict:
     return {"newton_iterations": report.iterations, "load_increments": report.increments,
             "residual_rel": report.residual_rel, "min_det_F": report.min_det_F,
