@@ -20,6 +20,8 @@ if TYPE_CHECKING:
 
 #: Largest distance (mm) between the --at point and the skin surface.
 MAX_AT_DISTANCE_MM = 10.0
+#: The push's summary, beside its files in the output folder.
+SUMMARY_NAME = "simulate.json"
 
 
 @dataclass
@@ -109,7 +111,7 @@ def simulate(case: Case | str | Path, force_n: np.ndarray, at_mm: np.ndarray,
         "max_node_displacement_mm": report.max_displacement_mm,
         **_report_summary(report), "files": {k: str(v) for k, v in paths.items()},
     }
-    write_json_atomic(out_dir / "simulate.json", summary)
+    write_json_atomic(out_dir / SUMMARY_NAME, summary)
     return summary
 
 
@@ -117,7 +119,7 @@ def format_simulation(s: dict) -> str:
     """The summary of :func:`simulate` as a few lines for people (mm, N, s)."""
     force = ", ".join(f"{v:.3g}" for v in np.asarray(s["force_n"]).ravel())
     centre = ", ".join(f"{v:.1f}" for v in np.asarray(s["patch_center_mm"]).ravel())
-    folder = Path(s["files"]["vtu"]).parent
+    files = [Path(p) for p in s["files"].values()]
     return "\n".join([
         f"push of ({force}) N on {s['patch_points']} skin points around ({centre}) mm",
         f"  largest displacement: {s['max_surface_displacement_mm']:.2f} mm on the skin, "
@@ -125,8 +127,8 @@ def format_simulation(s: dict) -> str:
         f"  solve: {s['newton_iterations']} Newton iterations in {s['load_increments']} load "
         f"increment{'' if s['load_increments'] == 1 else 's'}, {s['solve_time_s']:.2f} s, "
         f"smallest det F {s['min_det_F']:.3f}",
-        f"  written to {folder}: displaced_surface.vtu, displaced_surface.stl, simulate.png, "
-        "simulate.json"])
+        f"  written to {files[0].parent}: {', '.join(p.name for p in files)} and its summary "
+        f"{SUMMARY_NAME}"])
 
 
 def _report_summary(report: SolveReport) -> dict:

@@ -24,9 +24,8 @@ def build_grid(anatomy: Anatomy, settings: GridSection, max_fixed_share: float =
                chest_tol_mm: float = 1.0) -> Grid:
     """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm``: the anatomy's
     box plus ``settings.margin_cells`` (the network takes any node counts). Nodes within
-    ``chest_tol_mm``
-    of a curved chest wall, or behind it, are fixed. InputError when the chest wall fixes more
-    than ``max_fixed_share`` of the active nodes."""
+    ``chest_tol_mm`` of a curved chest wall, or behind it, are fixed. InputError when the chest
+    wall fixes more than ``max_fixed_share`` of the active nodes."""
     h = float(settings.cell_size_mm)
     origin, node_shape = _grid_frame(anatomy, h, settings.margin_cells)
     cshape = index.cell_shape(node_shape)
