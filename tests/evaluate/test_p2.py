@@ -37,6 +37,21 @@ def test_tangent_is_the_derivative_of_the_forces(cube):
     assert abs(stiff - stiff.T).max() < 1e-12 * abs(stiff).max()
 
 
+def test_the_forces_are_the_derivative_of_the_energy(cube):
+    """The line search's merit (the stored energy) is the potential of the Newton forces,
+    and an inverted element has no energy."""
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=cube.nodes.shape) * 0.05
+    d = rng.normal(size=cube.nodes.shape)
+    eps = 1e-5
+    fd = (cube.energy(u + eps * d) - cube.energy(u - eps * d)) / (2 * eps)
+    slope = cube.forces_and_tangent(u, tangent=False) @ d.ravel()
+    assert abs(fd - slope) < 1e-6 * abs(slope)
+    assert cube.energy(np.zeros_like(u)) == 0.0 and cube.energy(u) > 0.0
+    with pytest.raises(FloatingPointError):
+        cube.energy(-2.0 * cube.nodes)
+
+
 def test_rigid_motions_give_no_forces(cube):
     c, s = np.cos(0.7), np.sin(0.7)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -82,9 +97,9 @@ def _tilted_face_over_the_top(tilt_deg: float) -> np.ndarray:
 def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     """A tilted face pushed 4 mm: at rest it touches a strip of the top; without contact the
     rest of the top passes through the face, with the face as a rigid body (footprint) every
-    skin node it reaches is held on its plane (sliding) and the cube's centre is pushed
-    further."""
-    from biopsynav.evaluate.p2 import PENETRATION_TOL_MM
+    skin node it reaches is held on its plane (sliding), none that it would have to pull,
+    and the cube's centre is pushed further."""
+    from biopsynav.evaluate.p2 import PENETRATION_TOL_MM, RELEASE_SHARE
     from biopsynav.footprint import make_footprint
 
     face = make_footprint("rectangle", (60.0, 60.0))
@@ -108,6 +123,9 @@ def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     assert len(cube.sliding) > len(contact)
     on_plane = (cube.nodes[cube.sliding] + cube.last[cube.sliding] - pushed[:3, 3]) @ pushed[:3, 2]
     assert np.abs(on_plane).max() < 1e-6
+    forces = cube.forces_and_tangent(cube.last, tangent=False).reshape(-1, 3)
+    push = forces[cube.sliding] @ pushed[:3, 2]
+    assert push.min() >= -RELEASE_SHARE * push.max(), "the face pushes (pulls only slightly)"
     assert held[0, 2] < free[0, 2] < 0.0, "the face pushes the centre further"
 
 

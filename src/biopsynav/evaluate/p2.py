@@ -39,10 +39,17 @@ from ..probe import skin_under_face
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 NEWTON_ITERATIONS = 40
 LINE_SEARCH_HALVINGS = 8
+#: Levenberg-Marquardt shifts (times the tangent's diagonal) tried in turn where the Newton
+#: direction does not descend or its line search fails: 0, then 1e-4, 1e-3, ... 1e2
+SHIFTS = (0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
+ARMIJO = 1e-4  # sufficient decrease of the energy along a step, as a share of its slope
 #: The probe of this reference (:meth:`TetReference.push` with a footprint), in the answer
 #: caches' keys: answers of another probe model are solved again.
-P2_PROBE = "rigid face: rest contact held, skin it reaches slides on it"
-CONTACT_ROUNDS = 6  # solves of one load step while skin still reaches the face
+P2_PROBE = ("rigid face: rest contact held, skin it reaches slides on it, let go where "
+            "pulled")
+LIFT_TOL_MM = 1e-9  # a held node's prescribed move below this is no move
+RELEASE_SHARE = 0.1  # a held node pulled by more than this share of the largest push is let go
+CONTACT_ROUNDS = 8  # solves of one load step while its contact set changes
 PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
 
 
@@ -231,10 +238,7 @@ class TetReference:
         f = np.zeros((n_el, 10, 3))
         points = []  # per quadrature point: weight, spatial gradients, tau, m (the tangent's)
         for g0, w in zip(self.grads, self.weights, strict=True):
-            defo = np.eye(3) + np.einsum("tai,taj->tij", ue, g0)
-            det = np.linalg.det(defo)
-            if np.any(det <= 0.0):
-                raise FloatingPointError("an element inverted")
+            defo, det = _deformation(ue, g0)
             g = np.einsum("taj,tji->tai", g0, np.linalg.inv(defo))  # spatial gradients F^-T G
             b = defo @ defo.transpose(0, 2, 1)
             m = self.mu - self.lam * np.log(det)
@@ -252,10 +256,27 @@ class TetReference:
                               shape=(self.n_dofs, self.n_dofs))
         return forces, stiff
 
+    def energy(self, u: np.ndarray) -> float:
+        """The stored energy (N mm) at the nodal displacement ``u`` (n, 3) mm:
+        ``W = mu / 2 (tr b - 3) - mu ln J + lam / 2 (ln J)^2`` integrated over the mesh (the
+        potential of :meth:`forces_and_tangent`'s forces); FloatingPointError when an
+        element inverts."""
+        ue = u[self.elements]
+        total = 0.0
+        for g0, w in zip(self.grads, self.weights, strict=True):
+            defo, det = _deformation(ue, g0)
+            log_j = np.log(det)
+            i1 = np.einsum("tij,tij->t", defo, defo)
+            total += float(w @ (0.5 * self.mu * (i1 - 3.0) - self.mu * log_j
+                                + 0.5 * self.lam * log_j ** 2))
+        return total
+
     last: np.ndarray | None = None  # the nodal displacement of the last push (n, 3) mm
     last_rel: np.ndarray | None = None  # the last push's pose relative to its rest pose
     #: skin nodes held on the face plane in the last push
     sliding: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    #: sliding nodes that passed the face again once let go: held for the rest of the push
+    kept: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
              points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
@@ -275,6 +296,7 @@ class TetReference:
         done = u[contact].copy()
         if start is None:
             self.sliding, self.last_rel = np.zeros(0, dtype=np.int64), None
+            self.kept = self.sliding
         done_rel = np.eye(4) if self.last_rel is None else self.last_rel
         out = []
         interp = self._interpolation(np.asarray(points, dtype=np.float64))
@@ -294,18 +316,30 @@ class TetReference:
 
     def _contact_step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
                       tol: float, face: np.ndarray, footprint: Any) -> np.ndarray:
-        """One load step with the probe face at ``face`` (4, 4): solve, then, with a
-        ``footprint``, put the skin that passed the face plane on it and solve again."""
+        """One load step with the probe face at ``face`` (4, 4). With a ``footprint``, an
+        active set: the skin that the face's move passes (behind the new plane where the
+        step's linear response from the last equilibrium ``u`` puts it) is put on the plane
+        before the solve; then, until it
+        settles, skin that still passes the face is added, skin the face would have to pull
+        or that slid off it is released, and the step is solved again from there
+        (frictionless and elastic: the equilibrium does not depend on the path). A node is
+        released at most once a step, and one that passes the face again once free stays
+        held for the rest of the push (``self.kept``)."""
         if footprint is None:
             return self._step(u, contact, values, tol, Sliding.none())
-        start = u
+        new = self._behind_face(self._predicted_on(u, contact, values, face), face, footprint,
+                                contact)
+        released = np.zeros(0, dtype=np.int64)
         for _ in range(CONTACT_ROUNDS):
-            slide = Sliding.on_face(self, self.sliding, face)
-            u = self._step(start, contact, values, tol, slide)
-            new = self._behind_face(u, face, footprint, contact)
-            if not len(new):
-                return u
             self.sliding = np.union1d(self.sliding, new)
+            u = self._step(u, contact, values, tol, Sliding.on_face(self, self.sliding, face))
+            new = self._behind_face(u, face, footprint, contact)
+            self.kept = np.union1d(self.kept, np.intersect1d(new, released))
+            off = np.setdiff1d(self._released(u, face, footprint), np.union1d(released, self.kept))
+            if not len(new) and not len(off):
+                return u
+            self.sliding = np.setdiff1d(self.sliding, off)
+            released = np.union1d(released, off)
         raise RuntimeError(f"P2 reference: skin still passes the probe face after "
                            f"{CONTACT_ROUNDS} contact rounds")
 
@@ -319,6 +353,31 @@ class TetReference:
                   & (self.skin.normals @ face[:3, 2] < 0.0) & self.skin.pushable)
         held = np.concatenate([contact, self.fixed_nodes, self.sliding])
         return np.setdiff1d(nodes[behind], held)
+
+    def _predicted_on(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
+                      face: np.ndarray) -> np.ndarray:
+        """Where the step's linear response from the equilibrium ``u`` (n, 3) mm puts the
+        nodes: ``contact`` at ``values`` and the sliding nodes on the plane of ``face``."""
+        slide = Sliding.on_face(self, self.sliding, face)
+        held = np.concatenate([contact, self.fixed_nodes])
+        return self._predicted(u, self._lift(u, contact, values, slide), self._basis(held, slide))
+
+    def _released(self, u: np.ndarray, face: np.ndarray, footprint: Any) -> np.ndarray:
+        """Sliding nodes the face no longer holds at the equilibrium ``u``: those it pulls
+        by more than ``RELEASE_SHARE`` of its largest push on one node (a node's push is its
+        internal force along the beam, the gradient of the energy that the face's force
+        balances) and those that slid off its ``footprint``. Slight pulls stay: node-to-plane
+        contact of quadratic elements pulls slightly at face corners, where a uniform
+        pressure's consistent nodal load is zero, and releasing them only makes them pass
+        the face again."""
+        nodes = self.sliding
+        if not len(nodes):
+            return nodes
+        normal = face[:3, 2] / np.linalg.norm(face[:3, 2])
+        local = (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
+        push = self.forces_and_tangent(u, tangent=False).reshape(-1, 3)[nodes] @ normal
+        pulled = push < -RELEASE_SHARE * push.max(initial=0.0)
+        return nodes[pulled | ~footprint.inside(local[:, :2])]
 
     def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
               slide: Sliding, depth: int = 0) -> np.ndarray:
@@ -337,32 +396,66 @@ class TetReference:
                 tol: float, slide: Sliding) -> np.ndarray:
         """Equilibrium with ``values`` (n_c, 3) mm at the ``contact`` nodes and the sliding
         nodes on their planes, from the equilibrium ``u``: the first iteration carries the
-        prescribed increment through the tangent (no element is distorted by moving the
-        held nodes alone); the later ones are damped by a backtracking line search on the
-        residual norm that also refuses inverted elements. Increments live in the span of
-        :meth:`_basis` (every dof of a free node, the plane of a sliding node)."""
+        prescribed increment through the tangent, the linear response to it (no element is
+        distorted by moving the held nodes alone; skipped when nothing held moves, as after
+        a release); the later ones, on the residual, are damped (:meth:`_descend`).
+        Increments live in the span of :meth:`_basis` (every dof of a free node, the plane
+        of a sliding node)."""
         basis = self._basis(np.concatenate([contact, self.fixed_nodes]), slide)
+        lift = self._lift(u, contact, values, slide)
+        if np.abs(lift).max(initial=0.0) > LIFT_TOL_MM:
+            u = self._predicted(u, lift, basis)
+        r0, shift = None, 0
+        for _ in range(NEWTON_ITERATIONS):
+            forces, stiff = self.forces_and_tangent(u)
+            rhs = -(basis.T @ forces)
+            r_norm = float(np.linalg.norm(rhs))
+            r0 = r_norm if r0 is None else r0
+            if r_norm <= tol * r0 or r_norm < 1e-12:
+                return u
+            u, shift = self._descend(u, (basis.T @ stiff @ basis).tocsr(), rhs, basis, shift)
+        raise RuntimeError("P2 reference: Newton did not converge")
+
+    def _lift(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
+              slide: Sliding) -> np.ndarray:
+        """The move (n, 3) mm from ``u`` that puts the ``contact`` nodes at ``values`` (n_c, 3)
+        mm and the sliding nodes on their planes; zero elsewhere."""
         lift = np.zeros_like(u)
         lift[contact] = values - u[contact]
         lift[slide.nodes] = slide.lift(u)
-        u = u.copy()
-        r0 = None
-        for it in range(NEWTON_ITERATIONS):
-            forces, stiff = self.forces_and_tangent(u)
-            if it == 0:
-                rhs = -(basis.T @ (forces + stiff @ lift.ravel()))
-            else:
-                r_norm = float(np.linalg.norm(basis.T @ forces))
-                r0 = r_norm if r0 is None else r0
-                if r_norm <= tol * r0 or r_norm < 1e-12:
-                    return u
-                rhs = -(basis.T @ forces)
-            du = basis @ solve_symmetric((basis.T @ stiff @ basis).tocsr(), rhs)
-            if it == 0:
-                u = u + (du + lift.ravel()).reshape(u.shape)
-            else:
-                u = self._line_search(u, du.reshape(u.shape), basis, r_norm)
-        raise RuntimeError("P2 reference: Newton did not converge")
+        return lift
+
+    def _predicted(self, u: np.ndarray, lift: np.ndarray, basis: sp.csr_matrix) -> np.ndarray:
+        """``u`` (n, 3) mm moved by ``lift`` at the held nodes and, in the span of ``basis``,
+        by the tangent's linear response to it."""
+        _, stiff = self.forces_and_tangent(u)
+        rhs = -(basis.T @ (stiff @ lift.ravel()))
+        du = basis @ solve_symmetric((basis.T @ stiff @ basis).tocsr(), rhs)
+        return u + (du + lift.ravel()).reshape(u.shape)
+
+    def _descend(self, u: np.ndarray, reduced: sp.csr_matrix, rhs: np.ndarray,
+                 basis: sp.csr_matrix, shift: int) -> tuple[np.ndarray, int]:
+        """One damped Newton update of ``u`` (n, 3) mm from the reduced tangent and residual
+        ``rhs`` (minus the reduced forces): the direction solves ``(K + s diag|K|) d = rhs``
+        for the shifts ``SHIFTS[shift:]`` in turn (Levenberg-Marquardt, where the tangent is
+        indefinite past a limit point or the full step overshoots) until it descends in
+        energy and :meth:`_line_search` finds a step along it. Returns the new ``u`` and the
+        shift index to start from next time (one smaller: the shift relaxes as Newton
+        converges); RuntimeError when no shift gives one."""
+        scale = sp.diags(np.abs(reduced.diagonal()))
+        energy = self.energy(u)
+        for k in range(shift, len(SHIFTS)):
+            matrix = reduced + SHIFTS[k] * scale if SHIFTS[k] else reduced
+            d = solve_symmetric(matrix.tocsr(), rhs)
+            slope = -float(rhs @ d)  # the energy's derivative along d
+            if slope >= 0.0:
+                continue
+            found = self._line_search(u, (basis @ d).reshape(u.shape), basis, rhs, energy,
+                                      slope)
+            if found is not None:
+                return found, max(k - 1, 0)
+        raise RuntimeError("P2 reference: the line search found no admissible decrease, "
+                           f"even with the tangent shifted by {SHIFTS[-1]:g} times its diagonal")
 
     def _basis(self, held: np.ndarray, slide: Sliding) -> sp.csr_matrix:
         """(3 n, r) basis of admissible increments: the unit vectors of every dof of a node
@@ -389,21 +482,24 @@ class TetReference:
                              shape=(self.n_dofs, width))
 
     def _line_search(self, u: np.ndarray, du: np.ndarray, basis: sp.csr_matrix,
-                     r_norm: float) -> np.ndarray:
+                     rhs: np.ndarray, energy: float, slope: float) -> np.ndarray | None:
         """``u + a du`` for the largest ``a`` in 1, 1/2, 1/4, ... whose elements are not
-        inverted and whose residual norm in the span of ``basis`` is at most ``r_norm``;
-        RuntimeError when none of ``LINE_SEARCH_HALVINGS`` halvings is."""
-        step = 1.0
+        inverted and which lowers the energy (from ``energy``, N mm, by at least ``ARMIJO``
+        of ``a slope``) or the residual norm in the span of ``basis`` (from ``|rhs|``: near
+        equilibrium the energy's change drowns in round-off); None when none of
+        ``LINE_SEARCH_HALVINGS`` halvings does."""
+        step, r_norm = 1.0, float(np.linalg.norm(rhs))
         for _ in range(LINE_SEARCH_HALVINGS):
             trial = u + step * du
             try:
-                forces = self.forces_and_tangent(trial, tangent=False)
+                if (self.energy(trial) <= energy + ARMIJO * step * slope
+                        or np.linalg.norm(basis.T @ self.forces_and_tangent(
+                            trial, tangent=False)) <= r_norm):
+                    return trial
             except FloatingPointError:
-                forces = None
-            if forces is not None and np.linalg.norm(basis.T @ forces) <= r_norm:
-                return trial
+                pass
             step *= 0.5
-        raise RuntimeError("P2 reference: the line search found no admissible decrease")
+        return None
 
     def _interpolation(self, points: np.ndarray) -> sp.csr_matrix:
         """(k, n) P2 interpolation at ``points`` (k, 3) mm; ValueError outside the mesh."""
@@ -479,6 +575,17 @@ def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     upper = sp.triu(matrix, format="csr")
     upper.sort_indices()
     return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
+
+
+def _deformation(ue: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Deformation gradients F (t, 3, 3) and J (t,) at one quadrature point from element
+    displacements ``ue`` (t, 10, 3) mm and reference gradients ``g0`` (t, 10, 3) 1/mm;
+    FloatingPointError when an element inverts (J <= 0)."""
+    defo = np.eye(3) + np.einsum("tai,taj->tij", ue, g0)
+    det = np.linalg.det(defo)
+    if np.any(det <= 0.0):
+        raise FloatingPointError("an element inverted")
+    return defo, det
 
 
 def _element_tangents(points: list, lam: float) -> np.ndarray:
