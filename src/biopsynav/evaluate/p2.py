@@ -46,7 +46,7 @@ ARMIJO = 1e-4  # sufficient decrease of the energy along a step, as a share of i
 #: The probe of this reference (:meth:`TetReference.push` with a footprint), in the answer
 #: caches' keys: answers of another probe model are solved again.
 P2_PROBE = ("rigid face: rest contact held, skin it reaches slides on it, let go where "
-            "pulled")
+            "pulled; skin beside it not held")
 LIFT_TOL_MM = 1e-9  # a held node's prescribed move below this is no move
 RELEASE_SHARE = 0.1  # a held node pulled by more than this share of the largest push is let go
 CONTACT_ROUNDS = 8  # solves of one load step while its contact set changes
@@ -346,10 +346,13 @@ class TetReference:
     def _behind_face(self, u: np.ndarray, face: np.ndarray, footprint: Any,
                      contact: np.ndarray) -> np.ndarray:
         """Skin nodes (not held) under ``footprint`` that ``u`` puts more than
-        ``PENETRATION_TOL_MM`` behind the face plane of ``face`` (4, 4), facing the probe."""
+        ``PENETRATION_TOL_MM`` behind the face plane of ``face`` (4, 4), facing the probe,
+        and nearer the face than the footprint's edge (further behind it than from the edge,
+        the skin came in beside the probe, where its side, not its face, would stop it)."""
         nodes = self.skin_nodes
         local = (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
-        behind = ((local[:, 2] < -PENETRATION_TOL_MM) & footprint.inside(local[:, :2])
+        depth = -local[:, 2]
+        behind = ((depth > PENETRATION_TOL_MM) & _inside_by(footprint, local[:, :2], depth)
                   & (self.skin.normals @ face[:3, 2] < 0.0) & self.skin.pushable)
         held = np.concatenate([contact, self.fixed_nodes, self.sliding])
         return np.setdiff1d(nodes[behind], held)
@@ -575,6 +578,16 @@ def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     upper = sp.triu(matrix, format="csr")
     upper.sort_indices()
     return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
+
+
+def _inside_by(footprint: Any, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:
+    """Whether points ``xy`` (m, 2) mm lie inside ``footprint`` by at least ``margin`` (m,)
+    mm along both face axes (the point moved by the margin either way stays inside)."""
+    inside = footprint.inside(xy)
+    for axis in np.eye(2):
+        shift = margin[:, None] * axis
+        inside &= footprint.inside(xy + shift) & footprint.inside(xy - shift)
+    return inside
 
 
 def _deformation(ue: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
