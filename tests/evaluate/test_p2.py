@@ -129,6 +129,18 @@ def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     assert held[0, 2] < free[0, 2] < 0.0, "the face pushes the centre further"
 
 
+def test_skin_beside_the_face_is_not_put_on_it():
+    """Skin behind the face plane is put on the face only where it is nearer the face than
+    the footprint's edge: further behind, it came in beside the probe."""
+    from biopsynav.evaluate.p2 import _inside_by
+    from biopsynav.footprint import make_footprint
+
+    face = make_footprint("rectangle", (50.0, 10.0))
+    xy = np.array([[0.0, 0.0], [0.0, 3.0], [0.0, 3.0], [24.0, 0.0], [0.0, 6.0]])
+    depth = np.array([4.0, 1.5, 2.5, 0.5, 0.1])
+    assert _inside_by(face, xy, depth).tolist() == [True, True, False, True, False]
+
+
 def _sigpipe_ignored() -> bool:
     """Whether the process ignores SIGPIPE at the system level (/proc/self/status SigIgn)."""
     for line in Path("/proc/self/status").read_text().splitlines():
