@@ -11,8 +11,11 @@ plane fixed; the skin the probe face touches at the rest pose (within the contac
 under the footprint, facing the probe; :func:`biopsynav.probe.skin_under_face`) moved rigidly
 with the probe (stuck to it, as the tracker's contact points); and, given the face's
 footprint, the probe a rigid body: skin that a load step pushes behind the face plane is put
-on the plane and slides on it without friction (an active set, grown until no skin passes
-the face), so that no skin passes through the probe; the rest free. Used by
+on the plane and slides on it without friction (an active set: grown where skin passes the
+face, let go where the face would pull; skin beside the probe, nearer the footprint's edge
+than the face, is not put on the face), so that no skin passes through the probe's face;
+the rest free. Newton is damped on the stored energy (line search, and a Levenberg-Marquardt
+shift where the direction does not descend). Used by
 ``benchmarks/convergence.py``, ``benchmarks/truth.py`` and Table 2's ``p2`` reference; needs
 gmsh.
 """
