@@ -322,12 +322,11 @@ class TetReference:
         """One load step with the probe face at ``face`` (4, 4). With a ``footprint``, an
         active set: the skin that the face's move passes (behind the new plane where the
         step's linear response from the last equilibrium ``u`` puts it) is put on the plane
-        before the solve; then, until it
-        settles, skin that still passes the face is added, skin the face would have to pull
-        or that slid off it is released, and the step is solved again from there
-        (frictionless and elastic: the equilibrium does not depend on the path). A node is
-        released at most once a step, and one that passes the face again once free stays
-        held for the rest of the push (``self.kept``)."""
+        before the solve; then, until it settles, skin that still passes the face is added,
+        skin the face would have to pull or that slid off it is released, and the step is
+        solved again from there (frictionless and elastic: the equilibrium does not depend
+        on the path). A node is released at most once a step, and one that passes the face
+        again once free stays held for the rest of the push (``self.kept``)."""
         if footprint is None:
             return self._step(u, contact, values, tol, Sliding.none())
         new = self._behind_face(self._predicted_on(u, contact, values, face), face, footprint,
