@@ -141,6 +141,19 @@ def test_skin_beside_the_face_is_not_put_on_it():
     assert _inside_by(face, xy, depth).tolist() == [True, True, False, True, False]
 
 
+def test_a_singular_tangent_fails_the_step_not_the_run():
+    """A matrix the linear solver refuses (an empty row) is a failed solve (RuntimeError,
+    which a load step halves), not a ValueError that ends the whole reference run."""
+    import scipy.sparse as sp
+
+    from biopsynav.evaluate.p2 import solve_symmetric
+
+    matrix = sp.csr_matrix(np.diag([2.0, 0.0, 3.0]))
+    matrix.eliminate_zeros()
+    with pytest.raises(RuntimeError, match="linear solve failed"):
+        solve_symmetric(matrix, np.ones(3))
+
+
 def _sigpipe_ignored() -> bool:
     """Whether the process ignores SIGPIPE at the system level (/proc/self/status SigIgn)."""
     for line in Path("/proc/self/status").read_text().splitlines():

@@ -571,7 +571,9 @@ _SYMMETRIC_SOLVER = None  # one Pardiso instance (several at once can crash the 
 def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     """``matrix^-1 rhs`` for a symmetric ``matrix`` (the tangent: positive definite, or
     indefinite past a limit point) with MKL Pardiso in its symmetric indefinite mode
-    (``mtype = -2``, the upper triangle): half the storage and work of a general LU."""
+    (``mtype = -2``, the upper triangle): half the storage and work of a general LU.
+    RuntimeError where the solver refuses the matrix (a load step that fails, halved by
+    :meth:`TetReference._step`), not its ValueError."""
     global _SYMMETRIC_SOLVER
     import pypardiso
 
@@ -579,7 +581,10 @@ def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
         _SYMMETRIC_SOLVER = pypardiso.PyPardisoSolver(mtype=-2)
     upper = sp.triu(matrix, format="csr")
     upper.sort_indices()
-    return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
+    try:
+        return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
+    except ValueError as exc:  # pypardiso's checks: an empty row, a wrong shape
+        raise RuntimeError(f"P2 reference: the linear solve failed ({exc})") from exc
 
 
 def _inside_by(footprint: Any, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:
