@@ -299,7 +299,7 @@ class TetReference:
         done = u[contact].copy()
         if start is None:
             self.sliding, self.last_rel = np.zeros(0, dtype=np.int64), None
-            self.kept = self.sliding
+            self.kept = np.zeros(0, dtype=np.int64)
         done_rel = np.eye(4) if self.last_rel is None else self.last_rel
         out = []
         interp = self._interpolation(np.asarray(points, dtype=np.float64))
@@ -352,12 +352,17 @@ class TetReference:
         and nearer the face than the footprint's edge (further behind it than from the edge,
         the skin came in beside the probe, where its side, not its face, would stop it)."""
         nodes = self.skin_nodes
-        local = (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
+        local = self._face_local(nodes, u, face)
         depth = -local[:, 2]
         behind = ((depth > PENETRATION_TOL_MM) & _inside_by(footprint, local[:, :2], depth)
                   & (self.skin.normals @ face[:3, 2] < 0.0) & self.skin.pushable)
         held = np.concatenate([contact, self.fixed_nodes, self.sliding])
         return np.setdiff1d(nodes[behind], held)
+
+    def _face_local(self, nodes: np.ndarray, u: np.ndarray, face: np.ndarray) -> np.ndarray:
+        """Where ``u`` (n, 3) mm puts ``nodes`` (m,), in the frame of the face pose ``face``
+        (4, 4): (m, 3) mm, z along the beam (negative: behind the face plane)."""
+        return (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
 
     def _predicted_on(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
                       face: np.ndarray) -> np.ndarray:
@@ -379,7 +384,7 @@ class TetReference:
         if not len(nodes):
             return nodes
         normal = face[:3, 2] / np.linalg.norm(face[:3, 2])
-        local = (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
+        local = self._face_local(nodes, u, face)
         push = self.forces_and_tangent(u, tangent=False).reshape(-1, 3)[nodes] @ normal
         pulled = push < -RELEASE_SHARE * push.max(initial=0.0)
         return nodes[pulled | ~footprint.inside(local[:, :2])]
