@@ -23,8 +23,9 @@ slides on it, none passes through it; the hexahedral FE adds that contact when t
   neo-Hookean energy (``neo-hookean``: 2x2x2 Gauss points; ``neo-hookean-sri``: its volumetric
   term at the cell centre, free of volumetric locking);
 * the reference, ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the
-  same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe), its own
-  assembly and Newton loop.
+  same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe,
+  ``--tet-rim`` mm along the edge of the probe face when given), its own assembly and Newton
+  loop.
 
 Printed per variant (law and contact kind), lesion and depth: the lesion displacement |u| of
 every grid and of the reference, each grid's error (distance to the reference's displacement
@@ -96,15 +97,16 @@ def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float]) ->
 def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                depths: list[float], args) -> tuple[list, dict]:
     """The P2 reference's lesion displacements for each depth, and its mesh facts."""
-    from biopsynav.evaluate.p2 import TetReference
+    from biopsynav.evaluate.p2 import TetReference, rim_at
 
     t0 = time.perf_counter()
-    ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
-                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine)
     probe = case.cfg.probe
+    ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
+                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
+                             rim=rim_at(placement.pose, probe.footprint, args.tet_rim))
     contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
-    disp, failure = [], ""
+    disp, tangled, failure = [], [], ""
     rest = placement.pose
     for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
         try:
@@ -114,9 +116,24 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
             failure = f"{depth:g} mm: {exc}"
             break
         disp.append(u[0].tolist())
+        tangled.append(len(ref.tangled(ref.last)))
     disp += [None] * (len(depths) - len(disp))
     return disp, {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
-                  "seconds": time.perf_counter() - t0, "failure": failure}
+                  "seconds": time.perf_counter() - t0, "failure": failure,
+                  "tangled_elements": tangled}
+
+
+def reference_line(case: Case, lesion: int, facts: dict, depths: list[float]) -> str:
+    """One line on the P2 reference of ``lesion`` (index): its mesh, time, any failure, and
+    the depths whose answer holds folded elements (:meth:`TetReference.tangled`)."""
+    folded = [f"{n} at {d:g} mm" for d, n in zip(depths, facts.get("tangled_elements", []),
+                                                 strict=False) if n]
+    return (f"  P2 reference, lesion {case.anatomy.lesions[lesion].id}: {facts['tets']} "
+            f"tetrahedra, {facts['dofs']} dofs, {facts['contact_nodes']} contact nodes, "
+            f"{facts['seconds']:.0f} s" + (f"; failed at {facts['failure']}"
+                                           if facts["failure"] else "")
+            + (f"; elements folded over at a node (not to be trusted): {', '.join(folded)}"
+               if folded else ""))
 
 
 def extrapolated(cells: list[float], values: list) -> np.ndarray | None:
@@ -181,16 +198,14 @@ def run(args) -> dict:
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args)
         reference[li] = {"displacement": disp, **facts}
         save(args.out, {"grids": grids, "reference": reference})
-        print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: {facts['tets']} tetrahedra,"
-              f" {facts['dofs']} dofs, {facts['contact_nodes']} contact nodes, "
-              f"{facts['seconds']:.0f} s" + (f"; failed at {facts['failure']}"
-                                             if facts["failure"] else ""), flush=True)
+        print(reference_line(case, li, facts, args.depths), flush=True)
     return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": args.nu,
             "depths_mm": args.depths, "cells_mm": args.cells, "variants": variants(args),
             "lesions": lesions,
             "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
             "grids": grids, "reference": reference,
-            "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine}
+            "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine,
+            "tet_rim_mm": args.tet_rim}
 
 
 def variants(args) -> list[str]:
@@ -206,7 +221,8 @@ def reused_reference(args, e_mpa: float) -> dict:
     earlier = json.loads(args.reuse_reference.read_text())
     same = (earlier.get("depths_mm") == args.depths and earlier.get("nu") == args.nu
             and earlier.get("E_mpa") == e_mpa and earlier.get("tet_size_mm") == args.tet_size
-            and earlier.get("tet_fine_mm") == args.tet_fine)
+            and earlier.get("tet_fine_mm") == args.tet_fine
+            and earlier.get("tet_rim_mm", 0.0) == args.tet_rim)
     if not same:
         raise SystemExit(f"{args.reuse_reference}: another depth list, material or reference "
                          "mesh; run the reference again")
@@ -280,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
     p.add_argument("--tet-fine", type=float, default=2.5,
                    help="reference tetrahedra within 35 mm of the probe, mm")
+    p.add_argument("--tet-rim", type=float, default=0.0,
+                   help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
+                        "rim)")
     p.add_argument("--nu", type=float, default=0.45)
     p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     p.add_argument("--reuse-reference", type=Path, default=None,

@@ -2,7 +2,8 @@
 network's teacher) and the rigid assumption against a P2 tetrahedral FE of the same pushes.
 
     python benchmarks/truth.py CASE [--lesions 3] [--depths 10 20 30] [--tet-size 10]
-                                    [--tet-fine 4] [--reference CASE-p2.json] [--out FILE]
+                                    [--tet-fine 4] [--tet-rim 1.5] [--reference CASE-p2.json]
+                                    [--out FILE]
 
 The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
 over the list as Table 2 picks them) the probe is placed over it as in Table 2
@@ -52,7 +53,7 @@ from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 from biopsynav.tracker.core import fem_engine  # noqa: E402
-from convergence import tet_pushes  # noqa: E402  (benchmarks/ is this script's folder)
+from convergence import reference_line, tet_pushes  # noqa: E402  (benchmarks/ is this script's folder)
 
 METHODS = ("net", "fem", "rigid")
 D10_BELOW_MM, D30_ABOVE_MM = 12.5, 27.5  # the paper's Table 2 bins D10 and D30
@@ -68,7 +69,8 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     """What the reference figures depend on: reused only when all of it is the same."""
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
-            "tet_fine_mm": args.tet_fine, **probe_key(case.cfg.probe)}
+            "tet_fine_mm": args.tet_fine, **probe_key(case.cfg.probe),
+            **({"tet_rim_mm": args.tet_rim} if args.tet_rim else {})}
 
 
 def load_reference(path: Path, key: dict) -> dict:
@@ -131,13 +133,10 @@ def run(args) -> dict:
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
     for li in lesions:
         if str(li) not in stored:
-            t0 = time.perf_counter()
             disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args)
             stored[str(li)] = {"displacement": disp, **facts}
             write_text_atomic(ref_path, json.dumps({"key": key, "lesions": stored}, indent=1))
-            print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: {facts['tets']} "
-                  f"tetrahedra, {facts['dofs']} dofs, {time.perf_counter() - t0:.0f} s"
-                  + (f"; failed at {facts['failure']}" if facts["failure"] else ""), flush=True)
+            print(reference_line(case, li, facts, args.depths), flush=True)
     rows = []
     if not args.reference_only:
         trackers = method_trackers(case)
@@ -188,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
     p.add_argument("--tet-fine", type=float, default=4.0,
                    help="reference tetrahedra within 35 mm of the probe, mm")
+    p.add_argument("--tet-rim", type=float, default=0.0,
+                   help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
+                        "rim)")
     p.add_argument("--reference", type=Path, default=None,
                    help="JSON of the reference's figures, read and extended (resumable)")
     p.add_argument("--reference-only", action="store_true",

@@ -517,6 +517,10 @@ class EvaluateSection:
                             lo=1.0, hi=100.0)
     p2_fine_mm: float = opt(4.0, "P2 reference: tetrahedron size within 35 mm of the probe.",
                             lo=0.5, hi=100.0)
+    p2_rim_mm: float = opt(0.0, "P2 reference: tetrahedron size along the edge of the probe "
+                                "face at rest, where the skin bends round it (0: no finer rim; "
+                                "docs/fem.md, 'Folded elements at the probe's edge').",
+                           lo=0.0, hi=100.0)
 
 
 SECTIONS: dict[str, type] = {

@@ -52,6 +52,23 @@ def test_the_forces_are_the_derivative_of_the_energy(cube):
         cube.energy(-2.0 * cube.nodes)
 
 
+def test_a_folded_element_is_found_before_the_energy_sees_it(cube):
+    """Moving one edge node across its element folds elements over at their nodes while
+    every quadrature point still has J > 0 (the energy is finite): ``tangled`` names them,
+    and only elements that hold the moved node."""
+    assert len(cube.tangled(np.zeros_like(cube.nodes))) == 0
+    nodes = cube.elements[0]
+    across = 2.0 * (cube.nodes[nodes[:4]].mean(axis=0) - cube.nodes[nodes[4]])
+    for scale in np.linspace(0.05, 1.0, 20):
+        u = np.zeros_like(cube.nodes)
+        u[nodes[4]] = scale * across
+        folded = cube.tangled(u)
+        if len(folded):
+            break
+    assert len(folded) and np.isfinite(cube.energy(u))
+    assert all(nodes[4] in cube.elements[el] for el in folded)
+
+
 def test_rigid_motions_give_no_forces(cube):
     c, s = np.cos(0.7), np.sin(0.7)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -172,3 +189,33 @@ def test_meshing_leaves_sigpipe_ignored():
     points, tets = tet_mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces), 10.0)
     assert len(tets) > 0
     assert _sigpipe_ignored()
+
+
+def test_the_rim_of_the_probe_face_gets_finer_tetrahedra():
+    """With a ``Rim`` the mesh is finer along the edge of the face (where the skin bends
+    round it) than under its middle and away from it; the edge samples of a shape lie on it."""
+    from biopsynav.evaluate.p2 import Rim, _outline
+    from biopsynav.footprint import make_footprint
+
+    ellipse = _outline(make_footprint("ellipse", (30.0, 10.0)))
+    assert np.allclose(np.sum((ellipse / [15.0, 5.0]) ** 2, axis=1), 1.0, atol=0.1)
+    box = trimesh.creation.box(extents=(50.0, 40.0, 30.0))
+    pose = np.eye(4)
+    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])  # the beam down, into the box's top face
+    pose[2, 3] = 15.0
+    rim = Rim(pose, make_footprint("rectangle", (30.0, 10.0)), 2.0)
+    assert np.allclose(rim.sizes(np.array([[15.0, 0.0, 15.0], [0.0, 5.0, 14.0]])), 2.0)
+    assert rim.sizes(np.array([[0.0, 0.0, 15.0]]))[0] == pytest.approx(2.0 + 0.5 * 5.0)
+    finer = _edges_at_rim(*tet_mesh(np.asarray(box.vertices), np.asarray(box.faces), 10.0,
+                                    rim=rim), pose)
+    plain = _edges_at_rim(*tet_mesh(np.asarray(box.vertices), np.asarray(box.faces), 10.0), pose)
+    assert len(finer) > 10 and finer.mean() < 0.6 * plain.mean()
+
+
+def _edges_at_rim(points: np.ndarray, tets: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """A first edge's length of each tetrahedron whose centre lies within 2 mm of the long
+    sides of a 30 x 10 mm face at ``pose`` and 4 mm under it."""
+    local = (points[tets].mean(axis=1) - pose[:3, 3]) @ pose[:3, :3]
+    near = (np.abs(np.abs(local[:, 1]) - 5.0) < 2.0) & (np.abs(local[:, 0]) < 12.0) \
+        & (local[:, 2] < 4.0)
+    return np.linalg.norm(points[tets[near, 0]] - points[tets[near, 1]], axis=1)

@@ -40,6 +40,8 @@ from ..probe import skin_under_face
 
 #: local vertex pairs of the six edge nodes of a 10-node tetrahedron (nodes 4-9)
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+#: barycentric coordinates (10, 4) of a 10-node tetrahedron's nodes (vertices, then edges)
+NODE_BARYCENTRIC = np.vstack([np.eye(4), 0.5 * (np.eye(4)[EDGES[:, 0]] + np.eye(4)[EDGES[:, 1]])])
 NEWTON_ITERATIONS = 40
 LINE_SEARCH_HALVINGS = 8
 #: Levenberg-Marquardt shifts (times the tangent's diagonal) tried in turn where the Newton
@@ -92,13 +94,59 @@ def _restore_signal(signum: Any, handler: Any) -> None:
         signal.signal(signum, handler)
 
 
+@dataclass(frozen=True)
+class Rim:
+    """A finer mesh along the edge of the probe face at rest: within ``depth_mm`` under the
+    face plane of ``pose`` (4, 4), tetrahedra of ``size_mm`` at the edge of ``footprint``
+    (a :class:`~biopsynav.footprint.Footprint`), growing by ``RIM_GROWTH`` mm per mm away
+    from it. There the skin bends round the rigid face's edge, the deformation is steepest,
+    and quadratic elements of the probe region's size fold over (:meth:`TetReference.tangled`)."""
+
+    pose: np.ndarray
+    footprint: Any
+    size_mm: float
+    depth_mm: float = 12.0
+
+    def sizes(self, points: np.ndarray) -> np.ndarray:
+        """Mesh size (k,) mm asked for at ``points`` (k, 3) mm."""
+        from scipy.spatial import cKDTree
+
+        local = (points - self.pose[:3, 3]) @ self.pose[:3, :3]
+        lateral, _ = cKDTree(_outline(self.footprint)).query(local[:, :2])
+        below = np.maximum(np.maximum(local[:, 2] - self.depth_mm, -local[:, 2]), 0.0)
+        return self.size_mm + RIM_GROWTH * np.hypot(lateral, below)
+
+
+RIM_GROWTH = 0.5  # mm of element size per mm away from the probe face's edge (Rim)
+
+
+def rim_at(pose: np.ndarray, footprint: Any, size_mm: float) -> Rim | None:
+    """The :class:`Rim` of the face ``footprint`` at rest ``pose`` (4, 4) with tetrahedra of
+    ``size_mm`` at its edge; None for a ``size_mm`` of 0 (no finer rim)."""
+    return Rim(np.asarray(pose, dtype=np.float64), footprint, size_mm) if size_mm > 0 else None
+
+
+def _outline(footprint: Any, step_mm: float = 0.25) -> np.ndarray:
+    """Points (k, 2) mm on the edge of ``footprint``: samples of a ``step_mm`` lattice over
+    its bounding rectangle that lie inside with a neighbour outside."""
+    half = footprint.half_mm + 2 * step_mm
+    axes = [np.arange(-h, h + step_mm / 2, step_mm) for h in half]
+    xy = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    inside = footprint.inside(xy.reshape(-1, 2)).reshape(xy.shape[:2])
+    edge = inside.copy()
+    edge[1:-1, 1:-1] &= ~(inside[2:, 1:-1] & inside[:-2, 1:-1] & inside[1:-1, 2:]
+                          & inside[1:-1, :-2])
+    return xy[edge]
+
+
 def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
-             fine_at: np.ndarray | None = None, fine_mm: float = 2.0, fine_radius_mm: float = 35.0
-             ) -> tuple[np.ndarray, np.ndarray]:
+             fine_at: np.ndarray | None = None, fine_mm: float = 2.0, fine_radius_mm: float = 35.0,
+             rim: Rim | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tetrahedra of the closed surface (vertices (n, 3) mm, faces (m, 3)) with edges of about
     ``size_mm``, and of ``fine_mm`` within ``fine_radius_mm`` of ``fine_at`` (3,) mm when
-    given (under the probe): points (p, 3) mm and tetrahedra (t, 4), positively oriented
-    (gmsh: the surface reparametrised and remeshed, then filled)."""
+    given (under the probe), finer still along the probe face's edge with a ``rim``: points
+    (p, 3) mm and tetrahedra (t, 4), positively oriented (gmsh: the surface reparametrised
+    and remeshed, then filled)."""
     import trimesh
 
     with tempfile.TemporaryDirectory() as tmp, gmsh_session() as gmsh:
@@ -115,6 +163,10 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
         if fine_at is not None:
             _ball_field(fine_at, fine_mm, size_mm, fine_radius_mm)
+        if rim is not None:
+            gmsh.model.mesh.setSizeCallback(
+                lambda dim, tag, x, y, z, lc: min(lc, float(rim.sizes(np.array([[x, y, z]]))[0])))
+            gmsh.option.setNumber("Mesh.MeshSizeMin", rim.size_mm)
         gmsh.model.mesh.generate(3)
         tags, coords, _ = gmsh.model.mesh.getNodes()
         _, elem_nodes = gmsh.model.mesh.getElementsByType(4)  # 4-node tetrahedra
@@ -195,15 +247,16 @@ class TetReference:
     @classmethod
     def build(cls, anatomy, size_mm: float, e_mpa: float, nu: float,
               fine_at: np.ndarray | None = None, fine_mm: float = 2.0,
-              chest_tol_mm: float = 0.05) -> TetReference:
+              chest_tol_mm: float = 0.05, rim: Rim | None = None) -> TetReference:
         """The reference of ``anatomy`` (a biopsynav Anatomy) on tetrahedra of about
-        ``size_mm`` (``fine_mm`` around ``fine_at``: :func:`tet_mesh`) with a homogeneous
-        material (E MPa, nu)."""
+        ``size_mm`` (``fine_mm`` around ``fine_at``, finer along the ``rim``: :func:`tet_mesh`)
+        with a homogeneous material (E MPa, nu)."""
         from scipy.spatial import cKDTree
         from skfem.quadrature import get_quadrature
         from skfem.refdom import RefTet
 
-        points, tets = tet_mesh(anatomy.vertices, anatomy.faces, size_mm, fine_at, fine_mm)
+        points, tets = tet_mesh(anatomy.vertices, anatomy.faces, size_mm, fine_at, fine_mm,
+                                rim=rim)
         nodes, elements = p2_nodes(points, tets)
         grad_l = _barycentric_gradients(points, tets)
         xq, wq = get_quadrature(RefTet, 4)
@@ -273,6 +326,20 @@ class TetReference:
             total += float(w @ (0.5 * self.mu * (i1 - 3.0) - self.mu * log_j
                                 + 0.5 * self.lam * log_j ** 2))
         return total
+
+    def tangled(self, u: np.ndarray) -> np.ndarray:
+        """Elements (k,) that the nodal displacement ``u`` (n, 3) mm folds over: J <= 0 at one
+        of their ten nodes. The energy and forces see J only at the quadrature points, where
+        it may still be positive: such a state is no deformation of the continuum (a
+        quadratic element cannot bend the skin round a sharp probe edge; the mesh there is too
+        coarse), and an answer holding it is not to be trusted."""
+        ue = u[self.elements]
+        grad_l = _barycentric_gradients(self.nodes, self.corners)
+        folded = np.zeros(len(self.elements), dtype=bool)
+        for bary in NODE_BARYCENTRIC:
+            g0 = shape_gradients(bary, grad_l)
+            folded |= np.linalg.det(np.eye(3) + np.einsum("tai,taj->tij", ue, g0)) <= 0.0
+        return np.flatnonzero(folded)
 
     last: np.ndarray | None = None  # the nodal displacement of the last push (n, 3) mm
     last_rel: np.ndarray | None = None  # the last push's pose relative to its rest pose

@@ -89,6 +89,7 @@ class P2Reference:
         self.case = case
         ev = case.cfg.evaluate
         self.size_mm, self.fine_mm = float(ev.p2_size_mm), float(ev.p2_fine_mm)
+        self.rim_mm = float(ev.p2_rim_mm)
         self.e_mpa, self.nu = homogeneous_material(case)
         self.cache_path = case.paths.table2_reference_cache
         self.key = self._key()
@@ -111,7 +112,8 @@ class P2Reference:
     def _key(self) -> str:
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
-                **probe_key(self.case.cfg.probe)}
+                **probe_key(self.case.cfg.probe),
+                **({"rim_mm": self.rim_mm} if self.rim_mm else {})}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _read_cache(self) -> dict:
@@ -147,7 +149,8 @@ class P2Reference:
                 return _result(self.ids, self.centres, None, st.SOLVER_FAILED,
                                f"P2 reference: {exc}", start)
             self.answers[name] = {"displacement_mm": disp,
-                                  "solve_ms": (time.perf_counter() - start) * 1e3}
+                                  "solve_ms": (time.perf_counter() - start) * 1e3,
+                                  "tangled_elements": len(self._model.tangled(self._last))}
             self._write_cache()
         answer = self.answers[name]
         res = _result(self.ids, self.centres, np.asarray(answer["displacement_mm"]), st.OK, "",
@@ -165,13 +168,14 @@ class P2Reference:
         return np.asarray(disp).tolist()
 
     def _build(self) -> None:
-        from .p2 import TetReference
+        from .p2 import TetReference, rim_at
 
         t0 = time.perf_counter()
         probe = self.case.cfg.probe
         self._model = TetReference.build(self.case.anatomy, self.size_mm, self.e_mpa,
                                          self.nu, fine_at=self._rest[:3, 3],
-                                         fine_mm=self.fine_mm)
+                                         fine_mm=self.fine_mm,
+                                         rim=rim_at(self._rest, probe.footprint, self.rim_mm))
         self._contact = self._model.contact(self._rest, probe.footprint,
                                             probe.contact_tolerance_mm)
         self.build_s += time.perf_counter() - t0
@@ -185,9 +189,15 @@ class P2Reference:
 
     def facts(self) -> dict:
         return {"kind": "p2", "E_mpa": self.e_mpa, "nu": self.nu, "size_mm": self.size_mm,
-                "fine_mm": self.fine_mm, "meshes": self.meshes,
+                "fine_mm": self.fine_mm, "rim_mm": self.rim_mm, "meshes": self.meshes,
+                "answers_with_folded_elements": self._folded_answers(),
                 "training_cell_size_mm": float(self.case.grid.spacing),
                 "training_active_cells": int(self.case.grid.active_cells.sum())}
+
+    def _folded_answers(self) -> int:
+        """How many answers hold elements folded over at a node (:meth:`TetReference.tangled`:
+        the mesh is too coarse for the skin round the probe's edge there)."""
+        return sum(1 for a in self.answers.values() if a.get("tangled_elements"))
 
     def describe(self) -> str:
         tets = [m["tets"] for m in self.meshes]
@@ -195,8 +205,12 @@ class P2Reference:
             size = f"{min(tets)}-{max(tets)} tetrahedra"
         else:
             size = "answers of an earlier run" if self.answers else "one mesh per placement"
+        folded = self._folded_answers()
+        rim = f", {self.rim_mm:g} mm at its edge" if self.rim_mm else ""
         return (f"independent P2 tetrahedral FE ({self.size_mm:g} mm, {self.fine_mm:g} mm under "
-                f"the probe; {size}), homogeneous {self.e_mpa * 1e3:g} kPa, nu {self.nu:g}")
+                f"the probe{rim}; {size}), homogeneous {self.e_mpa * 1e3:g} kPa, nu {self.nu:g}"
+                + (f"; {folded} of {len(self.answers)} answers with elements folded over at "
+                   "the probe's edge" if folded else ""))
 
 
 def require_gmsh() -> None:
