@@ -104,7 +104,8 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
                              fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
                              rim=rim_at(placement.pose, probe.footprint, args.tet_rim))
-    contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
+    contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
+                          getattr(args, "friction", "stick"))
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
     disp, tangled, failure = [], [], ""
     rest = placement.pose

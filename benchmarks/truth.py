@@ -2,7 +2,8 @@
 network's teacher) and the rigid assumption against a P2 tetrahedral FE of the same pushes.
 
     python benchmarks/truth.py CASE [--lesions 3] [--depths 10 20 30] [--tet-size 10]
-                                    [--tet-fine 4] [--tet-rim 1.5] [--reference CASE-p2.json]
+                                    [--tet-fine 4] [--tet-rim 1.5] [--friction slip]
+                                    [--reference CASE-p2.json]
                                     [--out FILE]
 
 The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
@@ -45,7 +46,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
-from biopsynav.evaluate.p2 import probe_key  # noqa: E402
+from biopsynav.evaluate.p2 import FRICTIONS, probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
@@ -69,7 +70,7 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     """What the reference figures depend on: reused only when all of it is the same."""
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
-            "tet_fine_mm": args.tet_fine, **probe_key(case.cfg.probe),
+            "tet_fine_mm": args.tet_fine, **probe_key(case.cfg.probe, args.friction),
             **({"tet_rim_mm": args.tet_rim} if args.tet_rim else {})}
 
 
@@ -190,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-rim", type=float, default=0.0,
                    help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
                         "rim)")
+    p.add_argument("--friction", choices=FRICTIONS, default="stick",
+                   help="the reference's probe face: 'stick' (the skin it touches at rest moves "
+                        "with it, as the tracker's contact points) or 'slip' (frictionless)")
     p.add_argument("--reference", type=Path, default=None,
                    help="JSON of the reference's figures, read and extended (resumable)")
     p.add_argument("--reference-only", action="store_true",

@@ -25,7 +25,7 @@ from .footprint import Footprint, footprint_names, make_footprint
 from .inference.runtimes import runtime_choices
 from .layout import CASE_FILE
 from .materials import MATERIAL_LAWS, material_law_names
-from .reference_registry import reference_names
+from .reference_registry import P2_FRICTIONS, reference_names
 
 
 def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
@@ -517,6 +517,11 @@ class EvaluateSection:
                             lo=1.0, hi=100.0)
     p2_fine_mm: float = opt(4.0, "P2 reference: tetrahedron size within 35 mm of the probe.",
                             lo=0.5, hi=100.0)
+    p2_friction: str = opt("stick", "P2 reference: how the probe face holds the skin: 'stick' "
+                                    "(the skin it touches at rest moves with it, as the "
+                                    "tracker's contact points; skin it reaches later slides "
+                                    "on it) or 'slip' (all of it slides without friction, as "
+                                    "on ultrasound gel).", choices=P2_FRICTIONS)
     p2_rim_mm: float = opt(0.0, "P2 reference: tetrahedron size along the edge of the probe "
                                 "face at rest, where the skin bends round it (0: no finer rim; "
                                 "docs/fem.md, 'Folded elements at the probe's edge').",

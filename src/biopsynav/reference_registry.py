@@ -13,6 +13,12 @@ import importlib
 from collections.abc import Callable
 from typing import Any
 
+#: How the P2 reference's probe face holds the skin (``[evaluate] p2_friction``,
+#: :meth:`biopsynav.evaluate.p2.TetReference.contact`): ``stick``, the skin it touches at rest
+#: moves with it, as the tracker's contact points, and skin it reaches later slides on it;
+#: ``slip``, all of it slides without friction (a face wet with ultrasound gel).
+P2_FRICTIONS = ("stick", "slip")
+
 #: name -> builder(case, setup, settings) of a Table 2 ground truth, or its "module:attr" path
 REFERENCES: dict[str, Callable[..., Any] | str] = {}
 

@@ -146,6 +146,38 @@ def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     assert held[0, 2] < free[0, 2] < 0.0, "the face pushes the centre further"
 
 
+def test_a_slipping_face_holds_no_skin_at_rest_and_lets_it_slide(cube):
+    """A ``slip`` face (ultrasound gel) holds no skin at rest; pushed 3 mm into the top it
+    takes the skin it reaches onto its plane (all but a few nodes it would pull, which stay
+    just in front of it), where the skin spreads sideways, while a ``stick`` face moves the
+    skin it touches at rest straight down with it."""
+    from biopsynav.evaluate.p2 import PENETRATION_TOL_MM
+    from biopsynav.footprint import make_footprint
+
+    face = make_footprint("rectangle", (20.0, 20.0))
+    rest = np.diag([1.0, -1.0, -1.0, 1.0])
+    rest[2, 3] = 15.0
+    pushed = rest.copy()
+    pushed[2, 3] -= 3.0
+    assert len(cube.contact(rest, face, 0.5, "slip")) == 0
+    with pytest.raises(ValueError, match="friction"):
+        cube.contact(rest, face, 0.5, "grease")
+    with pytest.raises(ValueError, match="footprint"):
+        cube.push(rest, [pushed], np.zeros(0, dtype=np.int64), np.zeros((1, 3)))
+    stick = cube.contact(rest, face, 0.5)
+    cube.push(rest, [pushed], stick, np.zeros((1, 3)), footprint=face)
+    assert np.abs(cube.last[stick, :2]).max() < 1e-9
+    (centre,) = cube.push(rest, [pushed], np.zeros(0, dtype=np.int64), np.zeros((1, 3)),
+                          footprint=face)
+    held = cube.last[cube.sliding]
+    inner = stick[np.abs(cube.nodes[stick, :2]).max(axis=1) < 7.0]  # 3 mm from the edge
+    assert np.allclose(held[:, 2], -3.0) and len(inner) > 10
+    assert np.isin(inner, cube.sliding).mean() > 0.8, "the face holds the skin it reached"
+    assert cube.last[inner, 2].max() <= -3.0 + PENETRATION_TOL_MM, "none passes the face"
+    assert np.abs(held[:, :2]).max() > 0.05, "the skin spreads on the face"
+    assert -3.0 < centre[0, 2] < -0.3
+
+
 def test_skin_beside_the_face_is_not_put_on_it():
     """Skin behind the face plane is put on the face only where it is nearer the face than
     the footprint's edge: further behind, it came in beside the probe."""

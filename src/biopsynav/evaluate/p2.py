@@ -37,6 +37,7 @@ import scipy.sparse as sp
 
 from ..materials import lame_constants
 from ..probe import skin_under_face
+from ..reference_registry import P2_FRICTIONS as FRICTIONS
 
 #: local vertex pairs of the six edge nodes of a 10-node tetrahedron (nodes 4-9)
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
@@ -58,12 +59,13 @@ CONTACT_ROUNDS = 8  # solves of one load step while its contact set changes
 PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
 
 
-def probe_key(probe: Any) -> dict:
-    """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``): the part of every
-    answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``) that names the
-    probe."""
-    return {"footprint": [probe.shape, *probe.footprint_mm],
-            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE}
+def probe_key(probe: Any, friction: str = "stick") -> dict:
+    """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``) and the face's
+    ``friction``: the part of every answer cache's key (Table 2's ``p2`` reference,
+    ``benchmarks/truth.py``) that names the probe."""
+    key = {"footprint": [probe.shape, *probe.footprint_mm],
+           "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE}
+    return key if friction == "stick" else {**key, "friction": friction}
 
 
 @contextmanager
@@ -278,9 +280,15 @@ class TetReference:
     def n_dofs(self) -> int:
         return 3 * len(self.nodes)
 
-    def contact(self, pose: np.ndarray, footprint, tol_mm: float) -> np.ndarray:
+    def contact(self, pose: np.ndarray, footprint, tol_mm: float,
+                friction: str = "stick") -> np.ndarray:
         """Node indices of the skin the probe face touches at rest ``pose`` (as the
-        tracker's :func:`biopsynav.tracker.contact_indices`)."""
+        tracker's :func:`biopsynav.tracker.contact_indices`), which :meth:`push` moves with
+        the face; none with a ``slip`` face (:data:`FRICTIONS`)."""
+        if friction not in FRICTIONS:
+            raise ValueError(f"friction {friction!r}: not one of {', '.join(FRICTIONS)}")
+        if friction == "slip":
+            return np.zeros(0, dtype=np.int64)
         r = np.asarray(pose)[:3, :3]
         found = skin_under_face(self.skin, np.asarray(pose)[:3, 3], r, footprint, tol_mm,
                                 -r[:, 2])
@@ -360,7 +368,11 @@ class TetReference:
         a rigid body: skin that a load step puts more than ``PENETRATION_TOL_MM`` behind the
         face plane, under the footprint, is held on the plane, free to slide on it
         (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS`` times);
-        ``self.sliding`` lists those nodes. Without it, skin may pass through the face."""
+        ``self.sliding`` lists those nodes. Without it, skin may pass through the face. With
+        no ``contact`` nodes (a ``slip`` face, :meth:`contact`) only the face pushes, so a
+        ``footprint`` is needed; the load steps follow the face's corners."""
+        if not len(contact) and footprint is None:
+            raise ValueError("a push with no contact nodes needs the face's footprint")
         x0 = self.nodes[contact]
         u = np.zeros_like(self.nodes) if start is None else np.array(start, dtype=np.float64)
         done = u[contact].copy()
@@ -373,7 +385,9 @@ class TetReference:
         for pose in poses:
             rel = np.asarray(pose) @ np.linalg.inv(rest)
             target = x0 @ rel[:3, :3].T + rel[:3, 3] - x0
-            steps = max(1, int(np.ceil(np.abs(target - done).max() / step_mm)))
+            travel = max(np.abs(target - done).max(initial=0.0),
+                         _face_travel(rest, done_rel, rel, footprint))
+            steps = max(1, int(np.ceil(travel / step_mm)))
             for s in range(1, steps + 1):
                 frac = s / steps
                 face = (done_rel + (rel - done_rel) * frac) @ np.asarray(rest)
@@ -657,6 +671,17 @@ def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
         return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
     except ValueError as exc:  # pypardiso's checks: an empty row, a wrong shape
         raise RuntimeError(f"P2 reference: the linear solve failed ({exc})") from exc
+
+
+def _face_travel(rest: np.ndarray, start: np.ndarray, end: np.ndarray, footprint: Any) -> float:
+    """How far (mm) a corner of ``footprint``'s bounding rectangle on the face at ``rest``
+    (4, 4) moves from the relative pose ``start`` (4, 4) to ``end``; 0 without a footprint."""
+    if footprint is None:
+        return 0.0
+    half = footprint.half_mm
+    corners = np.array([[sx * half[0], sy * half[1], 0.0, 1.0] for sx in (-1, 1)
+                        for sy in (-1, 1)]) @ np.asarray(rest).T
+    return float(np.abs(corners @ (end - start).T).max())
 
 
 def _inside_by(footprint: Any, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:

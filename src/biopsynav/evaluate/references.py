@@ -89,7 +89,7 @@ class P2Reference:
         self.case = case
         ev = case.cfg.evaluate
         self.size_mm, self.fine_mm = float(ev.p2_size_mm), float(ev.p2_fine_mm)
-        self.rim_mm = float(ev.p2_rim_mm)
+        self.rim_mm, self.friction = float(ev.p2_rim_mm), str(ev.p2_friction)
         self.e_mpa, self.nu = homogeneous_material(case)
         self.cache_path = case.paths.table2_reference_cache
         self.key = self._key()
@@ -112,7 +112,7 @@ class P2Reference:
     def _key(self) -> str:
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
-                **probe_key(self.case.cfg.probe),
+                **probe_key(self.case.cfg.probe, self.friction),
                 **({"rim_mm": self.rim_mm} if self.rim_mm else {})}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
@@ -177,7 +177,7 @@ class P2Reference:
                                          fine_mm=self.fine_mm,
                                          rim=rim_at(self._rest, probe.footprint, self.rim_mm))
         self._contact = self._model.contact(self._rest, probe.footprint,
-                                            probe.contact_tolerance_mm)
+                                            probe.contact_tolerance_mm, self.friction)
         self.build_s += time.perf_counter() - t0
         self.meshes.append({"tets": len(self._model.elements), "dofs": self._model.n_dofs,
                             "contact_nodes": len(self._contact)})
@@ -189,7 +189,8 @@ class P2Reference:
 
     def facts(self) -> dict:
         return {"kind": "p2", "E_mpa": self.e_mpa, "nu": self.nu, "size_mm": self.size_mm,
-                "fine_mm": self.fine_mm, "rim_mm": self.rim_mm, "meshes": self.meshes,
+                "fine_mm": self.fine_mm, "rim_mm": self.rim_mm, "friction": self.friction,
+                "meshes": self.meshes,
                 "answers_with_folded_elements": self._folded_answers(),
                 "training_cell_size_mm": float(self.case.grid.spacing),
                 "training_active_cells": int(self.case.grid.active_cells.sum())}
@@ -208,7 +209,8 @@ class P2Reference:
         folded = self._folded_answers()
         rim = f", {self.rim_mm:g} mm at its edge" if self.rim_mm else ""
         return (f"independent P2 tetrahedral FE ({self.size_mm:g} mm, {self.fine_mm:g} mm under "
-                f"the probe{rim}; {size}), homogeneous {self.e_mpa * 1e3:g} kPa, nu {self.nu:g}"
+                f"the probe{rim}; {size}; a {self.friction} face), homogeneous "
+                f"{self.e_mpa * 1e3:g} kPa, nu {self.nu:g}"
                 + (f"; {folded} of {len(self.answers)} answers with elements folded over at "
                    "the probe's edge" if folded else ""))
 
