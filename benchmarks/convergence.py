@@ -25,7 +25,8 @@ slides on it, none passes through it; the hexahedral FE adds that contact when t
 * the reference, ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the
   same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe,
   ``--tet-rim`` mm along the edge of the probe face when given), its own assembly and Newton
-  loop.
+  loop; its face holds the skin it touches at rest (``--friction stick``) or lets every
+  contact slide (``slip``).
 
 Printed per variant (law and contact kind), lesion and depth: the lesion displacement |u| of
 every grid and of the reference, each grid's error (distance to the reference's displacement
@@ -55,6 +56,7 @@ from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
+from biopsynav.reference_registry import P2_FRICTIONS  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 
 
@@ -105,7 +107,7 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                              fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
                              rim=rim_at(placement.pose, probe.footprint, args.tet_rim))
     contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
-                          getattr(args, "friction", "stick"))
+                          args.friction)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
     disp, tangled, failure = [], [], ""
     rest = placement.pose
@@ -206,7 +208,7 @@ def run(args) -> dict:
             "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
             "grids": grids, "reference": reference,
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine,
-            "tet_rim_mm": args.tet_rim}
+            "tet_rim_mm": args.tet_rim, "friction": args.friction}
 
 
 def variants(args) -> list[str]:
@@ -223,7 +225,8 @@ def reused_reference(args, e_mpa: float) -> dict:
     same = (earlier.get("depths_mm") == args.depths and earlier.get("nu") == args.nu
             and earlier.get("E_mpa") == e_mpa and earlier.get("tet_size_mm") == args.tet_size
             and earlier.get("tet_fine_mm") == args.tet_fine
-            and earlier.get("tet_rim_mm", 0.0) == args.tet_rim)
+            and earlier.get("tet_rim_mm", 0.0) == args.tet_rim
+            and earlier.get("friction", "stick") == args.friction)
     if not same:
         raise SystemExit(f"{args.reuse_reference}: another depth list, material or reference "
                          "mesh; run the reference again")
@@ -300,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-rim", type=float, default=0.0,
                    help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
                         "rim)")
+    p.add_argument("--friction", choices=P2_FRICTIONS, default="stick",
+                   help="the reference's probe face: 'stick' (the skin it touches at rest moves "
+                        "with it) or 'slip' (frictionless)")
     p.add_argument("--nu", type=float, default=0.45)
     p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     p.add_argument("--reuse-reference", type=Path, default=None,

@@ -12,8 +12,10 @@ over the list as Table 2 picks them) the probe is placed over it as in Table 2
 truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the same
 surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
 default tissue, the chest-wall plane fixed, the skin under the face at rest moved rigidly with
-the probe (the tracker's boundary conditions). Nothing of it was used to train or choose the
-model. The methods:
+the probe (the tracker's boundary conditions; ``--friction slip``: none held, every contact
+frictionless), the probe face a rigid body. Answers holding elements folded over at a node
+(``TetReference.tangled``: skin bent round the face's sharp edge) are said so; ``--tet-rim``
+refines the mesh there. Nothing of it was used to train or choose the model. The methods:
 
 * ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
 * ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the teacher's
