@@ -126,3 +126,17 @@ def test_a_rigid_probe_push_against_the_p2_reference_converges_with_the_grid(dom
         u = tracker.update(pushed).lesions[0].displacement
         errors[cell] = np.linalg.norm(u - truth) / np.linalg.norm(truth)
     assert errors[3.0] < 0.35 and 2.0 * errors[3.0] < errors[6.0], errors
+
+
+def test_the_face_friction_and_rim_name_their_answers(p2_case):
+    """Answers of a slipping face, or of a mesh refined along the face's edge, are another
+    reference's: their cache key differs, and the description says which face it is."""
+    case = Case.load(p2_case)
+    stick = references.P2Reference(case, None, None)
+    case.cfg.evaluate.p2_friction = "slip"
+    slip = references.P2Reference(case, None, None)
+    case.cfg.evaluate.p2_rim_mm = 2.0
+    rim = references.P2Reference(case, None, None)
+    assert len({stick.key, slip.key, rim.key}) == 3
+    assert "a stick face" in stick.describe() and "a slip face" in slip.describe()
+    assert "2 mm at its edge" in rim.describe()
