@@ -28,6 +28,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -109,12 +110,17 @@ class Rim:
     size_mm: float
     depth_mm: float = 12.0
 
-    def sizes(self, points: np.ndarray) -> np.ndarray:
-        """Mesh size (k,) mm asked for at ``points`` (k, 3) mm."""
+    @cached_property
+    def _edge(self) -> Any:
+        """A k-d tree of points on the footprint's edge (face frame, mm)."""
         from scipy.spatial import cKDTree
 
+        return cKDTree(_outline(self.footprint))
+
+    def sizes(self, points: np.ndarray) -> np.ndarray:
+        """Mesh size (k,) mm asked for at ``points`` (k, 3) mm."""
         local = (points - self.pose[:3, 3]) @ self.pose[:3, :3]
-        lateral, _ = cKDTree(_outline(self.footprint)).query(local[:, :2])
+        lateral, _ = self._edge.query(local[:, :2])
         below = np.maximum(np.maximum(local[:, 2] - self.depth_mm, -local[:, 2]), 0.0)
         return self.size_mm + RIM_GROWTH * np.hypot(lateral, below)
 
