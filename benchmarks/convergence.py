@@ -126,6 +126,20 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                   "tangled_elements": tangled}
 
 
+def add_reference_arguments(p: argparse.ArgumentParser, fine_mm: float) -> None:
+    """The P2 reference's options: its mesh sizes (``fine_mm`` near the probe by default)
+    and its probe face's friction."""
+    p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
+    p.add_argument("--tet-fine", type=float, default=fine_mm,
+                   help="reference tetrahedra within 35 mm of the probe, mm")
+    p.add_argument("--tet-rim", type=float, default=0.0,
+                   help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
+                        "rim)")
+    p.add_argument("--friction", choices=P2_FRICTIONS, default="stick",
+                   help="the reference's probe face: 'stick' (the skin it touches at rest moves "
+                        "with it, as the tracker's contact points) or 'slip' (frictionless)")
+
+
 def reference_line(case: Case, lesion: int, facts: dict, depths: list[float]) -> str:
     """One line on the P2 reference of ``lesion`` (index): its mesh, time, any failure, and
     the depths whose answer holds folded elements (:meth:`TetReference.tangled`)."""
@@ -297,15 +311,7 @@ def main(argv: list[str] | None = None) -> int:
                    choices=["neo-hookean", "neo-hookean-sri"],
                    help="hexahedral integration of the neo-Hookean energy")
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
-    p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
-    p.add_argument("--tet-fine", type=float, default=2.5,
-                   help="reference tetrahedra within 35 mm of the probe, mm")
-    p.add_argument("--tet-rim", type=float, default=0.0,
-                   help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
-                        "rim)")
-    p.add_argument("--friction", choices=P2_FRICTIONS, default="stick",
-                   help="the reference's probe face: 'stick' (the skin it touches at rest moves "
-                        "with it) or 'slip' (frictionless)")
+    add_reference_arguments(p, fine_mm=2.5)
     p.add_argument("--nu", type=float, default=0.45)
     p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     p.add_argument("--reuse-reference", type=Path, default=None,

@@ -48,7 +48,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
-from biopsynav.evaluate.p2 import FRICTIONS, probe_key  # noqa: E402
+from biopsynav.evaluate.p2 import probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
@@ -56,7 +56,9 @@ from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 from biopsynav.tracker.core import fem_engine  # noqa: E402
-from convergence import reference_line, tet_pushes  # noqa: E402  (benchmarks/ is this script's folder)
+
+# benchmarks/ is this script's folder
+from convergence import add_reference_arguments, reference_line, tet_pushes  # noqa: E402
 
 METHODS = ("net", "fem", "rigid")
 D10_BELOW_MM, D30_ABOVE_MM = 12.5, 27.5  # the paper's Table 2 bins D10 and D30
@@ -187,15 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0],
                    help="push depths, mm")
-    p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
-    p.add_argument("--tet-fine", type=float, default=4.0,
-                   help="reference tetrahedra within 35 mm of the probe, mm")
-    p.add_argument("--tet-rim", type=float, default=0.0,
-                   help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
-                        "rim)")
-    p.add_argument("--friction", choices=FRICTIONS, default="stick",
-                   help="the reference's probe face: 'stick' (the skin it touches at rest moves "
-                        "with it, as the tracker's contact points) or 'slip' (frictionless)")
+    add_reference_arguments(p, fine_mm=4.0)
     p.add_argument("--reference", type=Path, default=None,
                    help="JSON of the reference's figures, read and extended (resumable)")
     p.add_argument("--reference-only", action="store_true",
