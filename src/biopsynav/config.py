@@ -524,7 +524,7 @@ class EvaluateSection:
                                     "on ultrasound gel).", choices=P2_FRICTIONS)
     p2_rim_mm: float = opt(0.0, "P2 reference: tetrahedron size along the edge of the probe "
                                 "face at rest, where the skin bends round it (0: no finer rim; "
-                                "docs/fem.md, 'Folded elements at the probe's edge').",
+                                "docs/fem.md, 'What stops the truth at 30 mm').",
                            lo=0.0, hi=100.0)
 
 

@@ -97,6 +97,9 @@ def _restore_signal(signum: Any, handler: Any) -> None:
         signal.signal(signum, handler)
 
 
+RIM_GROWTH = 0.5  # mm of element size per mm away from the probe face's edge (Rim)
+
+
 @dataclass(frozen=True)
 class Rim:
     """A finer mesh along the edge of the probe face at rest: within ``depth_mm`` under the
@@ -123,9 +126,6 @@ class Rim:
         lateral, _ = self._edge.query(local[:, :2])
         below = np.maximum(np.maximum(local[:, 2] - self.depth_mm, -local[:, 2]), 0.0)
         return self.size_mm + RIM_GROWTH * np.hypot(lateral, below)
-
-
-RIM_GROWTH = 0.5  # mm of element size per mm away from the probe face's edge (Rim)
 
 
 def rim_at(pose: np.ndarray, footprint: Any, size_mm: float) -> Rim | None:
