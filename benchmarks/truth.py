@@ -74,8 +74,8 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     """What the reference figures depend on: reused only when all of it is the same."""
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
-            "tet_fine_mm": args.tet_fine, **probe_key(case.cfg.probe, args.friction),
-            **({"tet_rim_mm": args.tet_rim} if args.tet_rim else {})}
+            "tet_fine_mm": args.tet_fine,
+            **probe_key(case.cfg.probe, args.friction, args.tet_rim)}
 
 
 def load_reference(path: Path, key: dict) -> dict:

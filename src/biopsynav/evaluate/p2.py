@@ -60,13 +60,18 @@ CONTACT_ROUNDS = 8  # solves of one load step while its contact set changes
 PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
 
 
-def probe_key(probe: Any, friction: str = "stick") -> dict:
-    """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``) and the face's
-    ``friction``: the part of every answer cache's key (Table 2's ``p2`` reference,
-    ``benchmarks/truth.py``) that names the probe."""
+def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0) -> dict:
+    """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``), the face's
+    ``friction`` and the tetrahedra along its edge (``rim_mm``, :func:`rim_at`): the part of
+    every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``) that names
+    the probe. The defaults add nothing, so answers stored before them keep their key."""
     key = {"footprint": [probe.shape, *probe.footprint_mm],
            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE}
-    return key if friction == "stick" else {**key, "friction": friction}
+    if friction != "stick":
+        key["friction"] = friction
+    if rim_mm:
+        key["rim_mm"] = rim_mm
+    return key
 
 
 @contextmanager
@@ -105,8 +110,9 @@ class Rim:
     """A finer mesh along the edge of the probe face at rest: within ``depth_mm`` under the
     face plane of ``pose`` (4, 4), tetrahedra of ``size_mm`` at the edge of ``footprint``
     (a :class:`~biopsynav.footprint.Footprint`), growing by ``RIM_GROWTH`` mm per mm away
-    from it. There the skin bends round the rigid face's edge, the deformation is steepest,
-    and quadratic elements of the probe region's size fold over (:meth:`TetReference.tangled`)."""
+    from it. There the skin bends round the rigid face's edge and the deformation is
+    steepest. (Finer tetrahedra there still fold over, :meth:`TetReference.tangled`: the
+    edge is sharp; docs/fem.md.)"""
 
     pose: np.ndarray
     footprint: Any
@@ -344,9 +350,9 @@ class TetReference:
     def tangled(self, u: np.ndarray) -> np.ndarray:
         """Elements (k,) that the nodal displacement ``u`` (n, 3) mm folds over: J <= 0 at one
         of their ten nodes. The energy and forces see J only at the quadrature points, where
-        it may still be positive: such a state is no deformation of the continuum (a
-        quadratic element cannot bend the skin round a sharp probe edge; the mesh there is too
-        coarse), and an answer holding it is not to be trusted."""
+        it may still be positive: such a state is no deformation of the continuum (the skin
+        bent round the probe face's sharp edge, where finer elements fold as well), and an
+        answer holding it is not to be trusted."""
         ue = u[self.elements]
         grad_l = _barycentric_gradients(self.nodes, self.corners)
         folded = np.zeros(len(self.elements), dtype=bool)

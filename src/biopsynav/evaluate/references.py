@@ -112,8 +112,7 @@ class P2Reference:
     def _key(self) -> str:
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
-                **probe_key(self.case.cfg.probe, self.friction),
-                **({"rim_mm": self.rim_mm} if self.rim_mm else {})}
+                **probe_key(self.case.cfg.probe, self.friction, self.rim_mm)}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _read_cache(self) -> dict:
@@ -197,7 +196,7 @@ class P2Reference:
 
     def _folded_answers(self) -> int:
         """How many answers hold elements folded over at a node (:meth:`TetReference.tangled`:
-        the mesh is too coarse for the skin round the probe's edge there)."""
+        skin bent round the probe face's sharp edge)."""
         return sum(1 for a in self.answers.values() if a.get("tangled_elements"))
 
     def describe(self) -> str:
