@@ -126,13 +126,21 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                   "tangled_elements": tangled}
 
 
+def non_negative_mm(text: str) -> float:
+    """A size in mm given on the command line: a finite number, 0 or more."""
+    value = float(text)
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a size in mm, 0 or more")
+    return value
+
+
 def add_reference_arguments(p: argparse.ArgumentParser, fine_mm: float) -> None:
     """The P2 reference's options: its mesh sizes (``fine_mm`` near the probe by default)
     and its probe face's friction."""
     p.add_argument("--tet-size", type=float, default=10.0, help="reference tetrahedra, mm")
     p.add_argument("--tet-fine", type=float, default=fine_mm,
                    help="reference tetrahedra within 35 mm of the probe, mm")
-    p.add_argument("--tet-rim", type=float, default=0.0,
+    p.add_argument("--tet-rim", type=non_negative_mm, default=0.0,
                    help="reference tetrahedra at the edge of the probe face, mm (0: no finer "
                         "rim)")
     p.add_argument("--friction", choices=P2_FRICTIONS, default="stick",

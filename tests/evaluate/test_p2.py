@@ -251,3 +251,19 @@ def _edges_at_rim(points: np.ndarray, tets: np.ndarray, pose: np.ndarray) -> np.
     near = (np.abs(np.abs(local[:, 1]) - 5.0) < 2.0) & (np.abs(local[:, 0]) < 12.0) \
         & (local[:, 2] < 4.0)
     return np.linalg.norm(points[tets[near, 0]] - points[tets[near, 1]], axis=1)
+
+
+@pytest.mark.parametrize("rim", ["-1", "nan", "fine"])
+def test_the_benchmarks_refuse_a_bad_rim_size_before_any_work(rim, tmp_path, capsys,
+                                                             monkeypatch):
+    """``truth.py --tet-rim`` (and convergence.py, the same option) takes a size of 0 mm or
+    more; anything else stops the parser (exit 2, the option named), before a case is read
+    or any reference file is written."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth
+
+    with pytest.raises(SystemExit) as stop:
+        truth.main([str(tmp_path / "missing"), "--tet-rim", rim,
+                    "--reference", str(tmp_path / "ref.json")])
+    assert stop.value.code == 2 and "--tet-rim" in capsys.readouterr().err
+    assert not (tmp_path / "ref.json").exists()
