@@ -5,6 +5,8 @@ of immersed hexahedral grids, against an independent P2 tetrahedral reference in
                                           [--contact points cell_average]
                                           [--laws neo-hookean neo-hookean-sri]
                                           [--lesions 3] [--tet-size 10] [--tet-fine 2.5]
+                                          [--tet-rim 1.5] [--friction slip]
+                                          [--edge-radius 2.5] [--progress]
                                           [--nu 0.45] [--out convergence.json]
                                           [--reuse-reference earlier.json]
 
@@ -26,7 +28,9 @@ slides on it, none passes through it; the hexahedral FE adds that contact when t
   same surface (about ``--tet-size`` mm, ``--tet-fine`` mm within 35 mm of the probe,
   ``--tet-rim`` mm along the edge of the probe face when given), its own assembly and Newton
   loop; its face holds the skin it touches at rest (``--friction stick``) or lets every
-  contact slide (``slip``).
+  contact slide (``slip``); the probe is a flat face with sharp edges, or with
+  ``--edge-radius`` a body whose face's edges are rounded by that radius and whose sides no
+  skin passes (``--progress`` logs its load steps and contact rounds).
 
 Printed per variant (law and contact kind), lesion and depth: the lesion displacement |u| of
 every grid and of the reference, each grid's error (distance to the reference's displacement
@@ -114,7 +118,8 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
         try:
             (u,) = ref.push(rest, [placement.pushed(depth)], contact, centre,
-                            start=ref.last if disp else None, footprint=probe.footprint)
+                            start=ref.last if disp else None, footprint=probe.footprint,
+                            edge_radius_mm=args.edge_radius)
         except (FloatingPointError, RuntimeError) as exc:
             failure = f"{depth:g} mm: {exc}"
             break
@@ -146,6 +151,32 @@ def add_reference_arguments(p: argparse.ArgumentParser, fine_mm: float) -> None:
     p.add_argument("--friction", choices=P2_FRICTIONS, default="stick",
                    help="the reference's probe face: 'stick' (the skin it touches at rest moves "
                         "with it, as the tracker's contact points) or 'slip' (frictionless)")
+    p.add_argument("--edge-radius", type=non_negative_mm, default=0.0,
+                   help="the reference's probe: its face's edges rounded by this radius, mm, "
+                        "with sides that no skin passes (0: a flat face with sharp edges)")
+    p.add_argument("--progress", action="store_true",
+                   help="log the reference's load steps and contact rounds to stderr")
+
+
+def check_edge_radius(case: Case, args) -> None:
+    """SystemExit, before any work, when ``--edge-radius`` does not fit the case's probe
+    face (below half its short side)."""
+    if args.edge_radius:
+        from biopsynav.evaluate.p2_contact import rounded_body
+
+        try:
+            rounded_body(case.cfg.probe.footprint, args.edge_radius)
+        except ValueError as exc:
+            raise SystemExit(f"--edge-radius: {exc}") from None
+
+
+def show_progress(args) -> None:
+    """With ``--progress``, the P2 reference's log (``biopsynav.p2``) on stderr."""
+    if args.progress:
+        import logging
+
+        logging.basicConfig(format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+        logging.getLogger("biopsynav.p2").setLevel(logging.INFO)
 
 
 def reference_line(case: Case, lesion: int, facts: dict, depths: list[float]) -> str:
@@ -195,6 +226,7 @@ def observed_order(cells: list[float], values: list) -> float | None:
 
 def run(args) -> dict:
     case, e_mpa = homogeneous(Case.load(args.case_dir), args.nu)
+    check_edge_radius(case, args)
     lesions = select_lesions(len(case.anatomy.lesions), args.lesions)
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
     print(f"case {args.case_dir}: homogeneous neo-Hookean E = {e_mpa * 1e3:g} kPa, "
@@ -230,7 +262,8 @@ def run(args) -> dict:
             "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
             "grids": grids, "reference": reference,
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine,
-            "tet_rim_mm": args.tet_rim, "friction": args.friction}
+            "tet_rim_mm": args.tet_rim, "friction": args.friction,
+            "edge_radius_mm": args.edge_radius}
 
 
 def variants(args) -> list[str]:
@@ -248,7 +281,8 @@ def reused_reference(args, e_mpa: float) -> dict:
             and earlier.get("E_mpa") == e_mpa and earlier.get("tet_size_mm") == args.tet_size
             and earlier.get("tet_fine_mm") == args.tet_fine
             and earlier.get("tet_rim_mm", 0.0) == args.tet_rim
-            and earlier.get("friction", "stick") == args.friction)
+            and earlier.get("friction", "stick") == args.friction
+            and earlier.get("edge_radius_mm", 0.0) == args.edge_radius)
     if not same:
         raise SystemExit(f"{args.reuse_reference}: another depth list, material or reference "
                          "mesh; run the reference again")
@@ -326,6 +360,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="take the P2 figures of an earlier run's --out JSON (same case, depths, "
                         "material and reference mesh) instead of running the reference again")
     args = p.parse_args(argv)
+    show_progress(args)
     start = time.perf_counter()
     result = run(args)
     errors = report(result)

@@ -3,6 +3,7 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
 
     python benchmarks/truth.py CASE [--lesions 3] [--depths 10 20 30] [--tet-size 10]
                                     [--tet-fine 4] [--tet-rim 1.5] [--friction slip]
+                                    [--edge-radius 2.5] [--progress]
                                     [--reference CASE-p2.json]
                                     [--out FILE]
 
@@ -13,9 +14,11 @@ truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the s
 surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
 default tissue, the chest-wall plane fixed, the skin under the face at rest moved rigidly with
 the probe (the tracker's boundary conditions; ``--friction slip``: none held, every contact
-frictionless), the probe face a rigid body. Answers holding elements folded over at a node
-(``TetReference.tangled``: skin bent round the face's sharp edge) are said so; ``--tet-rim``
-refines the mesh there. Nothing of it was used to train or choose the model. The methods:
+frictionless), the probe a rigid body: a flat face with sharp edges, or with
+``--edge-radius`` a body whose face's edges are rounded by that radius. Answers holding
+elements folded over at a node (``TetReference.tangled``: skin bent round the probe's edge)
+are said so; ``--tet-rim`` refines the mesh there, ``--progress`` logs the load steps.
+Nothing of it was used to train or choose the model. The methods:
 
 * ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
 * ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the teacher's
@@ -58,7 +61,13 @@ from biopsynav.tracker import Tracker  # noqa: E402
 from biopsynav.tracker.core import fem_engine  # noqa: E402
 
 # benchmarks/ is this script's folder
-from convergence import add_reference_arguments, reference_line, tet_pushes  # noqa: E402
+from convergence import (  # noqa: E402
+    add_reference_arguments,
+    check_edge_radius,
+    reference_line,
+    show_progress,
+    tet_pushes,
+)
 
 METHODS = ("net", "fem", "rigid")
 D10_BELOW_MM, D30_ABOVE_MM = 12.5, 27.5  # the paper's Table 2 bins D10 and D30
@@ -75,7 +84,7 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
             "tet_fine_mm": args.tet_fine,
-            **probe_key(case.cfg.probe, args.friction, args.tet_rim)}
+            **probe_key(case.cfg.probe, args.friction, args.tet_rim, args.edge_radius)}
 
 
 def load_reference(path: Path, key: dict) -> dict:
@@ -127,6 +136,7 @@ def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
 
 def run(args) -> dict:
     case = Case.load(args.case_dir)
+    check_edge_radius(case, args)
     e_mpa, nu, labelled = reference_material(case)
     if labelled:
         print(f"warning: the reference is homogeneous ({e_mpa * 1e3:g} kPa, nu {nu:g}); the "
@@ -196,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="solve and store the reference only (no trained model needed yet)")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON")
     args = p.parse_args(argv)
+    show_progress(args)
     start = time.perf_counter()
     result = run(args)
     if args.reference_only:

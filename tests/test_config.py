@@ -70,6 +70,8 @@ def test_defaults_round_trip(tmp_path):
     ({"evaluate": {"p2_friction": "grease"}}, "must be one of"),
     ({"evaluate": {"p2_rim_mm": -1.0}}, "below its minimum"),
     ({"evaluate": {"p2_rim_mm": "fine"}}, "p2_rim_mm"),
+    ({"evaluate": {"p2_edge_radius_mm": -1.0}}, "below its minimum"),
+    ({"evaluate": {"p2_edge_radius_mm": 5.0}}, "p2_edge_radius_mm = 5 does not fit the probe"),
     ({"dataset": {"teacher_refine": 0}}, "below its minimum"),
     ({"dataset": {"teacher_refine": 5}}, "above its maximum"),
     ({"dataset": {"teacher_refine": 1.5}}, "teacher_refine"),

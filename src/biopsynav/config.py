@@ -526,6 +526,12 @@ class EvaluateSection:
                                 "face at rest, where the skin bends round it (0: no finer rim; "
                                 "docs/fem.md, 'What stops the truth at 30 mm').",
                            lo=0.0, hi=100.0)
+    p2_edge_radius_mm: float = opt(0.0, "P2 reference: the probe a rigid body whose face's "
+                                        "edges are rounded by this radius, mm, with sides "
+                                        "that no skin passes (below half the footprint's "
+                                        "short side); 0: a flat face with sharp edges and no "
+                                        "sides (docs/fem.md, 'A probe with rounded edges').",
+                                   lo=0.0, hi=100.0)
 
 
 SECTIONS: dict[str, type] = {
@@ -613,6 +619,10 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
         raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
                          f"{fp!r}", where)
+    radius, short = cfg.evaluate.p2_edge_radius_mm, min(fp)
+    if radius and radius >= 0.5 * short:
+        raise InputError(f"[evaluate] p2_edge_radius_mm = {radius:g} does not fit the probe "
+                         f"face ({fp[0]:g} x {fp[1]:g} mm): below {0.5 * short:g} mm", where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)

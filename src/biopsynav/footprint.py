@@ -20,12 +20,16 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Footprint:
-    """A probe face: ``size_mm`` (long, short) and ``inside(xy) -> bool (n,)`` for points
-    ``xy`` (n, 2) mm in the face frame. Every shape lies within its bounding rectangle."""
+    """A probe face: ``size_mm`` (long, short), ``inside(xy) -> bool (n,)`` for points
+    ``xy`` (n, 2) mm in the face frame and, where the shape provides it, ``nearest(xy) ->
+    (n, 2)`` mm, the nearest point of the filled shape (``xy`` itself inside; the P2
+    reference's rounded probe body needs it). Every shape lies within its bounding
+    rectangle."""
 
     name: str
     size_mm: tuple[float, float]
     inside: Callable[[np.ndarray], np.ndarray]
+    nearest: Callable[[np.ndarray], np.ndarray] | None = None
 
     @property
     def half_mm(self) -> np.ndarray:
@@ -59,12 +63,32 @@ def make_footprint(name: str, size_mm) -> Footprint:
 
 def _rectangle(size: tuple[float, float]) -> Footprint:
     half = 0.5 * np.asarray(size)
-    return Footprint("rectangle", size, lambda xy: np.all(np.abs(xy) <= half, axis=1))
+    return Footprint("rectangle", size, lambda xy: np.all(np.abs(xy) <= half, axis=1),
+                     lambda xy: np.clip(xy, -half, half))
 
 
 def _ellipse(size: tuple[float, float]) -> Footprint:
     half = 0.5 * np.asarray(size)
-    return Footprint("ellipse", size, lambda xy: np.sum((xy / half) ** 2, axis=1) <= 1.0)
+    return Footprint("ellipse", size, lambda xy: np.sum((xy / half) ** 2, axis=1) <= 1.0,
+                     lambda xy: _nearest_on_ellipse(np.asarray(xy, dtype=np.float64), half))
+
+
+def _nearest_on_ellipse(xy: np.ndarray, half: np.ndarray, iterations: int = 60) -> np.ndarray:
+    """The nearest point (n, 2) mm of the filled ellipse of semi-axes ``half`` (2,) mm to
+    ``xy`` (n, 2) mm: ``xy`` inside; outside, ``half^2 p / (t + half^2)`` with ``t > 0`` the
+    root of ``sum((half p / (t + half^2))^2) = 1`` (p = |xy|, found by bisection; the sign
+    of ``xy`` put back)."""
+    p, a2 = np.abs(xy), half ** 2
+    outside = np.sum((xy / half) ** 2, axis=1) > 1.0
+    lo = np.zeros(len(xy))
+    hi = np.max(half * p, axis=1) + 1.0  # at t >= max(half p) the sum is below 1
+    for _ in range(iterations):
+        t = 0.5 * (lo + hi)
+        big = np.sum((half * p / (t[:, None] + a2)) ** 2, axis=1) > 1.0
+        lo, hi = np.where(big, t, lo), np.where(big, hi, t)
+    t = 0.5 * (lo + hi)
+    on_edge = np.sign(xy) * a2 * p / (t[:, None] + a2)
+    return np.where(outside[:, None], on_edge, xy)
 
 
 register_footprint("rectangle", _rectangle)

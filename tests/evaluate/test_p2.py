@@ -116,7 +116,8 @@ def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     rest of the top passes through the face, with the face as a rigid body (footprint) every
     skin node it reaches is held on its plane (sliding), none that it would have to pull,
     and the cube's centre is pushed further."""
-    from biopsynav.evaluate.p2 import PENETRATION_TOL_MM, RELEASE_SHARE
+    from biopsynav.evaluate.p2 import RELEASE_SHARE
+    from biopsynav.evaluate.p2_contact import PENETRATION_TOL_MM
     from biopsynav.footprint import make_footprint
 
     face = make_footprint("rectangle", (60.0, 60.0))
@@ -151,7 +152,7 @@ def test_a_slipping_face_holds_no_skin_at_rest_and_lets_it_slide(cube):
     takes the skin it reaches onto its plane (all but a few nodes it would pull, which stay
     just in front of it), where the skin spreads sideways, while a ``stick`` face moves the
     skin it touches at rest straight down with it."""
-    from biopsynav.evaluate.p2 import PENETRATION_TOL_MM
+    from biopsynav.evaluate.p2_contact import PENETRATION_TOL_MM
     from biopsynav.footprint import make_footprint
 
     face = make_footprint("rectangle", (20.0, 20.0))
@@ -181,7 +182,7 @@ def test_a_slipping_face_holds_no_skin_at_rest_and_lets_it_slide(cube):
 def test_skin_beside_the_face_is_not_put_on_it():
     """Skin behind the face plane is put on the face only where it is nearer the face than
     the footprint's edge: further behind, it came in beside the probe."""
-    from biopsynav.evaluate.p2 import _inside_by
+    from biopsynav.evaluate.p2_contact import _inside_by
     from biopsynav.footprint import make_footprint
 
     face = make_footprint("rectangle", (50.0, 10.0))
@@ -266,4 +267,23 @@ def test_the_benchmarks_refuse_a_bad_rim_size_before_any_work(rim, tmp_path, cap
         truth.main([str(tmp_path / "missing"), "--tet-rim", rim,
                     "--reference", str(tmp_path / "ref.json")])
     assert stop.value.code == 2 and "--tet-rim" in capsys.readouterr().err
+    assert not (tmp_path / "ref.json").exists()
+
+
+def test_the_benchmarks_refuse_an_edge_radius_the_face_cannot_have(coarse_phantom, tmp_path,
+                                                                   capsys, monkeypatch):
+    """``truth.py --edge-radius`` must fit the case's probe face (below half its 10 mm
+    side): a larger one stops the run with the reason, before any reference file is
+    written; a negative one stops the parser."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth
+
+    with pytest.raises(SystemExit) as stop:
+        truth.main([str(coarse_phantom.dir), "--edge-radius", "5", "--reference-only",
+                    "--reference", str(tmp_path / "ref.json")])
+    assert "--edge-radius: a probe edge radius of 5 mm does not fit a 50 x 10 mm face" \
+        in str(stop.value.code)
+    with pytest.raises(SystemExit) as stop:
+        truth.main([str(coarse_phantom.dir), "--edge-radius", "-1"])
+    assert stop.value.code == 2 and "--edge-radius" in capsys.readouterr().err
     assert not (tmp_path / "ref.json").exists()

@@ -129,14 +129,19 @@ def test_a_rigid_probe_push_against_the_p2_reference_converges_with_the_grid(dom
 
 
 def test_the_face_friction_and_rim_name_their_answers(p2_case):
-    """Answers of a slipping face, or of a mesh refined along the face's edge, are another
-    reference's: their cache key differs, and the description says which face it is."""
+    """Answers of a slipping face, of a mesh refined along the face's edge, or of a probe
+    with rounded edges are another reference's: their cache key differs, and the
+    description says which face it is."""
     case = Case.load(p2_case)
     stick = references.P2Reference(case, None, None)
     case.cfg.evaluate.p2_friction = "slip"
     slip = references.P2Reference(case, None, None)
     case.cfg.evaluate.p2_rim_mm = 2.0
     rim = references.P2Reference(case, None, None)
-    assert len({stick.key, slip.key, rim.key}) == 3
-    assert "a stick face" in stick.describe() and "a slip face" in slip.describe()
+    case.cfg.evaluate.p2_edge_radius_mm = 2.5
+    rounded = references.P2Reference(case, None, None)
+    assert len({stick.key, slip.key, rim.key, rounded.key}) == 4
+    assert "a stick face with sharp edges" in stick.describe() and "a slip face" in slip.describe()
     assert "2 mm at its edge" in rim.describe()
+    assert "edges rounded by 2.5 mm" in rounded.describe()
+    assert rounded.facts()["edge_radius_mm"] == 2.5

@@ -10,10 +10,11 @@ Newton loop (MKL Pardiso for the linear solves). The boundary conditions: the ch
 plane fixed; the skin the probe face touches at the rest pose (within the contact tolerance,
 under the footprint, facing the probe; :func:`biopsynav.probe.skin_under_face`) moved rigidly
 with the probe (stuck to it, as the tracker's contact points); and, given the face's
-footprint, the probe a rigid body: skin that a load step pushes behind the face plane is put
-on the plane and slides on it without friction (an active set: grown where skin passes the
-face, let go where the face would pull; skin beside the probe, nearer the footprint's edge
-than the face, is not put on the face), so that no skin passes through the probe's face;
+footprint, the probe a rigid body (:mod:`~biopsynav.evaluate.p2_contact`: a flat face with
+sharp edges, or a body whose face's edges are rounded): skin that a load step pushes into
+the probe is put on its surface where it met it and slides on it without friction (an
+active set: grown where skin passes the probe, let go where the probe would pull, its
+planes taken again where the surface is curved), so that no skin passes through the probe;
 the rest free. Newton is damped on the stored energy (line search, and a Levenberg-Marquardt
 shift where the direction does not descend). Used by
 ``benchmarks/convergence.py``, ``benchmarks/truth.py`` and Table 2's ``p2`` reference; needs
@@ -22,6 +23,7 @@ gmsh.
 
 from __future__ import annotations
 
+import logging
 import signal
 import tempfile
 import threading
@@ -39,6 +41,9 @@ import scipy.sparse as sp
 from ..materials import lame_constants
 from ..probe import skin_under_face
 from ..reference_registry import P2_FRICTIONS as FRICTIONS
+from .p2_contact import Sliding, in_plane_directions, probe_surface
+
+log = logging.getLogger("biopsynav.p2")  # progress of a push: load steps, contact rounds
 
 #: local vertex pairs of the six edge nodes of a 10-node tetrahedron (nodes 4-9)
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
@@ -56,21 +61,28 @@ P2_PROBE = ("rigid face: rest contact held, skin it reaches slides on it, let go
             "pulled; skin beside it not held")
 LIFT_TOL_MM = 1e-9  # a held node's prescribed move below this is no move
 RELEASE_SHARE = 0.1  # a held node pulled by more than this share of the largest push is let go
-CONTACT_ROUNDS = 8  # solves of one load step while its contact set changes
-PENETRATION_TOL_MM = 0.1  # skin further behind the face plane is put on it
+CONTACT_ROUNDS = 12  # solves of one load step while its contact set or planes change
+#: held skin nearer the probe's surface than this lies on it (half the penetration that
+#: free skin may have)
+SURFACE_TOL_MM = 0.05
 
 
-def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0) -> dict:
+def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
+              edge_radius_mm: float = 0.0) -> dict:
     """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``), the face's
-    ``friction`` and the tetrahedra along its edge (``rim_mm``, :func:`rim_at`): the part of
-    every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``) that names
-    the probe. The defaults add nothing, so answers stored before them keep their key."""
+    ``friction``, the tetrahedra along its edge (``rim_mm``, :func:`rim_at`) and the radius
+    of its rounded edges (``edge_radius_mm``, :mod:`~biopsynav.evaluate.p2_contact`): the
+    part of every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``)
+    that names the probe. The defaults add nothing, so answers stored before them keep their
+    key."""
     key = {"footprint": [probe.shape, *probe.footprint_mm],
            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE}
     if friction != "stick":
         key["friction"] = friction
     if rim_mm:
         key["rim_mm"] = rim_mm
+    if edge_radius_mm:
+        key["edge_radius_mm"] = edge_radius_mm
     return key
 
 
@@ -370,22 +382,25 @@ class TetReference:
 
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
              points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
-             start: np.ndarray | None = None, footprint: Any = None) -> list[np.ndarray]:
+             start: np.ndarray | None = None, footprint: Any = None,
+             edge_radius_mm: float = 0.0) -> list[np.ndarray]:
         """Displacements (k, 3) mm at ``points`` (k, 3) for each of ``poses`` (in turn, each
         solve starting from the last; the first from ``start``, an equilibrium (n, 3) mm of
         the same contact set, or from rest): the contact nodes follow the probe rigidly from
         ``rest``, in load steps of at most ``step_mm`` (halved where a step fails).
 
         With ``footprint`` (the face's :class:`~biopsynav.footprint.Footprint`) the probe is
-        a rigid body: skin that a load step puts more than ``PENETRATION_TOL_MM`` behind the
-        face plane, under the footprint, is held on the plane, free to slide on it
-        (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS`` times);
-        ``self.sliding`` lists those nodes. Without it, skin may pass through the face. With
-        no ``contact`` nodes (a ``slip`` face, :meth:`contact`) only the face pushes, so a
-        ``footprint`` is needed; the load steps follow the face's corners."""
+        a rigid body (:func:`~biopsynav.evaluate.p2_contact.probe_surface`: a flat face, or
+        with ``edge_radius_mm`` > 0 a body whose edges are rounded by it): skin that a load
+        step puts more than ``PENETRATION_TOL_MM`` inside it is held on its surface, free to
+        slide (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS``
+        times); ``self.sliding`` lists those nodes. Without it, skin may pass through the
+        face. With no ``contact`` nodes (a ``slip`` face, :meth:`contact`) only the face
+        pushes, so a ``footprint`` is needed; the load steps follow the face's corners."""
         if not len(contact) and footprint is None:
             raise ValueError("a push with no contact nodes needs the face's footprint")
         x0 = self.nodes[contact]
+        surface = None if footprint is None else probe_surface(footprint, edge_radius_mm)
         u = np.zeros_like(self.nodes) if start is None else np.array(start, dtype=np.float64)
         done = u[contact].copy()
         if start is None:
@@ -402,55 +417,90 @@ class TetReference:
             steps = max(1, int(np.ceil(travel / step_mm)))
             for s in range(1, steps + 1):
                 frac = s / steps
+                log.info("load step %d of %d", s, steps)
+                was = (done_rel + (rel - done_rel) * (s - 1) / steps) @ np.asarray(rest)
                 face = (done_rel + (rel - done_rel) * frac) @ np.asarray(rest)
                 u = self._contact_step(u, contact, done + (target - done) * frac, tol,
-                                       face, footprint)
+                                       (was, face), surface)
             done, done_rel = target, rel
             self.last, self.last_rel = u, rel
             out.append(interp @ u)
         return out
 
     def _contact_step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
-                      tol: float, face: np.ndarray, footprint: Any) -> np.ndarray:
-        """One load step with the probe face at ``face`` (4, 4). With a ``footprint``, an
-        active set: the skin that the face's move passes (behind the new plane where the
-        step's linear response from the last equilibrium ``u`` puts it) is put on the plane
-        before the solve; then, until it settles, skin that still passes the face is added,
-        skin the face would have to pull or that slid off it is released, and the step is
-        solved again from there (frictionless and elastic: the equilibrium does not depend
-        on the path). A node is released at most once a step, and one that passes the face
-        again once free stays held for the rest of the push (``self.kept``)."""
-        if footprint is None:
+                      tol: float, poses: tuple[np.ndarray, np.ndarray],
+                      surface: Any) -> np.ndarray:
+        """One load step of the probe from the pose ``poses[0]`` (4, 4), where ``u`` is the
+        equilibrium, to ``poses[1]``. With its contact ``surface``
+        (:mod:`~biopsynav.evaluate.p2_contact`), an active set: the held skin keeps its
+        place on the moving surface, and the skin that the probe's move passes (inside the
+        probe where the step's linear response puts it) is put where it met the surface
+        (:func:`~biopsynav.evaluate.p2_contact.meeting_points`) before the solve; then,
+        until it settles, skin that still passes the probe is added where it met it, skin
+        the probe would have to pull or that slid off it is released, the planes of the held
+        skin are taken again where it now touches a curved surface, and the step is solved
+        again from there (frictionless and elastic: the equilibrium does not depend on the
+        path). A node is released at most once a step, and one that passes the probe again
+        once free stays held for the rest of the push (``self.kept``)."""
+        if surface is None:
             return self._step(u, contact, values, tol, Sliding.none())
-        new = self._behind_face(self._predicted_on(u, contact, values, face), face, footprint,
-                                contact)
+        was, face = poses
+        predicted = self._predicted_on(u, contact, values, poses, surface)
+        new = self._penetrating(predicted, face, surface, contact)
+        self.sliding = np.union1d(self.sliding, new)
+        slide = self._sliding_at(predicted, face, surface,
+                                 self._face_local(self.sliding, u, was))
         released = np.zeros(0, dtype=np.int64)
         for _ in range(CONTACT_ROUNDS):
-            self.sliding = np.union1d(self.sliding, new)
-            u = self._step(u, contact, values, tol, Sliding.on_face(self, self.sliding, face))
-            new = self._behind_face(u, face, footprint, contact)
+            before, u = u, self._step(u, contact, values, tol, slide)
+            new = self._penetrating(u, face, surface, contact)
             self.kept = np.union1d(self.kept, np.intersect1d(new, released))
-            off = np.setdiff1d(self._released(u, face, footprint), np.union1d(released, self.kept))
-            if not len(new) and not len(off):
+            off = np.setdiff1d(self._released(u, face, surface), np.union1d(released, self.kept))
+            gap = self._gap(u, face, surface)
+            log.info("  contact round: %d held, %d more pass the probe, %d let go, held skin "
+                     "%.3f mm off the probe", len(self.sliding), len(new), len(off), gap)
+            if not len(new) and not len(off) and gap <= SURFACE_TOL_MM:
                 return u
-            self.sliding = np.setdiff1d(self.sliding, off)
+            self.sliding = np.union1d(np.setdiff1d(self.sliding, off), new)
             released = np.union1d(released, off)
-        raise RuntimeError(f"P2 reference: skin still passes the probe face after "
-                           f"{CONTACT_ROUNDS} contact rounds")
+            slide = self._sliding_at(u, face, surface, self._came_from(new, before, face))
+        raise RuntimeError(f"P2 reference: skin still passes the probe or leaves its surface "
+                           f"after {CONTACT_ROUNDS} contact rounds")
 
-    def _behind_face(self, u: np.ndarray, face: np.ndarray, footprint: Any,
+    def _came_from(self, new: np.ndarray, before: np.ndarray, face: np.ndarray) -> np.ndarray:
+        """Where ``before`` (n, 3) mm had the ``new`` sliding nodes in the frame of ``face``
+        (4, 4), as rows (m, 3) mm of ``self.sliding``; NaN for the others (held before)."""
+        came = np.full((len(self.sliding), 3), np.nan)
+        rows = np.searchsorted(self.sliding, new)
+        came[rows] = self._face_local(new, before, face)
+        return came
+
+    def _sliding_at(self, u: np.ndarray, face: np.ndarray, surface: Any,
+                    came_from: np.ndarray | None = None) -> Sliding:
+        """``self.sliding`` held on the planes tangent to ``surface`` of the probe at
+        ``face`` (4, 4): where ``u`` (n, 3) mm puts them nearest or, given where they were
+        in the probe's frame before (``came_from``, (m, 3) mm, NaN rows: nearest), where
+        they met the surface (:meth:`Sliding.on_surface`)."""
+        nodes = self.sliding
+        return Sliding.on_surface(nodes, self.nodes[nodes], self.nodes[nodes] + u[nodes], face,
+                                  surface, came_from)
+
+    def _gap(self, u: np.ndarray, face: np.ndarray, surface: Any) -> float:
+        """How far (mm) ``u`` puts the sliding node furthest from ``surface`` at ``face``
+        (on its tangent plane, a node may have slid off a curved surface)."""
+        local = self._face_local(self.sliding, u, face)
+        return float(np.abs(surface.closest(local)[2]).max(initial=0.0))
+
+    def _penetrating(self, u: np.ndarray, face: np.ndarray, surface: Any,
                      contact: np.ndarray) -> np.ndarray:
-        """Skin nodes (not held) under ``footprint`` that ``u`` puts more than
-        ``PENETRATION_TOL_MM`` behind the face plane of ``face`` (4, 4), facing the probe,
-        and nearer the face than the footprint's edge (further behind it than from the edge,
-        the skin came in beside the probe, where its side, not its face, would stop it)."""
+        """Skin nodes (not held, facing the probe at rest) that ``u`` puts more than
+        ``PENETRATION_TOL_MM`` inside the probe at ``face`` (4, 4): ``surface.penetrating``."""
         nodes = self.skin_nodes
         local = self._face_local(nodes, u, face)
-        depth = -local[:, 2]
-        behind = ((depth > PENETRATION_TOL_MM) & _inside_by(footprint, local[:, :2], depth)
-                  & (self.skin.normals @ face[:3, 2] < 0.0) & self.skin.pushable)
+        inside = (surface.penetrating(local) & (self.skin.normals @ face[:3, 2] < 0.0)
+                  & self.skin.pushable)
         held = np.concatenate([contact, self.fixed_nodes, self.sliding])
-        return np.setdiff1d(nodes[behind], held)
+        return np.setdiff1d(nodes[inside], held)
 
     def _face_local(self, nodes: np.ndarray, u: np.ndarray, face: np.ndarray) -> np.ndarray:
         """Where ``u`` (n, 3) mm puts ``nodes`` (m,), in the frame of the face pose ``face``
@@ -458,38 +508,41 @@ class TetReference:
         return (self.nodes[nodes] + u[nodes] - face[:3, 3]) @ face[:3, :3]
 
     def _predicted_on(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
-                      face: np.ndarray) -> np.ndarray:
-        """Where the step's linear response from the equilibrium ``u`` (n, 3) mm puts the
-        nodes: ``contact`` at ``values`` and the sliding nodes on the plane of ``face``."""
-        slide = Sliding.on_face(self, self.sliding, face)
+                      poses: tuple[np.ndarray, np.ndarray], surface: Any) -> np.ndarray:
+        """Where the step's linear response from the equilibrium ``u`` (n, 3) mm at the
+        probe pose ``poses[0]`` (4, 4) puts the nodes: ``contact`` at ``values`` and the
+        sliding nodes where they were on ``surface``, moved with the probe to ``poses[1]``."""
+        was, face = poses
+        slide = self._sliding_at(u, face, surface, self._face_local(self.sliding, u, was))
         held = np.concatenate([contact, self.fixed_nodes])
         return self._predicted(u, self._lift(u, contact, values, slide), self._basis(held, slide))
 
-    def _released(self, u: np.ndarray, face: np.ndarray, footprint: Any) -> np.ndarray:
-        """Sliding nodes the face no longer holds at the equilibrium ``u``: those it pulls
+    def _released(self, u: np.ndarray, face: np.ndarray, surface: Any) -> np.ndarray:
+        """Sliding nodes the probe no longer holds at the equilibrium ``u``: those it pulls
         by more than ``RELEASE_SHARE`` of its largest push on one node (a node's push is its
-        internal force along the beam, the gradient of the energy that the face's force
-        balances) and those that slid off its ``footprint``. Slight pulls stay: node-to-plane
-        contact of quadratic elements pulls slightly at face corners, where a uniform
-        pressure's consistent nodal load is zero, and releasing them only makes them pass
-        the face again."""
+        internal force along the surface's outward normal there, the gradient of the energy
+        that the probe's force balances) and those that slid off ``surface``. Slight pulls
+        stay: node-to-plane contact of quadratic elements pulls slightly at face corners,
+        where a uniform pressure's consistent nodal load is zero, and releasing them only
+        makes them pass the face again."""
         nodes = self.sliding
         if not len(nodes):
             return nodes
-        normal = face[:3, 2] / np.linalg.norm(face[:3, 2])
-        local = self._face_local(nodes, u, face)
-        push = self.forces_and_tangent(u, tangent=False).reshape(-1, 3)[nodes] @ normal
+        normals = self._sliding_at(u, face, surface).normals
+        forces = self.forces_and_tangent(u, tangent=False).reshape(-1, 3)[nodes]
+        push = np.einsum("mi,mi->m", forces, normals)
         pulled = push < -RELEASE_SHARE * push.max(initial=0.0)
-        return nodes[pulled | ~footprint.inside(local[:, :2])]
+        return nodes[pulled | surface.slid_off(self._face_local(nodes, u, face))]
 
     def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
               slide: Sliding, depth: int = 0) -> np.ndarray:
         """One load step to ``values`` at the contact nodes; split in two when it fails."""
         try:
             return self._newton(u, contact, values, tol, slide)
-        except (FloatingPointError, RuntimeError):
+        except (FloatingPointError, RuntimeError) as exc:
             if depth >= 5:
                 raise
+            log.info("  load step failed (%s): halved", exc)
             half = 0.5 * (u[contact] + values)
             mid = slide.halfway(u)
             u = self._step(u, contact, half, tol, mid, depth + 1)
@@ -509,12 +562,13 @@ class TetReference:
         if np.abs(lift).max(initial=0.0) > LIFT_TOL_MM:
             u = self._predicted(u, lift, basis)
         r0, shift = None, 0
-        for _ in range(NEWTON_ITERATIONS):
+        for it in range(NEWTON_ITERATIONS):
             forces, stiff = self.forces_and_tangent(u)
             rhs = -(basis.T @ forces)
             r_norm = float(np.linalg.norm(rhs))
             r0 = r_norm if r0 is None else r0
             if r_norm <= tol * r0 or r_norm < 1e-12:
+                log.debug("    Newton: %d iterations", it)
                 return u
             u, shift = self._descend(u, (basis.T @ stiff @ basis).tocsr(), rhs, basis, shift)
         raise RuntimeError("P2 reference: Newton did not converge")
@@ -573,7 +627,7 @@ class TetReference:
         on_plane = kind[slide.nodes] == 1
         nodes, normals = slide.nodes[on_plane], slide.normals[on_plane]
         if len(nodes):
-            t1, t2 = _in_plane_directions(normals)
+            t1, t2 = in_plane_directions(normals)
             col = len(free) + np.arange(2 * len(nodes)).reshape(-1, 2)
             for k, t in enumerate((t1, t2)):
                 rows.append((3 * nodes[:, None] + np.arange(3)).ravel())
@@ -623,46 +677,6 @@ class TetReference:
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
 
 
-@dataclass
-class Sliding:
-    """Skin nodes held on the probe face's plane, free to slide on it: ``nodes`` (m,),
-    unit plane ``normals`` (m, 3) and ``offsets`` (m,) mm, so that a node's displacement
-    ``u`` satisfies ``u . normal = offset``."""
-
-    nodes: np.ndarray
-    normals: np.ndarray
-    offsets: np.ndarray
-
-    @classmethod
-    def none(cls) -> Sliding:
-        return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0))
-
-    @classmethod
-    def on_face(cls, ref: TetReference, nodes: np.ndarray, face: np.ndarray) -> Sliding:
-        """``nodes`` of ``ref`` held on the face plane of the pose ``face`` (4, 4)."""
-        normal = face[:3, 2] / np.linalg.norm(face[:3, 2])
-        offsets = (face[:3, 3] - ref.nodes[nodes]) @ normal
-        return cls(nodes, np.tile(normal, (len(nodes), 1)), offsets)
-
-    def lift(self, u: np.ndarray) -> np.ndarray:
-        """The move (m, 3) mm along the normals that puts the nodes of ``u`` on the plane."""
-        gap = self.offsets - np.einsum("mi,mi->m", u[self.nodes], self.normals)
-        return gap[:, None] * self.normals
-
-    def halfway(self, u: np.ndarray) -> Sliding:
-        """The same nodes on a plane halfway between where ``u`` has them and this one."""
-        now = np.einsum("mi,mi->m", u[self.nodes], self.normals)
-        return Sliding(self.nodes, self.normals, 0.5 * (now + self.offsets))
-
-
-def _in_plane_directions(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (m, 3) each, orthogonal to each other and to ``normals`` (m, 3)."""
-    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(normals, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    return t1, np.cross(normals, t1)
-
-
 _SYMMETRIC_SOLVER = None  # one Pardiso instance (several at once can crash the library)
 
 
@@ -694,16 +708,6 @@ def _face_travel(rest: np.ndarray, start: np.ndarray, end: np.ndarray, footprint
     corners = np.array([[sx * half[0], sy * half[1], 0.0, 1.0] for sx in (-1, 1)
                         for sy in (-1, 1)]) @ np.asarray(rest).T
     return float(np.abs(corners @ (end - start).T).max())
-
-
-def _inside_by(footprint: Any, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:
-    """Whether points ``xy`` (m, 2) mm lie inside ``footprint`` by at least ``margin`` (m,)
-    mm along both face axes (the point moved by the margin either way stays inside)."""
-    inside = footprint.inside(xy)
-    for axis in np.eye(2):
-        shift = margin[:, None] * axis
-        inside &= footprint.inside(xy + shift) & footprint.inside(xy - shift)
-    return inside
 
 
 def _deformation(ue: np.ndarray, g0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -90,6 +90,7 @@ class P2Reference:
         ev = case.cfg.evaluate
         self.size_mm, self.fine_mm = float(ev.p2_size_mm), float(ev.p2_fine_mm)
         self.rim_mm, self.friction = float(ev.p2_rim_mm), str(ev.p2_friction)
+        self.edge_radius_mm = float(ev.p2_edge_radius_mm)
         self.e_mpa, self.nu = homogeneous_material(case)
         self.cache_path = case.paths.table2_reference_cache
         self.key = self._key()
@@ -112,7 +113,8 @@ class P2Reference:
     def _key(self) -> str:
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
-                **probe_key(self.case.cfg.probe, self.friction, self.rim_mm)}
+                **probe_key(self.case.cfg.probe, self.friction, self.rim_mm,
+                            self.edge_radius_mm)}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _read_cache(self) -> dict:
@@ -162,7 +164,8 @@ class P2Reference:
         if self._model is None:
             self._build()
         (disp,) = self._model.push(self._rest, [pose], self._contact, self.centres,
-                                   start=self._last, footprint=self.case.cfg.probe.footprint)
+                                   start=self._last, footprint=self.case.cfg.probe.footprint,
+                                   edge_radius_mm=self.edge_radius_mm)
         self._last = self._model.last
         return np.asarray(disp).tolist()
 
@@ -189,6 +192,7 @@ class P2Reference:
     def facts(self) -> dict:
         return {"kind": "p2", "E_mpa": self.e_mpa, "nu": self.nu, "size_mm": self.size_mm,
                 "fine_mm": self.fine_mm, "rim_mm": self.rim_mm, "friction": self.friction,
+                "edge_radius_mm": self.edge_radius_mm,
                 "meshes": self.meshes,
                 "answers_with_folded_elements": self._folded_answers(),
                 "training_cell_size_mm": float(self.case.grid.spacing),
@@ -207,8 +211,10 @@ class P2Reference:
             size = "answers of an earlier run" if self.answers else "one mesh per placement"
         folded = self._folded_answers()
         rim = f", {self.rim_mm:g} mm at its edge" if self.rim_mm else ""
+        edges = (f"edges rounded by {self.edge_radius_mm:g} mm" if self.edge_radius_mm
+                 else "sharp edges")
         return (f"independent P2 tetrahedral FE ({self.size_mm:g} mm, {self.fine_mm:g} mm under "
-                f"the probe{rim}; {size}; a {self.friction} face), homogeneous "
+                f"the probe{rim}; {size}; a {self.friction} face with {edges}), homogeneous "
                 f"{self.e_mpa * 1e3:g} kPa, nu {self.nu:g}"
                 + (f"; {folded} of {len(self.answers)} answers with elements folded over at "
                    "the probe's edge" if folded else ""))
