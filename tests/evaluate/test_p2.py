@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import signal
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,16 +12,13 @@ import trimesh
 
 from biopsynav.evaluate.p2 import TetReference, shape_values, tet_mesh
 
+from .conftest import cube_reference
+
 
 @pytest.fixture(scope="module")
 def cube() -> TetReference:
     """A 30 mm cube of 10 mm tetrahedra, its bottom face (z = -15) the chest wall."""
-    box = trimesh.creation.box(extents=(30.0, 30.0, 30.0))
-    anatomy = SimpleNamespace(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces),
-                              normals=np.asarray(box.vertex_normals),
-                              chest_point=np.array([0.0, 0.0, -15.0]),
-                              chest_normal=np.array([0.0, 0.0, -1.0]))
-    return TetReference.build(anatomy, 10.0, 5e-3, 0.45)
+    return cube_reference(10.0)
 
 
 def test_tangent_is_the_derivative_of_the_forces(cube):

@@ -3,11 +3,8 @@ normals, the planes its held skin slides on, and a push that keeps all skin out 
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
-import trimesh
 
 from biopsynav.evaluate.p2 import SURFACE_TOL_MM, TetReference
 from biopsynav.evaluate.p2_contact import (
@@ -19,6 +16,8 @@ from biopsynav.evaluate.p2_contact import (
     rounded_body,
 )
 from biopsynav.footprint import make_footprint
+
+from .conftest import cube_reference
 
 
 @pytest.mark.parametrize("shape", ["rectangle", "ellipse"])
@@ -99,12 +98,7 @@ def test_a_flat_face_holds_skin_on_its_plane():
 @pytest.fixture(scope="module")
 def cube() -> TetReference:
     """A 30 mm cube of 5 mm tetrahedra, its bottom face (z = -15) the chest wall."""
-    box = trimesh.creation.box(extents=(30.0, 30.0, 30.0))
-    anatomy = SimpleNamespace(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces),
-                              normals=np.asarray(box.vertex_normals),
-                              chest_point=np.array([0.0, 0.0, -15.0]),
-                              chest_normal=np.array([0.0, 0.0, -1.0]))
-    return TetReference.build(anatomy, 5.0, 5e-3, 0.45)
+    return cube_reference(5.0)
 
 
 def test_a_rounded_probe_keeps_the_skin_out_and_bends_it_round_its_edge(cube):
