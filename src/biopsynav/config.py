@@ -619,10 +619,7 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
         raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
                          f"{fp!r}", where)
-    radius, short = cfg.evaluate.p2_edge_radius_mm, min(fp)
-    if radius and radius >= 0.5 * short:
-        raise InputError(f"[evaluate] p2_edge_radius_mm = {radius:g} does not fit the probe "
-                         f"face ({fp[0]:g} x {fp[1]:g} mm): below {0.5 * short:g} mm", where)
+    _check_edge_radius(cfg, where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)
@@ -661,6 +658,18 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
             parse_address(getattr(cfg.igtl, addr_key), f"[igtl] {addr_key}")
         except InputError as exc:
             raise InputError(str(exc), where) from None
+
+
+def _check_edge_radius(cfg: CaseConfig, where: str) -> None:
+    """InputError when ``[evaluate] p2_edge_radius_mm`` does not fit the probe's face
+    (:meth:`~biopsynav.footprint.Footprint.rounded_core`)."""
+    radius = cfg.evaluate.p2_edge_radius_mm
+    if radius:
+        try:
+            cfg.probe.footprint.rounded_core(radius)
+        except ValueError as exc:
+            raise InputError(f"[evaluate] p2_edge_radius_mm = {radius:g} does not fit the "
+                             f"probe face: {exc}", where) from None
 
 
 def parse_address(text: str, where: str = "address") -> tuple[str, int]:

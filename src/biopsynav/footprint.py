@@ -36,6 +36,20 @@ class Footprint:
         """Half-sizes (2,) of the bounding rectangle, mm."""
         return 0.5 * np.asarray(self.size_mm, dtype=np.float64)
 
+    def rounded_core(self, radius_mm: float) -> Footprint:
+        """This shape shrunk by ``radius_mm`` on every side: the flat part of a face whose
+        edges are rounded by that radius. ValueError unless 0 < radius < half the short
+        side, or when the shape gives no ``nearest`` point (a rounded body needs it)."""
+        size = np.asarray(self.size_mm, dtype=np.float64)
+        if not 0.0 < radius_mm < 0.5 * size.min():
+            raise ValueError(f"a probe edge radius of {radius_mm:g} mm does not fit a "
+                             f"{size[0]:g} x {size[1]:g} mm face "
+                             f"(0 < radius < {0.5 * size.min():g})")
+        if self.nearest is None:
+            raise ValueError(f"the probe shape {self.name!r} gives no nearest point: it "
+                             "cannot have rounded edges")
+        return make_footprint(self.name, tuple(size - 2.0 * radius_mm))
+
     def covers(self, local: np.ndarray, depth_tol: float) -> np.ndarray:
         """Which points ``local`` (n, 3) mm in the probe frame (z along the beam) lie under
         the face: inside the shape and within ``depth_tol`` of the face plane."""

@@ -43,3 +43,18 @@ def test_a_registered_shape_is_a_case_toml_choice_and_reaches_every_user(monkeyp
     assert len(patch_at(a, a.vertices[top], probe.footprint, 5.0).vertices) == len(patch)
     with pytest.raises(InputError, match="one of rectangle, ellipse, dot"):
         config_from_dict({"probe": {"shape": "convex"}}, "t")
+
+
+def test_a_shape_without_a_nearest_point_cannot_have_rounded_edges(monkeypatch):
+    """``[evaluate] p2_edge_radius_mm`` needs the shape's nearest point (the P2 reference's
+    rounded body projects onto it): a registered shape without one is refused at load, with
+    the key and the shape named; the built-in shapes shrink by the radius."""
+    monkeypatch.setitem(fp.FOOTPRINTS, "dot", lambda size: fp.Footprint(
+        "dot", size, lambda xy: np.hypot(*xy.T) <= 3.0))
+    config_from_dict({"probe": {"shape": "dot"}}, "t")
+    with pytest.raises(InputError, match="p2_edge_radius_mm = 2 does not fit the probe face: "
+                                         "the probe shape 'dot' gives no nearest point"):
+        config_from_dict({"probe": {"shape": "dot"}, "evaluate": {"p2_edge_radius_mm": 2.0}},
+                         "t")
+    core = fp.make_footprint("ellipse", (50.0, 10.0)).rounded_core(2.0)
+    assert core.name == "ellipse" and core.size_mm == (46.0, 6.0)

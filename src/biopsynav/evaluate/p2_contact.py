@@ -89,20 +89,9 @@ class RoundedBody:
 
 
 def rounded_body(footprint: Any, radius_mm: float) -> RoundedBody:
-    """The :class:`RoundedBody` over ``footprint`` with edges of ``radius_mm`` (> 0, below
-    half the footprint's short side); ValueError otherwise, or when the shape gives no
-    ``nearest`` point."""
-    from ..footprint import make_footprint
-
-    size = np.asarray(footprint.size_mm, dtype=np.float64)
-    if not 0.0 < radius_mm < 0.5 * size.min():
-        raise ValueError(f"a probe edge radius of {radius_mm:g} mm does not fit a "
-                         f"{size[0]:g} x {size[1]:g} mm face (0 < radius < {0.5 * size.min():g})")
-    core = make_footprint(footprint.name, tuple(size - 2.0 * radius_mm))
-    if core.nearest is None:
-        raise ValueError(f"the probe shape {footprint.name!r} gives no nearest point: "
-                         "it cannot have rounded edges")
-    return RoundedBody(footprint, core, float(radius_mm))
+    """The :class:`RoundedBody` over ``footprint`` with edges of ``radius_mm``; ValueError
+    where the footprint cannot have them (:meth:`~biopsynav.footprint.Footprint.rounded_core`)."""
+    return RoundedBody(footprint, footprint.rounded_core(radius_mm), float(radius_mm))
 
 
 def probe_surface(footprint: Any, radius_mm: float) -> FlatFace | RoundedBody:
