@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from biopsynav.evaluate.p2 import TetReference, shape_values, tet_mesh
+from biopsynav.evaluate.p2 import (
+    TetReference,
+    _barycentric_gradients,
+    element_quadrature,
+    p2_nodes,
+    shape_gradients,
+    shape_values,
+    tet_mesh,
+)
 
 from .conftest import cube_reference
 
@@ -63,6 +71,55 @@ def test_a_folded_element_is_found_before_the_energy_sees_it(cube):
             break
     assert len(folded) and np.isfinite(cube.energy(u))
     assert all(nodes[4] in cube.elements[el] for el in folded)
+
+
+def one_tetrahedron() -> TetReference:
+    """A lone 10 mm P2 tetrahedron (E 5 kPa, nu 0.45) with the reference's quadrature."""
+    points = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]])
+    tets = np.array([[0, 1, 2, 3]])
+    nodes, elements = p2_nodes(points, tets)
+    grads, weights = element_quadrature(points, tets)
+    none = np.zeros(0, dtype=np.int64)
+    return TetReference(nodes, elements, tets, grads, weights, 1.72e-3, 1.55e-2, none, None,
+                        none)
+
+
+def test_crushing_an_element_costs_energy():
+    """Each quadrature point stores W >= 0, so the energy is bounded below only where every
+    weight is positive. The edge nodes are moved to crush the centroid towards J = 0 at
+    the least energy (continuation in J): the energy stays positive. With scikit-fem's
+    11-point rule of degree 4 (centroid weight -0.0132) it fell below zero at J = 0.05
+    (-0.11 N mm, -0.46 at 0.03), so Newton could lower it without end by folding an
+    element."""
+    from scipy.optimize import minimize
+
+    ref = one_tetrahedron()
+    centre = shape_gradients(np.full(4, 0.25), _barycentric_gradients(ref.nodes[:4],
+                                                                      ref.corners))
+
+    def displacement(x):
+        u = np.zeros_like(ref.nodes)
+        u[4:] = x.reshape(6, 3)
+        return u
+
+    def energy(x):
+        try:
+            return ref.energy(displacement(x))
+        except FloatingPointError:
+            return np.inf
+
+    def centroid_j(x):
+        defo = np.eye(3) + np.einsum("tai,taj->tij", displacement(x)[ref.elements], centre)
+        return np.linalg.det(defo)[0]
+
+    x = np.zeros(18)
+    for j in (0.8, 0.6, 0.4, 0.2, 0.1, 0.05, 0.03):
+        x = minimize(energy, x, method="SLSQP",
+                     constraints=[{"type": "eq", "fun": lambda y, j=j: centroid_j(y) - j}]).x
+        assert centroid_j(x) == pytest.approx(j, abs=1e-6)
+        assert energy(x) > 0.0
+    with pytest.raises(ValueError, match="weight <= 0"):
+        element_quadrature(ref.nodes[:4], ref.corners, degree=4)
 
 
 def test_rigid_motions_give_no_forces(cube):

@@ -54,6 +54,11 @@ LINE_SEARCH_HALVINGS = 8
 #: Levenberg-Marquardt shifts (times the tangent's diagonal) tried in turn where the Newton
 #: direction does not descend or its line search fails: 0, then 1e-4, 1e-3, ... 1e2
 SHIFTS = (0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
+#: Degree of the quadrature rule over each tetrahedron: scikit-fem's 14-point rule, exact to
+#: degree 5, whose weights are all positive. A rule with a negative weight (the 11-point rule
+#: of degree 4 weighs the centroid by -0.0132) makes the discrete energy unbounded below: an
+#: element lowers it without limit by crushing its centroid towards J = 0, and Newton follows.
+QUADRATURE_DEGREE = 5
 ARMIJO = 1e-4  # sufficient decrease of the energy along a step, as a share of its slope
 #: The probe of this reference (:meth:`TetReference.push` with a footprint), in the answer
 #: caches' keys: answers of another probe model are solved again.
@@ -73,10 +78,11 @@ def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
     ``friction``, the tetrahedra along its edge (``rim_mm``, :func:`rim_at`) and the radius
     of its rounded edges (``edge_radius_mm``, :mod:`~biopsynav.evaluate.p2_contact`): the
     part of every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``)
-    that names the probe. The defaults add nothing, so answers stored before them keep their
-    key."""
+    that names the probe, with the quadrature rule (:data:`QUADRATURE_DEGREE`). The probe's
+    defaults add nothing to it."""
     key = {"footprint": [probe.shape, *probe.footprint_mm],
-           "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE}
+           "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE,
+           "quadrature_degree": QUADRATURE_DEGREE}
     if friction != "stick":
         key["friction"] = friction
     if rim_mm:
@@ -248,6 +254,24 @@ def shape_gradients(bary: np.ndarray, grad_l: np.ndarray) -> np.ndarray:
     return np.concatenate([vertex, edge], axis=1)
 
 
+def element_quadrature(points: np.ndarray, tets: np.ndarray,
+                       degree: int = QUADRATURE_DEGREE) -> tuple[np.ndarray, np.ndarray]:
+    """Shape-function gradients (q, t, 10, 3) per mm and weights x volume (q, t) mm^3 at the
+    quadrature points of the ``degree`` rule over tetrahedra ``tets`` (t, 4) of ``points``
+    (n, 3) mm; ValueError for a rule with a weight <= 0 (:data:`QUADRATURE_DEGREE`)."""
+    from skfem.quadrature import get_quadrature
+    from skfem.refdom import RefTet
+
+    xq, wq = get_quadrature(RefTet, degree)
+    if (wq <= 0.0).any():
+        raise ValueError(f"the degree-{degree} tetrahedron rule has a weight <= 0: the "
+                         "hyperelastic energy would be unbounded below")
+    bary = np.vstack([1.0 - xq.sum(axis=0), xq]).T  # (q, 4)
+    grad_l = _barycentric_gradients(points, tets)
+    grads = np.stack([shape_gradients(b, grad_l) for b in bary])
+    return grads, 6.0 * wq[:, None] * _volumes(points, tets)[None, :]
+
+
 def shape_values(bary: np.ndarray) -> np.ndarray:
     """P2 shape function values (k, 10) at barycentric points (k, 4)."""
     vertex = bary * (2.0 * bary - 1.0)
@@ -278,17 +302,11 @@ class TetReference:
         ``size_mm`` (``fine_mm`` around ``fine_at``, finer along the ``rim``: :func:`tet_mesh`)
         with a homogeneous material (E MPa, nu)."""
         from scipy.spatial import cKDTree
-        from skfem.quadrature import get_quadrature
-        from skfem.refdom import RefTet
 
         points, tets = tet_mesh(anatomy.vertices, anatomy.faces, size_mm, fine_at, fine_mm,
                                 rim=rim)
         nodes, elements = p2_nodes(points, tets)
-        grad_l = _barycentric_gradients(points, tets)
-        xq, wq = get_quadrature(RefTet, 4)
-        bary = np.vstack([1.0 - xq.sum(axis=0), xq]).T  # (q, 4)
-        grads = np.stack([shape_gradients(b, grad_l) for b in bary])
-        weights = 6.0 * wq[:, None] * _volumes(points, tets)[None, :]
+        grads, weights = element_quadrature(points, tets)
         mu, lam = lame_constants(np.array([e_mpa]), np.array([nu]))
         skin_nodes = _boundary_nodes(tets, len(points), elements)
         locs = nodes[skin_nodes]
