@@ -128,3 +128,35 @@ def test_a_rounded_probe_keeps_the_skin_out_and_bends_it_round_its_edge(cube):
     free_once = np.isin(cube.sliding, cube.kept)  # let go, then passed the probe again
     assert push[~free_once].min() >= -RELEASE_SHARE * push.max()
     assert -4.0 < centre[0, 2] < -0.3
+
+
+def test_newton_returns_skin_that_ran_off_a_curved_edge_to_it(cube):
+    """A held node moved 1.5 mm along its tangent plane on a 4 mm edge lies 0.27 mm off the
+    body; the retraction inside Newton puts it back on the surface, its new plane tangent
+    there, and moves nothing on a flat face (whose plane is its surface)."""
+    face = make_footprint("rectangle", (16.0, 16.0))
+    body = rounded_body(face, 4.0)
+    pose = np.diag([1.0, -1.0, -1.0, 1.0])
+    pose[2, 3] = 15.0
+    node = int(cube.skin_nodes[0])
+    edge = np.array([[4.0 + 4.0 * np.sin(0.5), 0.0, -4.0 + 4.0 * np.cos(0.5)]])
+    point, normal, _ = body.closest(edge)
+    u = np.zeros_like(cube.nodes)
+    slid = point + 1.5 * np.cross(normal, [0.0, 1.0, 0.0])
+    u[node] = slid[0] @ pose[:3, :3].T + pose[:3, 3] - cube.nodes[node]
+    slide = Sliding.on_surface(np.array([node]), cube.nodes[[node]], cube.nodes[[node]],
+                               pose, body)
+    assert cube._off_surface(u, slide, pose, body)
+    back, held = cube._retracted(u, slide, pose, body)
+    local = (cube.nodes[[node]] + back[[node]] - pose[:3, 3]) @ pose[:3, :3]
+    assert abs(body.closest(local)[2][0]) < 1e-9
+    assert np.allclose(held.normals, body.closest(local)[1] @ pose[:3, :3].T)
+    assert np.allclose(held.lift(back), 0.0, atol=1e-9)
+    assert np.abs(back - u).max() > 0.2
+    flat = FlatFace(face)
+    on_face = u.copy()
+    on_face[node] = np.array([3.0, 2.0, 0.0]) @ pose[:3, :3].T + pose[:3, 3] - cube.nodes[node]
+    plane = Sliding.on_surface(np.array([node]), cube.nodes[[node]],
+                               cube.nodes[[node]] + on_face[[node]], pose, flat)
+    assert not cube._off_surface(on_face, plane, pose, flat)
+    assert np.allclose(cube._retracted(on_face, plane, pose, flat)[0], on_face, atol=1e-12)

@@ -470,7 +470,7 @@ class TetReference:
                                  self._face_local(self.sliding, u, was))
         released = np.zeros(0, dtype=np.int64)
         for _ in range(CONTACT_ROUNDS):
-            before, u = u, self._step(u, contact, values, tol, slide)
+            before, u = u, self._step(u, contact, values, tol, slide, on=(face, surface))
             new = self._penetrating(u, face, surface, contact)
             self.kept = np.union1d(self.kept, np.intersect1d(new, released))
             off = np.setdiff1d(self._released(u, face, surface), np.union1d(released, self.kept))
@@ -553,10 +553,11 @@ class TetReference:
         return nodes[pulled | surface.slid_off(self._face_local(nodes, u, face))]
 
     def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
-              slide: Sliding, depth: int = 0) -> np.ndarray:
-        """One load step to ``values`` at the contact nodes; split in two when it fails."""
+              slide: Sliding, depth: int = 0, on: tuple | None = None) -> np.ndarray:
+        """One load step to ``values`` at the contact nodes; split in two when it fails (the
+        first half on planes halfway, so without ``on``: :meth:`_newton`)."""
         try:
-            return self._newton(u, contact, values, tol, slide)
+            return self._newton(u, contact, values, tol, slide, on)
         except (FloatingPointError, RuntimeError) as exc:
             if depth >= 5:
                 raise
@@ -564,18 +565,23 @@ class TetReference:
             half = 0.5 * (u[contact] + values)
             mid = slide.halfway(u)
             u = self._step(u, contact, half, tol, mid, depth + 1)
-            return self._step(u, contact, values, tol, slide, depth + 1)
+            return self._step(u, contact, values, tol, slide, depth + 1, on)
 
     def _newton(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
-                tol: float, slide: Sliding) -> np.ndarray:
+                tol: float, slide: Sliding, on: tuple | None = None) -> np.ndarray:
         """Equilibrium with ``values`` (n_c, 3) mm at the ``contact`` nodes and the sliding
         nodes on their planes, from the equilibrium ``u``: the first iteration carries the
         prescribed increment through the tangent, the linear response to it (no element is
         distorted by moving the held nodes alone; skipped when nothing held moves, as after
         a release); the later ones, on the residual, are damped (:meth:`_descend`).
         Increments live in the span of :meth:`_basis` (every dof of a free node, the plane
-        of a sliding node)."""
-        basis = self._basis(np.concatenate([contact, self.fixed_nodes]), slide)
+        of a sliding node). ``on``, the probe's pose (4, 4) and its surface, returns the
+        sliding nodes to that surface after an update that takes one further from it than
+        half ``SURFACE_TOL_MM``, their planes tangent where they now touch it
+        (:meth:`_retracted`): a node that slides over a curved edge follows it within the
+        solve rather than running off along one plane."""
+        held = np.concatenate([contact, self.fixed_nodes])
+        basis = self._basis(held, slide)
         lift = self._lift(u, contact, values, slide)
         if np.abs(lift).max(initial=0.0) > LIFT_TOL_MM:
             u = self._predicted(u, lift, basis)
@@ -589,7 +595,29 @@ class TetReference:
                 log.debug("    Newton: %d iterations", it)
                 return u
             u, shift = self._descend(u, (basis.T @ stiff @ basis).tocsr(), rhs, basis, shift)
+            if on is not None and self._off_surface(u, slide, *on):
+                u, slide = self._retracted(u, slide, *on)
+                basis = self._basis(held, slide)
         raise RuntimeError("P2 reference: Newton did not converge")
+
+    def _off_surface(self, u: np.ndarray, slide: Sliding, face: np.ndarray,
+                     surface: Any) -> bool:
+        """Whether ``u`` (n, 3) mm has a sliding node further than half ``SURFACE_TOL_MM``
+        from ``surface`` at the probe pose ``face`` (4, 4)."""
+        local = self._face_local(slide.nodes, u, face)
+        return bool(np.abs(surface.closest(local)[2]).max(initial=0.0) > 0.5 * SURFACE_TOL_MM)
+
+    def _retracted(self, u: np.ndarray, slide: Sliding, face: np.ndarray,
+                   surface: Any) -> tuple[np.ndarray, Sliding]:
+        """``u`` (n, 3) mm with the sliding nodes moved to their nearest points of
+        ``surface`` at the probe pose ``face`` (4, 4), and those nodes held on the planes
+        tangent there. A flat face's plane is its surface: nothing moves."""
+        nodes = slide.nodes
+        point, _, _ = surface.closest(self._face_local(nodes, u, face))
+        u = u.copy()
+        u[nodes] = point @ face[:3, :3].T + face[:3, 3] - self.nodes[nodes]
+        return u, Sliding.on_surface(nodes, self.nodes[nodes], self.nodes[nodes] + u[nodes],
+                                     face, surface)
 
     def _lift(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
               slide: Sliding) -> np.ndarray:
