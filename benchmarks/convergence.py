@@ -113,7 +113,7 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
                           args.friction)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
-    disp, tangled, failure = [], [], ""
+    disp, tangled, nearest, failure = [], [], [], ""
     rest = placement.pose
     for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
         try:
@@ -125,10 +125,22 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
             break
         disp.append(u[0].tolist())
         tangled.append(len(ref.tangled(ref.last)))
+        nearest.append(nearest_fold_mm(ref, ref.last, centre[0] + u[0]))
     disp += [None] * (len(depths) - len(disp))
     return disp, {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
                   "seconds": time.perf_counter() - t0, "failure": failure,
-                  "tangled_elements": tangled}
+                  "tangled_elements": tangled, "nearest_fold_mm": nearest}
+
+
+def nearest_fold_mm(ref, u: np.ndarray, point: np.ndarray) -> float | None:
+    """How far (mm) from ``point`` (3,) mm lies the nearest node of an element that the
+    displacement ``u`` (n, 3) mm folds over (:meth:`TetReference.tangled`), both deformed;
+    None when none is folded."""
+    folded = ref.tangled(u)
+    if not len(folded):
+        return None
+    nodes = np.unique(ref.elements[folded])
+    return float(np.linalg.norm(ref.nodes[nodes] + u[nodes] - point, axis=1).min())
 
 
 def non_negative_mm(text: str) -> float:
@@ -181,9 +193,12 @@ def show_progress(args) -> None:
 
 def reference_line(case: Case, lesion: int, facts: dict, depths: list[float]) -> str:
     """One line on the P2 reference of ``lesion`` (index): its mesh, time, any failure, and
-    the depths whose answer holds folded elements (:meth:`TetReference.tangled`)."""
-    folded = [f"{n} at {d:g} mm" for d, n in zip(depths, facts.get("tangled_elements", []),
-                                                 strict=False) if n]
+    the depths whose answer holds folded elements (:meth:`TetReference.tangled`) with the
+    distance of the nearest from the lesion."""
+    counts = facts.get("tangled_elements", [])
+    near = facts.get("nearest_fold_mm", [None] * len(counts))
+    folded = [f"{n} at {d:g} mm" + (f" (nearest {m:.1f} mm from the lesion)" if m else "")
+              for d, n, m in zip(depths, counts, near, strict=False) if n]
     return (f"  P2 reference, lesion {case.anatomy.lesions[lesion].id}: {facts['tets']} "
             f"tetrahedra, {facts['dofs']} dofs, {facts['contact_nodes']} contact nodes, "
             f"{facts['seconds']:.0f} s" + (f"; failed at {facts['failure']}"

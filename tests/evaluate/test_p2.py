@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import signal
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -71,6 +72,27 @@ def test_a_folded_element_is_found_before_the_energy_sees_it(cube):
             break
     assert len(folded) and np.isfinite(cube.energy(u))
     assert all(nodes[4] in cube.elements[el] for el in folded)
+
+
+def test_the_benchmarks_say_how_far_the_nearest_fold_lies_from_the_lesion(cube, monkeypatch):
+    """convergence.py and truth.py print, beside the folded elements of an answer, how far
+    the nearest lies from the lesion (both deformed), so that a reader can judge whether the
+    fold matters there."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+
+    node = cube.elements[0][4]
+    u = np.zeros_like(cube.nodes)
+    u[node] = 2.0 * (cube.nodes[cube.elements[0][:4]].mean(axis=0) - cube.nodes[node])
+    assert len(cube.tangled(u))
+    lesion = cube.nodes[node] + u[node] + [0.0, 0.0, 7.0]
+    assert 0.0 < convergence.nearest_fold_mm(cube, u, lesion) <= 7.0  # the moved node's fold
+    assert convergence.nearest_fold_mm(cube, np.zeros_like(u), lesion) is None
+    case = SimpleNamespace(anatomy=SimpleNamespace(lesions=[SimpleNamespace(id=3)]))
+    facts = {"tets": 10, "dofs": 30, "contact_nodes": 2, "seconds": 1.0, "failure": "",
+             "tangled_elements": [0, 4], "nearest_fold_mm": [None, 12.34]}
+    line = convergence.reference_line(case, 0, facts, [10.0, 20.0])
+    assert "4 at 20 mm (nearest 12.3 mm from the lesion)" in line and "at 10 mm" not in line
 
 
 def one_tetrahedron() -> TetReference:

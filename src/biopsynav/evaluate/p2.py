@@ -1,24 +1,25 @@
-"""An independent FE reference for rigid-probe pushes: quadratic (10-node, P2) tetrahedra on a gmsh
-tetrahedral mesh of the breast surface, compressible neo-Hookean, Newton on the displacement.
+"""An independent FE reference for rigid-probe pushes: quadratic (10-node, P2) tetrahedra on a
+gmsh tetrahedral mesh of the breast surface, compressible neo-Hookean, Newton on the
+displacement.
 
 Nothing is shared with biopsynav's FE: another mesh (tetrahedra fitted to the surface, not an
-immersed hexahedral grid), another element (P2 tetrahedra, 11-point degree-4 rule from
-scikit-fem), another formulation (spatial: Kirchhoff stress ``tau = mu (b - I) + lam ln J I`` and
-its tangent ``c = lam I x I + 2 (mu - lam ln J) II``, on spatial shape-function gradients; the
-biopsynav kernel works in the reference configuration), its own vectorised assembly and
-Newton loop (MKL Pardiso for the linear solves). The boundary conditions: the chest-wall
-plane fixed; the skin the probe face touches at the rest pose (within the contact tolerance,
-under the footprint, facing the probe; :func:`biopsynav.probe.skin_under_face`) moved rigidly
-with the probe (stuck to it, as the tracker's contact points); and, given the face's
-footprint, the probe a rigid body (:mod:`~biopsynav.evaluate.p2_contact`: a flat face with
-sharp edges, or a body whose face's edges are rounded): skin that a load step pushes into
-the probe is put on its surface where it met it and slides on it without friction (an
-active set: grown where skin passes the probe, let go where the probe would pull, its
-planes taken again where the surface is curved), so that no skin passes through the probe;
-the rest free. Newton is damped on the stored energy (line search, and a Levenberg-Marquardt
-shift where the direction does not descend). Used by
-``benchmarks/convergence.py``, ``benchmarks/truth.py`` and Table 2's ``p2`` reference; needs
-gmsh.
+immersed hexahedral grid), another element (P2 tetrahedra, 14-point degree-5 rule from scikit-
+fem, every weight positive: :data:`QUADRATURE_DEGREE`), another formulation (spatial:
+Kirchhoff stress ``tau = mu (b - I) + lam ln J I`` and its tangent ``c = lam I x I + 2 (mu -
+lam ln J) II``, on spatial shape-function gradients; the biopsynav kernel works in the
+reference configuration), its own vectorised assembly and Newton loop (MKL Pardiso for the
+linear solves). The boundary conditions: the chest-wall plane fixed; the skin the probe face
+touches at the rest pose (within the contact tolerance, under the footprint, facing the probe;
+:func:`biopsynav.probe.skin_under_face`) moved rigidly with the probe (stuck to it, as the
+tracker's contact points); and, given the face's footprint, the probe a rigid body
+(:mod:`~biopsynav.evaluate.p2_contact`: a flat face with sharp edges, or a body whose face's
+edges are rounded): skin that a load step pushes into the probe is put on its surface where it
+met it and slides on it without friction (an active set: grown where skin passes the probe,
+let go where the probe would pull, its planes taken again where the surface is curved, within
+Newton as well), so that no skin passes through the probe; the rest free. Newton is damped on
+the stored energy (line search, and a Levenberg-Marquardt shift where the direction does not
+descend). Used by ``benchmarks/convergence.py``, ``benchmarks/truth.py`` and Table 2's ``p2``
+reference; needs gmsh.
 """
 
 from __future__ import annotations
