@@ -3,8 +3,8 @@ gmsh tetrahedral mesh of the breast surface, compressible neo-Hookean, Newton on
 displacement.
 
 Nothing is shared with biopsynav's FE: another mesh (tetrahedra fitted to the surface, not an
-immersed hexahedral grid), another element (P2 tetrahedra, 14-point degree-5 rule from scikit-
-fem, every weight positive: :data:`QUADRATURE_DEGREE`), another formulation (spatial:
+immersed hexahedral grid), another element (P2 tetrahedra, 14-point degree-5 rule from
+scikit-fem, every weight positive: :data:`QUADRATURE_DEGREE`), another formulation (spatial:
 Kirchhoff stress ``tau = mu (b - I) + lam ln J I`` and its tangent ``c = lam I x I + 2 (mu -
 lam ln J) II``, on spatial shape-function gradients; the biopsynav kernel works in the
 reference configuration), its own vectorised assembly and Newton loop (MKL Pardiso for the
