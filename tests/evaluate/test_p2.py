@@ -20,6 +20,7 @@ from biopsynav.evaluate.p2 import (
     shape_values,
     tet_mesh,
 )
+from biopsynav.materials import lame_constants
 
 from .conftest import cube_reference
 
@@ -101,9 +102,10 @@ def one_tetrahedron() -> TetReference:
     tets = np.array([[0, 1, 2, 3]])
     nodes, elements = p2_nodes(points, tets)
     grads, weights = element_quadrature(points, tets)
+    mu, lam = lame_constants(np.array([5e-3]), np.array([0.45]))
     none = np.zeros(0, dtype=np.int64)
-    return TetReference(nodes, elements, tets, grads, weights, 1.72e-3, 1.55e-2, none, None,
-                        none)
+    return TetReference(nodes, elements, tets, grads, weights, float(mu[0]), float(lam[0]),
+                        none, None, none)
 
 
 def test_crushing_an_element_costs_energy():

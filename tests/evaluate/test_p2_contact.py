@@ -146,7 +146,7 @@ def test_newton_returns_skin_that_ran_off_a_curved_edge_to_it(cube):
     u[node] = slid[0] @ pose[:3, :3].T + pose[:3, 3] - cube.nodes[node]
     slide = Sliding.on_surface(np.array([node]), cube.nodes[[node]], cube.nodes[[node]],
                                pose, body)
-    assert cube._off_surface(u, slide, pose, body)
+    assert cube._gap(slide.nodes, u, pose, body) > 0.5 * SURFACE_TOL_MM
     back, held = cube._retracted(u, slide, pose, body)
     local = (cube.nodes[[node]] + back[[node]] - pose[:3, 3]) @ pose[:3, :3]
     assert abs(body.closest(local)[2][0]) < 1e-9
@@ -158,5 +158,5 @@ def test_newton_returns_skin_that_ran_off_a_curved_edge_to_it(cube):
     on_face[node] = np.array([3.0, 2.0, 0.0]) @ pose[:3, :3].T + pose[:3, 3] - cube.nodes[node]
     plane = Sliding.on_surface(np.array([node]), cube.nodes[[node]],
                                cube.nodes[[node]] + on_face[[node]], pose, flat)
-    assert not cube._off_surface(on_face, plane, pose, flat)
+    assert cube._gap(plane.nodes, on_face, pose, flat) <= 0.5 * SURFACE_TOL_MM
     assert np.allclose(cube._retracted(on_face, plane, pose, flat)[0], on_face, atol=1e-12)

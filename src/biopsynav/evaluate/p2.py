@@ -475,7 +475,7 @@ class TetReference:
             new = self._penetrating(u, face, surface, contact)
             self.kept = np.union1d(self.kept, np.intersect1d(new, released))
             off = np.setdiff1d(self._released(u, face, surface), np.union1d(released, self.kept))
-            gap = self._gap(u, face, surface)
+            gap = self._gap(self.sliding, u, face, surface)
             log.info("  contact round: %d held, %d more pass the probe, %d let go, held skin "
                      "%.3f mm off the probe", len(self.sliding), len(new), len(off), gap)
             if not len(new) and not len(off) and gap <= SURFACE_TOL_MM:
@@ -504,10 +504,11 @@ class TetReference:
         return Sliding.on_surface(nodes, self.nodes[nodes], self.nodes[nodes] + u[nodes], face,
                                   surface, came_from)
 
-    def _gap(self, u: np.ndarray, face: np.ndarray, surface: Any) -> float:
-        """How far (mm) ``u`` puts the sliding node furthest from ``surface`` at ``face``
-        (on its tangent plane, a node may have slid off a curved surface)."""
-        local = self._face_local(self.sliding, u, face)
+    def _gap(self, nodes: np.ndarray, u: np.ndarray, face: np.ndarray, surface: Any) -> float:
+        """How far (mm) ``u`` puts the one of the sliding ``nodes`` (m,) furthest from
+        ``surface`` at ``face`` (on its tangent plane, a node may have slid off a curved
+        surface)."""
+        local = self._face_local(nodes, u, face)
         return float(np.abs(surface.closest(local)[2]).max(initial=0.0))
 
     def _penetrating(self, u: np.ndarray, face: np.ndarray, surface: Any,
@@ -596,17 +597,10 @@ class TetReference:
                 log.debug("    Newton: %d iterations", it)
                 return u
             u, shift = self._descend(u, (basis.T @ stiff @ basis).tocsr(), rhs, basis, shift)
-            if on is not None and self._off_surface(u, slide, *on):
+            if on is not None and self._gap(slide.nodes, u, *on) > 0.5 * SURFACE_TOL_MM:
                 u, slide = self._retracted(u, slide, *on)
                 basis = self._basis(held, slide)
         raise RuntimeError("P2 reference: Newton did not converge")
-
-    def _off_surface(self, u: np.ndarray, slide: Sliding, face: np.ndarray,
-                     surface: Any) -> bool:
-        """Whether ``u`` (n, 3) mm has a sliding node further than half ``SURFACE_TOL_MM``
-        from ``surface`` at the probe pose ``face`` (4, 4)."""
-        local = self._face_local(slide.nodes, u, face)
-        return bool(np.abs(surface.closest(local)[2]).max(initial=0.0) > 0.5 * SURFACE_TOL_MM)
 
     def _retracted(self, u: np.ndarray, slide: Sliding, face: np.ndarray,
                    surface: Any) -> tuple[np.ndarray, Sliding]:
