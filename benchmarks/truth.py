@@ -53,7 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.evaluate.p2 import probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
-from biopsynav.evaluate.references import default_tissue_material  # noqa: E402
+from biopsynav.evaluate.references import default_tissue_material, other_materials  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402
@@ -74,9 +74,9 @@ D10_BELOW_MM, D30_ABOVE_MM = 12.5, 27.5  # the paper's Table 2 bins D10 and D30
 
 
 def reference_material(case: Case) -> tuple[float, float, bool]:
-    """E (MPa) and nu of the case's default tissue, and whether the grid carries tissue
-    labels (the reference is homogeneous: a labelled case is compared with a warning)."""
-    return *default_tissue_material(case), case.grid.label_share.shape[-1] > 0
+    """E (MPa) and nu of the case's default tissue, and whether a labelled tissue has another
+    material (the reference is homogeneous: such a case is compared with a warning)."""
+    return *default_tissue_material(case), bool(other_materials(case))
 
 
 def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
@@ -140,7 +140,7 @@ def run(args) -> dict:
     e_mpa, nu, labelled = reference_material(case)
     if labelled:
         print(f"warning: the reference is homogeneous ({e_mpa * 1e3:g} kPa, nu {nu:g}); the "
-              "case's grid mixes labelled tissues", flush=True)
+              "case's grid mixes tissues of other materials", flush=True)
     key = reference_key(case, e_mpa, nu, args)
     ref_path = args.reference or args.case_dir.resolve().parent / f"{args.case_dir.name}-p2.json"
     stored = load_reference(ref_path, key)

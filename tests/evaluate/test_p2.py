@@ -364,3 +364,22 @@ def test_the_benchmarks_refuse_an_edge_radius_the_face_cannot_have(coarse_phanto
         truth.main([str(coarse_phantom.dir), "--edge-radius", "-1"])
     assert stop.value.code == 2 and "--edge-radius" in capsys.readouterr().err
     assert not (tmp_path / "ref.json").exists()
+
+
+def test_a_surface_gmsh_cannot_remesh_is_filled_inside_its_own_triangles(ucdavis_dir, caplog):
+    """The UC Davis surface (a pinch vertex at its chest-wall rim) defeats gmsh's remeshing
+    ("a segment and a facet intersect"); the reference then fills it inside its own
+    triangles, says so, and the tetrahedra fill the enclosed volume with every one positive."""
+    surface = trimesh.load(ucdavis_dir / "volmesh3_boundary_surface.stl", process=False)
+    with caplog.at_level("WARNING", logger="biopsynav.p2"):
+        points, tets = tet_mesh(np.asarray(surface.vertices), np.asarray(surface.faces), 10.0)
+    assert any("filled inside its own triangles" in r.getMessage() for r in caplog.records)
+    volumes = np.einsum("ij,ij->i", np.cross(points[tets[:, 1]] - points[tets[:, 0]],
+                                             points[tets[:, 2]] - points[tets[:, 0]]),
+                        points[tets[:, 3]] - points[tets[:, 0]]) / 6.0
+    assert volumes.min() > 0.0
+    assert volumes.sum() == pytest.approx(abs(surface.volume), rel=1e-6)
+    on_surface = np.isin(np.round(points, 6).view([("", float)] * 3),
+                         np.round(np.asarray(surface.vertices), 6).view([("", float)] * 3))
+    corners = np.unique(np.asarray(surface.vertices), axis=0)
+    assert on_surface.sum() == len(corners)  # its triangles kept as they are

@@ -60,13 +60,34 @@ def test_a_damaged_answer_file_is_solved_again_not_trusted(p2_case):
     assert ref.answers == {}
 
 
+def _labelled_case(tissue_labels: dict, default_tissue: str) -> SimpleNamespace:
+    """A stand-in case whose grid carries labels 1, 2, 3 mapped by ``tissue_labels``."""
+    cfg = config_from_dict({"evaluate": {"reference": "p2"},
+                            "anatomy": {"tissue_labels": tissue_labels},
+                            "material": {"default_tissue": default_tissue}})
+    grid = SimpleNamespace(label_values=np.array([1, 2, 3]),
+                           label_share=np.zeros((2, 2, 2, 3)))
+    return SimpleNamespace(grid=grid, cfg=cfg, anatomy=SimpleNamespace(segments={}))
+
+
 def test_the_p2_reference_refuses_a_case_of_several_tissues_before_it_starts():
-    labelled = SimpleNamespace(grid=SimpleNamespace(label_share=np.zeros((2, 2, 2, 3))),
-                               cfg=config_from_dict({"evaluate": {"reference": "p2"}}))
-    with pytest.raises(InputError, match="one material"):
+    labelled = _labelled_case({"1": "fat", "2": "gland", "3": "skin"}, "fat")
+    with pytest.raises(InputError, match=r"one material.*gland, skin beside fat"):
         reference_registry.check_reference(labelled)
     labelled.cfg.evaluate.reference = "fine_grid"
     reference_registry.check_reference(labelled)  # any case
+
+
+def test_labels_of_one_material_are_a_homogeneous_case_for_the_p2_reference():
+    """UC Davis with every label mapped to fat (the issue's homogeneous case) is one material
+    when the default tissue is fat too; with another default tissue it is not."""
+    one = _labelled_case({"1": "fat", "2": "fat", "3": "fat"}, "fat")
+    reference_registry.check_reference(one)
+    e_mpa, nu = references.homogeneous_material(one)
+    assert (e_mpa, nu) == (one.cfg.material.tissues["fat"]["E_mpa"],
+                           one.cfg.material.tissues["fat"]["nu"])
+    assert references.other_materials(_labelled_case({"1": "fat", "2": "fat", "3": "fat"},
+                                                     "gland")) == ["fat"]
 
 
 def test_a_fine_grid_reference_no_finer_than_the_teacher_is_refused():

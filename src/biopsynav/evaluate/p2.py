@@ -178,8 +178,24 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
     """Tetrahedra of the closed surface (vertices (n, 3) mm, faces (m, 3)) with edges of about
     ``size_mm``, and of ``fine_mm`` within ``fine_radius_mm`` of ``fine_at`` (3,) mm when
     given (under the probe), finer still along the probe face's edge with a ``rim``: points
-    (p, 3) mm and tetrahedra (t, 4), positively oriented (gmsh: the surface reparametrised
-    and remeshed, then filled)."""
+    (p, 3) mm and tetrahedra (t, 4), positively oriented.
+
+    gmsh reparametrises and remeshes the surface, then fills it. Where it cannot (a surface
+    whose remeshed facets intersect, as the UC Davis breast's at its chest-wall pinch), the
+    volume is filled inside the surface's own triangles, kept as they are (sizes then apply
+    inside only), and a warning says so."""
+    try:
+        return _gmsh_tets(vertices, faces, size_mm, fine_at, fine_mm, fine_radius_mm, rim, True)
+    except Exception as exc:  # noqa: BLE001 - gmsh raises a bare Exception
+        log.warning("gmsh could not remesh the surface (%s); the volume is filled inside its "
+                    "own triangles", str(exc).strip()[:120])
+    return _gmsh_tets(vertices, faces, size_mm, fine_at, fine_mm, fine_radius_mm, rim, False)
+
+
+def _gmsh_tets(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
+               fine_at: np.ndarray | None, fine_mm: float, fine_radius_mm: float,
+               rim: Rim | None, remesh: bool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`tet_mesh` by one route: the surface remeshed (``remesh``) or kept as it is."""
     import trimesh
 
     with tempfile.TemporaryDirectory() as tmp, gmsh_session() as gmsh:
@@ -187,22 +203,36 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
         trimesh.Trimesh(vertices, faces, process=False).export(stl)
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.merge(str(stl))
-        gmsh.model.mesh.classifySurfaces(np.radians(40.0), True, True, np.pi)
-        gmsh.model.mesh.createGeometry()
+        if remesh:
+            gmsh.model.mesh.classifySurfaces(np.radians(40.0), True, True, np.pi)
+            gmsh.model.mesh.createGeometry()
         loop = gmsh.model.geo.addSurfaceLoop([t for _, t in gmsh.model.getEntities(2)])
         gmsh.model.geo.addVolume([loop])
         gmsh.model.geo.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
-        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-        if fine_at is not None:
-            _ball_field(fine_at, fine_mm, size_mm, fine_radius_mm)
-        if rim is not None:
-            gmsh.model.mesh.setSizeCallback(
-                lambda dim, tag, x, y, z, lc: min(lc, float(rim.sizes(np.array([[x, y, z]]))[0])))
-            gmsh.option.setNumber("Mesh.MeshSizeMin", rim.size_mm)
+        _mesh_sizes(gmsh, size_mm, fine_at, fine_mm, fine_radius_mm, rim)
         gmsh.model.mesh.generate(3)
         tags, coords, _ = gmsh.model.mesh.getNodes()
         _, elem_nodes = gmsh.model.mesh.getElementsByType(4)  # 4-node tetrahedra
+    return _oriented_tets(tags, coords, elem_nodes)
+
+
+def _mesh_sizes(gmsh: Any, size_mm: float, fine_at: np.ndarray | None, fine_mm: float,
+                fine_radius_mm: float, rim: Rim | None) -> None:
+    """gmsh's size options: ``size_mm`` at most, the ball under the probe, the rim."""
+    gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    if fine_at is not None:
+        _ball_field(fine_at, fine_mm, size_mm, fine_radius_mm)
+    if rim is not None:
+        gmsh.model.mesh.setSizeCallback(
+            lambda dim, tag, x, y, z, lc: min(lc, float(rim.sizes(np.array([[x, y, z]]))[0])))
+        gmsh.option.setNumber("Mesh.MeshSizeMin", rim.size_mm)
+
+
+def _oriented_tets(tags: np.ndarray, coords: np.ndarray, elem_nodes: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """gmsh's nodes and tetrahedra as points (p, 3) mm and tets (t, 4), unused nodes dropped,
+    every tetrahedron positively oriented."""
     index = np.full(int(tags.max()) + 1, -1)
     index[tags.astype(np.int64)] = np.arange(len(tags))
     tets = index[np.asarray(elem_nodes, dtype=np.int64).reshape(-1, 4)]

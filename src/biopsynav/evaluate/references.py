@@ -231,13 +231,27 @@ def require_gmsh() -> None:
 
 
 def homogeneous_material(case: Any) -> tuple[float, float]:
-    """E (MPa) and nu of the case's default tissue; InputError when the grid carries tissue
-    labels (the P2 reference has one material)."""
-    if case.grid.label_share.shape[-1] > 0:
+    """E (MPa) and nu of the case's default tissue; InputError when a labelled tissue of the
+    grid has another material (the P2 reference has one material)."""
+    others = other_materials(case)
+    if others:
         raise InputError("the P2 reference has one material, and this case's grid mixes "
-                         f"labelled tissues ({case.grid.label_share.shape[-1]} labels); use "
-                         "[evaluate] reference = \"fine_grid\"", "[evaluate] reference")
+                         f"tissues of other materials ({', '.join(others)} beside "
+                         f"{case.cfg.material.default_tissue}); use [evaluate] reference = "
+                         "\"fine_grid\"", "[evaluate] reference")
     return default_tissue_material(case)
+
+
+def other_materials(case: Any) -> list[str]:
+    """The tissues of the grid's labels whose material ([material.tissues] entry) is not the
+    default tissue's, in label order without repeats; empty for a case of one material (no
+    labels, or every label mapped to a tissue of the default's parameters)."""
+    from ..fem.tissues import label_tissues
+
+    mat = case.cfg.material
+    names = label_tissues(case.grid.label_values, case.cfg, case.anatomy)
+    default = mat.tissues[mat.default_tissue]
+    return list(dict.fromkeys(n for n in names if mat.tissues[n] != default))
 
 
 def default_tissue_material(case: Any) -> tuple[float, float]:
