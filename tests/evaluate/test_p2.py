@@ -383,3 +383,37 @@ def test_a_surface_gmsh_cannot_remesh_is_filled_inside_its_own_triangles(ucdavis
                          np.round(np.asarray(surface.vertices), 6).view([("", float)] * 3))
     corners = np.unique(np.asarray(surface.vertices), axis=0)
     assert on_surface.sum() == len(corners)  # its triangles kept as they are
+
+
+def test_the_stiffness_comes_in_canonical_form_and_symmetric(cube):
+    """The tangent scattered through the precomputed pattern has sorted, unique indices
+    (Pardiso needs them; ``test_tangent_is_the_derivative_of_the_forces`` checks its values)
+    and is symmetric; its pattern is every pair of dofs that share an element."""
+    u = np.random.default_rng(3).normal(size=cube.nodes.shape) * 0.1
+    _, stiff = cube.forces_and_tangent(u)
+    assert stiff.has_canonical_format
+    assert abs(stiff - stiff.T).max() <= 1e-12 * abs(stiff).max()
+    n_el = len(cube.elements)
+    rows = (3 * cube.elements[:, :, None] + np.arange(3)).reshape(n_el, 30)
+    pairs = np.unique(np.repeat(rows, 30, axis=1).ravel() * cube.n_dofs
+                      + np.tile(rows, (1, 30)).ravel())
+    assert stiff.nnz == len(pairs)
+
+
+def test_a_factored_pattern_is_reused_and_a_new_one_analysed_again():
+    """Matrices of one pattern, then of another, each solved exactly: the kept analysis
+    serves only its own pattern."""
+    import scipy.sparse as sp
+
+    from biopsynav.evaluate.p2 import solve_symmetric
+
+    rng = np.random.default_rng(0)
+    for density in (0.3, 0.3, 0.6):
+        pattern = sp.random(40, 40, density=density, random_state=1, format="csr")
+        pattern = (pattern + pattern.T + sp.eye(40)).tocsr()
+        for _ in range(2):
+            values = pattern.copy()
+            values.data = rng.normal(size=values.nnz)
+            matrix = (values + values.T).tocsr() + 20.0 * sp.eye(40)
+            rhs = rng.normal(size=40)
+            assert np.allclose(matrix @ solve_symmetric(matrix, rhs), rhs, atol=1e-9)

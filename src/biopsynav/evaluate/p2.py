@@ -387,11 +387,22 @@ class TetReference:
         if not tangent:
             return forces
         k = _element_tangents(points, self.lam)
-        r = np.repeat(rows, 30, axis=1).ravel()
-        c = np.tile(rows, (1, 30)).ravel()
-        stiff = sp.csr_matrix((k.reshape(n_el, 900).ravel(), (r, c)),
-                              shape=(self.n_dofs, self.n_dofs))
+        indptr, indices, slot = self._stiffness_pattern
+        data = np.bincount(slot, k.ravel(), minlength=len(indices))
+        stiff = sp.csr_matrix((data, indices, indptr), shape=(self.n_dofs, self.n_dofs))
+        stiff.has_sorted_indices = True
         return forces, stiff
+
+    @cached_property
+    def _stiffness_pattern(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The stiffness's CSR pattern (indptr, indices: sorted, no duplicates) and the slot
+        (t * 900,) of each element matrix entry (element-major, row-major 30 x 30) in it."""
+        n_el, n = len(self.elements), self.n_dofs
+        rows = (3 * self.elements[:, :, None] + np.arange(3)).reshape(n_el, 30).astype(np.int64)
+        key = (np.repeat(rows, 30, axis=1) * n + np.tile(rows, (1, 30))).ravel()
+        entries, slot = np.unique(key, return_inverse=True)
+        indptr = np.searchsorted(entries, np.arange(n + 1, dtype=np.int64) * n)
+        return indptr, entries % n, slot
 
     def energy(self, u: np.ndarray) -> float:
         """The stored energy (N mm) at the nodal displacement ``u`` (n, 3) mm:
@@ -748,26 +759,52 @@ class TetReference:
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
 
 
-_SYMMETRIC_SOLVER = None  # one Pardiso instance (several at once can crash the library)
+class _SymmetricSolver:
+    """MKL Pardiso in its symmetric indefinite mode (``mtype = -2``, the upper triangle) that
+    keeps the analysis (ordering, symbolic factorisation) of the last matrix pattern: a matrix
+    of that pattern (Newton's next tangent while the contact set stands) is only factored
+    again (phase 23 instead of 13), with the same ordering and so the same factors."""
+
+    def __init__(self) -> None:
+        import pypardiso
+
+        self.pardiso = pypardiso.PyPardisoSolver(mtype=-2)
+        self.pattern: tuple[np.ndarray, np.ndarray] | None = None
+
+    def solve(self, upper: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
+        """``upper``'s symmetric matrix ^-1 ``rhs``; RuntimeError where Pardiso refuses it."""
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
+        if not np.diff(upper.indptr).all():
+            raise RuntimeError("P2 reference: the linear solve failed (an empty row)")
+        known = self.pattern is not None and np.array_equal(upper.indptr, self.pattern[0]) \
+            and np.array_equal(upper.indices, self.pattern[1])
+        self.pattern = None  # unknown until this call succeeds
+        self.pardiso.set_phase(23 if known else 13)
+        try:
+            x = self.pardiso._call_pardiso(upper, np.asfortranarray(rhs, dtype=np.float64))
+        except PyPardisoError as exc:
+            raise RuntimeError(f"P2 reference: the linear solve failed (Pardiso error "
+                               f"{exc.value})") from None
+        self.pattern = (upper.indptr.copy(), upper.indices.copy())
+        return x
+
+
+_SYMMETRIC_SOLVER: _SymmetricSolver | None = None  # one instance: several can crash MKL
 
 
 def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     """``matrix^-1 rhs`` for a symmetric ``matrix`` (the tangent: positive definite, or
-    indefinite past a limit point) with MKL Pardiso in its symmetric indefinite mode
-    (``mtype = -2``, the upper triangle): half the storage and work of a general LU.
-    RuntimeError where the solver refuses the matrix (a load step that fails, halved by
-    :meth:`TetReference._step`), not its ValueError."""
+    indefinite past a limit point) with MKL Pardiso in its symmetric indefinite mode: half
+    the storage and work of a general LU, and the analysis of a pattern done once
+    (:class:`_SymmetricSolver`). RuntimeError where the solver refuses the matrix (a load
+    step that fails, halved by :meth:`TetReference._step`)."""
     global _SYMMETRIC_SOLVER
-    import pypardiso
-
     if _SYMMETRIC_SOLVER is None:
-        _SYMMETRIC_SOLVER = pypardiso.PyPardisoSolver(mtype=-2)
+        _SYMMETRIC_SOLVER = _SymmetricSolver()
     upper = sp.triu(matrix, format="csr")
     upper.sort_indices()
-    try:
-        return pypardiso.spsolve(upper, rhs, solver=_SYMMETRIC_SOLVER)
-    except ValueError as exc:  # pypardiso's checks: an empty row, a wrong shape
-        raise RuntimeError(f"P2 reference: the linear solve failed ({exc})") from exc
+    return _SYMMETRIC_SOLVER.solve(upper, np.asarray(rhs, dtype=np.float64))
 
 
 def _face_travel(rest: np.ndarray, start: np.ndarray, end: np.ndarray, footprint: Any) -> float:
