@@ -763,7 +763,9 @@ class _SymmetricSolver:
     """MKL Pardiso in its symmetric indefinite mode (``mtype = -2``, the upper triangle) that
     keeps the analysis (ordering, symbolic factorisation) of the last matrix pattern: a matrix
     of that pattern (Newton's next tangent while the contact set stands) is only factored
-    again (phase 23 instead of 13), with the same ordering and so the same factors."""
+    again (phase 23 instead of 13), with the same ordering and so the same factors: in this
+    mode Pardiso's scaling and weighted matching, which would make the analysis depend on the
+    values, stay off (iparm 11 and 13 are 0)."""
 
     def __init__(self) -> None:
         import pypardiso
