@@ -405,9 +405,11 @@ def test_a_factored_pattern_is_reused_and_a_new_one_analysed_again():
     serves only its own pattern."""
     import scipy.sparse as sp
 
+    from biopsynav.evaluate import p2
     from biopsynav.evaluate.p2 import solve_symmetric
 
     rng = np.random.default_rng(0)
+    phases = []
     for density in (0.3, 0.3, 0.6):
         pattern = sp.random(40, 40, density=density, random_state=1, format="csr")
         pattern = (pattern + pattern.T + sp.eye(40)).tocsr()
@@ -417,3 +419,15 @@ def test_a_factored_pattern_is_reused_and_a_new_one_analysed_again():
             matrix = (values + values.T).tocsr() + 20.0 * sp.eye(40)
             rhs = rng.normal(size=40)
             assert np.allclose(matrix @ solve_symmetric(matrix, rhs), rhs, atol=1e-9)
+            phases.append(p2._SYMMETRIC_SOLVER.pardiso.phase)
+    assert phases == [13, 23, 23, 23, 13, 23]  # analysed once per pattern
+
+
+def test_a_surface_gmsh_cannot_fill_either_way_is_a_clear_error():
+    """An open surface (a box without its top) cannot be filled remeshed or as it is: one
+    InputError names both failures, not gmsh's bare Exception."""
+    from biopsynav.errors import InputError
+
+    box = trimesh.creation.box(extents=(30.0, 30.0, 30.0))
+    with pytest.raises(InputError, match=r"cannot fill the breast surface.*remeshed.*as it is"):
+        tet_mesh(np.asarray(box.vertices), np.asarray(box.faces)[2:], 10.0)

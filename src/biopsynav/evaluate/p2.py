@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import InputError
 from ..materials import lame_constants
 from ..probe import skin_under_face
 from ..reference_registry import P2_FRICTIONS as FRICTIONS
@@ -183,18 +184,25 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
     gmsh reparametrises and remeshes the surface, then fills it. Where it cannot (a surface
     whose remeshed facets intersect, as the UC Davis breast's at its chest-wall pinch), the
     volume is filled inside the surface's own triangles, kept as they are (sizes then apply
-    inside only), and a warning says so."""
+    inside only), and a warning says so. InputError when neither route meshes it."""
+    sizes = (size_mm, fine_at, fine_mm, fine_radius_mm, rim)
     try:
-        return _gmsh_tets(vertices, faces, size_mm, fine_at, fine_mm, fine_radius_mm, rim, True)
+        return _gmsh_tets(vertices, faces, *sizes, remesh=True)
     except Exception as exc:  # noqa: BLE001 - gmsh raises a bare Exception
-        log.warning("gmsh could not remesh the surface (%s); the volume is filled inside its "
-                    "own triangles", str(exc).strip()[:120])
-    return _gmsh_tets(vertices, faces, size_mm, fine_at, fine_mm, fine_radius_mm, rim, False)
+        remeshed = str(exc).strip()[:120]
+    log.warning("gmsh could not remesh the surface (%s); the volume is filled inside its "
+                "own triangles", remeshed)
+    try:
+        return _gmsh_tets(vertices, faces, *sizes, remesh=False)
+    except Exception as exc:  # noqa: BLE001 - gmsh raises a bare Exception
+        raise InputError(f"gmsh cannot fill the breast surface with tetrahedra, remeshed "
+                         f"({remeshed}) or as it is ({str(exc).strip()[:120]}): is it closed?",
+                         "P2 reference") from None
 
 
 def _gmsh_tets(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
                fine_at: np.ndarray | None, fine_mm: float, fine_radius_mm: float,
-               rim: Rim | None, remesh: bool) -> tuple[np.ndarray, np.ndarray]:
+               rim: Rim | None, *, remesh: bool) -> tuple[np.ndarray, np.ndarray]:
     """:func:`tet_mesh` by one route: the surface remeshed (``remesh``) or kept as it is."""
     import trimesh
 
@@ -382,8 +390,7 @@ class TetReference:
             tau = self.mu * (b - np.eye(3)) + (self.lam * np.log(det))[:, None, None] * np.eye(3)
             f += w[:, None, None] * np.einsum("tij,taj->tai", tau, g)
             points.append((w, g, tau, m))
-        rows = (3 * self.elements[:, :, None] + np.arange(3)).reshape(n_el, 30)
-        forces = np.bincount(rows.ravel(), f.ravel(), minlength=self.n_dofs)
+        forces = np.bincount(self._element_dofs.ravel(), f.ravel(), minlength=self.n_dofs)
         if not tangent:
             return forces
         k = _element_tangents(points, self.lam)
@@ -394,11 +401,16 @@ class TetReference:
         return forces, stiff
 
     @cached_property
+    def _element_dofs(self) -> np.ndarray:
+        """The node-major dofs (t, 30) int64 of each element's nodes."""
+        n_el = len(self.elements)
+        return (3 * self.elements[:, :, None] + np.arange(3)).reshape(n_el, 30).astype(np.int64)
+
+    @cached_property
     def _stiffness_pattern(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The stiffness's CSR pattern (indptr, indices: sorted, no duplicates) and the slot
         (t * 900,) of each element matrix entry (element-major, row-major 30 x 30) in it."""
-        n_el, n = len(self.elements), self.n_dofs
-        rows = (3 * self.elements[:, :, None] + np.arange(3)).reshape(n_el, 30).astype(np.int64)
+        rows, n = self._element_dofs, self.n_dofs
         key = (np.repeat(rows, 30, axis=1) * n + np.tile(rows, (1, 30))).ravel()
         entries, slot = np.unique(key, return_inverse=True)
         indptr = np.searchsorted(entries, np.arange(n + 1, dtype=np.int64) * n)
@@ -781,14 +793,15 @@ class _SymmetricSolver:
             raise RuntimeError("P2 reference: the linear solve failed (an empty row)")
         known = self.pattern is not None and np.array_equal(upper.indptr, self.pattern[0]) \
             and np.array_equal(upper.indices, self.pattern[1])
-        self.pattern = None  # unknown until this call succeeds
         self.pardiso.set_phase(23 if known else 13)
         try:
             x = self.pardiso._call_pardiso(upper, np.asfortranarray(rhs, dtype=np.float64))
         except PyPardisoError as exc:
+            self.pattern = None  # an analysis that failed serves no later matrix
             raise RuntimeError(f"P2 reference: the linear solve failed (Pardiso error "
                                f"{exc.value})") from None
-        self.pattern = (upper.indptr.copy(), upper.indices.copy())
+        if not known:
+            self.pattern = (upper.indptr.copy(), upper.indices.copy())
         return x
 
 
