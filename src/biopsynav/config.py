@@ -416,15 +416,19 @@ class TrackerSection:
                                      "the contact points of each grid cell; converges faster "
                                      "with the cell size, docs/fem.md).",
                            choices=contact_constraint_names)
-    contact_follows_pose: bool = opt(False, "FE engine: skin that the probe face reaches "
-                                            "during a push (behind the face plane in the "
-                                            "deformed state, in cells apart from the rest "
-                                            "contact) is held on the plane, free to slide "
-                                            "(frictionless), and the solve repeated. Off (the "
-                                            "default): only the skin touched at the rest pose "
-                                            "follows the probe; on, fewer 35 mm pushes "
-                                            "converge (docs/fem.md). The network engine always "
-                                            "uses the rest pose's contact set.")
+    contact_follows_pose: bool = opt(False, "Skin that the probe face reaches during a push "
+                                            "(behind the face plane in the deformed state, "
+                                            "in cells apart from the rest contact) is held on "
+                                            "the plane, free to slide, and the answer "
+                                            "repeated: the FE engine solves again "
+                                            "(frictionless), the network engine predicts "
+                                            "again with that skin in its contact set (a grown "
+                                            "set is built once per rest pose, then looked "
+                                            "up). Off (the default): only the skin touched at "
+                                            "the rest pose follows the probe; on, fewer 35 mm "
+                                            "FE pushes converge, and against the independent "
+                                            "truth it moved lesions further, not nearer "
+                                            "(docs/fem.md).")
 
 
 @dataclass

@@ -248,7 +248,7 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
     assert sur.can_project
     tracker = Tracker(case, "net", surrogate=sur)
     top = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
-    assert tracker.set_rest_pose(top) > 0 and tracker._lesion_op is not None
+    assert tracker.set_rest_pose(top) > 0 and tracker._net.lesion_op is not None
     assert tracker.projects_contact == projection
     for depth, angle in ((3.0, 0.0), (8.0, 0.1)):
         pose = top.copy()

@@ -11,7 +11,9 @@ the probe from the rest pose (the paper's assumption); their displacement, sprea
 drives the network (or the FE model with prescribed displacements), and lesions are read off
 the predicted grid displacement by trilinear interpolation. The network's prediction is
 projected onto the contact (:mod:`biopsynav.contact.projection`, ``[network]
-contact_projection``): it moves the contact points exactly as the probe does.
+contact_projection``): it moves the contact points exactly as the probe does. With ``[tracker]
+contact_follows_pose`` skin that the face reaches during a push joins the contact set, held on
+the face (both engines; :mod:`biopsynav.tracker.contactset` for the network's).
 """
 
 from __future__ import annotations
@@ -32,6 +34,14 @@ from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
 from ..probe import ContactInputOperator, contact_input_operator, skin_under_face
 from . import result as st
+from .contactset import (
+    MAX_GROWN_SETS,
+    NetContactSet,
+    behind_face,
+    onto_face,
+    pinned_by_contact,
+    reach_candidates,
+)
 from .result import LesionResult, TrackingResult
 
 LIFT_OFF_MM = 0.5  # contact points moved this far out of the tissue: the probe left the skin
@@ -124,16 +134,15 @@ class Tracker:
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
         self._fem_rows = None  # the FE engine's constraint rows of the contact set
-        self.last_touched = np.zeros(0, dtype=np.int64)  # skin the face reached (FE engine)
+        self.last_touched = np.zeros(0, dtype=np.int64)  # skin the face reached, last update
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
         self._surface_emb: Embedding | None = None
-        # the net engine's lesion displacement for the rest pose's contact set, asked of the
-        # surrogate: at the lesion points (centres and meshes) and at the centres only
-        self._lesion_op: PointOperator | None = None
-        self._centre_op: PointOperator | None = None
-        self._input_op: ContactInputOperator | None = None
-        self._projection = None  # ContactProjection of the rest pose's contact set
+        self._net: NetContactSet | None = None  # the net engine's rest pose contact set
+        self._grown: dict[bytes, NetContactSet] = {}  # ... grown by skin the face reached
+        self._reach = np.zeros(0, dtype=np.int64)  # skin vertices the face may reach
+        self._reach_emb: Embedding | None = None
+        self._input_op: ContactInputOperator | None = None  # the input last written
         self._compliance = None
         self.last_solve = None  # the FE engine's last SolveReport (biopsynav.fem.solver)
         env = surrogate.envelope if surrogate is not None else {}
@@ -207,47 +216,95 @@ class Tracker:
         self._contact = idx
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
-        self._input_op = self._fem_rows = self._fem_contact = None
-        self._lesion_op = self._centre_op = self._projection = None
-        self._input[:] = 0.0
+        self._forget_contact_sets()
         if len(idx):
-            emb = Embedding.build(self.case.grid, self._contact_points, where="contact points")
-            self._contact_emb = emb
+            self._contact_emb = Embedding.build(self.case.grid, self._contact_points,
+                                                where="contact points")
             if self.engine == "net":
                 from ..threads import one_thread
 
+                if self.case.cfg.tracker.contact_follows_pose:
+                    self._set_reach(pose)
                 with one_thread():  # many small dense solves (docs/igtl.md, rest pose)
-                    self._input_op = self.input_operator()
-                    self._input_flat[3] = self._input_op.weights
-                    self._set_lesion_operators(emb.matrix)
+                    self._net = self._net_contact_set(np.zeros(0, dtype=np.int64))
         return len(idx)
+
+    def _forget_contact_sets(self) -> None:
+        """Drop everything built for the previous rest pose's contact set."""
+        self._fem_rows = self._fem_contact = self._net = self._reach_emb = None
+        self._input_op = None
+        self._grown = {}
+        self._reach = np.zeros(0, dtype=np.int64)
+        self._input[:] = 0.0
 
     def clear_rest_pose(self) -> None:
         """Forget the rest pose (and its contact set); ``update`` answers ``no_rest_pose``."""
         self._rest = None
         self._contact = np.zeros(0, dtype=np.int64)
-        self._contact_emb = self._input_op = self._fem_rows = self._fem_contact = None
-        self._lesion_op = self._centre_op = self._projection = None
+        self._contact_emb = None
+        self._forget_contact_sets()
 
-    def _set_lesion_operators(self, contact) -> None:
-        """The net engine's contact projection for this contact set (``[network]
-        contact_projection``, or a model trained through it), and the lesion displacement
-        asked of the surrogate (:meth:`Surrogate.point_operator`; None without a physics
-        baseline or lesions): at every lesion point and at the centres only."""
-        sur = self._surrogate
-        if sur.projects(self.case.cfg.network.contact_projection):
-            self._projection = sur.contact_projection(contact, self._input_op)
-        if len(self._lesion_ids):
-            self._lesion_op = sur.point_operator(self._lesion_emb, self._input_op,
-                                                 self._projection)
-        if self._lesion_op is not None:
-            self._centre_op = self._lesion_op.first(len(self._lesion_ids))
+    def _set_reach(self, pose: np.ndarray) -> None:
+        """The skin vertices a push from the rest ``pose`` may add to the net engine's
+        contact set (:func:`~biopsynav.tracker.contactset.reach_candidates`)."""
+        a, skin = self.case.anatomy, self._surface_embedding()
+        pinned = pinned_by_contact(skin.nodes, self._contact_emb.nodes,
+                                   int(np.prod(self.case.grid.node_shape)))
+        self._reach = reach_candidates(a.vertices, a.normals, a.pushable, pose[:3, 2],
+                                       self._contact, pinned)
+        self._reach_emb = skin.subset(self._reach) if len(self._reach) else None
+
+    def _net_contact_set(self, touched: np.ndarray) -> NetContactSet:
+        """The net engine's :class:`~biopsynav.tracker.contactset.NetContactSet` of the rest
+        contact plus the skin vertices ``touched`` (t,): the contact projection (``[network]
+        contact_projection``, or a model trained through it) and the operators asked of the
+        surrogate (:meth:`Surrogate.point_operator`; None without a physics baseline or
+        lesions). The rest set's lesion operator covers the lesion meshes at once; a grown
+        set's is built when asked for (:meth:`_lesion_operator`)."""
+        sur, n = self._surrogate, len(self._lesion_ids)
+        emb = self._contact_emb
+        if len(touched):
+            emb = Embedding.build(self.case.grid, self.case.anatomy.vertices[
+                np.concatenate([self._contact, touched])], where="contact points")
+        op = self._input_operator_of(emb)
+        proj = (sur.contact_projection(emb.matrix, op)
+                if sur.projects(self.case.cfg.network.contact_projection) else None)
+        lesion_op = centre_op = None
+        if n and not len(touched):
+            lesion_op = sur.point_operator(self._lesion_emb, op, proj)
+            centre_op = None if lesion_op is None else lesion_op.first(n)
+        elif n:
+            centre_op = sur.point_operator(self._centre_emb, op, proj)
+        reach_op = (None if self._reach_emb is None
+                    else sur.point_operator(self._reach_emb, op, proj))
+        return NetContactSet(touched, emb, op, proj, centre_op, lesion_op, reach_op)
+
+    def _lesion_operator(self, state: NetContactSet) -> PointOperator | None:
+        """The lesion centres' and mesh vertices' operator of ``state``, built once."""
+        if state.lesion_op is None and state.centre_op is not None:
+            state.lesion_op = self._surrogate.point_operator(
+                self._lesion_emb, state.input_op, state.projection)
+        return state.lesion_op
+
+    def _grown_set(self, touched: np.ndarray) -> NetContactSet:
+        """The contact set of the rest contact plus ``touched`` (sorted), built once per rest
+        pose (the oldest of more than ``MAX_GROWN_SETS`` forgotten)."""
+        key = touched.tobytes()
+        state = self._grown.get(key)
+        if state is None:
+            from ..threads import one_thread
+
+            with one_thread():
+                state = self._grown[key] = self._net_contact_set(touched)
+            if len(self._grown) > MAX_GROWN_SETS:
+                del self._grown[next(iter(self._grown))]
+        return state
 
     @property
     def projects_contact(self) -> bool:
         """Whether the net engine's predictions honour the contact points exactly (the
         contact projection, docs/network.md) for the current rest pose."""
-        return self._projection is not None
+        return self._net is not None and self._net.projection is not None
 
     @property
     def contact_input_kind(self) -> str:
@@ -258,14 +315,18 @@ class Tracker:
         return self.case.cfg.dataset.contact_input
 
     def input_operator(self) -> ContactInputOperator:
-        """The network input of the current contact set as a linear map of the contact
+        """The network input of the rest pose's contact set as a linear map of the contact
         displacements (:func:`biopsynav.probe.contact_input_operator`, as the data set)."""
         if self._contact_emb is None:
             raise InputError("no contact points: set a rest pose with skin under the probe",
                              "tracker")
+        return self._input_operator_of(self._contact_emb)
+
+    def _input_operator_of(self, points: Embedding) -> ContactInputOperator:
+        """The network input operator of the contact points ``points``."""
         kind = self.contact_input_kind
         compliance = self._contact_compliance() if kind == "elastic" else None
-        return contact_input_operator(self._contact_emb.matrix, kind, compliance)
+        return contact_input_operator(points.matrix, kind, compliance)
 
     def _contact_compliance(self):
         """The case's :class:`~biopsynav.contact.greens.ContactCompliance`: the baseline's when
@@ -294,6 +355,7 @@ class Tracker:
         """
         start = time.perf_counter()
         self.last_solve = None
+        self.last_touched = self._reach[:0]
         problem = pose_problem(pose, self.case.cfg.tracker.rigid_tolerance)
         if problem:
             return self._unreliable(st.INVALID_POSE, problem, start)
@@ -318,10 +380,11 @@ class Tracker:
                                     f"beyond the deepest trained push, {self.max_probe_mm:.1f} "
                                     "mm", start)
         try:
-            if self._lesion_op is not None and not with_surface:
-                field, disp = None, self._net_lesion_displacement(u_c, lesion_surfaces)
+            if self.engine == "net":
+                field, disp = self._net_answer(u_c, as_pose(pose), with_surface,
+                                               lesion_surfaces)
             else:
-                field = self._predict(u_c, pose)
+                field = self._fem_field(u_c, as_pose(pose))
                 emb = self._lesion_emb if lesion_surfaces else self._centre_emb
                 disp = emb.interpolate(field)
         except SolverError as exc:  # the FE engine did not converge: say so, not "unusual pose"
@@ -334,24 +397,76 @@ class Tracker:
         res.latency_ms = (time.perf_counter() - start) * 1e3
         return res
 
-    def _net_lesion_displacement(self, u_c: np.ndarray, surfaces: bool) -> np.ndarray:
-        """Displacements (n_points, 3) mm of the lesion centres, and with ``surfaces`` of their
-        mesh vertices: the network's residual and the surrogate's point operator
-        (:class:`~biopsynav.contact.lesions.PointOperator`; no full-grid baseline: the hot
-        path of :meth:`update`)."""
-        self._set_input(u_c)
-        net = self._surrogate.predict_network(self._input)
-        return (self._lesion_op if surfaces else self._centre_op).displacement(net, u_c)
+    def _net_answer(self, u_c: np.ndarray, pose: np.ndarray, with_surface: bool,
+                    surfaces: bool) -> tuple[np.ndarray | None, np.ndarray]:
+        """The net engine's grid field (n_nodes, 3) mm when ``with_surface`` (else None) and
+        the displacements (n_points, 3) mm of the lesion centres, with ``surfaces`` of their
+        mesh vertices too, for the rest contact's displacements ``u_c`` (n, 3) mm at ``pose``.
+        Without the full field: the network's residual and the surrogate's point operator
+        (:class:`~biopsynav.contact.lesions.PointOperator`; the hot path of :meth:`update`)."""
+        state, g, net = self._net, u_c, None
+        if self._reach_emb is not None:
+            state, g, net = self._settled_contact(u_c, pose)
+        self.last_touched = self._reach[np.isin(self._reach, state.touched)]
+        op = self._lesion_operator(state) if surfaces else state.centre_op
+        if op is not None and not with_surface:
+            if net is None:
+                net = self._network_residual(state, g)
+            return None, op.displacement(net, g)
+        field = self._net_field(state, g)
+        return field, (self._lesion_emb if surfaces else self._centre_emb).interpolate(field)
+
+    def _settled_contact(self, u_c: np.ndarray, pose: np.ndarray
+                         ) -> tuple[NetContactSet, np.ndarray, np.ndarray]:
+        """The net engine's contact set at ``pose`` (4, 4) grown by the skin the prediction
+        puts behind the face (at most ``CONTACT_ROUNDS`` predictions), the displacements
+        (n, 3) mm of its points (the rest contact's ``u_c``, then the touched skin held on
+        the face) and the network's output for it."""
+        state, g = self._net, u_c
+        net = self._network_residual(state, g)
+        fp, beam = as_footprint(self.case.cfg.probe.footprint), pose[:3, 2]
+        rest = self.case.anatomy.vertices[self._reach]
+        for _ in range(CONTACT_ROUNDS - 1):
+            disp = self._reach_displacement(state, net, g)
+            behind, depth = behind_face(rest + disp, pose, fp, PENETRATION_TOL_MM)
+            held = np.isin(self._reach, state.touched)
+            if not (behind & ~held).any():
+                break
+            keep = held | behind
+            g = np.vstack([u_c, onto_face(disp[keep], depth[keep], beam)])
+            state = self._grown_set(self._reach[keep])
+            net = self._network_residual(state, g)
+        return state, g, net
+
+    def _reach_displacement(self, state: NetContactSet, net: np.ndarray,
+                            g: np.ndarray) -> np.ndarray:
+        """Predicted displacement (m, 3) mm of the skin the face may reach, for the network
+        output ``net`` of ``state`` with its points moved by ``g``."""
+        if state.reach_op is not None:
+            return state.reach_op.displacement(net, g)
+        return self._reach_emb.interpolate(net.reshape(3, -1).T)  # no baseline: net is u
+
+    def _network_residual(self, state: NetContactSet, g: np.ndarray) -> np.ndarray:
+        """The exported network's output (3, nx, ny, nz) mm for the points of ``state``
+        moved by ``g`` (n, 3) mm."""
+        self._set_input(g, state.input_op)
+        return self._surrogate.predict_network(self._input)
+
+    def _net_field(self, state: NetContactSet, g: np.ndarray) -> np.ndarray:
+        """The surrogate's grid displacement (n_nodes, 3) mm for the points of ``state``
+        moved by ``g`` (n, 3) mm (projected onto them when ``state`` projects)."""
+        self._set_input(g, state.input_op)
+        if state.projection is not None:
+            out = self._surrogate.predict(self._input, state.projection, g)
+        else:
+            out = self._surrogate.predict(self._input)
+        return out.reshape(3, -1).T
 
     def _predict(self, u_c: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """Grid displacement (n_nodes, 3) mm for contact displacements ``u_c``."""
+        """Grid displacement (n_nodes, 3) mm for the rest contact's displacements ``u_c``
+        (n, 3) mm at ``pose``."""
         if self.engine == "net":
-            self._set_input(u_c)
-            if self._projection is not None:
-                out = self._surrogate.predict(self._input, self._projection, u_c)
-            else:
-                out = self._surrogate.predict(self._input)
-            return out.reshape(3, -1).T
+            return self._net_answer(u_c, as_pose(pose), True, False)[0]
         return self._fem_field(u_c, as_pose(pose))
 
     def _fem_field(self, u_c: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -449,10 +564,14 @@ class Tracker:
                                              self._fem_contact_embedding().cells)
         return self._fem_rows
 
-    def _set_input(self, u_c: np.ndarray) -> None:
-        """Write the displacement channels of ``self._input`` for contact displacements
-        (n_contact, 3) mm (channel 3 was set at the rest pose)."""
-        op = self._input_op
+    def _set_input(self, u_c: np.ndarray, op: ContactInputOperator) -> None:
+        """Write ``self._input`` for the contact points of the input operator ``op`` moved by
+        ``u_c`` (n, 3) mm (the weight channel and the zeros around the written values only
+        when ``op`` changed)."""
+        if op is not self._input_op:
+            self._input[:] = 0.0
+            self._input_flat[3] = op.weights
+            self._input_op = op
         self._input.reshape(-1)[op.positions] = op.matrix @ u_c.ravel()
 
     def network_input(self, u_c: np.ndarray) -> np.ndarray:
