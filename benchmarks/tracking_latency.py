@@ -2,8 +2,12 @@
 
     python benchmarks/tracking_latency.py [CASE_DIR] [--duration 60 | --quick] [--rate 100]
                                           [--poses poses.csv] [--updates 2000]
+                                          [--push-mm 8] [--follow]
 
-* ``update``: ``Tracker.load(CASE_DIR).update`` over ``--updates`` poses, median and p99.
+* ``update``: ``Tracker.load(CASE_DIR).update`` over ``--updates`` poses, median and p99;
+  with ``--follow`` the same poses again with ``[tracker] contact_follows_pose`` on (the
+  contact set grows with the skin the face reaches; each grown set is built the first time it
+  is met, and that build counts in the figures), and the number of poses that held extra skin.
 * ``fem``: ``Tracker.load(CASE_DIR, engine="fem").update``, median of a few poses.
 * round trip: a stand-in tracker server (PLUS) streams the probe TRANSFORM at ``--rate`` Hz for
   ``--duration`` s to the service (``run_service`` in a child process, as in the field); a
@@ -16,13 +20,15 @@ are skipped (reported as nan) and the round trip uses the rigid stand-in tracker
 (``tests/igtl/rigid.py``), so it measures the service alone.
 
 Poses: ``--poses`` reads the ``biopsynav track`` CSV (``frame, sequence, m00 ... m23``);
-otherwise a synthetic sequence pushes up to 8 mm along the rest pose's beam axis with a
-+-3 degree rock, the rest pose being ``tracker.rest_pose`` when the tracker has one, else the
-probe placed over the case's first lesion as in Table 2 (:func:`biopsynav.evaluate.placement.
-place_probe`: face centre on the skin, beam towards the lesion), else (no case) the identity.
+otherwise a synthetic sequence pushes up to ``--push-mm`` (8 mm) along the rest pose's beam
+axis with a +-3 degree rock, the rest pose being ``tracker.rest_pose`` when the tracker has
+one, else the probe placed over the case's first lesion (``--lesion``) as in Table 2
+(:func:`biopsynav.evaluate.placement.place_probe`: face centre on the skin, beam towards the
+lesion), else (no case) the identity.
 
 The last line reads ``RESULT update_p50_ms=... update_p99_ms=... rtt_p50_ms=... rtt_p99_ms=...
-lost=... fem_update_ms=...``.
+lost=... fem_update_ms=...`` (with ``--follow`` also ``follow_p50_ms=... follow_p99_ms=...
+follow_held=N/M``).
 """
 
 from __future__ import annotations
@@ -63,10 +69,12 @@ def read_poses_csv(path: str | Path) -> np.ndarray:
     return np.array(poses)
 
 
-def synthetic_poses(rest: np.ndarray, n: int, rate_hz: float = 100.0) -> np.ndarray:
-    """Push (0-8 mm along the rest beam axis, 2 s period) and rock (+-3 deg about probe x)."""
+def synthetic_poses(rest: np.ndarray, n: int, rate_hz: float = 100.0,
+                    push_mm: float = 8.0) -> np.ndarray:
+    """Push (0 to ``push_mm`` along the rest beam axis, 2 s period) and rock (+-3 deg about
+    probe x)."""
     t = np.arange(n) / rate_hz
-    push = 4.0 * (1 - np.cos(2 * np.pi * t / 2.0))
+    push = 0.5 * push_mm * (1 - np.cos(2 * np.pi * t / 2.0))
     angle = np.radians(3.0) * np.sin(2 * np.pi * t / 3.0)
     poses = np.empty((n, 4, 4))
     for k in range(n):
@@ -104,8 +112,9 @@ def stand_in_tracker():
     return RigidLesionTracker(LESION_CENTERS, max_push_mm=1e6)
 
 
-def rest_pose_of(tracker) -> np.ndarray:
-    """The tracker's rest pose; else the probe over the case's first lesion; else identity."""
+def rest_pose_of(tracker, lesion: int = 0) -> np.ndarray:
+    """The tracker's rest pose; else the probe over the case's lesion of index ``lesion``;
+    else identity."""
     rest = getattr(tracker, "rest_pose", None)
     if rest is not None:
         return np.asarray(rest, dtype=np.float64)
@@ -113,12 +122,13 @@ def rest_pose_of(tracker) -> np.ndarray:
     if case is not None and len(case.anatomy.lesions):
         from biopsynav.evaluate.placement import place_probe
 
-        return np.asarray(place_probe(case.anatomy, 0).pose, dtype=np.float64)
+        return np.asarray(place_probe(case.anatomy, lesion).pose, dtype=np.float64)
     return np.eye(4)
 
 
-def time_updates(tracker, poses: np.ndarray) -> list[float]:
-    """Milliseconds per ``update`` call (rest pose set at the first pose)."""
+def time_updates(tracker, poses: np.ndarray, held: list | None = None) -> list[float]:
+    """Milliseconds per ``update`` call (rest pose set at the first pose); ``held`` gets
+    the number of skin vertices each update added to the contact set."""
     tracker.set_rest_pose(poses[0])
     tracker.update(poses[0])  # warm-up
     times = []
@@ -126,6 +136,8 @@ def time_updates(tracker, poses: np.ndarray) -> list[float]:
         t0 = time.perf_counter()
         tracker.update(T)
         times.append((time.perf_counter() - t0) * 1e3)
+        if held is not None:
+            held.append(len(tracker.last_touched))
     return times
 
 
@@ -139,6 +151,22 @@ def bench_update(args, poses_for) -> tuple[float, float]:
     p50, p99 = percentiles(time_updates(tracker, poses_for(tracker, args.updates)))
     print(f"  p50 {p50:.3f} ms  p99 {p99:.3f} ms")
     return p50, p99
+
+
+def bench_follow(args, poses_for) -> tuple[float, float, str]:
+    """``update`` with ``[tracker] contact_follows_pose`` on, over the same poses."""
+    print(f"update() over {args.updates} poses, the contact set following the pose:")
+    from biopsynav.case import Case
+    from biopsynav.tracker import Tracker
+
+    case = Case.load(args.case_dir)
+    case.cfg.tracker.contact_follows_pose = True
+    tracker, held = Tracker.load(case), []
+    p50, p99 = percentiles(time_updates(tracker, poses_for(tracker, args.updates), held))
+    share = f"{int(np.count_nonzero(held))}/{len(held)}"
+    print(f"  p50 {p50:.3f} ms  p99 {p99:.3f} ms; poses holding extra skin {share} (up to "
+          f"{max(held, default=0)} vertices, {len(tracker._grown)} grown sets)")
+    return p50, p99, share
 
 
 def bench_fem(args, poses_for) -> float:
@@ -298,7 +326,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--rate", type=float, default=100.0, help="probe pose rate, Hz")
     p.add_argument("--updates", type=int, default=2000, help="poses timed for update()")
     p.add_argument("--poses", default=None, help="poses CSV (frame, sequence, m00 ... m23)")
+    p.add_argument("--push-mm", type=float, default=8.0, help="synthetic push depth, mm")
+    p.add_argument("--lesion", type=int, default=1,
+                   help="synthetic pushes over the case's lesion of this index (1: the first)")
+    p.add_argument("--follow", action="store_true",
+                   help="time update() again with [tracker] contact_follows_pose on")
     args = p.parse_args(argv)
+    if args.follow and args.case_dir is None:
+        p.error("--follow needs CASE_DIR")
     if args.quick:
         args.duration = 5.0
     return args
@@ -312,13 +347,18 @@ def main(argv: list[str] | None = None) -> int:
     def poses_for(tracker, n: int) -> np.ndarray:
         if csv_poses is not None:
             return csv_poses[np.arange(n) % len(csv_poses)]
-        return synthetic_poses(rest_pose_of(tracker), n, args.rate)
+        return synthetic_poses(rest_pose_of(tracker, args.lesion - 1), n, args.rate,
+                               args.push_mm)
 
     upd50, upd99 = bench_update(args, poses_for)
+    follow = bench_follow(args, poses_for) if args.follow else None
     fem = bench_fem(args, poses_for)
     rtt50, rtt99, lost = bench_round_trip(args, poses_for)
+    extra = ("" if follow is None else
+             f" follow_p50_ms={follow[0]:.3f} follow_p99_ms={follow[1]:.3f} "
+             f"follow_held={follow[2]}")
     print(f"RESULT update_p50_ms={upd50:.3f} update_p99_ms={upd99:.3f} rtt_p50_ms={rtt50:.3f} "
-          f"rtt_p99_ms={rtt99:.3f} lost={lost} fem_update_ms={fem:.1f}")
+          f"rtt_p99_ms={rtt99:.3f} lost={lost} fem_update_ms={fem:.1f}{extra}")
     return 0
 
 
