@@ -69,6 +69,20 @@ class Case:
         return hashlib.sha256((self.anatomy.fingerprint() + self.grid.fingerprint())
                               .encode()).hexdigest()
 
+    @property
+    def tracking_model(self) -> Path:
+        """The model folder the tracker uses: the one trained further on the fine teacher's
+        pushes (``CASE_DIR/refine/model``) when ``[refine] samples > 0``, else ``model``.
+        InputError when that model has not been trained yet."""
+        if not self.cfg.refine.samples:
+            return self.paths.model
+        refined = CasePaths(self.paths.refine)
+        if not refined.model_meta.is_file():
+            raise InputError("[refine] samples > 0 but the model trained on the fine teacher's "
+                             "pushes is missing: run `biopsynav refine CASE` (or `biopsynav run "
+                             "CASE`)", str(refined.model))
+        return refined.model
+
     def stages_done(self) -> dict[str, bool]:
         """Which pipeline outputs exist in the folder."""
         return {name: (self.dir / rel).exists() for name, rel in STAGES.items()}

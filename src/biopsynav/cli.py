@@ -158,6 +158,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_refine(args: argparse.Namespace) -> int:
+    from .pipeline import refine_stage
+
+    case = loaded_case(args)
+    summary = refine_stage(case, args.workers)
+    if summary:
+        print(f"fine pushes: {summary.get('count', 0)} of {summary.get('requested', 0)} "
+              f"(deepest {summary.get('max_probe_disp_mm', 0.0):.1f} mm) in "
+              f"{case.paths.refine}; the tracker uses {case.tracking_model}")
+    return 0
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_case
 
@@ -286,6 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"))
 
+    p = add("refine", cmd_refine, "Train the network further on a finer teacher's rigid "
+            "pushes ([refine] samples > 0; resumable).")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
+                   "cores)")
+
     p = add("evaluate", cmd_evaluate, "The paper's Table 1 and Table 2.")
     p.add_argument("case_dir", type=Path)
     p.add_argument("--table1-only", action="store_true", help="skip Table 2")
@@ -328,8 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands that write into the case folder: each holds the case's lock while it runs.
-WRITING_COMMANDS = ("init", "show", "simulate", "generate", "train", "evaluate", "report",
-                    "run", "demo")
+WRITING_COMMANDS = ("init", "show", "simulate", "generate", "train", "refine", "evaluate",
+                    "report", "run", "demo")
 
 
 def _run_command(args: argparse.Namespace) -> int:

@@ -399,6 +399,30 @@ class NetworkSection:
 
 
 @dataclass
+class RefineSection:
+    samples: int = opt(0, "Multi-fidelity training (docs/dataset.md, 'Trained further on a "
+                          "finer teacher'): after the case-grid network, this many rigid-probe "
+                          "pushes are solved on cells teacher_refine times smaller, fitted to "
+                          "the case grid, and the network is trained further on them; the "
+                          "tracker then uses that model (CASE_DIR/refine/model). They live in "
+                          "their own case folder, CASE_DIR/refine, with the same anatomy and "
+                          "grid. 0 (default): off; the case-grid network is the model.",
+                       lo=0, hi=10**6)
+    held_out: int = opt(10, "Of those samples, held out to choose the best weights (mean e "
+                            "against the fine teacher).", lo=1, hi=10**6)
+    teacher_refine: int = opt(2, "The fine teacher's cells are [grid] cell_size_mm divided by "
+                                 "this ([dataset] teacher_refine of the refine case).",
+                              lo=2, hi=4)
+    max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
+                                   "uniform up to it, tilts within [probe] "
+                                   "rigid_max_tilt_deg.", lo=1.0, hi=200.0)
+    iterations: int = opt(4000, "Training iterations on the fine pushes, from the case-grid "
+                                "network's best weights.", lo=1, hi=10**8)
+    learning_rate: float = opt(3e-4, "Peak learning rate of that training (100 warm-up "
+                                     "steps, then cosine decay).", lo=1e-7, hi=1.0)
+
+
+@dataclass
 class TrackerSection:
     engine: str = opt("net", "Default engine: 'net' (U-Net) or 'fem' (finite elements).",
                       choices=("net", "fem"))
@@ -547,6 +571,7 @@ SECTIONS: dict[str, type] = {
     "probe": ProbeSection,
     "dataset": DatasetSection,
     "network": NetworkSection,
+    "refine": RefineSection,
     "tracker": TrackerSection,
     "igtl": IgtlSection,
     "evaluate": EvaluateSection,
@@ -565,6 +590,7 @@ class CaseConfig:
     probe: ProbeSection = field(default_factory=ProbeSection)
     dataset: DatasetSection = field(default_factory=DatasetSection)
     network: NetworkSection = field(default_factory=NetworkSection)
+    refine: RefineSection = field(default_factory=RefineSection)
     tracker: TrackerSection = field(default_factory=TrackerSection)
     igtl: IgtlSection = field(default_factory=IgtlSection)
     evaluate: EvaluateSection = field(default_factory=EvaluateSection)
@@ -624,6 +650,9 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
         raise InputError(f"[probe] footprint_mm must be two positive lengths (finite, mm), got "
                          f"{fp!r}", where)
     _check_edge_radius(cfg, where)
+    if cfg.refine.samples and cfg.refine.held_out >= cfg.refine.samples:
+        raise InputError(f"[refine] held_out ({cfg.refine.held_out}) must be smaller than "
+                         f"samples ({cfg.refine.samples})", where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from .case import Case, as_case
+from .errors import InputError
 from .fileio import read_json
+from .layout import META
 
 
 def case_summary(case: Case | str | Path) -> dict:
@@ -54,9 +56,15 @@ def case_summary(case: Case | str | Path) -> dict:
 def model_teacher(case: Case) -> str:
     """What taught the case's trained model, in words; empty when there is no model. Models
     written before the teacher was recorded load as they are: they were taught by the case
-    grid's FE with force patches, the only teacher of their time."""
-    meta = read_json(case.paths.model_meta, "retrain with `biopsynav train CASE`",
-                     missing_ok=True)
+    grid's FE with force patches, the only teacher of their time. With ``[refine] samples >
+    0`` the model the tracker uses is the one trained further on the fine teacher's pushes
+    (``refine/model``); until it exists, the case's model with a note."""
+    pending = ""
+    try:
+        meta_path = case.tracking_model / META
+    except InputError:
+        meta_path, pending = case.paths.model_meta, " ([refine]: not trained further yet)"
+    meta = read_json(meta_path, "retrain with `biopsynav train CASE`", missing_ok=True)
     if not meta:
         return ""
     t = meta.get("teacher")
@@ -68,7 +76,7 @@ def model_teacher(case: Case) -> str:
     if source:  # [network] init_from: trained further from another model
         words += (f"; started from the model in {source.get('path')}, taught by "
                   f"{teacher_words(source.get('teacher') or {}, case.grid.spacing)}")
-    return words
+    return words + pending
 
 
 def teacher_words(t: dict, spacing: float) -> str:

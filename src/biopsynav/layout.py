@@ -20,6 +20,7 @@ DATASET_NAME = "dataset.zarr"
 DATASET_SUMMARY = "dataset_summary.json"
 DATASET_PLOT = "dataset.png"
 MODEL_DIR = "model"
+REFINE_DIR = "refine"  # the multi-fidelity case folder inside a case ([refine] samples > 0)
 META = "meta.json"
 HISTORY = "history.json"
 CHECKPOINT = "checkpoint.pt"
@@ -82,6 +83,12 @@ class CasePaths:
     @property
     def model_meta(self) -> Path:
         return self.model / META
+
+    @property
+    def refine(self) -> Path:
+        """The case folder of the fine teacher's pushes and the model trained further on them
+        (``[refine] samples > 0``): a case of its own, same anatomy and grid."""
+        return self.dir / REFINE_DIR
 
     @property
     def eval(self) -> Path:

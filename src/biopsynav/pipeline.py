@@ -1,8 +1,9 @@
 """``biopsynav run`` and ``biopsynav demo``: every missing stage of a case, in order.
 
 Stages and their outputs: init (case.toml, anatomy.npz, grid.npz) -> generate (dataset.zarr,
-dataset_summary.json) -> train (model/meta.json) -> evaluate (eval/table1.json,
-eval/table2.json) -> report (report.html, report.md). A stage runs when its output is missing or
+dataset_summary.json) -> train (model/meta.json) -> refine (with ``[refine] samples > 0``:
+refine/dataset.zarr, refine/model/meta.json) -> evaluate (eval/table1.json, eval/table2.json)
+-> report (report.html, report.md). A stage runs when its output is missing or
 older than the output of the stage before it; generation and training resume where they
 stopped, so running again after an interruption continues rather than restarts.
 """
@@ -96,14 +97,45 @@ def training_stage(case: Case) -> None:
         print("  up to date")
 
 
+def refine_stage(case: Case, workers: int) -> dict:
+    """Stage 3b (``[refine] samples > 0``, else nothing): the fine teacher's rigid pushes in
+    ``CASE_DIR/refine`` (:mod:`biopsynav.refine`), and the case's network trained further on
+    them when that model is missing or older than those pushes or than the case's model; the
+    fine data's summary ({} when off)."""
+    if not case.cfg.refine.samples:
+        print("  off ([refine] samples = 0)")
+        return {}
+    from .errors import InputError
+    from .refine import refine_case
+
+    if not case.paths.model_meta.is_file():
+        raise InputError("[refine] trains the case's network further: train it first "
+                         "(`biopsynav train CASE`)", str(case.paths.model))
+    fine = refine_case(case)
+    summary = data_stage(fine, workers)
+    if _stale(fine.paths.model_meta, fine.paths.dataset_summary, case.paths.model_meta):
+        from .network.train import train_case
+
+        train_case(fine)
+    else:
+        print("  model up to date")
+    return summary
+
+
 def evaluation_stage(case: Case, quick: bool) -> None:
-    """Stage 4: Table 1 and Table 2 when they are missing or older than the model."""
-    if _stale(case.paths.table2(), case.paths.model_meta):
+    """Stage 4: Table 1 and Table 2 when they are missing or older than the model (the
+    tracking model: ``refine/model`` with ``[refine] samples > 0``)."""
+    if _stale(case.paths.table2(), case.paths.model_meta, _refined_meta(case)):
         from .evaluate import evaluate_case
 
         evaluate_case(case, quick=quick)
     else:
         print("  up to date")
+
+
+def _refined_meta(case: Case) -> Path:
+    """``refine/model/meta.json`` (absent unless ``[refine] samples > 0`` ran)."""
+    return CasePaths(case.paths.refine).model_meta
 
 
 def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:
@@ -114,7 +146,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     timings: dict[str, float] = {}
 
     def timed(step: int, text: str, key: str, stage: Callable, *args):
-        _banner(step, 5, text)
+        _banner(step, 6, text)
         t = time.perf_counter()
         out = stage(*args)
         timings[key] = time.perf_counter() - t
@@ -124,8 +156,10 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     data_summary = timed(2, "training data (FE simulations)", "generate_s", data_stage, case,
                          workers)
     timed(3, "network training", "train_s", training_stage, case)
-    timed(4, "evaluation (Table 1 and Table 2)", "evaluate_s", evaluation_stage, case, quick)
-    paths = timed(5, "report", "report_s", write_report, case)
+    timed(4, "training further on a finer teacher ([refine])", "refine_s", refine_stage, case,
+          workers)
+    timed(5, "evaluation (Table 1 and Table 2)", "evaluate_s", evaluation_stage, case, quick)
+    paths = timed(6, "report", "report_s", write_report, case)
     return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary}
 
 

@@ -8,20 +8,24 @@ from pathlib import Path
 from ..case import Case, as_case
 from ..errors import InputError
 from ..fileio import write_json_atomic, write_text_atomic
-from ..layout import EVAL_DIR, TABLE2, TABLE2_MEASURED, CasePaths
+from ..layout import EVAL_DIR, TABLE2, TABLE2_MEASURED
 from ..reference_registry import check_reference
+from ..refine import fine_case
 from .measured import evaluate_measured
 from .paper import PAPER_TABLE2_COL_MEAN, PAPER_TABLE2_MAX_ROW_MEAN
 from .simulation import run_simulation
 from .table import BIN_EDGES_MM, METHOD_TITLES, format_markdown, format_text, table_from_dict
 
 
-def require_model(case_dir: Path) -> None:
-    """Raise InputError unless the case has a trained model."""
-    meta = CasePaths(case_dir).model_meta
+def require_model(case: Case) -> None:
+    """Raise InputError unless the case has a trained model (and, with ``[refine] samples >
+    0``, the model trained further on the fine teacher's pushes)."""
+    meta = case.paths.model_meta
     if not meta.is_file():
         raise InputError("missing: no trained model in this case; run `biopsynav train "
-                         f"{case_dir}` first (and `biopsynav generate` before it)", str(meta))
+                         f"{case.dir}` first (and `biopsynav generate` before it)", str(meta))
+    if case.cfg.refine.samples and not case.tracking_model.is_dir():
+        raise InputError("missing: the refined model", str(case.tracking_model))
 
 
 def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | Path | None = None,
@@ -39,7 +43,7 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
         raise InputError("--poses and --measured go together: the tracked probe poses and the "
                          "lesion positions measured in those frames", "evaluate")
     case = as_case(case)
-    require_model(case.dir)
+    require_model(case)
     if table2 and measured is None:
         check_reference(case)
     from ..network.evaluate import evaluate_network_case as table1_case
@@ -47,6 +51,10 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
 
     out: dict = {"table1": table1_case(case)}
     log("Table 1: " + format_table1(out["table1"]))
+    if case.cfg.refine.samples:
+        out["table1_refined"] = table1_case(fine_case(case))
+        log("Table 1 of the model trained further on the fine teacher (its held-out fine "
+            "pushes, refine/eval): " + format_table1(out["table1_refined"]))
     if measured is not None:
         result = evaluate_measured(case, poses, measured, log=log)
         out["table2"] = write_table2(case.dir, result, TABLE2_MEASURED, log)

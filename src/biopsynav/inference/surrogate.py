@@ -239,7 +239,7 @@ def load_for_case(case: Case | str | Path, *, runtime: str | None = None,
 
     case = as_case(case)
     net = case.cfg.network
-    return Surrogate.load(case.paths.model, case.fingerprint(), case=case,
+    return Surrogate.load(case.tracking_model, case.fingerprint(), case=case,
                           runtime=runtime or net.runtime,
                           threads=net.threads if threads is None else threads)
 

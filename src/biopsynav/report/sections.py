@@ -165,6 +165,7 @@ def table1_section(case_dir: Path) -> Section:
                      f"{t1['inverted_cells_max']} cells ({t1['inverted_samples_fe']})",
                      "not reported"])
     s.blocks.append(GridTable(["", "this case", "the paper"], rows))
+    s.blocks += refined_table1_blocks(case_dir)
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
                                        "samples."),
                ("largest_deformation.png", "Figure 4(a): prediction (network) against FE on "
@@ -176,6 +177,19 @@ def table1_section(case_dir: Path) -> Section:
         s.blocks.append(Image(path, caption) if path.is_file() else
                         Note(f"{name} is missing: run `biopsynav evaluate {case_dir}` again."))
     return s
+
+
+def refined_table1_blocks(case_dir: Path) -> list:
+    """A note with Table 1 of the model trained further on the fine teacher's pushes
+    (``refine/eval/table1.json``, ``[refine]``), the tracker's model; none without one."""
+    t1 = read_stage_json(CasePaths(CasePaths(case_dir).refine).table1)
+    if t1 is None:
+        return []
+    return [Note(f"The tracker uses the model trained further on {_num(t1.get('n_samples'))} "
+                 "held-out and the other rigid pushes of a finer teacher ([refine], "
+                 f"refine/eval): mean / max e against that teacher {_num(t1.get('mean_e_mm'))}"
+                 f" / {_num(t1.get('max_e_mm'))} mm. The table above is the case-grid "
+                 "network it started from, against the case grid's FE.")]
 
 
 def table2_section(case_dir: Path, fig_dir: Path) -> Section:

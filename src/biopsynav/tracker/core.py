@@ -178,7 +178,7 @@ class Tracker:
         if engine == "net":
             from ..inference.surrogate import Surrogate
 
-            sur = Surrogate.load(case.paths.model, case.fingerprint(), case=case,
+            sur = Surrogate.load(case.tracking_model, case.fingerprint(), case=case,
                                  threads=case.cfg.network.threads if threads is None
                                  else threads)
             return cls(case, engine, surrogate=sur)

@@ -1,0 +1,118 @@
+"""Multi-fidelity training (``[refine]``): the case's network trained further on a finer
+teacher's rigid pushes in ``CASE_DIR/refine``, and the tracker using that model."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from biopsynav.case import Case
+from biopsynav.config import CaseConfig, config_from_dict, load_config, save_config
+from biopsynav.errors import InputError
+from biopsynav.refine import refined_config
+
+
+def test_the_refine_configuration_derives_from_the_case():
+    cfg = CaseConfig()
+    cfg.case.name = "p1"
+    cfg.refine.samples, cfg.refine.held_out, cfg.refine.max_push_mm = 30, 5, 28.0
+    out = refined_config(cfg)
+    assert out.probe.rigid_share == 1.0 and out.probe.max_push_mm == 28.0
+    assert not out.probe.calibrate_force
+    assert (out.dataset.n_train, out.dataset.n_test) == (25, 5)
+    assert out.dataset.teacher_refine == cfg.refine.teacher_refine == 2
+    assert out.network.init_from == "../model"
+    assert out.network.iterations == cfg.refine.iterations
+    assert out.refine.samples == 0  # the refine case does not refine again
+    assert out.material == cfg.material and out.grid == cfg.grid and out.solver == cfg.solver
+    assert cfg.probe.rigid_share == 0.0 and cfg.network.init_from == ""  # the case's untouched
+
+
+def test_held_out_must_leave_training_samples():
+    with pytest.raises(InputError, match="held_out"):
+        config_from_dict({"refine": {"samples": 5, "held_out": 5}})
+    assert config_from_dict({"refine": {"samples": 0, "held_out": 10}}).refine.samples == 0
+
+
+@pytest.fixture(scope="module")
+def refined(trained_case, tmp_path_factory):
+    """The trained coarse phantom case with [refine] 4 samples (1 held out) of pushes to
+    10 mm, trained further for 4 iterations by `biopsynav refine`."""
+    from biopsynav.cli import main
+
+    case = tmp_path_factory.mktemp("refine") / "case"
+    shutil.copytree(trained_case, case)
+    cfg = load_config(case)
+    cfg.refine.samples, cfg.refine.held_out = 4, 1
+    cfg.refine.iterations, cfg.refine.max_push_mm = 4, 10.0
+    save_config(case, cfg)
+    with pytest.raises(InputError, match="refine"):
+        Case.load(case).tracking_model  # noqa: B018  (not trained further yet)
+    assert main(["refine", str(case), "--workers", "1"]) == 0
+    return case
+
+
+def test_refine_trains_the_case_network_further_on_fine_rigid_pushes(refined):
+    fine = refined / "refine"
+    summary = json.loads((fine / "dataset_summary.json").read_text())
+    assert summary["count"] == 4 and summary["rigid_pushes"] == 4
+    assert 0 < summary["max_probe_disp_mm"] <= 10.0 + 1e-6
+    meta = json.loads((fine / "model" / "meta.json").read_text())
+    base = json.loads((refined / "model" / "meta.json").read_text())
+    assert meta["teacher"]["teacher_refine"] == 2 and meta["teacher"]["rigid_share"] == 1.0
+    assert meta["training"]["init_from"]["checksum"] == base["checksum"]
+    assert meta["fingerprint"] == base["fingerprint"]  # same anatomy and grid
+
+
+def test_the_tracker_uses_the_refined_model(refined):
+    from biopsynav.info import model_teacher
+    from biopsynav.tracker import Tracker
+
+    case = Case.load(refined)
+    assert case.tracking_model == refined / "refine" / "model"
+    tracker = Tracker.load(case)
+    assert tracker._surrogate.model_dir == refined / "refine" / "model"
+    assert "started from the model" in model_teacher(case)
+
+
+def test_refine_again_is_up_to_date_and_off_means_the_case_model(refined, capsys):
+    from biopsynav.cli import main
+
+    meta = refined / "refine" / "model" / "meta.json"
+    before = meta.stat().st_mtime_ns
+    assert main(["refine", str(refined)]) == 0
+    assert meta.stat().st_mtime_ns == before and "up to date" in capsys.readouterr().out
+    cfg = load_config(refined)
+    cfg.refine.samples = 0
+    assert Case(refined, cfg, None, None).tracking_model == refined / "model"
+
+
+def test_refine_needs_the_case_network_first(base_case, tmp_path):
+    from biopsynav.pipeline import refine_stage
+
+    case_dir = tmp_path / "case"
+    shutil.copytree(base_case, case_dir)
+    case = Case.load(case_dir)
+    case.cfg.refine.samples = 4
+    with pytest.raises(InputError, match="train it first"):
+        refine_stage(case, workers=1)
+    assert not (case_dir / "refine").exists()
+
+
+def test_table1_covers_the_refined_model_too(refined):
+    from biopsynav.cli import main
+
+    assert main(["evaluate", str(refined), "--table1-only"]) == 0
+    base = json.loads((refined / "eval" / "table1.json").read_text())
+    fine = json.loads((refined / "refine" / "eval" / "table1.json").read_text())
+    assert base["n_samples"] == 2 and fine["n_samples"] == 1  # each its own held-out pushes
+
+
+def test_the_report_names_the_refined_model(refined):
+    from biopsynav.cli import main
+
+    assert main(["evaluate", str(refined), "--table1-only"]) == 0
+    assert main(["report", str(refined)]) == 0
+    assert "trained further on" in (refined / "report.md").read_text()
