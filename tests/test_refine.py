@@ -116,3 +116,13 @@ def test_the_report_names_the_refined_model(refined):
     assert main(["evaluate", str(refined), "--table1-only"]) == 0
     assert main(["report", str(refined)]) == 0
     assert "trained further on" in (refined / "report.md").read_text()
+
+
+def test_the_refine_folder_is_a_case_of_its_own(refined, capsys):
+    from biopsynav.cli import main
+
+    fine = Case.load(refined / "refine")
+    assert fine.fingerprint() == Case.load(refined).fingerprint()
+    assert fine.tracking_model == refined / "refine" / "model"
+    assert main(["info", str(refined / "refine")]) == 0
+    assert "-refine" in capsys.readouterr().out
