@@ -94,3 +94,34 @@ def write_synthetic_dataset(case_dir: str | Path, shape: tuple[int, int, int] = 
     g.attrs.update({"n_train": n_train, "n_test": n_test, "fingerprint": fingerprint,
                     "node_shape": list(shape), "spacing_mm": spacing})
     return path
+
+
+def write_linear_elastic_dataset(case, n_train: int, n_test: int, seed: int,
+                                 nodes_per_sample: int = 5) -> np.ndarray:
+    """A ``dataset.zarr`` in the loaded phantom ``case``'s folder whose inputs press
+    ``nodes_per_sample`` random contact candidates by one random vector (mm) each and whose
+    targets are the hard linear-elastic response plus a smooth non-linear term; returns the
+    inputs (n, 4, nx, ny, nz)."""
+    from biopsynav.contact.baseline import LinearElasticBaseline
+    from biopsynav.contact.greens import candidate_nodes
+
+    shape, n = case.grid.node_shape, n_train + n_test
+    hard = LinearElasticBaseline.from_case(case, spring=None)
+    cand, rng = candidate_nodes(case), np.random.default_rng(seed)
+    x = np.zeros((n, 4, int(np.prod(shape))), np.float32)
+    for i in range(n):
+        nodes = rng.choice(cand, nodes_per_sample, replace=False)
+        x[i][:3, nodes] = (rng.normal(size=3) * 3.0)[:, None]
+        x[i][3, nodes] = rng.uniform(0.5, 3.0, nodes_per_sample)
+    x = x.reshape(n, 4, *shape)
+    lin = hard.predict(x)
+    g = zarr.open_group(str(case.dir / "dataset.zarr"), mode="w")
+    g.create_array("inputs", data=x, chunks=(1, 4, *shape))
+    g.create_array("targets", data=(lin + 0.02 * lin * np.abs(lin)).astype(np.float32),
+                   chunks=(1, 3, *shape))
+    g.create_array("done", data=np.ones(n, bool))
+    g.create_array("active_nodes", data=np.asarray(case.grid.active_nodes, bool))
+    g.attrs.update({"n_train": n_train, "n_test": n_test, "fingerprint": case.fingerprint(),
+                    "node_shape": list(shape), "spacing_mm": float(case.grid.spacing),
+                    "protocol": {"dataset": {"contact_input": "elastic"}}})
+    return x

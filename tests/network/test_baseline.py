@@ -8,15 +8,14 @@ import os
 import numpy as np
 import pytest
 import scipy.sparse as sp
-import zarr
 
 from biopsynav.contact.baseline import LinearElasticBaseline
-from biopsynav.contact.greens import candidate_nodes
 from biopsynav.errors import FingerprintError
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
 from biopsynav.grid.index import hex_connectivity
 
 from .conftest import tiny_settings
+from .synth import write_linear_elastic_dataset
 
 SHAPE = (6, 5, 4)
 SPACING = 5.0
@@ -124,28 +123,7 @@ def phantom(tmp_path_factory):
 
     case_dir = tmp_path_factory.mktemp("phantom") / "case"
     case = make_phantom_case(case_dir, cell_size_mm=24.0)
-    shape = case.grid.node_shape
-    hard = LinearElasticBaseline.from_case(case, spring=None)
-    cand = candidate_nodes(case)
-    rng = np.random.default_rng(3)
-    n_train, n_test = 12, 4
-    n = n_train + n_test
-    x = np.zeros((n, 4, int(np.prod(shape))), np.float32)
-    for i in range(n):
-        nodes = rng.choice(cand, 5, replace=False)
-        x[i][:3, nodes] = (rng.normal(size=3) * 3.0)[:, None]
-        x[i][3, nodes] = rng.uniform(0.5, 3.0, 5)
-    x = x.reshape(n, 4, *shape)
-    lin = hard.predict(x)
-    y = (lin + 0.02 * lin * np.abs(lin)).astype(np.float32)
-    g = zarr.open_group(str(case_dir / "dataset.zarr"), mode="w")
-    g.create_array("inputs", data=x, chunks=(1, 4, *shape))
-    g.create_array("targets", data=y, chunks=(1, 3, *shape))
-    g.create_array("done", data=np.ones(n, bool))
-    g.create_array("active_nodes", data=np.asarray(case.grid.active_nodes, bool))
-    g.attrs.update({"n_train": n_train, "n_test": n_test, "fingerprint": case.fingerprint(),
-                    "node_shape": list(shape), "spacing_mm": 24.0,
-                    "protocol": {"dataset": {"contact_input": "elastic"}}})
+    x = write_linear_elastic_dataset(case, n_train=12, n_test=4, seed=3)
     return case_dir, case, x
 
 

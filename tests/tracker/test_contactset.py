@@ -7,7 +7,6 @@ import copy
 
 import numpy as np
 import pytest
-import zarr
 
 from biopsynav.footprint import as_footprint
 from biopsynav.tracker import Tracker
@@ -75,33 +74,12 @@ def net_case(tmp_path_factory):
     """The phantom at 10 mm cells, a small synthetic data set (the hard linear-elastic
     response plus a smooth non-linear term) and a model trained on it for a few steps."""
     from biopsynav.case import make_phantom_case
-    from biopsynav.contact.baseline import LinearElasticBaseline
-    from biopsynav.contact.greens import candidate_nodes
     from biopsynav.network.train import train
-    from tests.network.synth import tiny_settings
+    from tests.network.synth import tiny_settings, write_linear_elastic_dataset
 
     case_dir = tmp_path_factory.mktemp("follow") / "case"
     case = make_phantom_case(case_dir, cell_size_mm=10.0)
-    shape = case.grid.node_shape
-    hard = LinearElasticBaseline.from_case(case, spring=None)
-    cand, rng = candidate_nodes(case), np.random.default_rng(5)
-    n = 8
-    x = np.zeros((n, 4, int(np.prod(shape))), np.float32)
-    for i in range(n):
-        nodes = rng.choice(cand, 6, replace=False)
-        x[i][:3, nodes] = (rng.normal(size=3) * 3.0)[:, None]
-        x[i][3, nodes] = rng.uniform(0.5, 3.0, 6)
-    x = x.reshape(n, 4, *shape)
-    lin = hard.predict(x)
-    g = zarr.open_group(str(case_dir / "dataset.zarr"), mode="w")
-    g.create_array("inputs", data=x, chunks=(1, 4, *shape))
-    g.create_array("targets", data=(lin + 0.02 * lin * np.abs(lin)).astype(np.float32),
-                   chunks=(1, 3, *shape))
-    g.create_array("done", data=np.ones(n, bool))
-    g.create_array("active_nodes", data=np.asarray(case.grid.active_nodes, bool))
-    g.attrs.update({"n_train": 6, "n_test": 2, "fingerprint": case.fingerprint(),
-                    "node_shape": list(shape), "spacing_mm": 10.0,
-                    "protocol": {"dataset": {"contact_input": "elastic"}}})
+    write_linear_elastic_dataset(case, n_train=6, n_test=2, seed=5, nodes_per_sample=6)
     train(case_dir, settings=tiny_settings(levels=2, iterations=10, val_interval=10,
                                            warmup_iterations=2, baseline="linear-elastic"),
           progress=False)
