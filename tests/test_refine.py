@@ -126,3 +126,18 @@ def test_the_refine_folder_is_a_case_of_its_own(refined, capsys):
     assert fine.tracking_model == refined / "refine" / "model"
     assert main(["info", str(refined / "refine")]) == 0
     assert "-refine" in capsys.readouterr().out
+
+
+def test_the_fe_engine_and_the_truth_follow_the_fine_teacher(refined):
+    """The FE engine (track --engine fem, Table 2's FE column) solves on the fine teacher's
+    grid, and a fine-grid truth no finer than that teacher is refused."""
+    from biopsynav import reference_registry
+    from biopsynav.tracker.core import fem_engine
+
+    case = Case.load(refined)
+    tracker = fem_engine(case, None)
+    assert tracker._teacher is not None
+    assert len(tracker._fem_model.hexes) > 6 * case.grid.active_cells.sum()
+    case.cfg.evaluate.reference, case.cfg.evaluate.reference_refinement = "fine_grid", 2.0
+    with pytest.raises(InputError, match="no finer than the network.s teacher"):
+        reference_registry.check_reference(case)

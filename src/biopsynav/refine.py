@@ -73,6 +73,13 @@ def fine_case(case: Case) -> Case:
     return Case(case.paths.refine, refined_config(case.cfg), case.anatomy, case.grid)
 
 
+def tracking_teacher_case(case: Case) -> Case:
+    """The case whose data taught the model the tracker uses: the refine case with
+    ``[refine] samples > 0``, else ``case`` (its ``[dataset] teacher_refine`` is that
+    teacher's grid: the FE engine solves there, and a fine-grid truth must be finer)."""
+    return fine_case(case) if case.cfg.refine.samples else case
+
+
 def _stored_config(paths: CasePaths) -> CaseConfig | None:
     """The refine case's stored configuration, None when missing or unreadable."""
     if not paths.config.is_file():

@@ -93,7 +93,7 @@ def test_labels_of_one_material_are_a_homogeneous_case_for_the_p2_reference():
 def test_a_fine_grid_reference_no_finer_than_the_teacher_is_refused():
     case = SimpleNamespace(cfg=config_from_dict({"evaluate": {"reference": "fine_grid"},
                                                  "dataset": {"teacher_refine": 2}}))
-    with pytest.raises(InputError, match="no finer than the teacher"):
+    with pytest.raises(InputError, match="no finer than the network.s teacher"):
         reference_registry.check_reference(case)
     case.cfg.evaluate.reference_refinement = 4.0
     reference_registry.check_reference(case)

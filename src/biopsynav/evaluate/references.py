@@ -48,13 +48,16 @@ class GridReference:
     @staticmethod
     def check(case: Any) -> None:
         """InputError when the network has a refined teacher (``[dataset] teacher_refine``
-        > 1) and the reference grid is no finer than it: it would be the network's own
-        teacher, not a truth."""
-        ev, refine = case.cfg.evaluate, teacher_refinement(case.cfg)
+        > 1, or ``[refine]``) and the reference grid is no finer than it: it would be the
+        network's own teacher, not a truth."""
+        from ..refine import tracking_teacher_case
+
+        ev = case.cfg.evaluate
+        refine = teacher_refinement(tracking_teacher_case(case).cfg)
         if refine > 1 and ev.reference_refinement <= refine:
             raise InputError(f"the fine_grid reference ({ev.reference_refinement:g} times finer "
-                             f"than the case grid) is no finer than the teacher ([dataset] "
-                             f"teacher_refine = {refine}): raise [evaluate] "
+                             f"than the case grid) is no finer than the network's teacher "
+                             f"({refine} times finer): raise [evaluate] "
                              "reference_refinement or use reference = \"p2\"",
                              "[evaluate] reference")
 

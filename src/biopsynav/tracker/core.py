@@ -621,13 +621,15 @@ class Tracker:
 
 def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
     """A tracker backed by the FE model with solver ``settings``: on the teacher's grid when
-    ``on_teacher`` and ``[dataset] teacher_refine`` > 1 (the FE that taught the network),
-    else on ``case``'s own grid."""
+    ``on_teacher`` and the tracking model's teacher is refined (``[dataset] teacher_refine``
+    > 1, or ``[refine]``: the FE that taught the network), else on ``case``'s own grid."""
     from ..fem import FEModel
     from ..fem.teacher import build_teacher, teacher_refinement
+    from ..refine import tracking_teacher_case
 
-    if on_teacher and teacher_refinement(case.cfg) > 1:
-        teacher = build_teacher(case)
+    taught_by = tracking_teacher_case(case)
+    if on_teacher and teacher_refinement(taught_by.cfg) > 1:
+        teacher = build_teacher(taught_by)
         return Tracker(case, "fem", fem_model=teacher.model, fem_settings=settings,
                        teacher=teacher)
     return Tracker(case, "fem", fem_model=FEModel.from_case(case), fem_settings=settings)
