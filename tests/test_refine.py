@@ -141,3 +141,17 @@ def test_the_fe_engine_and_the_truth_follow_the_fine_teacher(refined):
     case.cfg.evaluate.reference, case.cfg.evaluate.reference_refinement = "fine_grid", 2.0
     with pytest.raises(InputError, match="no finer than the network.s teacher"):
         reference_registry.check_reference(case)
+
+
+def test_run_refuses_a_truth_no_finer_than_the_refine_teacher_before_any_work(base_case,
+                                                                             tmp_path):
+    from biopsynav.cli import main
+
+    case = tmp_path / "case"
+    shutil.copytree(base_case, case)
+    cfg = load_config(case)
+    cfg.refine.samples = 4
+    cfg.evaluate.reference, cfg.evaluate.reference_refinement = "fine_grid", 2.0
+    save_config(case, cfg)
+    assert main(["run", str(case)]) == 2
+    assert not (case / "dataset.zarr").exists()

@@ -18,6 +18,7 @@ from .case import Case, build_case
 from .config import load_config
 from .fileio import read_json
 from .layout import CasePaths
+from .reference_registry import check_reference
 
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
@@ -153,6 +154,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
         return out
 
     case = timed(1, "anatomy and grid", "grid_s", anatomy_stage, Path(case_dir))
+    check_reference(case)  # a truth that cannot serve this case: said now, not after training
     data_summary = timed(2, "training data (FE simulations)", "generate_s", data_stage, case,
                          workers)
     timed(3, "network training", "train_s", training_stage, case)
