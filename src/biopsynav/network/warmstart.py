@@ -8,6 +8,7 @@ starts from its best weights; everything else (learning rate, iterations, data) 
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,11 +52,12 @@ class SourceModel:
 
 
 def resolve_source(case_dir: Path, init_from: str) -> Path | None:
-    """The model folder named by ``init_from`` (relative to the case folder), or None."""
+    """The model folder named by ``init_from`` (relative to the case folder, ``..`` folded
+    away: ``CASE/refine`` names ``../model`` as ``CASE/model``), or None."""
     if not init_from:
         return None
     path = Path(init_from).expanduser()
-    return path if path.is_absolute() else (case_dir / path)
+    return Path(os.path.normpath(path if path.is_absolute() else case_dir / path))
 
 
 def load_source(path: Path, spec: dict, node_shape: tuple, baseline: str,
