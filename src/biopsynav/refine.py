@@ -63,8 +63,9 @@ def refine_case(case: Case) -> Case:
     if _stored_config(paths) != cfg:
         save_config(paths.dir, cfg)
     for source, copy_ in ((case.paths.anatomy, paths.anatomy), (case.paths.grid, paths.grid)):
-        if not copy_.is_file() or copy_.read_bytes() != source.read_bytes():
-            write_bytes_atomic(copy_, source.read_bytes())
+        data = source.read_bytes()
+        if not copy_.is_file() or copy_.read_bytes() != data:
+            write_bytes_atomic(copy_, data)
     return Case(paths.dir, cfg, case.anatomy, case.grid)
 
 

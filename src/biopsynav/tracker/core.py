@@ -407,7 +407,7 @@ class Tracker:
         state, g, net = self._net, u_c, None
         if self._reach_emb is not None:
             state, g, net = self._settled_contact(u_c, pose)
-        self.last_touched = self._reach[np.isin(self._reach, state.touched)]
+        self.last_touched = state.touched
         op = self._lesion_operator(state) if surfaces else state.centre_op
         if op is not None and not with_surface:
             if net is None:
@@ -521,20 +521,15 @@ class Tracker:
         face plane at ``pose``."""
         a = self.case.anatomy
         skin = self._fem_surface_embedding()
-        moved = a.vertices + skin.interpolate(u)
-        local = (moved - pose[:3, 3]) @ pose[:3, :3]
-        fp = as_footprint(self.case.cfg.probe.footprint)
-        behind = ((local[:, 2] < -PENETRATION_TOL_MM) & fp.inside(local[:, :2])
-                  & (a.normals @ pose[:3, 2] < 0.0)
-                  & a.pushable)
+        behind, _ = behind_face(a.vertices + skin.interpolate(u), pose,
+                                as_footprint(self.case.cfg.probe.footprint), PENETRATION_TOL_MM)
+        behind &= (a.normals @ pose[:3, 2] < 0.0) & a.pushable
         behind[self._contact] = False
         behind[touched] = False
         # nodes of the cells holding rest contact points move with the probe already: a
         # constraint on a point of a cell sharing them could only contradict them (and, with a
         # small weight on the other nodes, invert the cell)
-        pinned = np.zeros(len(u), dtype=bool)
-        pinned[self._fem_contact_embedding().nodes] = True
-        behind &= ~pinned[skin.nodes].any(axis=1)
+        behind &= ~pinned_by_contact(skin.nodes, self._fem_contact_embedding().nodes, len(u))
         return np.flatnonzero(behind)
 
     def _fem_contact_embedding(self) -> Embedding:
