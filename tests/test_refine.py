@@ -155,3 +155,16 @@ def test_run_refuses_a_truth_no_finer_than_the_refine_teacher_before_any_work(ba
     save_config(case, cfg)
     assert main(["run", str(case)]) == 2
     assert not (case / "dataset.zarr").exists()
+
+
+def test_a_damaged_refine_case_toml_is_rewritten_and_the_fine_data_kept(refined, capsys):
+    from biopsynav.cli import main
+
+    toml = refined / "refine" / "case.toml"
+    toml.write_text(toml.read_text()[:200])  # truncated
+    meta = refined / "refine" / "model" / "meta.json"
+    before = meta.stat().st_mtime_ns
+    assert main(["refine", str(refined)]) == 0
+    assert load_config(refined / "refine") == refined_config(load_config(refined))
+    summary = json.loads((refined / "refine" / "dataset_summary.json").read_text())
+    assert summary["count"] == 4 and meta.stat().st_mtime_ns == before
