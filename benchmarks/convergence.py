@@ -7,6 +7,7 @@ of immersed hexahedral grids, against an independent P2 tetrahedral reference in
                                           [--lesions 3] [--tet-size 10] [--tet-fine 2.5]
                                           [--tet-rim 1.5] [--friction slip]
                                           [--edge-radius 2.5] [--progress]
+                                          [--teachers 1.46:2 2:0]
                                           [--nu 0.45] [--out convergence.json]
                                           [--reuse-reference earlier.json]
 
@@ -32,12 +33,18 @@ slides on it, none passes through it; the hexahedral FE adds that contact when t
   ``--edge-radius`` a body whose face's edges are rounded by that radius and whose sides no
   skin passes (``--progress`` logs its load steps and contact rounds).
 
+Beside the grids, each ``--teachers REFINE:ORDER`` is a training teacher on the first grid
+(``[dataset] teacher_refine`` and ``teacher_extrapolation``, answered by the FE engine as
+``track --engine fem`` does): ``1.46:2`` solves on 5 mm cells and on the 7.3 mm grid and
+extrapolates from both (Richardson, order 2), ``2:0`` is the 3.65 mm grid fitted to the case
+grid.
+
 Printed per variant (law and contact kind), lesion and depth: the lesion displacement |u| of
 every grid and of the reference, each grid's error (distance to the reference's displacement
 vector, mm), the displacement extrapolated to zero cell size from the two finest grids (first
 order, the immersed boundary's), and the observed order from the three finest (when the
 sequence is monotone). The last line reads ``RESULT`` with the mean and largest error of each
-variant and grid against the reference.
+variant, grid and teacher against the reference.
 """
 
 from __future__ import annotations
@@ -62,6 +69,7 @@ from biopsynav.fem import FEModel  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
 from biopsynav.reference_registry import P2_FRICTIONS  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
+from biopsynav.tracker.core import fem_engine  # noqa: E402
 
 
 def homogeneous(case: Case, nu: float) -> tuple[Case, float]:
@@ -88,6 +96,32 @@ def hex_tracker(case: Case, cell_mm: float, variant: str = "neo-hookean/points"
     tracker = Tracker(sized, "fem", fem_model=FEModel.from_case(sized),
                       fem_settings=evaluation_solver_settings(sized))
     return tracker, int(grid.active_cells.sum())
+
+
+def teacher_tracker(case: Case, cell_mm: float, teacher: str) -> Tracker:
+    """The FE engine of the training teacher ``teacher`` ("REFINE:ORDER": ``[dataset]
+    teacher_refine`` and ``teacher_extrapolation``) on the case with ``cell_mm`` cells."""
+    refine, order = (float(v) for v in teacher.split(":"))
+    section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
+    grid = build_grid(case.anatomy, section,
+                      chest_tol_mm=case.cfg.anatomy.chest_wall_tolerance_mm)
+    cfg = copy.deepcopy(case.cfg)
+    cfg.refine.samples = 0  # the teacher named here, not the case's [refine] one
+    cfg.dataset.teacher_refine, cfg.dataset.teacher_extrapolation = refine, order
+    sized = Case(case.dir, cfg, case.anatomy, grid)
+    return fem_engine(sized, evaluation_solver_settings(sized))
+
+
+def teacher_spec(text: str) -> str:
+    """A ``--teachers`` item: REFINE:ORDER, REFINE in [1, 4] (1: the grid itself), ORDER >= 0."""
+    try:
+        refine, order = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give REFINE:ORDER, e.g. 1.46:2") from None
+    if not (1.0 <= refine <= 4.0 and 0.0 <= order <= 8.0) or (order > 0 and refine == 1.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: REFINE in [1, 4], ORDER in [0, 8] (> 0 "
+                                         "only with REFINE > 1)")
+    return f"{refine:g}:{order:g}"
 
 
 def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float]) -> list:
@@ -259,6 +293,14 @@ def run(args) -> dict:
             save(args.out, {"grids": grids})
             print(f"  hex {cell:g} mm, {variant}: {active} active cells, "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
+    for teacher in args.teachers:
+        t0 = time.perf_counter()
+        tracker = teacher_tracker(case, args.cells[0], teacher)
+        disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
+        grids[f"teacher {teacher}"] = {"seconds": time.perf_counter() - t0, "displacement": disp}
+        save(args.out, {"grids": grids})
+        print(f"  teacher {teacher} on the {args.cells[0]:g} mm grid: "
+              f"{time.perf_counter() - t0:.0f} s", flush=True)
     reference = {}
     earlier = reused_reference(args, e_mpa)
     for li in lesions:
@@ -273,6 +315,7 @@ def run(args) -> dict:
         print(reference_line(case, li, facts, args.depths), flush=True)
     return {"case": str(args.case_dir), "E_mpa": e_mpa, "nu": args.nu,
             "depths_mm": args.depths, "cells_mm": args.cells, "variants": variants(args),
+            "teachers": args.teachers,
             "lesions": lesions,
             "lesion_ids": [int(case.anatomy.lesions[i].id) for i in lesions],
             "grids": grids, "reference": reference,
@@ -321,6 +364,31 @@ def report(result: dict) -> dict[str, list[float]]:
     errors: dict[str, list[float]] = {}
     for variant in result["variants"]:
         errors.update(report_variant(result, variant))
+    if result.get("teachers"):
+        errors.update(report_teachers(result))
+    return errors
+
+
+def report_teachers(result: dict) -> dict[str, list[float]]:
+    """The table of the ``--teachers`` (each against the reference)."""
+    keys = [f"teacher {t}" for t in result["teachers"]]
+    errors: dict[str, list[float]] = {key: [] for key in keys}
+    head = "lesion  push  |u| P2   " + "  ".join(f"err {k[8:]:>8}" for k in keys)
+    print(f"\nteachers on the {result['cells_mm'][0]:g} mm grid (REFINE:ORDER)\n" + head
+          + "\n" + "-" * len(head))
+    for li, lid in zip(result["lesions"], result["lesion_ids"], strict=True):
+        for k, depth in enumerate(result["depths_mm"]):
+            ref_k = result["reference"][li]["displacement"][k]
+            cols = []
+            for key in keys:
+                v = result["grids"][key]["displacement"][li][k]
+                err = None if v is None or ref_k is None else \
+                    float(np.linalg.norm(np.asarray(v) - np.asarray(ref_k)))
+                cols.append(f"{'-' if err is None else f'{err:.2f}':>12}")
+                if err is not None:
+                    errors[key].append(err)
+            ref = "      -" if ref_k is None else f"{np.linalg.norm(ref_k):7.2f}"
+            print(f"{lid:>6}  {depth:4g}  {ref}  " + "  ".join(cols))
     return errors
 
 
@@ -368,6 +436,9 @@ def main(argv: list[str] | None = None) -> int:
                    choices=["neo-hookean", "neo-hookean-sri"],
                    help="hexahedral integration of the neo-Hookean energy")
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
+    p.add_argument("--teachers", type=teacher_spec, nargs="*", default=["1.46:2"],
+                   help="training teachers on the first grid, REFINE:ORDER ([dataset] "
+                        "teacher_refine and teacher_extrapolation; none: grids only)")
     add_reference_arguments(p, fine_mm=2.5)
     p.add_argument("--nu", type=float, default=0.45)
     p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")

@@ -53,3 +53,13 @@ def test_info_names_the_model_a_training_started_from(trained_case, tmp_path):
     assert words.startswith("grid of 5 mm cells fitted to the case grid")
     assert words.endswith("started from the model in /data/coarse/model, taught by case grid "
                           "(15 mm cells), neo-hookean, force patches")
+
+
+def test_info_names_an_extrapolated_teacher():
+    from biopsynav.info import teacher_words
+
+    words = teacher_words({"teacher_refine": 1.46, "teacher_extrapolation": 2.0,
+                           "material_model": "neo-hookean", "rigid_share": 1.0}, 7.3)
+    assert words.startswith("grid of 5 mm cells fitted to the case grid, extrapolated from "
+                            "the case grid (order 2), neo-hookean, 100% rigid-probe pushes")
+    assert teacher_words({"teacher_refine": 2}, 7.3).startswith("grid of 3.65 mm cells")

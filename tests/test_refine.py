@@ -23,6 +23,10 @@ def test_the_refine_configuration_derives_from_the_case():
     assert not out.probe.calibrate_force
     assert (out.dataset.n_train, out.dataset.n_test) == (25, 5)
     assert out.dataset.teacher_refine == cfg.refine.teacher_refine == 2
+    assert out.dataset.teacher_extrapolation == cfg.refine.extrapolation == 0.0
+    cfg.refine.teacher_refine, cfg.refine.extrapolation = 1.46, 2.0
+    out = refined_config(cfg)
+    assert (out.dataset.teacher_refine, out.dataset.teacher_extrapolation) == (1.46, 2.0)
     assert out.network.init_from == "../model"
     assert out.network.iterations == cfg.refine.iterations
     assert out.refine.samples == 0  # the refine case does not refine again

@@ -293,15 +293,23 @@ class DatasetSection:
                                         "logged as 'implausible' and redrawn, and counts "
                                         "against max_failure_share on its own (docs/dataset.md)."
                                         " 0: no check.", lo=0.0, hi=1e6)
-    teacher_refine: int = opt(1, "The teacher's grid: each sample is solved on cells this many "
-                                 "times smaller than [grid] cell_size_mm and brought to the "
-                                 "case grid by a least-squares fit over the tissue "
-                                 "(biopsynav.grid.transfer); the network still predicts on the "
-                                 "case grid. 1: solve on the case grid itself. 2 halves the "
-                                 "cells (8x the unknowns): nearer the converged answer under the "
-                                 "probe, each solve 10-35x slower on the phantom "
-                                 "(docs/dataset.md).",
-                              lo=1, hi=4)
+    teacher_refine: float = opt(1.0, "The teacher's grid: each sample is solved on cells this "
+                                     "many times smaller than [grid] cell_size_mm (any factor "
+                                     "from 1 to 4: 1.46 turns 7.3 mm cells into 5 mm) and "
+                                     "brought to the case grid by a least-squares fit over the "
+                                     "tissue (biopsynav.grid.transfer); the network still "
+                                     "predicts on the case grid. 1: solve on the case grid "
+                                     "itself. 2 halves the cells (8x the unknowns): nearer the "
+                                     "converged answer under the probe, each solve 10-35x "
+                                     "slower on the phantom (docs/dataset.md).",
+                                lo=1.0, hi=4.0)
+    teacher_extrapolation: float = opt(0.0, "With teacher_refine > 1: Richardson "
+                                            "extrapolation of order p. Each sample is solved on "
+                                            "the case grid too, and the stored field is "
+                                            "u_fine + (u_fine - u_case) h_fine^p / (h_case^p - "
+                                            "h_fine^p), both on the case grid (docs/dataset.md, "
+                                            "'An extrapolated teacher'). 0: off, the fine "
+                                            "solution itself.", lo=0.0, hi=8.0)
     teacher_min_fraction: float = opt(0.2, "With teacher_refine > 1: the lower bound of the "
                                            "fraction that scales the integration weights of "
                                            "the teacher's cells ([grid] min_fraction is the "
@@ -410,9 +418,13 @@ class RefineSection:
                        lo=0, hi=10**6)
     held_out: int = opt(10, "Of those samples, held out to choose the best weights (mean e "
                             "against the fine teacher).", lo=1, hi=10**6)
-    teacher_refine: int = opt(2, "The fine teacher's cells are [grid] cell_size_mm divided by "
-                                 "this ([dataset] teacher_refine of the refine case).",
-                              lo=2, hi=4)
+    teacher_refine: float = opt(2.0, "The fine teacher's cells are [grid] cell_size_mm divided "
+                                     "by this ([dataset] teacher_refine of the refine case; "
+                                     "1.46 turns 7.3 mm cells into 5 mm).", lo=1.1, hi=4.0)
+    extrapolation: float = opt(0.0, "Richardson extrapolation order of the fine pushes "
+                                    "([dataset] teacher_extrapolation of the refine case): each "
+                                    "is solved on the case grid too and extrapolated from the "
+                                    "two. 0: off.", lo=0.0, hi=8.0)
     max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
                                    "uniform up to it, tilts within [probe] "
                                    "rigid_max_tilt_deg.", lo=1.0, hi=200.0)
@@ -653,6 +665,10 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if cfg.refine.samples and cfg.refine.held_out >= cfg.refine.samples:
         raise InputError(f"[refine] held_out ({cfg.refine.held_out}) must be smaller than "
                          f"samples ({cfg.refine.samples})", where)
+    if cfg.dataset.teacher_extrapolation > 0 and cfg.dataset.teacher_refine == 1:
+        raise InputError("[dataset] teacher_extrapolation extrapolates from the case grid and "
+                         "a finer teacher: set teacher_refine > 1 too (1.46 for 5 mm cells on "
+                         "a 7.3 mm grid), or teacher_extrapolation = 0", where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)

@@ -82,9 +82,12 @@ def model_teacher(case: Case) -> str:
 def teacher_words(t: dict, spacing: float) -> str:
     """A model's recorded teacher (meta.json ``teacher``) in words; ``spacing``: the case
     grid's cell size, mm."""
-    refine = int(t.get("teacher_refine", 1))
+    refine = float(t.get("teacher_refine", 1))
+    order = float(t.get("teacher_extrapolation", 0.0))
     grid = (f"case grid ({spacing:g} mm cells)" if refine == 1 else
-            f"grid of {spacing / refine:g} mm cells fitted to the case grid")
+            f"grid of {spacing / refine:.3g} mm cells fitted to the case grid")
+    if refine > 1 and order > 0:
+        grid += f", extrapolated from the case grid (order {order:g})"
     rigid = float(t.get("rigid_share", 0.0))
     pushes = "force patches" if rigid == 0 else f"{rigid:.0%} rigid-probe pushes"
     return f"{grid}, {t.get('material_model')}, {pushes}"

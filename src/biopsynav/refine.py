@@ -44,6 +44,7 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     out.dataset.n_train = r.samples - r.held_out
     out.dataset.n_test = r.held_out
     out.dataset.teacher_refine = r.teacher_refine
+    out.dataset.teacher_extrapolation = r.extrapolation
     net = out.network
     net.init_from = f"../{MODEL_DIR}"
     net.iterations, net.learning_rate = r.iterations, r.learning_rate

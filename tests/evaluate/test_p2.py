@@ -96,6 +96,29 @@ def test_the_benchmarks_say_how_far_the_nearest_fold_lies_from_the_lesion(cube, 
     assert "4 at 20 mm (nearest 12.3 mm from the lesion)" in line and "at 10 mm" not in line
 
 
+def test_convergence_reports_the_training_teachers_against_the_reference(monkeypatch, capsys):
+    """``convergence.py --teachers REFINE:ORDER``: checked where it enters, and printed as a
+    table of errors against the reference beside the grids'."""
+    import argparse
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+
+    assert convergence.teacher_spec("1.46:2") == "1.46:2"
+    assert convergence.teacher_spec("2:0.0") == "2:0"
+    for bad in ("1.46", "1:2", "5:0", "a:b", "2:-1"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            convergence.teacher_spec(bad)
+    result = {"teachers": ["1.46:2"], "cells_mm": [7.3], "depths_mm": [10.0, 20.0],
+              "lesions": [0], "lesion_ids": [1],
+              "grids": {"teacher 1.46:2": {"displacement": {0: [[3.0, 0.0, 0.0], None]}}},
+              "reference": {0: {"displacement": [[3.0, 4.0, 0.0], [8.0, 0.0, 0.0]]}}}
+    errors = convergence.report_teachers(result)
+    assert errors == {"teacher 1.46:2": [4.0]}
+    out = capsys.readouterr().out
+    assert "teachers on the 7.3 mm grid" in out and "4.00" in out
+
+
 def one_tetrahedron() -> TetReference:
     """A lone 10 mm P2 tetrahedron (E 5 kPa, nu 0.45) with the reference's quadrature."""
     points = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]])

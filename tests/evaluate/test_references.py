@@ -99,6 +99,21 @@ def test_a_fine_grid_reference_no_finer_than_the_teacher_is_refused():
     reference_registry.check_reference(case)
 
 
+def test_an_extrapolating_teacher_counts_as_fine_as_its_refinement_squared():
+    """Cells 1.46 times finer extrapolated from the case grid's: about as fine as 2.13 times,
+    so the default fine_grid truth (2 times) is refused and 2.5 times is accepted."""
+    case = SimpleNamespace(cfg=config_from_dict({
+        "evaluate": {"reference": "fine_grid"},
+        "dataset": {"teacher_refine": 1.46, "teacher_extrapolation": 2.0}}))
+    with pytest.raises(InputError, match="extrapolated from the case grid: about as fine as"):
+        reference_registry.check_reference(case)
+    case.cfg.dataset.teacher_extrapolation = 0.0
+    reference_registry.check_reference(case)
+    case.cfg.dataset.teacher_extrapolation = 2.0
+    case.cfg.evaluate.reference_refinement = 2.5
+    reference_registry.check_reference(case)
+
+
 def test_the_reference_choices_come_from_the_registry():
     assert set(reference_registry.reference_names()) >= {"fine_grid", "p2"}
     with pytest.raises(InputError, match="reference"):

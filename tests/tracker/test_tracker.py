@@ -257,3 +257,31 @@ def test_the_fe_engine_solves_on_a_refined_teacher_grid(coarse_case):
     a, b = answers[1], answers[2]
     assert np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)) > 0.95
     assert 0.5 < np.linalg.norm(b) / np.linalg.norm(a) < 1.5
+
+
+def test_an_extrapolating_teacher_s_fe_engine_answers_richardson_s_extrapolation(coarse_case):
+    """With [dataset] teacher_extrapolation the FE engine solves on the teacher's grid and on
+    the case grid and answers ``fit + w (fit - case)``: for the central lesion (in full
+    cells) exactly that combination of the two engines' own answers."""
+    import copy
+
+    from biopsynav.case import Case
+    from biopsynav.fem import SolverSettings
+    from biopsynav.fem.teacher import extrapolation_weight
+    from biopsynav.tracker.core import fem_engine
+
+    answers = {}
+    for order in (None, 0.0, 2.0):
+        cfg = copy.deepcopy(coarse_case.cfg)
+        if order is not None:
+            cfg.dataset.teacher_refine, cfg.dataset.teacher_extrapolation = 1.5, order
+        tracker = fem_engine(Case(coarse_case.dir, cfg, coarse_case.anatomy, coarse_case.grid),
+                             SolverSettings.from_config(cfg.solver))
+        tracker.set_rest_pose(TOP)
+        r = tracker.update(pushed(8.0))
+        assert r.status == "ok", r.reason
+        answers[order] = np.array(r.lesions[0].displacement)
+    case_grid, fit, extrapolated = answers[None], answers[0.0], answers[2.0]
+    expected = fit + extrapolation_weight(1.5, 2.0) * (fit - case_grid)
+    assert np.linalg.norm(fit - case_grid) > 0.01
+    assert np.abs(extrapolated - expected).max() < 1e-6

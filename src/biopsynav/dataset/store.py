@@ -113,12 +113,15 @@ def teacher_protocol(cfg: CaseConfig) -> dict:
     """The teacher grid's part of the protocol: nothing for the case grid itself (the protocol
     of before ``[dataset] teacher_refine``), else the refinement, the floor of its cells'
     weights (absent from data sets made before ``teacher_min_fraction``: 0.05 then) and how
-    its solutions are fitted to the case grid (:data:`TEACHER_FIT`)."""
+    its solutions are fitted to the case grid (:data:`TEACHER_FIT`), and the order of a
+    Richardson extrapolation from the case grid's solution (absent when off)."""
     refine = teacher_refinement(cfg)
     if refine == 1:
         return {}
+    order = float(cfg.dataset.teacher_extrapolation)
+    extrapolation = {"teacher_extrapolation": order} if order > 0 else {}
     return {"teacher_refine": refine, "teacher_min_fraction": cfg.dataset.teacher_min_fraction,
-            "teacher_fit": TEACHER_FIT}
+            "teacher_fit": TEACHER_FIT, **extrapolation}
 
 
 def protocol_fingerprint(protocol: dict) -> str:

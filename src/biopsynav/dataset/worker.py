@@ -50,6 +50,8 @@ class SampleContext:
         model: the teacher's :class:`biopsynav.fem.FEModel`.
         skin: CSR (n_vertices, n_nodes) trilinear embedding of every skin vertex in the case
             grid (the network input; the teacher's own when it solves on the case grid).
+        case_skin: that :class:`~biopsynav.grid.embedding.Embedding` itself (the loads of
+            an extrapolating teacher's case-grid solve).
         pinned: (n_vertices,) skin a rigid push may not hold (:func:`biopsynav.probe.pinned_skin`).
         centers: (k,) skin vertices that may centre a push.
     """
@@ -69,7 +71,7 @@ class SampleContext:
         self.settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
         skin = (self.teacher.skin if self.teacher.transfer is None
                 else surface_embedding(case.grid, case.anatomy))
-        self.skin = skin.matrix
+        self.skin, self.case_skin = skin.matrix, skin
         self.pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.node_shape = case.grid.node_shape
@@ -109,6 +111,7 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         else:
             u, report = solve(ctx.model, Loads(forces=nodal_forces(loaded, push.force)),
                               ctx.settings)
+        u_case = case_grid_solution(ctx, push)
     except SolverError as exc:
         result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
                       solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
@@ -117,14 +120,17 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     contact_u = np.asarray(loaded @ u)
     probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
     rejected = solved_rejection(ctx, push, probe_disp, u)
+    # a rigid push's contact points move by the push itself, which the case grid can hold
+    # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
+    if rejected is None:
+        u = ctx.teacher.case_field(u, held=(contact, contact_u) if push.rigid else None,
+                                   u_case=u_case)
+        rejected = extrapolation_rejection(ctx, u, u_case)
     if rejected is not None:
         result.update(ok=False, kind=rejected[0], error=rejected[1], probe_disp_mm=probe_disp,
                       solve_s=time.perf_counter() - start, diagnostics=[],
                       newton_iters=int(report.iterations))
         return result
-    # a rigid push's contact points move by the push itself, which the case grid can hold
-    # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
-    u = ctx.teacher.case_field(u, held=(contact, contact_u) if push.rigid else None)
     node_disp = np.linalg.norm(u, axis=1)
     # the input from the stored field at the contact points (a refined teacher's field as
     # fitted to the case grid; on the case grid, contact_u itself), so that training
@@ -151,18 +157,54 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
 RIGID_BUDGET_FACTOR = 4
 
 
-def rigid_push_loads(ctx: SampleContext, push: Any) -> Any:
-    """The loads of a rigid push on the teacher's grid: the contact points moved by
-    ``push.displacement`` through the constraints of ``[tracker] fem_contact`` (as the FE
-    tracker holds them)."""
+def rigid_push_loads(ctx: SampleContext, push: Any, skin: Any = None) -> Any:
+    """The loads of a rigid push on the teacher's grid (or on the grid of the embedding
+    ``skin``): the contact points moved by ``push.displacement`` through the constraints of
+    ``[tracker] fem_contact`` (as the FE tracker holds them)."""
     from ..contact.constraints import constraint_rows
     from ..fem import Loads
 
-    teacher = ctx.teacher
-    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, teacher.skin.cells[push.contact])
+    skin = ctx.teacher.skin if skin is None else skin
+    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, skin.cells[push.contact])
     target = np.broadcast_to(push.displacement, (len(push.contact), 3))
-    return Loads(prescribed_matrix=rows @ teacher.skin.matrix[push.contact],
+    return Loads(prescribed_matrix=rows @ skin.matrix[push.contact],
                  prescribed_displacement=rows @ target)
+
+
+def case_grid_solution(ctx: SampleContext, push: Any) -> np.ndarray | None:
+    """The push solved on the case grid (n_nodes, 3) mm when the teacher extrapolates
+    (``[dataset] teacher_extrapolation``), else None; raises SolverError (its reason
+    prefixed "case grid: ")."""
+    from ..errors import SolverError
+    from ..fem import Loads, solve
+    from ..probe import nodal_forces
+
+    coarse = ctx.teacher.coarse
+    if coarse is None:
+        return None
+    try:
+        if push.rigid:
+            u, _ = solve(coarse, rigid_push_loads(ctx, push, ctx.case_skin),
+                         rigid_push_settings(ctx))
+        else:
+            loads = Loads(forces=nodal_forces(ctx.skin[push.contact], push.force))
+            u, _ = solve(coarse, loads, ctx.settings)
+    except SolverError as exc:
+        raise SolverError(f"case grid: {exc.what}", exc.where, log=exc.log) from None
+    return u
+
+
+def extrapolation_rejection(ctx: SampleContext, u: np.ndarray, u_case: np.ndarray | None
+                            ) -> tuple[str, str] | None:
+    """Why an extrapolated field ``u`` (n_nodes, 3) mm is not kept (:data:`IMPLAUSIBLE`,
+    message): it stretches a case-grid cell beyond ``[dataset] max_edge_stretch``; None when
+    kept, or when ``u_case`` is None (no extrapolation). Cells under the probe's edges may
+    come out inverted (the expansion behind the extrapolation does not hold at a
+    singularity); they are kept, and counted by the refined model's Table 1."""
+    if u_case is None:
+        return None
+    why = implausible(ctx.teacher.coarse, u, ctx.case.cfg.dataset.max_edge_stretch)
+    return (IMPLAUSIBLE, f"extrapolated field: {why}") if why else None
 
 
 def rigid_push_settings(ctx: SampleContext) -> Any:

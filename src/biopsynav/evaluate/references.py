@@ -53,13 +53,20 @@ class GridReference:
         from ..refine import tracking_teacher_case
 
         ev = case.cfg.evaluate
-        refine = teacher_refinement(tracking_teacher_case(case).cfg)
-        if refine > 1 and ev.reference_refinement <= refine:
+        taught_by = tracking_teacher_case(case).cfg
+        refine = teacher_refinement(taught_by)
+        # an order-p extrapolation from cells h and h / r is taken to be as near the converged
+        # answer as cells h / r^2 (docs/dataset.md, "An extrapolated teacher")
+        extrapolating = taught_by.dataset.teacher_extrapolation > 0
+        like = refine ** 2 if extrapolating else refine
+        if refine > 1 and ev.reference_refinement <= like:
+            teacher_words = (f"{refine:g} times finer, extrapolated from the case grid: about "
+                             f"as fine as {like:.3g} times" if extrapolating else
+                             f"{refine:g} times finer")
             raise InputError(f"the fine_grid reference ({ev.reference_refinement:g} times finer "
                              f"than the case grid) is no finer than the network's teacher "
-                             f"({refine} times finer): raise [evaluate] "
-                             "reference_refinement or use reference = \"p2\"",
-                             "[evaluate] reference")
+                             f"({teacher_words}): raise [evaluate] reference_refinement or "
+                             "use reference = \"p2\"", "[evaluate] reference")
 
     def set_rest_pose(self, pose: np.ndarray) -> int:
         return self.tracker.set_rest_pose(pose)

@@ -1,5 +1,7 @@
 """The FE model that teaches the network: on the case grid, or on a finer grid of the same
-anatomy (``[dataset] teacher_refine``) whose solutions are fitted to the case grid.
+anatomy (``[dataset] teacher_refine``) whose solutions are fitted to the case grid, optionally
+extrapolated from the case grid's solution of the same push (``[dataset]
+teacher_extrapolation``, Richardson).
 """
 
 from __future__ import annotations
@@ -8,6 +10,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+#: Tissue fraction of a case-grid cell from which its nodes get the extrapolation.
+EXTRAPOLATE_FROM = 0.5
 
 
 @dataclass
@@ -21,25 +26,55 @@ class Teacher:
             model's grid (loads and contact displacements).
         transfer: model node field (n_model_nodes, 3) mm -> case-grid node field (n_nodes, 3)
             mm; None when the model is on the case grid.
+        coarse: with ``[dataset] teacher_extrapolation``, the case grid's FE model, which
+            solves every sample too; else None.
+        weight: Richardson's weight ``w`` of the extrapolated field
+            ``u_fine + w (u_fine - u_case)`` (:func:`extrapolation_weight`; 0 without).
+        extrapolated: (n_nodes,) bool, the case-grid nodes that get the extrapolation: those
+            of a cell at least :data:`EXTRAPOLATE_FROM` full of tissue. The others (outside
+            the tissue, of nearly empty cut cells, where a lone node of the case grid may be
+            flung) keep the fine field as fitted.
     """
 
     model: Any
     grid: Any
     skin: Any
     transfer: Any
+    coarse: Any = None
+    weight: float = 0.0
+    extrapolated: Any = None
 
-    def case_field(self, u: np.ndarray, held: tuple | None = None) -> np.ndarray:
+    def case_field(self, u: np.ndarray, held: tuple | None = None,
+                   u_case: np.ndarray | None = None) -> np.ndarray:
         """A solution (n_model_nodes, 3) mm on the case grid (n_nodes, 3) mm; ``held``: the
         probe's contact points, (case-grid weights (m, n_nodes), displacements (m, 3) mm),
         which the fit moves as the solution does (:class:`~biopsynav.grid.transfer.
-        FieldTransfer`)."""
-        return u if self.transfer is None else self.transfer(u, held)
+        FieldTransfer`); ``u_case`` (n_nodes, 3) mm: the same push solved by
+        :attr:`coarse`, from which the field is extrapolated."""
+        fitted = u if self.transfer is None else self.transfer(u, held)
+        if u_case is None:
+            return fitted
+        return fitted + self.weight * self.extrapolated[:, None] * (fitted - u_case)
 
 
-def teacher_refinement(cfg: Any) -> int:
+def teacher_refinement(cfg: Any) -> int | float:
     """How many times finer than the case grid the teacher's cells are (``[dataset]
-    teacher_refine``; 1: the case grid itself)."""
-    return int(cfg.dataset.teacher_refine)
+    teacher_refine``; 1: the case grid itself), an int when it is whole (as data sets and
+    models record it)."""
+    return whole_or_float(cfg.dataset.teacher_refine)
+
+
+def whole_or_float(value: float) -> int | float:
+    """``value`` as an int when it is whole (2.0 -> 2), else as a float."""
+    value = float(value)
+    return int(value) if value.is_integer() else value
+
+
+def extrapolation_weight(refine: float, order: float) -> float:
+    """Richardson's weight ``w`` of ``u_fine + w (u_fine - u_case)`` for cells ``refine``
+    times smaller than the case grid's and an error of order ``order`` in the cell size:
+    ``h_fine^p / (h_case^p - h_fine^p) = 1 / (refine^p - 1)``."""
+    return 1.0 / (float(refine) ** float(order) - 1.0)
 
 
 def build_teacher(case: Any) -> Teacher:
@@ -58,5 +93,19 @@ def build_teacher(case: Any) -> Teacher:
                             cfg.anatomy.chest_wall_tolerance_mm)
         transfer = FieldTransfer(case.grid, grid)
     floor = None if refine == 1 else cfg.dataset.teacher_min_fraction
-    return Teacher(FEModel.from_grid(grid, cfg, case.anatomy, floor), grid,
-                   surface_embedding(grid, case.anatomy), transfer)
+    teacher = Teacher(FEModel.from_grid(grid, cfg, case.anatomy, floor), grid,
+                      surface_embedding(grid, case.anatomy), transfer)
+    order = float(cfg.dataset.teacher_extrapolation)
+    if refine > 1 and order > 0:
+        teacher.coarse = FEModel.from_case(case)
+        teacher.weight = extrapolation_weight(refine, order)
+        teacher.extrapolated = nodes_of_full_cells(case.grid, EXTRAPOLATE_FROM)
+    return teacher
+
+
+def nodes_of_full_cells(grid: Any, least: float) -> np.ndarray:
+    """(n_nodes,) bool: the nodes of ``grid`` with an active cell whose tissue fraction is at
+    least ``least``."""
+    out = np.zeros(grid.n_nodes, dtype=bool)
+    out[grid.active_hexes()[grid.active_fraction() >= least].ravel()] = True
+    return out

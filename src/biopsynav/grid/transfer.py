@@ -42,13 +42,13 @@ SMOOTHING = 1e-3
 HOLD_SOFTNESS = 1e-6
 
 
-def refined_grid(anatomy: Anatomy, settings: GridSection, refine: int,
+def refined_grid(anatomy: Anatomy, settings: GridSection, refine: float,
                  max_fixed_share: float = 1.0, chest_tol_mm: float = 1.0) -> Grid:
     """The immersed grid of ``anatomy`` with cells of ``settings.cell_size_mm / refine``."""
-    if int(refine) < 1:
-        raise InputError(f"the teacher's refinement must be a positive integer, got {refine}",
+    if not float(refine) >= 1.0:
+        raise InputError(f"the teacher's refinement must be at least 1, got {refine}",
                          "[dataset] teacher_refine")
-    fine = dataclasses.replace(settings, cell_size_mm=settings.cell_size_mm / int(refine))
+    fine = dataclasses.replace(settings, cell_size_mm=settings.cell_size_mm / float(refine))
     return build_grid(anatomy, fine, max_fixed_share, chest_tol_mm)
 
 

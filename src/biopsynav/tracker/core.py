@@ -133,7 +133,7 @@ class Tracker:
         self._rest: np.ndarray | None = None
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
-        self._fem_rows = None  # the FE engine's constraint rows of the contact set
+        self._fem_rows: dict = {}  # the FE engine's constraint rows of the contact set, by grid
         self.last_touched = np.zeros(0, dtype=np.int64)  # skin the face reached, last update
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
@@ -231,7 +231,8 @@ class Tracker:
 
     def _forget_contact_sets(self) -> None:
         """Drop everything built for the previous rest pose's contact set."""
-        self._fem_rows = self._fem_contact = self._net = self._reach_emb = None
+        self._fem_rows = {}
+        self._fem_contact = self._net = self._reach_emb = None
         self._input_op = None
         self._grown = {}
         self._reach = np.zeros(0, dtype=np.int64)
@@ -478,7 +479,8 @@ class Tracker:
         on the plane along the beam, free to slide, and solve again; at most
         ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added. With a
         refined teacher the solve runs on its grid and the answer is fitted to the case
-        grid."""
+        grid; when that teacher extrapolates (``[dataset] teacher_extrapolation``), the case
+        grid solves the same contact too and the answer is extrapolated from both."""
         touched = np.zeros(0, dtype=np.int64)
         u = self._fem_solve(u_c, pose, touched)
         if self.case.cfg.tracker.contact_follows_pose:
@@ -491,26 +493,39 @@ class Tracker:
         self.last_touched = touched
         if self._teacher is None:
             return u
-        return self._teacher.case_field(u, held=(self._contact_emb.matrix, u_c))
+        u_case = None
+        if self._teacher.coarse is not None:
+            u_case = self._fem_solve(u_c, pose, touched, on_case_grid=True)
+        return self._teacher.case_field(u, held=(self._contact_emb.matrix, u_c), u_case=u_case)
 
-    def _fem_solve(self, u_c: np.ndarray, pose: np.ndarray, touched: np.ndarray) -> np.ndarray:
+    def _fem_solve(self, u_c: np.ndarray, pose: np.ndarray, touched: np.ndarray,
+                   on_case_grid: bool = False) -> np.ndarray:
         """One solve: the rest contact points prescribed to ``u_c`` and the skin vertices
-        ``touched`` held on the face plane (normal component only)."""
+        ``touched`` held on the face plane (normal component only); on the FE engine's grid,
+        or with ``on_case_grid`` on the case grid by the extrapolating teacher's model."""
         from ..fem import Loads, solve
 
-        rows = self._constraint_rows()
-        w, g = rows @ self._fem_contact_embedding().matrix, rows @ u_c
+        if on_case_grid:
+            model, contact, surface = (self._teacher.coarse, self._contact_emb,
+                                       self._surface_embedding())
+        else:
+            model, contact, surface = (self._fem_model, self._fem_contact_embedding(),
+                                       self._fem_surface_embedding())
+        rows = self._constraint_rows(contact, "case" if on_case_grid else "fem")
+        w, g = rows @ contact.matrix, rows @ u_c
         normals = None
         if len(touched):
             beam = pose[:3, 2]
             rest = self.case.anatomy.vertices[touched]
             depth = (rest - pose[:3, 3]) @ beam  # < 0: behind the face, rest position
-            w = sp.vstack([w, self._fem_surface_embedding().subset(touched).matrix]).tocsr()
+            w = sp.vstack([w, surface.subset(touched).matrix]).tocsr()
             g = np.vstack([g, -depth[:, None] * beam])
             normals = np.vstack([np.zeros((rows.shape[0], 3)), np.tile(beam, (len(touched), 1))])
-        u, self.last_solve = solve(self._fem_model, Loads(
+        u, report = solve(model, Loads(
             prescribed_matrix=w, prescribed_displacement=g, prescribed_normals=normals),
             self._fem_settings)
+        if not on_case_grid:
+            self.last_solve = report
         return u
 
     def _skin_behind_face(self, u: np.ndarray, pose: np.ndarray, touched: np.ndarray
@@ -549,15 +564,16 @@ class Tracker:
             self._fem_surface = surface_embedding(self._teacher.grid, self.case.anatomy)
         return self._fem_surface
 
-    def _constraint_rows(self):
-        """The FE engine's constraint rows (n_constraints, n_contact) for the rest pose's
-        contact set (``[tracker] fem_contact``, :mod:`biopsynav.contact.constraints`)."""
-        if self._fem_rows is None:
+    def _constraint_rows(self, contact: Embedding, key: str):
+        """The constraint rows (n_constraints, n_contact) of the rest pose's contact set
+        embedded as ``contact`` in the grid named ``key`` ("fem" or "case") (``[tracker]
+        fem_contact``, :mod:`biopsynav.contact.constraints`), built once per rest pose."""
+        if key not in self._fem_rows:
             from ..contact.constraints import constraint_rows
 
-            self._fem_rows = constraint_rows(self.case.cfg.tracker.fem_contact,
-                                             self._fem_contact_embedding().cells)
-        return self._fem_rows
+            self._fem_rows[key] = constraint_rows(self.case.cfg.tracker.fem_contact,
+                                                  contact.cells)
+        return self._fem_rows[key]
 
     def _set_input(self, u_c: np.ndarray, op: ContactInputOperator) -> None:
         """Write ``self._input`` for the contact points of the input operator ``op`` moved by
