@@ -97,6 +97,9 @@ def test_largest_edge_stretch_of_a_stretched_and_a_resting_box():
     assert largest_edge_stretch(model, np.zeros_like(nodes)) == 1.0
     stretched = nodes @ (np.diag([2.5, 1.0, 0.8]) - np.eye(3)).T  # every x extent 2.5 times
     assert abs(largest_edge_stretch(model, stretched) - 2.5) < 1e-12
+    none = np.zeros(len(hexes), dtype=bool)
+    assert largest_edge_stretch(model, stretched, none) == 1.0  # no element selected
+    assert largest_edge_stretch(model, stretched, ~none) == largest_edge_stretch(model, stretched)
 
 
 def test_inner_law_is_split_sri_in_whole_cells_and_neo_hookean_in_cut_cells():

@@ -196,14 +196,21 @@ def case_grid_solution(ctx: SampleContext, push: Any) -> np.ndarray | None:
 
 def extrapolation_rejection(ctx: SampleContext, u: np.ndarray, u_case: np.ndarray | None
                             ) -> tuple[str, str] | None:
-    """Why an extrapolated field ``u`` (n_nodes, 3) mm is not kept (:data:`IMPLAUSIBLE`,
-    message): it stretches a case-grid cell beyond ``[dataset] max_edge_stretch``; None when
-    kept, or when ``u_case`` is None (no extrapolation). Cells under the probe's edges may
-    come out inverted (the expansion behind the extrapolation does not hold at a
-    singularity); they are kept, and counted by the refined model's Table 1."""
+    """Why an extrapolated sample is not kept (:data:`IMPLAUSIBLE`, message), or None (also
+    when ``u_case`` is None: no extrapolation): the case grid's own solution ``u_case``
+    (n_nodes, 3) mm stretches a cell beyond ``[dataset] max_edge_stretch`` (a flung lone node,
+    as the case-grid teacher checks), or the extrapolated field ``u`` (n_nodes, 3) mm does so
+    in a cell it was extrapolated in (at least half full). Nearly empty cells keep the fitted
+    fine field's nodes beside extrapolated ones, and cells under the probe's edges may come
+    out inverted (the expansion behind the extrapolation does not hold at a singularity):
+    both are kept; the refined model's Table 1 counts inverted targets."""
     if u_case is None:
         return None
-    why = implausible(ctx.teacher.coarse, u, ctx.case.cfg.dataset.max_edge_stretch)
+    teacher, stretch = ctx.teacher, ctx.case.cfg.dataset.max_edge_stretch
+    why = implausible(teacher.coarse, u_case, stretch)
+    if why:
+        return IMPLAUSIBLE, f"case grid: {why}"
+    why = implausible(teacher.coarse, u, stretch, teacher.extrapolated_cells)
     return (IMPLAUSIBLE, f"extrapolated field: {why}") if why else None
 
 
@@ -231,12 +238,14 @@ def solved_rejection(ctx: SampleContext, push: Any, probe_disp: float, u: np.nda
     return (IMPLAUSIBLE, why) if why else None
 
 
-def implausible(model: Any, u: np.ndarray, max_stretch: float) -> str:
+def implausible(model: Any, u: np.ndarray, max_stretch: float,
+                elements: np.ndarray | None = None) -> str:
     """Why the solution ``u`` (n_nodes, 3) mm of ``model`` is not kept, or "": a cell edge
-    stretched more than ``max_stretch`` times its rest length (0: no check)."""
+    (of the cells selected by ``elements``, (n_el,) bool; all by default) stretched more than
+    ``max_stretch`` times its rest length (0: no check)."""
     from ..fem import largest_edge_stretch
 
-    stretch = largest_edge_stretch(model, u) if max_stretch > 0 else 0.0
+    stretch = largest_edge_stretch(model, u, elements) if max_stretch > 0 else 0.0
     if stretch <= max_stretch:
         return ""
     return (f"the solve converged to a state no tissue reaches: a cell edge stretched "

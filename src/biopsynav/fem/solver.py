@@ -509,10 +509,15 @@ HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7
                       [0, 4], [1, 5], [2, 6], [3, 7]], dtype=np.int64)
 
 
-def largest_edge_stretch(model: FEModel, u: np.ndarray) -> float:
-    """The largest ratio of deformed to rest length over every edge of every element at
-    displacement ``u`` (n_nodes, 3) mm (1 at rest)."""
-    a, b = model.hexes[:, HEX_EDGES[:, 0]], model.hexes[:, HEX_EDGES[:, 1]]
+def largest_edge_stretch(model: FEModel, u: np.ndarray,
+                         elements: np.ndarray | None = None) -> float:
+    """The largest ratio of deformed to rest length over every edge of every element (or of
+    the elements selected by ``elements``, (n_el,) bool) at displacement ``u`` (n_nodes, 3) mm
+    (1 at rest)."""
+    hexes = model.hexes if elements is None else model.hexes[elements]
+    if not len(hexes):
+        return 1.0
+    a, b = hexes[:, HEX_EDGES[:, 0]], hexes[:, HEX_EDGES[:, 1]]
     rest = np.linalg.norm(model.nodes[b] - model.nodes[a], axis=2)
     x = model.nodes + u
     return float((np.linalg.norm(x[b] - x[a], axis=2) / rest).max())

@@ -30,10 +30,11 @@ class Teacher:
             solves every sample too; else None.
         weight: Richardson's weight ``w`` of the extrapolated field
             ``u_fine + w (u_fine - u_case)`` (:func:`extrapolation_weight`; 0 without).
+        extrapolated_cells: (n_active_cells,) bool, the case grid's cells at least
+            :data:`EXTRAPOLATE_FROM` full of tissue (in the order of its FE model's elements).
         extrapolated: (n_nodes,) bool, the case-grid nodes that get the extrapolation: those
-            of a cell at least :data:`EXTRAPOLATE_FROM` full of tissue. The others (outside
-            the tissue, of nearly empty cut cells, where a lone node of the case grid may be
-            flung) keep the fine field as fitted.
+            of those cells. The others (outside the tissue, of nearly empty cut cells, where a
+            lone node of the case grid may be flung) keep the fine field as fitted.
     """
 
     model: Any
@@ -42,6 +43,7 @@ class Teacher:
     transfer: Any
     coarse: Any = None
     weight: float = 0.0
+    extrapolated_cells: Any = None
     extrapolated: Any = None
 
     def case_field(self, u: np.ndarray, held: tuple | None = None,
@@ -99,13 +101,14 @@ def build_teacher(case: Any) -> Teacher:
     if refine > 1 and order > 0:
         teacher.coarse = FEModel.from_case(case)
         teacher.weight = extrapolation_weight(refine, order)
-        teacher.extrapolated = nodes_of_full_cells(case.grid, EXTRAPOLATE_FROM)
+        teacher.extrapolated_cells = case.grid.active_fraction() >= EXTRAPOLATE_FROM
+        teacher.extrapolated = nodes_of_cells(case.grid, teacher.extrapolated_cells)
     return teacher
 
 
-def nodes_of_full_cells(grid: Any, least: float) -> np.ndarray:
-    """(n_nodes,) bool: the nodes of ``grid`` with an active cell whose tissue fraction is at
-    least ``least``."""
+def nodes_of_cells(grid: Any, cells: np.ndarray) -> np.ndarray:
+    """(n_nodes,) bool: the nodes of ``grid``'s active cells selected by ``cells``
+    (n_active_cells,) bool."""
     out = np.zeros(grid.n_nodes, dtype=bool)
-    out[grid.active_hexes()[grid.active_fraction() >= least].ravel()] = True
+    out[grid.active_hexes()[cells].ravel()] = True
     return out
