@@ -35,16 +35,32 @@ from .conftest import (
 
 
 def expect_lesions(client: pyigtl.OpenIGTLinkClient, centers: np.ndarray) -> None:
-    """The client receives the POINT and every lesion TRANSFORM at ``centers``."""
-    point = client.wait_for_message("Lesions", timeout=WAIT_S)
-    assert point is not None, "no POINT received"
+    """The client receives, within ``WAIT_S``, the POINT and every lesion TRANSFORM at
+    ``centers``. Messages of earlier poses that are still queued pass by (pyigtl keeps the
+    latest message per device, so the answer to a previous pose may be read first)."""
+    point = wait_for_match(client, "Lesions",
+                           lambda m: np.allclose(np.array(m.positions), centers, atol=1e-4))
     assert point.names == [f"Lesion{i}" for i in range(1, len(centers) + 1)]
-    np.testing.assert_allclose(np.array(point.positions), centers, atol=1e-4)
     for i, center in enumerate(centers, start=1):
-        tf = client.wait_for_message(f"Lesion{i}ToReference", timeout=WAIT_S)
-        assert tf is not None, f"no TRANSFORM Lesion{i}ToReference"
-        np.testing.assert_allclose(tf.matrix[:3, 3], center, atol=1e-4)
+        tf = wait_for_match(client, f"Lesion{i}ToReference",
+                            lambda m, c=center: np.allclose(m.matrix[:3, 3], c, atol=1e-4))
         np.testing.assert_allclose(tf.matrix[:3, :3], np.eye(3))
+
+
+def wait_for_match(client: pyigtl.OpenIGTLinkClient, device: str, matches):
+    """The first message of ``device`` for which ``matches(message)`` holds, within
+    ``WAIT_S``; an AssertionError naming the last one seen otherwise."""
+    last = None
+    end = time.monotonic() + WAIT_S
+    while time.monotonic() < end:
+        msg = client.wait_for_message(device, timeout=0.05)
+        if msg is not None:
+            if matches(msg):
+                return msg
+            last = msg
+    seen = "none" if last is None else (getattr(last, "positions", None)
+                                        or getattr(last, "matrix", None))
+    raise AssertionError(f"no matching {device} within {WAIT_S} s; the last seen: {seen}")
 
 
 def expect_status(client: pyigtl.OpenIGTLinkClient, prefix: str) -> str:
