@@ -173,3 +173,17 @@ def test_a_damaged_refine_case_toml_is_rewritten_and_the_fine_data_kept(refined,
     assert load_config(refined / "refine") == refined_config(load_config(refined))
     summary = json.loads((refined / "refine" / "dataset_summary.json").read_text())
     assert summary["count"] == 4 and meta.stat().st_mtime_ns == before
+
+
+def test_a_refine_table_written_before_extrapolation_keeps_its_fitted_teacher():
+    """A case.toml of the thirty-first session names [refine] teacher_refine (every key was
+    written) but not extrapolation: it reads as 0, so its fine data keep their protocol; a
+    table without teacher_refine takes the new default teacher."""
+    old = config_from_dict({"refine": {"samples": 60, "teacher_refine": 2}})
+    assert (old.refine.teacher_refine, old.refine.extrapolation) == (2.0, 0.0)
+    assert refined_config(old).dataset.teacher_extrapolation == 0.0
+    new = config_from_dict({"refine": {"samples": 60}})
+    assert (new.refine.teacher_refine, new.refine.extrapolation) == (1.46, 2.0)
+    both = config_from_dict({"refine": {"samples": 60, "teacher_refine": 1.46,
+                                        "extrapolation": 2.0}})
+    assert both.refine.extrapolation == 2.0

@@ -426,7 +426,10 @@ class RefineSection:
                                     "is solved on the case grid too and extrapolated from the "
                                     "two (docs/dataset.md, 'An extrapolated teacher': nearer "
                                     "the truth than 3.65 mm cells alone, at a seventh of their "
-                                    "cost). 0: the fine solution alone.", lo=0.0, hi=8.0)
+                                    "cost). 0: the fine solution alone. A [refine] table that "
+                                    "names teacher_refine but not this key was written before "
+                                    "it existed, and reads as 0 (its fine data stay valid).",
+                               lo=0.0, hi=8.0)
     max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
                                    "uniform up to it, tilts within [probe] "
                                    "rigid_max_tilt_deg.", lo=1.0, hi=200.0)
@@ -752,6 +755,8 @@ def config_from_dict(data: dict, where: str = CASE_FILE) -> CaseConfig:
                 raise InputError(f"unknown key {key!r} in [{section}]; known: "
                                  f"{', '.join(fields)}", where)
             kwargs[key] = _check_value(section, fields[key], value, where)
+        if section == "refine" and "teacher_refine" in kwargs and "extrapolation" not in kwargs:
+            kwargs["extrapolation"] = 0.0  # written before it existed: the fitted teacher
         if section == "material" and "tissues" in kwargs and _default_parameters(kwargs):
             merged = CaseConfig().material.tissues  # the built-in tissues, unless redefined
             merged.update(kwargs["tissues"])
