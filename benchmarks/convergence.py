@@ -81,14 +81,20 @@ def homogeneous(case: Case, nu: float) -> tuple[Case, float]:
     return Case(case.dir, cfg, case.anatomy, case.grid), e_mpa
 
 
+def sized_grid(case: Case, cell_mm: float):
+    """The immersed grid of ``case``'s anatomy with cells of ``cell_mm`` mm, its other
+    ``[grid]`` settings as the case's."""
+    section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
+    return build_grid(case.anatomy, section,
+                      chest_tol_mm=case.cfg.anatomy.chest_wall_tolerance_mm)
+
+
 def hex_tracker(case: Case, cell_mm: float, variant: str = "neo-hookean/points"
                 ) -> tuple[Tracker, int]:
     """biopsynav's FE tracker of ``case`` on a grid of ``cell_mm`` cells for ``variant``
     (``law/contact``: material law and contact constraints); its active cells."""
     law, contact = variant.split("/")
-    section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
-    grid = build_grid(case.anatomy, section,
-                      chest_tol_mm=case.cfg.anatomy.chest_wall_tolerance_mm)
+    grid = sized_grid(case, cell_mm)
     cfg = copy.deepcopy(case.cfg)
     cfg.tracker.fem_contact = contact
     cfg.material.model = law
@@ -102,9 +108,7 @@ def teacher_tracker(case: Case, cell_mm: float, teacher: str) -> Tracker:
     """The FE engine of the training teacher ``teacher`` ("REFINE:ORDER": ``[dataset]
     teacher_refine`` and ``teacher_extrapolation``) on the case with ``cell_mm`` cells."""
     refine, order = (float(v) for v in teacher.split(":"))
-    section = dataclasses.replace(case.cfg.grid, cell_size_mm=float(cell_mm))
-    grid = build_grid(case.anatomy, section,
-                      chest_tol_mm=case.cfg.anatomy.chest_wall_tolerance_mm)
+    grid = sized_grid(case, cell_mm)
     cfg = copy.deepcopy(case.cfg)
     cfg.refine.samples = 0  # the teacher named here, not the case's [refine] one
     cfg.dataset.teacher_refine, cfg.dataset.teacher_extrapolation = refine, order

@@ -111,21 +111,19 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         else:
             u, report = solve(ctx.model, Loads(forces=nodal_forces(loaded, push.force)),
                               ctx.settings)
-        u_case = case_grid_solution(ctx, push)
     except SolverError as exc:
-        result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
-                      solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
-                      newton_iters=len(exc.log))
-        return result
+        return not_converged(result, exc, start)
     contact_u = np.asarray(loaded @ u)
     probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
     rejected = solved_rejection(ctx, push, probe_disp, u)
-    # a rigid push's contact points move by the push itself, which the case grid can hold
-    # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
-    if rejected is None:
-        u = ctx.teacher.case_field(u, held=(contact, contact_u) if push.rigid else None,
-                                   u_case=u_case)
-        rejected = extrapolation_rejection(ctx, u, u_case)
+    if rejected is None:  # only then the case grid solves it too (an extrapolating teacher)
+        # a rigid push's contact points move by the push itself, which the case grid can hold
+        # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
+        try:
+            u, rejected = case_grid_field(ctx, push, u, (contact, contact_u) if push.rigid
+                                          else None)
+        except SolverError as exc:
+            return not_converged(result, exc, start)
     if rejected is not None:
         result.update(ok=False, kind=rejected[0], error=rejected[1], probe_disp_mm=probe_disp,
                       solve_s=time.perf_counter() - start, diagnostics=[],
@@ -169,6 +167,27 @@ def rigid_push_loads(ctx: SampleContext, push: Any, skin: Any = None) -> Any:
     target = np.broadcast_to(push.displacement, (len(push.contact), 3))
     return Loads(prescribed_matrix=rows @ skin.matrix[push.contact],
                  prescribed_displacement=rows @ target)
+
+
+def not_converged(result: dict, exc: Any, start: float) -> dict:
+    """``result`` marked as a draw whose solve raised the SolverError ``exc`` (started at
+    ``start``, ``time.perf_counter`` s), with the last Newton iterations."""
+    result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
+                  solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
+                  newton_iters=len(exc.log))
+    return result
+
+
+def case_grid_field(ctx: SampleContext, push: Any, u: np.ndarray, held: tuple | None
+                    ) -> tuple[np.ndarray, tuple[str, str] | None]:
+    """The teacher's solution ``u`` (n_model_nodes, 3) mm of ``push`` on the case grid
+    (n_nodes, 3) mm (:meth:`~biopsynav.fem.teacher.Teacher.case_field`, ``held`` its
+    contact points), extrapolated from the case grid's own solve when the teacher
+    extrapolates, and why it is not kept (:func:`extrapolation_rejection`) or None; raises
+    SolverError when that solve fails."""
+    u_case = case_grid_solution(ctx, push)
+    u = ctx.teacher.case_field(u, held=held, u_case=u_case)
+    return u, extrapolation_rejection(ctx, u, u_case)
 
 
 def case_grid_solution(ctx: SampleContext, push: Any) -> np.ndarray | None:
