@@ -71,3 +71,49 @@ def test_extrapolated_targets_are_richardson_s_from_the_fit_and_the_case_grid(te
         assert np.abs(u_e - u_f).max() > 0.1  # the case grid's answer differs
         compared += 1
     assert compared >= 2
+
+
+def test_cells_the_extrapolation_stretches_beyond_the_limit_keep_the_fitted_field(teachers):
+    """One node far apart in the two grids (as under the probe's edge at a deep push): the
+    cells it would stretch beyond the limit get the fitted field back, every other node
+    keeps the extrapolation, and no extrapolated cell is left beyond the limit."""
+    from biopsynav.fem.solver import edge_stretches
+
+    teacher = build_teacher(Case.load(teachers["extrapolated"]))
+    nodes = teacher.coarse.nodes
+    fitted = 0.02 * nodes  # a smooth field, mm
+    u_case = fitted - np.array([1.0, 0.0, 0.0])
+    flung = int(np.flatnonzero(teacher.extrapolated)[0])
+    u_case[flung] -= [200.0, 0.0, 0.0]
+    raw = teacher.extrapolate(fitted, u_case)
+    assert raw[flung, 0] - fitted[flung, 0] == pytest.approx(201.0 * teacher.weight)
+    limited = teacher.extrapolate(fitted, u_case, max_stretch=8.0)
+    stretched = teacher.extrapolated_cells & (edge_stretches(teacher.coarse, raw) > 8.0)
+    back = np.zeros(len(nodes), dtype=bool)
+    back[teacher.coarse.hexes[stretched].ravel()] = True
+    assert back[flung] and back.sum() < teacher.extrapolated.sum() / 4
+    np.testing.assert_allclose(limited[back], fitted[back])
+    kept = teacher.extrapolated & ~back
+    np.testing.assert_allclose(limited[kept], raw[kept])
+    assert edge_stretches(teacher.coarse, limited)[teacher.extrapolated_cells].max() <= 8.0
+
+
+def test_a_draw_the_case_grid_rejects_costs_no_fine_solve(teachers, monkeypatch):
+    """The case grid solves first: a draw whose case-grid solve fails is redrawn before the
+    teacher's fine grid is solved."""
+    from biopsynav.dataset import worker
+    from biopsynav.errors import SolverError
+
+    ctx = worker.SampleContext(Case.load(teachers["extrapolated"]))
+
+    def case_grid_fails(ctx, push):
+        raise SolverError("case grid: no convergence (forced)", "fem.solve")
+
+    def fine_solve(ctx, push):
+        raise AssertionError("the fine grid was solved after the case grid failed")
+
+    monkeypatch.setattr(worker, "case_grid_solution", case_grid_fails)
+    monkeypatch.setattr(worker, "teacher_solution", fine_solve)
+    result = worker.compute_sample(ctx, 0, 0)
+    assert not result["ok"] and result["kind"] == worker.NOT_CONVERGED
+    assert result["error"].startswith("case grid:")

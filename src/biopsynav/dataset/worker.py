@@ -94,9 +94,8 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     was solved).
     """
     from ..errors import SolverError
-    from ..fem import Loads, solve
     from ..grid.index import field_to_tensor
-    from ..probe import contact_input, nodal_forces, push_for_sample
+    from ..probe import contact_input, push_for_sample
 
     cfg = ctx.case.cfg
     push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
@@ -105,30 +104,26 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     start = time.perf_counter()
     result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
                               **push_metadata(push)}
-    try:
-        if push.rigid:
-            u, report = solve(ctx.model, rigid_push_loads(ctx, push), rigid_push_settings(ctx))
-        else:
-            u, report = solve(ctx.model, Loads(forces=nodal_forces(loaded, push.force)),
-                              ctx.settings)
+    try:  # an extrapolating teacher's case grid first: it costs a fraction of the fine solve
+        u_case = case_grid_solution(ctx, push)
+        rejected = case_grid_rejection(ctx, u_case)
+        if rejected is not None:
+            return rejected_result(result, rejected, case_grid_depth(ctx, push, u_case), 0,
+                                   start)
+        u, report = teacher_solution(ctx, push)
     except SolverError as exc:
         return not_converged(result, exc, start)
     contact_u = np.asarray(loaded @ u)
     probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
     rejected = solved_rejection(ctx, push, probe_disp, u)
-    if rejected is None:  # only then the case grid solves it too (an extrapolating teacher)
+    if rejected is None:
         # a rigid push's contact points move by the push itself, which the case grid can hold
         # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
-        try:
-            u, rejected = case_grid_field(ctx, push, u, (contact, contact_u) if push.rigid
-                                          else None)
-        except SolverError as exc:
-            return not_converged(result, exc, start)
+        u = ctx.teacher.case_field(u, (contact, contact_u) if push.rigid else None, u_case,
+                                   ctx.case.cfg.dataset.max_edge_stretch)
+        rejected = extrapolation_rejection(ctx, u, u_case)
     if rejected is not None:
-        result.update(ok=False, kind=rejected[0], error=rejected[1], probe_disp_mm=probe_disp,
-                      solve_s=time.perf_counter() - start, diagnostics=[],
-                      newton_iters=int(report.iterations))
-        return result
+        return rejected_result(result, rejected, probe_disp, report.iterations, start)
     node_disp = np.linalg.norm(u, axis=1)
     # the input from the stored field at the contact points (a refined teacher's field as
     # fitted to the case grid; on the case grid, contact_u itself), so that training
@@ -146,6 +141,29 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         residual=float(report.residual_rel),
         solve_s=float(time.perf_counter() - start),
     )
+    return result
+
+
+def teacher_solution(ctx: SampleContext, push: Any) -> tuple[np.ndarray, Any]:
+    """``push`` solved on the teacher's grid: (n_model_nodes, 3) mm and the solve report;
+    raises SolverError."""
+    from ..fem import Loads, solve
+    from ..probe import nodal_forces
+
+    if push.rigid:
+        return solve(ctx.model, rigid_push_loads(ctx, push), rigid_push_settings(ctx))
+    loaded = ctx.teacher.skin.matrix[push.contact]
+    return solve(ctx.model, Loads(forces=nodal_forces(loaded, push.force)), ctx.settings)
+
+
+def rejected_result(result: dict, rejected: tuple[str, str], probe_disp: float,
+                    iterations: int, start: float) -> dict:
+    """``result`` marked as a draw that was solved and not kept: ``rejected`` (kind,
+    message), its probe displacement mm, the teacher's Newton iterations (0 when only the
+    case grid solved it), started at ``start`` (``time.perf_counter`` s)."""
+    result.update(ok=False, kind=rejected[0], error=rejected[1], probe_disp_mm=probe_disp,
+                  solve_s=time.perf_counter() - start, diagnostics=[],
+                  newton_iters=int(iterations))
     return result
 
 
@@ -178,18 +196,6 @@ def not_converged(result: dict, exc: Any, start: float) -> dict:
     return result
 
 
-def case_grid_field(ctx: SampleContext, push: Any, u: np.ndarray, held: tuple | None
-                    ) -> tuple[np.ndarray, tuple[str, str] | None]:
-    """The teacher's solution ``u`` (n_model_nodes, 3) mm of ``push`` on the case grid
-    (n_nodes, 3) mm (:meth:`~biopsynav.fem.teacher.Teacher.case_field`, ``held`` its
-    contact points), extrapolated from the case grid's own solve when the teacher
-    extrapolates, and why it is not kept (:func:`extrapolation_rejection`) or None; raises
-    SolverError when that solve fails."""
-    u_case = case_grid_solution(ctx, push)
-    u = ctx.teacher.case_field(u, held=held, u_case=u_case)
-    return u, extrapolation_rejection(ctx, u, u_case)
-
-
 def case_grid_solution(ctx: SampleContext, push: Any) -> np.ndarray | None:
     """The push solved on the case grid (n_nodes, 3) mm when the teacher extrapolates
     (``[dataset] teacher_extrapolation``), else None; raises SolverError (its reason
@@ -213,22 +219,35 @@ def case_grid_solution(ctx: SampleContext, push: Any) -> np.ndarray | None:
     return u
 
 
+def case_grid_rejection(ctx: SampleContext, u_case: np.ndarray | None
+                        ) -> tuple[str, str] | None:
+    """Why a draw is not kept on its case-grid solution ``u_case`` (n_nodes, 3) mm alone
+    (:data:`IMPLAUSIBLE`, message), or None (also when ``u_case`` is None: no
+    extrapolation): it stretches a cell beyond ``[dataset] max_edge_stretch`` (a flung lone
+    node, as the case-grid teacher checks)."""
+    if u_case is None:
+        return None
+    why = implausible(ctx.teacher.coarse, u_case, ctx.case.cfg.dataset.max_edge_stretch)
+    return (IMPLAUSIBLE, f"case grid: {why}") if why else None
+
+
+def case_grid_depth(ctx: SampleContext, push: Any, u_case: np.ndarray) -> float:
+    """The probe displacement (mm) of ``push`` in its case-grid solution ``u_case``."""
+    return float(np.linalg.norm(ctx.skin[push.contact] @ u_case, axis=1).mean())
+
+
 def extrapolation_rejection(ctx: SampleContext, u: np.ndarray, u_case: np.ndarray | None
                             ) -> tuple[str, str] | None:
     """Why an extrapolated sample is not kept (:data:`IMPLAUSIBLE`, message), or None (also
-    when ``u_case`` is None: no extrapolation): the case grid's own solution ``u_case``
-    (n_nodes, 3) mm stretches a cell beyond ``[dataset] max_edge_stretch`` (a flung lone node,
-    as the case-grid teacher checks), or the extrapolated field ``u`` (n_nodes, 3) mm does so
-    in a cell it was extrapolated in (at least half full). Nearly empty cells keep the fitted
-    fine field's nodes beside extrapolated ones, and cells under the probe's edges may come
-    out inverted (the expansion behind the extrapolation does not hold at a singularity):
-    both are kept; the refined model's Table 1 counts inverted targets."""
+    when ``u_case`` is None: no extrapolation): the extrapolated field ``u`` (n_nodes, 3) mm
+    still stretches a cell it was extrapolated in (at least half full) beyond ``[dataset]
+    max_edge_stretch`` after :meth:`~biopsynav.fem.teacher.Teacher.extrapolate` gave the
+    cells over it the fitted field. Nearly empty cells keep the fitted fine field's nodes
+    beside extrapolated ones, and cells under the probe's edges may come out inverted: both
+    are kept; the refined model's Table 1 counts inverted targets."""
     if u_case is None:
         return None
     teacher, stretch = ctx.teacher, ctx.case.cfg.dataset.max_edge_stretch
-    why = implausible(teacher.coarse, u_case, stretch)
-    if why:
-        return IMPLAUSIBLE, f"case grid: {why}"
     why = implausible(teacher.coarse, u, stretch, teacher.extrapolated_cells)
     return (IMPLAUSIBLE, f"extrapolated field: {why}") if why else None
 

@@ -514,13 +514,18 @@ def largest_edge_stretch(model: FEModel, u: np.ndarray,
     """The largest ratio of deformed to rest length over every edge of every element (or of
     the elements selected by ``elements``, (n_el,) bool) at displacement ``u`` (n_nodes, 3) mm
     (1 at rest)."""
-    hexes = model.hexes if elements is None else model.hexes[elements]
-    if not len(hexes):
-        return 1.0
-    a, b = hexes[:, HEX_EDGES[:, 0]], hexes[:, HEX_EDGES[:, 1]]
+    stretches = edge_stretches(model, u)
+    stretches = stretches if elements is None else stretches[elements]
+    return float(stretches.max()) if len(stretches) else 1.0
+
+
+def edge_stretches(model: FEModel, u: np.ndarray) -> np.ndarray:
+    """(n_el,) the largest ratio of deformed to rest length over each element's 12 edges at
+    displacement ``u`` (n_nodes, 3) mm (1 at rest)."""
+    a, b = model.hexes[:, HEX_EDGES[:, 0]], model.hexes[:, HEX_EDGES[:, 1]]
     rest = np.linalg.norm(model.nodes[b] - model.nodes[a], axis=2)
     x = model.nodes + u
-    return float((np.linalg.norm(x[b] - x[a], axis=2) / rest).max())
+    return (np.linalg.norm(x[b] - x[a], axis=2) / rest).max(axis=1)
 
 
 def tangent_matrix(model: FEModel, u: np.ndarray):

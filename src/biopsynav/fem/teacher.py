@@ -13,6 +13,9 @@ import numpy as np
 
 #: Tissue fraction of a case-grid cell from which its nodes get the extrapolation.
 EXTRAPOLATE_FROM = 0.5
+#: Rounds of :meth:`Teacher.extrapolate` that give cells stretched beyond the limit back the
+#: fitted field (each may stretch a neighbour that shares their nodes).
+LIMIT_ROUNDS = 8
 
 
 @dataclass
@@ -47,16 +50,38 @@ class Teacher:
     extrapolated: Any = None
 
     def case_field(self, u: np.ndarray, held: tuple | None = None,
-                   u_case: np.ndarray | None = None) -> np.ndarray:
+                   u_case: np.ndarray | None = None, max_stretch: float = 0.0) -> np.ndarray:
         """A solution (n_model_nodes, 3) mm on the case grid (n_nodes, 3) mm; ``held``: the
         probe's contact points, (case-grid weights (m, n_nodes), displacements (m, 3) mm),
         which the fit moves as the solution does (:class:`~biopsynav.grid.transfer.
         FieldTransfer`); ``u_case`` (n_nodes, 3) mm: the same push solved by
-        :attr:`coarse`, from which the field is extrapolated."""
+        :attr:`coarse`, from which the field is extrapolated (:meth:`extrapolate`, limited
+        by ``max_stretch``)."""
         fitted = u if self.transfer is None else self.transfer(u, held)
         if u_case is None:
             return fitted
-        return fitted + self.weight * self.extrapolated[:, None] * (fitted - u_case)
+        return self.extrapolate(fitted, u_case, max_stretch)
+
+    def extrapolate(self, fitted: np.ndarray, u_case: np.ndarray,
+                    max_stretch: float = 0.0) -> np.ndarray:
+        """``fitted + w (fitted - u_case)`` (n_nodes, 3) mm on the nodes of
+        :attr:`extrapolated`, ``fitted`` elsewhere. With ``max_stretch`` > 0 a cell whose
+        edge that field stretches beyond ``max_stretch`` times its rest length (the two
+        grids far apart, as under the probe's edge at a deep push, where the expansion
+        behind the extrapolation does not hold) gives its nodes back the fitted field;
+        repeated for :data:`LIMIT_ROUNDS` rounds at most."""
+        from .solver import edge_stretches
+
+        nodes = self.extrapolated.copy()
+        field = fitted + self.weight * nodes[:, None] * (fitted - u_case)
+        for _ in range(LIMIT_ROUNDS if max_stretch > 0 else 0):
+            over = self.extrapolated_cells & (edge_stretches(self.coarse, field) > max_stretch)
+            back = self.coarse.hexes[over].ravel()
+            if not np.any(nodes[back]):
+                break
+            nodes[back] = False
+            field = fitted + self.weight * nodes[:, None] * (fitted - u_case)
+        return field
 
 
 def teacher_refinement(cfg: Any) -> int | float:

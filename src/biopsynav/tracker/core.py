@@ -480,7 +480,9 @@ class Tracker:
         ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added. With a
         refined teacher the solve runs on its grid and the answer is fitted to the case
         grid; when that teacher extrapolates (``[dataset] teacher_extrapolation``), the case
-        grid solves the same contact too and the answer is extrapolated from both."""
+        grid solves the same contact too and the answer is extrapolated from both, as the
+        teacher's data are (cells it would stretch beyond ``[dataset] max_edge_stretch``
+        keep the fitted field)."""
         touched = np.zeros(0, dtype=np.int64)
         u = self._fem_solve(u_c, pose, touched)
         if self.case.cfg.tracker.contact_follows_pose:
@@ -496,7 +498,8 @@ class Tracker:
         u_case = None
         if self._teacher.coarse is not None:
             u_case = self._fem_solve(u_c, pose, touched, on_case_grid=True)
-        return self._teacher.case_field(u, held=(self._contact_emb.matrix, u_c), u_case=u_case)
+        return self._teacher.case_field(u, (self._contact_emb.matrix, u_c), u_case,
+                                        self.case.cfg.dataset.max_edge_stretch)
 
     def _fem_solve(self, u_c: np.ndarray, pose: np.ndarray, touched: np.ndarray,
                    on_case_grid: bool = False) -> np.ndarray:
