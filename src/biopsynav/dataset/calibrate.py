@@ -96,6 +96,7 @@ def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float
     unit force direction (3,)."""
     from ..fem import Loads, solve
     from ..probe import nodal_forces
+    from .worker import probe_displacement
 
     depths = np.full(len(contacts), np.inf)
     for i, (contact, direction) in enumerate(contacts):
@@ -104,7 +105,7 @@ def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float
                          settings)
         except SolverError:
             continue
-        depths[i] = float(np.linalg.norm(contact @ u, axis=1).mean())
+        depths[i] = probe_displacement(contact @ u)
     return depths
 
 

@@ -108,13 +108,13 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         u_case = case_grid_solution(ctx, push)
         rejected = case_grid_rejection(ctx, u_case)
         if rejected is not None:
-            return rejected_result(result, rejected, case_grid_depth(ctx, push, u_case), 0,
+            return rejected_result(result, rejected, probe_displacement(contact @ u_case), 0,
                                    start)
-        u, report = teacher_solution(ctx, push)
+        u, report = teacher_solution(ctx, push, loaded)
     except SolverError as exc:
         return not_converged(result, exc, start)
     contact_u = np.asarray(loaded @ u)
-    probe_disp = float(np.linalg.norm(contact_u, axis=1).mean())
+    probe_disp = probe_displacement(contact_u)
     rejected = solved_rejection(ctx, push, probe_disp, u)
     if rejected is None:
         # a rigid push's contact points move by the push itself, which the case grid can hold
@@ -144,15 +144,15 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     return result
 
 
-def teacher_solution(ctx: SampleContext, push: Any) -> tuple[np.ndarray, Any]:
+def teacher_solution(ctx: SampleContext, push: Any, loaded: Any) -> tuple[np.ndarray, Any]:
     """``push`` solved on the teacher's grid: (n_model_nodes, 3) mm and the solve report;
-    raises SolverError."""
+    ``loaded``: the contact points' embedding in that grid (CSR (n, n_model_nodes)) that a
+    force patch loads; raises SolverError."""
     from ..fem import Loads, solve
     from ..probe import nodal_forces
 
     if push.rigid:
         return solve(ctx.model, rigid_push_loads(ctx, push), rigid_push_settings(ctx))
-    loaded = ctx.teacher.skin.matrix[push.contact]
     return solve(ctx.model, Loads(forces=nodal_forces(loaded, push.force)), ctx.settings)
 
 
@@ -231,9 +231,10 @@ def case_grid_rejection(ctx: SampleContext, u_case: np.ndarray | None
     return (IMPLAUSIBLE, f"case grid: {why}") if why else None
 
 
-def case_grid_depth(ctx: SampleContext, push: Any, u_case: np.ndarray) -> float:
-    """The probe displacement (mm) of ``push`` in its case-grid solution ``u_case``."""
-    return float(np.linalg.norm(ctx.skin[push.contact] @ u_case, axis=1).mean())
+def probe_displacement(contact_u: np.ndarray) -> float:
+    """The probe displacement (mm): the mean norm of the contact points' displacements
+    ``contact_u`` (n, 3) mm."""
+    return float(np.linalg.norm(contact_u, axis=1).mean())
 
 
 def extrapolation_rejection(ctx: SampleContext, u: np.ndarray, u_case: np.ndarray | None

@@ -73,14 +73,15 @@ class Teacher:
         from .solver import edge_stretches
 
         nodes = self.extrapolated.copy()
-        field = fitted + self.weight * nodes[:, None] * (fitted - u_case)
+        correction = self.weight * (fitted - u_case)
+        field = fitted + nodes[:, None] * correction
         for _ in range(LIMIT_ROUNDS if max_stretch > 0 else 0):
             over = self.extrapolated_cells & (edge_stretches(self.coarse, field) > max_stretch)
             back = self.coarse.hexes[over].ravel()
             if not np.any(nodes[back]):
                 break
             nodes[back] = False
-            field = fitted + self.weight * nodes[:, None] * (fitted - u_case)
+            field = fitted + nodes[:, None] * correction
         return field
 
 
