@@ -14,7 +14,12 @@ from biopsynav.case import Case
 from biopsynav.config import config_from_dict
 from biopsynav.dataset.contacts import sample_contact_matrices
 from biopsynav.dataset.generate import generate_case
-from biopsynav.dataset.store import protocol_dict, protocol_fingerprint
+from biopsynav.dataset.store import (
+    FORCE_PATCH_KEYS,
+    protocol_dict,
+    protocol_fingerprint,
+    same_protocol,
+)
 from biopsynav.errors import InputError
 from biopsynav.grid.embedding import surface_embedding
 from biopsynav.grid.index import tensor_to_field
@@ -86,6 +91,29 @@ def test_the_kind_is_fixed_per_sample_and_a_share_of_zero_is_the_old_protocol(ba
     assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) != fp_before
     probe.rigid_share = 0.0
     assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) == fp_before
+
+
+def test_a_data_set_of_rigid_pushes_alone_does_not_depend_on_the_force_range(base_case):
+    """With every push rigid (a [refine] data set) the force patches' keys leave the
+    protocol: a new force range keeps the data set; a store that recorded them (made before)
+    is still the same protocol; a mixed set keeps them."""
+    cfg = Case.load(base_case).cfg
+    cfg.probe.rigid_share = 1.0
+    protocol = protocol_dict(cfg, N_TRAIN, N_TEST)
+    assert not set(FORCE_PATCH_KEYS) & set(protocol["probe"])
+    cfg.probe.f_max_n, cfg.probe.max_tilt_deg, cfg.probe.calibrate_force = 1.5, 10.0, False
+    assert protocol_dict(cfg, N_TRAIN, N_TEST) == protocol
+    before = {**protocol, "probe": {**protocol["probe"], "f_max_n": 4.0, "max_tilt_deg": 45.0,
+                                    "calibrate_force": True, "depth_tolerance_mm": 5.0}}
+    attrs = {"protocol": before, "protocol_fingerprint": protocol_fingerprint(before)}
+    assert same_protocol(attrs, protocol)
+    cfg.probe.rigid_max_tilt_deg = 20.0  # a key the rigid pushes use
+    assert not same_protocol(attrs, protocol_dict(cfg, N_TRAIN, N_TEST))
+    cfg.probe.rigid_share = 0.5
+    mixed = protocol_dict(cfg, N_TRAIN, N_TEST)
+    assert mixed["probe"]["f_max_n"] == 1.5
+    cfg.probe.f_max_n = 2.0
+    assert protocol_dict(cfg, N_TRAIN, N_TEST) != mixed
 
 
 def test_rigid_pushes_need_a_depth_range():

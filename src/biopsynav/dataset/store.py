@@ -70,6 +70,12 @@ def dataset_path(case_dir: str | Path) -> Path:
     return Path(case_dir) / DATASET_NAME
 
 
+#: [probe] keys that only force patches use: not in the protocol of a data set of rigid
+#: pushes alone (``rigid_share = 1``, as a ``[refine]`` data set), which a new force range
+#: or its calibration then leaves valid.
+FORCE_PATCH_KEYS = ("f_max_n", "calibrate_force", "max_tilt_deg", "depth_tolerance_mm")
+
+
 def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     """Everything besides anatomy and grid that decides the samples' content.
 
@@ -77,8 +83,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     min_fraction, and with rigid pushes [tracker] fem_contact), [solver] without ``backend``
     and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
     (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
-    protocol of force patches is what it was), and the seed, sizes, Newton budget and contact
-    input of [dataset].
+    protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
+    push is rigid), and the seed, sizes, Newton budget and contact input of [dataset].
     """
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
@@ -96,7 +102,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     checks = {} if stretch == DEFAULT_MAX_EDGE_STRETCH else {"max_edge_stretch": stretch}
     return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
             "fe_model": fe_model,
-            "solver": solver, "probe": probe,
+            "solver": solver, "probe": without_unused_force_keys(probe),
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
                         "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,
                         "contact_input": cfg.dataset.contact_input,
@@ -107,6 +113,14 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
 #: contact points of a rigid push (:class:`biopsynav.grid.transfer.FieldTransfer`); data sets
 #: of before it (the fit alone) have no such key.
 TEACHER_FIT = "holds-rigid-contact"
+
+
+def without_unused_force_keys(probe: dict) -> dict:
+    """The [probe] part of a protocol without :data:`FORCE_PATCH_KEYS` when every push is
+    rigid (``rigid_share`` 1), else ``probe`` itself."""
+    if probe.get("rigid_share", 0.0) < 1.0:
+        return probe
+    return {k: v for k, v in probe.items() if k not in FORCE_PATCH_KEYS}
 
 
 def teacher_protocol(cfg: CaseConfig) -> dict:
@@ -274,10 +288,29 @@ def check_compatible(store: DatasetStore, fingerprint: str, protocol: dict) -> N
         raise FingerprintError("the data set was generated for another anatomy or grid "
                                f"(fingerprint {str(attrs['fingerprint'])[:12]}..., case "
                                f"{fingerprint[:12]}...){hint}", str(store.path))
-    if attrs["protocol_fingerprint"] != protocol_fingerprint(protocol):
-        changed = _changed_sections(dict(attrs.get("protocol", {})), protocol)
+    if not same_protocol(attrs, protocol):
+        changed = _changed_sections(_comparable(attrs.get("protocol")), protocol)
         raise FingerprintError("the data set was generated with another protocol (changed: "
                                f"{', '.join(changed) or 'unknown'}){hint}", str(store.path))
+
+
+def same_protocol(attrs: Any, protocol: dict) -> bool:
+    """Whether a store's attributes ``attrs`` record ``protocol``: the same fingerprint, or a
+    store of rigid pushes alone made when its protocol still named the force patches' keys
+    (:data:`FORCE_PATCH_KEYS`), which is the same protocol once they are left out."""
+    if attrs["protocol_fingerprint"] == protocol_fingerprint(protocol):
+        return True
+    return protocol_fingerprint(_comparable(attrs.get("protocol"))) == \
+        protocol_fingerprint(protocol)
+
+
+def _comparable(stored: Any) -> dict:
+    """A store's recorded protocol as today's :func:`protocol_dict` writes it (the force
+    patches' keys left out of a protocol of rigid pushes alone)."""
+    out = dict(stored or {})
+    if isinstance(out.get("probe"), dict):
+        out["probe"] = without_unused_force_keys(dict(out["probe"]))
+    return out
 
 
 def _changed_sections(old: dict, new: dict) -> list[str]:
