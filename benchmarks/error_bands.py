@@ -1,0 +1,145 @@
+"""Where the network misses its teacher: the error of a case's tracking model on its own
+training and held-out samples, by each node's distance from the probe's centre and by whether
+the node lies inside the breast.
+
+Usage: ``python benchmarks/error_bands.py CASE_DIR [--train-samples 80] [--out FILE]``.
+
+The model is the one the tracker loads (``Case.tracking_model``: ``refine/model`` with
+``[refine] samples > 0``) and the samples are those of the data set that taught it
+(``refine/dataset.zarr`` then), predicted as Table 1 does (with the contact projection when
+the model has one). For each sample set it prints the mean e (mm, Table 1's per-sample mean
+over active nodes), then the mean nodal error (mm) and the mean target displacement (mm) in
+bands of distance from the push's centre vertex (mm, at rest), for all active nodes and for
+those inside and outside the breast surface (immersed-grid nodes outside it carry the field's
+extension, not tissue). A training error as large as the held-out one says that the network
+cannot fit its teacher there (the targets are not smooth enough for the grid, or the network
+too small), not that it lacks samples. The last line reads ``RESULT train_e_mm=...
+test_e_mm=... test_band_10_20_mm=... test_band_20_40_mm=...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+BANDS_MM = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, np.inf))
+
+
+def predictions(sur, case, data, idx: np.ndarray) -> np.ndarray:
+    """Predictions (n, 3, nx, ny, nz) mm of the stored samples ``idx``, projected onto their
+    contact points when the model projects (as Table 1)."""
+    from biopsynav.contact.projection import sample_projections
+    from biopsynav.dataset.contacts import sample_contact_matrices
+    from biopsynav.network.evaluate import predict_all
+
+    x, y = data.inputs.numpy(), data.targets.numpy()
+    if not sur.projects(case.cfg.network.contact_projection):
+        return predict_all(sur, x[idx])
+    contacts = sample_projections(sur.baseline, sample_contact_matrices(case, data.path, idx),
+                                  x, y, idx, str(data.path))
+    return np.stack([sur.predict(x[i], *c) for i, c in zip(idx, contacts, strict=True)])
+
+
+def band_rows(err: np.ndarray, disp: np.ndarray, dist: np.ndarray, keep: np.ndarray) -> list:
+    """Per distance band: [lo, hi, nodal values, mean error mm, mean displacement mm] over
+    the (sample, node) entries ``keep`` (all arrays (n, n_active))."""
+    rows = []
+    for lo, hi in BANDS_MM:
+        m = keep & (dist >= lo) & (dist < hi)
+        n = int(m.sum())
+        rows.append([lo, hi, n, float(err[m].mean()) if n else None,
+                     float(disp[m].mean()) if n else None])
+    return rows
+
+
+def sample_set_figures(sur, case, data, idx: np.ndarray, inside: np.ndarray) -> dict:
+    """Mean e and the band rows (all / inside / outside nodes) of the samples ``idx``."""
+    import zarr
+
+    from biopsynav.network.metrics import mean_norm_error_np
+
+    active = data.active.numpy()
+    pred, y = predictions(sur, case, data, idx), data.targets.numpy()[idx]
+    e = mean_norm_error_np(pred, y, active)
+    err = np.linalg.norm(pred - y, axis=1)[:, active]
+    disp = np.linalg.norm(y, axis=1)[:, active]
+    centres = np.asarray(zarr.open_group(str(data.path), mode="r")["center"][:])[idx]
+    nodes = case.grid.node_coords()[active.reshape(-1)]
+    dist = np.linalg.norm(nodes[None] - centres[:, None], axis=2)
+    every = np.ones_like(err, dtype=bool)
+    inner = np.broadcast_to(inside, err.shape)
+    return {"samples": len(idx), "mean_e_mm": float(e.mean()), "max_e_mm": float(e.max()),
+            "bands": {"all": band_rows(err, disp, dist, every),
+                      "inside": band_rows(err, disp, dist, inner),
+                      "outside": band_rows(err, disp, dist, ~inner)}}
+
+
+def print_figures(name: str, f: dict) -> None:
+    print(f"\n{name}: {f['samples']} samples, mean e {f['mean_e_mm']:.3f} mm, max e "
+          f"{f['max_e_mm']:.3f} mm")
+    print(f"{'nodes':>8} {'band mm':>10} {'values':>8} {'error mm':>9} {'|u| mm':>8}")
+    for where, rows in f["bands"].items():
+        for lo, hi, n, err, disp in rows:
+            band = f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}"
+            if n:
+                print(f"{where:>8} {band:>10} {n:>8} {err:>9.3f} {disp:>8.2f}")
+
+
+def run(case_dir: Path, train_samples: int) -> dict:
+    from biopsynav.anatomy.model import winding_number
+    from biopsynav.case import Case
+    from biopsynav.inference.surrogate import Surrogate
+    from biopsynav.network.data import load_dataset
+    from biopsynav.refine import tracking_teacher_case
+
+    case = Case.load(case_dir)
+    teacher_case = tracking_teacher_case(case)
+    data = load_dataset(teacher_case.dir)
+    sur = Surrogate.load(case.tracking_model, data.fingerprint, case=case)
+    nodes = case.grid.node_coords()[data.active.numpy().reshape(-1)]
+    inside = np.abs(winding_number(nodes, case.anatomy.vertices, case.anatomy.faces)) > 0.5
+    train = data.train_idx.numpy()[:train_samples]
+    return {"model": str(case.tracking_model), "dataset": str(data.path),
+            "train": sample_set_figures(sur, teacher_case, data, train, inside),
+            "test": sample_set_figures(sur, teacher_case, data, data.test_idx.numpy(), inside)}
+
+
+def result_line(r: dict) -> str:
+    bands = {f"{lo:g}_{hi:g}": err for lo, hi, _, err, _ in r["test"]["bands"]["all"]}
+    return (f"RESULT train_e_mm={r['train']['mean_e_mm']:.4f} "
+            f"test_e_mm={r['test']['mean_e_mm']:.4f} "
+            f"test_band_10_20_mm={bands['10_20']:.3f} test_band_20_40_mm={bands['20_40']:.3f}")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("case_dir", type=Path)
+    ap.add_argument("--train-samples", type=int, default=80,
+                    help="training samples evaluated (the first of the training set)")
+    ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    args = ap.parse_args(argv)
+    from biopsynav.errors import BiopsynavError
+
+    try:
+        r = run(args.case_dir, args.train_samples)
+    except BiopsynavError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    print(f"model {r['model']}\ndata {r['dataset']}")
+    print_figures("training samples", r["train"])
+    print_figures("held-out samples", r["test"])
+    if args.out:
+        from biopsynav.fileio import write_text_atomic
+
+        write_text_atomic(args.out, json.dumps(r, indent=1))
+    print(result_line(r))
+    return r
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,45 @@
+"""benchmarks/error_bands.py: the network's error against its teacher by distance from the
+probe, on the samples Table 1 judges."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from biopsynav.layout import CasePaths
+
+
+@pytest.fixture
+def error_bands(monkeypatch):
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import error_bands
+
+    return error_bands
+
+
+def test_the_held_out_error_is_table_1s_and_the_bands_share_its_nodes(trained_case,
+                                                                      error_bands, capsys):
+    table1 = json.loads(CasePaths(trained_case).table1.read_text())
+    r = error_bands.main([str(trained_case), "--train-samples", "4"])
+    assert r["test"]["mean_e_mm"] == pytest.approx(table1["mean_e_mm"], rel=1e-4)
+    assert r["test"]["max_e_mm"] == pytest.approx(table1["max_e_mm"], rel=1e-4)
+    assert r["train"]["samples"] == 4
+    for figures in (r["train"], r["test"]):
+        bands = figures["bands"]
+        counts = {where: sum(row[2] for row in rows) for where, rows in bands.items()}
+        assert counts["all"] == counts["inside"] + counts["outside"] > 0
+        assert counts["inside"] > 0 and counts["outside"] > 0  # an immersed grid
+        # the band means, weighted by their node counts, give the mean nodal error
+        total = sum(row[2] * row[3] for row in bands["all"] if row[2])
+        parts = sum(row[2] * row[3] for key in ("inside", "outside") for row in bands[key]
+                    if row[2])
+        assert np.isclose(total, parts, rtol=1e-6)
+    assert capsys.readouterr().out.splitlines()[-1].startswith("RESULT train_e_mm=")
+
+
+def test_a_case_without_data_is_one_line(tmp_path, error_bands):
+    with pytest.raises(SystemExit, match="error: .*nowhere: case folder does not exist"):
+        error_bands.main([str(tmp_path / "nowhere")])
