@@ -47,13 +47,14 @@ def predictions(sur, case, data, idx: np.ndarray) -> np.ndarray:
 
 
 def band_rows(err: np.ndarray, disp: np.ndarray, dist: np.ndarray, keep: np.ndarray) -> list:
-    """Per distance band: [lo, hi, nodal values, mean error mm, mean displacement mm] over
-    the (sample, node) entries ``keep`` (all arrays (n, n_active))."""
+    """Per distance band: [lo, hi (None: open), nodal values, mean error mm, mean
+    displacement mm] over the (sample, node) entries ``keep`` (all arrays (n, n_active))."""
     rows = []
     for lo, hi in BANDS_MM:
         m = keep & (dist >= lo) & (dist < hi)
         n = int(m.sum())
-        rows.append([lo, hi, n, float(err[m].mean()) if n else None,
+        rows.append([lo, hi if np.isfinite(hi) else None, n,
+                     float(err[m].mean()) if n else None,
                      float(disp[m].mean()) if n else None])
     return rows
 
@@ -86,7 +87,7 @@ def print_figures(name: str, f: dict) -> None:
     print(f"{'nodes':>8} {'band mm':>10} {'values':>8} {'error mm':>9} {'|u| mm':>8}")
     for where, rows in f["bands"].items():
         for lo, hi, n, err, disp in rows:
-            band = f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}"
+            band = f">{lo:g}" if hi is None else f"{lo:g}-{hi:g}"
             if n:
                 print(f"{where:>8} {band:>10} {n:>8} {err:>9.3f} {disp:>8.2f}")
 
@@ -111,10 +112,11 @@ def run(case_dir: Path, train_samples: int) -> dict:
 
 
 def result_line(r: dict) -> str:
-    bands = {f"{lo:g}_{hi:g}": err for lo, hi, _, err, _ in r["test"]["bands"]["all"]}
+    rows = r["test"]["bands"]["all"]  # in the order of BANDS_MM: 0-10, 10-20, 20-40, > 40
+    band = [np.nan if row[3] is None else row[3] for row in rows]  # None: no node in it
     return (f"RESULT train_e_mm={r['train']['mean_e_mm']:.4f} "
             f"test_e_mm={r['test']['mean_e_mm']:.4f} "
-            f"test_band_10_20_mm={bands['10_20']:.3f} test_band_20_40_mm={bands['20_40']:.3f}")
+            f"test_band_10_20_mm={band[1]:.3f} test_band_20_40_mm={band[2]:.3f}")
 
 
 def main(argv: list[str] | None = None) -> dict:
