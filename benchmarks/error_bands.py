@@ -1,6 +1,6 @@
 """Where the network misses its teacher: the error of a case's tracking model on its own
 training and held-out samples, by each node's distance from the probe's centre and by whether
-the node lies inside the breast.
+the node lies inside the breast, and at the lesion centres.
 
 Usage: ``python benchmarks/error_bands.py CASE_DIR [--train-samples 80] [--out FILE]``.
 
@@ -11,10 +11,12 @@ the model has one). For each sample set it prints the mean e (mm, Table 1's per-
 over active nodes), then the mean nodal error (mm) and the mean target displacement (mm) in
 bands of distance from the push's centre vertex (mm, at rest), for all active nodes and for
 those inside and outside the breast surface (immersed-grid nodes outside it carry the field's
-extension, not tissue). A training error as large as the held-out one says that the network
-cannot fit its teacher there (the targets are not smooth enough for the grid, or the network
-too small), not that it lacks samples. The last line reads ``RESULT train_e_mm=...
-test_e_mm=... test_band_10_20_mm=... test_band_20_40_mm=...``.
+extension, not tissue), and the same at the lesion centres (the trilinear interpolation of
+the nodal error there, by the lesion's distance from the push's centre). A training error as
+large as the held-out one says that the network cannot fit its teacher there (the targets
+are not smooth enough for the grid, or the network too small), not that it lacks samples.
+The last line reads ``RESULT train_e_mm=... test_e_mm=... test_band_10_20_mm=...
+test_band_20_40_mm=... test_lesion_mm=...``.
 """
 
 from __future__ import annotations
@@ -59,8 +61,25 @@ def band_rows(err: np.ndarray, disp: np.ndarray, dist: np.ndarray, keep: np.ndar
     return rows
 
 
+def lesion_errors(case, pred: np.ndarray, y: np.ndarray, centres: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """At every lesion centre of ``case`` for each sample: the prediction's error (n, n_les)
+    mm, the target displacement (n, n_les) mm and the distance from the push's centre
+    ``centres`` (n, 3) mm; ``pred``, ``y`` (n, 3, nx, ny, nz) mm."""
+    from biopsynav.grid.embedding import Embedding
+    from biopsynav.grid.index import tensor_to_field
+
+    lesions = np.array([lesion.center for lesion in case.anatomy.lesions], dtype=np.float64)
+    at = Embedding.build(case.grid, lesions, where="lesion centres")
+    err = np.stack([np.linalg.norm(at.interpolate(tensor_to_field(p - t)), axis=1)
+                    for p, t in zip(pred, y, strict=True)])
+    disp = np.stack([np.linalg.norm(at.interpolate(tensor_to_field(t)), axis=1) for t in y])
+    return err, disp, np.linalg.norm(lesions[None] - centres[:, None], axis=2)
+
+
 def sample_set_figures(sur, case, data, idx: np.ndarray, inside: np.ndarray) -> dict:
-    """Mean e and the band rows (all / inside / outside nodes) of the samples ``idx``."""
+    """Mean e and the band rows (all / inside / outside nodes, lesion centres) of the
+    samples ``idx``."""
     import zarr
 
     from biopsynav.network.metrics import mean_norm_error_np
@@ -75,15 +94,19 @@ def sample_set_figures(sur, case, data, idx: np.ndarray, inside: np.ndarray) -> 
     dist = np.linalg.norm(nodes[None] - centres[:, None], axis=2)
     every = np.ones_like(err, dtype=bool)
     inner = np.broadcast_to(inside, err.shape)
+    l_err, l_disp, l_dist = lesion_errors(case, pred, y, centres)
     return {"samples": len(idx), "mean_e_mm": float(e.mean()), "max_e_mm": float(e.max()),
+            "lesion_mm": float(l_err.mean()),
             "bands": {"all": band_rows(err, disp, dist, every),
                       "inside": band_rows(err, disp, dist, inner),
-                      "outside": band_rows(err, disp, dist, ~inner)}}
+                      "outside": band_rows(err, disp, dist, ~inner),
+                      "lesions": band_rows(l_err, l_disp, l_dist,
+                                           np.ones_like(l_err, dtype=bool))}}
 
 
 def print_figures(name: str, f: dict) -> None:
     print(f"\n{name}: {f['samples']} samples, mean e {f['mean_e_mm']:.3f} mm, max e "
-          f"{f['max_e_mm']:.3f} mm")
+          f"{f['max_e_mm']:.3f} mm, at the lesion centres {f['lesion_mm']:.3f} mm")
     print(f"{'nodes':>8} {'band mm':>10} {'values':>8} {'error mm':>9} {'|u| mm':>8}")
     for where, rows in f["bands"].items():
         for lo, hi, n, err, disp in rows:
@@ -116,7 +139,8 @@ def result_line(r: dict) -> str:
     band = [np.nan if row[3] is None else row[3] for row in rows]  # None: no node in it
     return (f"RESULT train_e_mm={r['train']['mean_e_mm']:.4f} "
             f"test_e_mm={r['test']['mean_e_mm']:.4f} "
-            f"test_band_10_20_mm={band[1]:.3f} test_band_20_40_mm={band[2]:.3f}")
+            f"test_band_10_20_mm={band[1]:.3f} test_band_20_40_mm={band[2]:.3f} "
+            f"test_lesion_mm={r['test']['lesion_mm']:.3f}")
 
 
 def main(argv: list[str] | None = None) -> dict:

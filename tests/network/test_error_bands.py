@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from biopsynav.case import Case
 from biopsynav.layout import CasePaths
 
 
@@ -37,6 +38,9 @@ def test_the_held_out_error_is_table_1s_and_the_bands_share_its_nodes(trained_ca
         parts = sum(row[2] * row[3] for key in ("inside", "outside") for row in bands[key]
                     if row[2])
         assert np.isclose(total, parts, rtol=1e-6)
+        n_lesions = len(Case.load(trained_case).anatomy.lesions)
+        assert sum(row[2] for row in bands["lesions"]) == figures["samples"] * n_lesions
+        assert 0.0 <= figures["lesion_mm"] < np.inf
     assert capsys.readouterr().out.splitlines()[-1].startswith("RESULT train_e_mm=")
 
 
