@@ -36,16 +36,11 @@ BANDS_MM = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, np.inf))
 def predictions(sur, case, data, idx: np.ndarray) -> np.ndarray:
     """Predictions (n, 3, nx, ny, nz) mm of the stored samples ``idx``, projected onto their
     contact points when the model projects (as Table 1)."""
-    from biopsynav.contact.projection import sample_projections
-    from biopsynav.dataset.contacts import sample_contact_matrices
-    from biopsynav.network.evaluate import predict_all
+    from biopsynav.network.evaluate import predict_all, sample_contacts
 
-    x, y = data.inputs.numpy(), data.targets.numpy()
-    if not sur.projects(case.cfg.network.contact_projection):
-        return predict_all(sur, x[idx])
-    contacts = sample_projections(sur.baseline, sample_contact_matrices(case, data.path, idx),
-                                  x, y, idx, str(data.path))
-    return np.stack([sur.predict(x[i], *c) for i, c in zip(idx, contacts, strict=True)])
+    contacts = (sample_contacts(sur, case, data, idx)
+                if sur.projects(case.cfg.network.contact_projection) else None)
+    return predict_all(sur, data.inputs.numpy()[idx], contacts=contacts)
 
 
 def band_rows(err: np.ndarray, disp: np.ndarray, dist: np.ndarray, keep: np.ndarray) -> list:
@@ -77,9 +72,11 @@ def lesion_errors(case, pred: np.ndarray, y: np.ndarray, centres: np.ndarray
     return err, disp, np.linalg.norm(lesions[None] - centres[:, None], axis=2)
 
 
-def sample_set_figures(sur, case, data, idx: np.ndarray, inside: np.ndarray) -> dict:
+def sample_set_figures(sur, case, data, idx: np.ndarray, nodes: np.ndarray,
+                       inside: np.ndarray) -> dict:
     """Mean e and the band rows (all / inside / outside nodes, lesion centres) of the
-    samples ``idx``."""
+    samples ``idx``; ``nodes`` (n_active, 3) mm the active nodes, ``inside`` (n_active,)
+    whether each lies inside the breast."""
     import zarr
 
     from biopsynav.network.metrics import mean_norm_error_np
@@ -90,7 +87,6 @@ def sample_set_figures(sur, case, data, idx: np.ndarray, inside: np.ndarray) -> 
     err = np.linalg.norm(pred - y, axis=1)[:, active]
     disp = np.linalg.norm(y, axis=1)[:, active]
     centres = np.asarray(zarr.open_group(str(data.path), mode="r")["center"][:])[idx]
-    nodes = case.grid.node_coords()[active.reshape(-1)]
     dist = np.linalg.norm(nodes[None] - centres[:, None], axis=2)
     every = np.ones_like(err, dtype=bool)
     inner = np.broadcast_to(inside, err.shape)
@@ -130,8 +126,9 @@ def run(case_dir: Path, train_samples: int) -> dict:
     inside = np.abs(winding_number(nodes, case.anatomy.vertices, case.anatomy.faces)) > 0.5
     train = data.train_idx.numpy()[:train_samples]
     return {"model": str(case.tracking_model), "dataset": str(data.path),
-            "train": sample_set_figures(sur, teacher_case, data, train, inside),
-            "test": sample_set_figures(sur, teacher_case, data, data.test_idx.numpy(), inside)}
+            "train": sample_set_figures(sur, teacher_case, data, train, nodes, inside),
+            "test": sample_set_figures(sur, teacher_case, data, data.test_idx.numpy(), nodes,
+                                       inside)}
 
 
 def result_line(r: dict) -> str:

@@ -38,14 +38,21 @@ def predict_all(sur: Surrogate, x: np.ndarray, batch: int = 8,
 
 
 def test_contacts(sur: Surrogate, case: Case, data: Dataset) -> Contacts:
-    """For each held-out sample, for a model that can project (``sur.can_project``): the
-    contact projection of its probe's contact points (redrawn from the data set's protocol)
-    and their displacement ``W_P u_FE`` (n, 3) mm, from which the dataset stage built the
-    input (:func:`~biopsynav.contact.projection.sample_projections`; InputError when they do
-    not give the stored input)."""
-    test = data.test_idx.numpy()
-    return sample_projections(sur.baseline, sample_contact_matrices(case, data.path, test),
-                              data.inputs.numpy(), data.targets.numpy(), test, str(data.path))
+    """:func:`sample_contacts` of the held-out samples."""
+    return sample_contacts(sur, case, data, data.test_idx.numpy())
+
+
+def sample_contacts(sur: Surrogate, case: Case, data: Dataset, samples: np.ndarray
+                    ) -> Contacts:
+    """For each stored sample of ``samples`` (indices into the store), for a model that can
+    project (``sur.can_project``): the contact projection of its probe's contact points
+    (redrawn from the data set's protocol) and their displacement ``W_P u_FE`` (n, 3) mm,
+    from which the dataset stage built the input
+    (:func:`~biopsynav.contact.projection.sample_projections`; InputError when they do not
+    give the stored input)."""
+    return sample_projections(sur.baseline, sample_contact_matrices(case, data.path, samples),
+                              data.inputs.numpy(), data.targets.numpy(), samples,
+                              str(data.path))
 
 
 def time_predictions(sur: Surrogate, x: np.ndarray, n: int = 1000,
