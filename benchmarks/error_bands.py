@@ -140,10 +140,21 @@ def result_line(r: dict) -> str:
             f"test_lesion_mm={r['test']['lesion_mm']:.3f}")
 
 
+def positive_int(text: str) -> int:
+    """An argument that must be a whole number of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 1")
+    return value
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("case_dir", type=Path)
-    ap.add_argument("--train-samples", type=int, default=80,
+    ap.add_argument("--train-samples", type=positive_int, default=80,
                     help="training samples evaluated (the first of the training set)")
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     args = ap.parse_args(argv)

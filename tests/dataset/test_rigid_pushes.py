@@ -114,6 +114,8 @@ def test_a_data_set_of_rigid_pushes_alone_does_not_depend_on_the_force_range(bas
     assert mixed["probe"]["f_max_n"] == 1.5
     cfg.probe.f_max_n = 2.0
     assert protocol_dict(cfg, N_TRAIN, N_TEST) != mixed
+    damaged = {"protocol": "not a protocol", "protocol_fingerprint": "0" * 64}
+    assert not same_protocol(damaged, mixed)  # a damaged record is another protocol
 
 
 def test_rigid_pushes_need_a_depth_range():

@@ -47,3 +47,11 @@ def test_the_held_out_error_is_table_1s_and_the_bands_share_its_nodes(trained_ca
 def test_a_case_without_data_is_one_line(tmp_path, error_bands):
     with pytest.raises(SystemExit, match="error: .*nowhere: case folder does not exist"):
         error_bands.main([str(tmp_path / "nowhere")])
+
+
+@pytest.mark.parametrize("bad", ["0", "-3", "many"])
+def test_a_bad_training_sample_count_is_refused_before_any_work(bad, trained_case, error_bands,
+                                                                capsys):
+    with pytest.raises(SystemExit):
+        error_bands.main([str(trained_case), "--train-samples", bad])
+    assert "is not a whole number of at least 1" in capsys.readouterr().err

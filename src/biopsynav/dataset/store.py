@@ -307,7 +307,7 @@ def same_protocol(attrs: Any, protocol: dict) -> bool:
 def _comparable(stored: Any) -> dict:
     """A store's recorded protocol as today's :func:`protocol_dict` writes it (the force
     patches' keys left out of a protocol of rigid pushes alone)."""
-    out = dict(stored or {})
+    out = dict(stored) if isinstance(stored, dict) else {}  # a damaged record: compares unequal
     if isinstance(out.get("probe"), dict):
         out["probe"] = without_unused_force_keys(dict(out["probe"]))
     return out
