@@ -359,12 +359,6 @@ class NetworkSection:
                                    "with 0.2 against 0.0521 and 0.0540 with 0.05 "
                                    "(docs/network.md).",
                               lo=0.0, hi=10.0)
-    ema_decay: float = opt(0.0, "Exponential moving average of the weights: after each step "
-                                "the average moves towards the weights by 1 - ema_decay; "
-                                "validation, the best weights and the exported model use the "
-                                "average, and the history logs the raw weights' held-out error "
-                                "beside it (docs/network.md). 0: off, the raw weights.",
-                           lo=0.0, hi=0.999999)
     loss: str = opt("norm", "Training loss over active nodes: 'norm' (the batch mean of the "
                             "paper's e, eq. 3, in mm; measured on the phantom: mean e 0.0599 "
                             "against 0.0697 mm with 'mse'), 'mse' (the paper's eq. 1) or 'l1' "

@@ -70,28 +70,6 @@ def test_resume_equals_uninterrupted_and_is_deterministic(synth_case, tmp_path):
     assert [h["train_loss"] for h in ha] == [h["train_loss"] for h in hc]
 
 
-def test_averaged_weights_are_validated_kept_and_resumed_exactly(synth_case, tmp_path):
-    s = tiny_settings(iterations=50, val_interval=20, ema_decay=0.9)
-    full = train(synth_case, settings=s, model_dir=tmp_path / "a", progress=False)
-    part = train(synth_case, settings=s, model_dir=tmp_path / "c", progress=False,
-                 stop_after=27)
-    rest = train(synth_case, settings=s, model_dir=tmp_path / "c", progress=False)
-    assert rest.resumed_from == 27 and rest.best_val_e_mm == full.best_val_e_mm
-    best_a, best_c = (torch.load(tmp_path / d / "best.pt", weights_only=False)["model"]
-                      for d in "ac")
-    for k in best_a:
-        assert torch.equal(best_a[k], best_c[k]), k  # the average resumed with the weights
-    hist = json.loads((tmp_path / "a" / "history.json").read_text())
-    assert all({"raw_val_mean_e_mm", "raw_val_max_e_mm"} <= set(h) for h in hist)
-    assert all(h["val_mean_e_mm"] != h["raw_val_mean_e_mm"] for h in hist)
-    raw = train(synth_case, settings=dataclasses.replace(s, ema_decay=0.0),
-                model_dir=tmp_path / "r", progress=False)
-    raw_hist = json.loads((tmp_path / "r" / "history.json").read_text())
-    # the raw weights train exactly as without the average
-    assert [h["raw_val_mean_e_mm"] for h in hist] == [h["val_mean_e_mm"] for h in raw_hist]
-    assert part.iterations_done == 27 and raw.finished
-
-
 def test_changed_settings_train_afresh(synth_case, tmp_path):
     s = tiny_settings(iterations=20, val_interval=10)
     train(synth_case, settings=s, model_dir=tmp_path, progress=False, stop_after=10)

@@ -19,7 +19,6 @@ after other convolutions may differ in the last bits).
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
 import io
@@ -151,7 +150,6 @@ def _signature(s: NetworkSection, spec: UNetSpec, data: Dataset, bf16: bool) -> 
     keys = ("iterations", "batch_size", "learning_rate", "warmup_iterations", "loss", "seed",
             "val_interval", "baseline")
     extra = {"weight_decay": s.weight_decay} if s.weight_decay > 0 else {}  # old checkpoints
-    extra.update({"ema_decay": s.ema_decay} if s.ema_decay > 0 else {})
     extra.update({"precision": "bf16"} if bf16 else {})
     return {"spec": spec.to_dict(), "fingerprint": data.fingerprint,
             "n_train": int(data.train_idx.numel()), "n_test": int(data.test_idx.numel()),
@@ -434,43 +432,6 @@ def _projected_baselines(base, case, data: Dataset, idx: torch.Tensor
                               BatchProjection(base, projections[n_train:]))
 
 
-def weight_average(net: SurrogateNet, decay: float, saved: dict | None
-                   ) -> torch.optim.swa_utils.AveragedModel | None:
-    """The exponential moving average of ``net.unet``'s weights (``[network] ema_decay``;
-    None when 0), restored from a checkpoint's ``saved`` state when there is one."""
-    if decay <= 0:
-        return None
-    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
-
-    average = AveragedModel(net.unet, multi_avg_fn=get_ema_multi_avg_fn(decay))
-    if saved is not None:
-        average.load_state_dict(saved)
-    return average
-
-
-@contextlib.contextmanager
-def averaged_weights(unet: torch.nn.Module,
-                     average: torch.optim.swa_utils.AveragedModel | None):
-    """``unet`` holds the averaged weights inside the block (its own ones again after);
-    nothing changes when ``average`` is None."""
-    if average is None:
-        yield
-        return
-    raw = [p.detach().clone() for p in unet.parameters()]
-    _copy_into(unet.parameters(), average.module.parameters())
-    try:
-        yield
-    finally:
-        _copy_into(unet.parameters(), raw)
-
-
-def _copy_into(targets: Iterable[torch.Tensor], sources: Iterable[torch.Tensor]) -> None:
-    """Copy each source tensor's values into its target, in place."""
-    with torch.no_grad():
-        for target, source in zip(targets, sources, strict=True):
-            target.copy_(source)
-
-
 class TrainingLoop:
     """The optimisation loop with validation, checkpoints and the progress bar."""
 
@@ -496,7 +457,6 @@ class TrainingLoop:
         self.memory_format = (torch.channels_last_3d if dev.type == "cpu"
                               else torch.contiguous_format)
         net.to(memory_format=self.memory_format)
-        self.average = weight_average(net, s.ema_decay, state.get("ema"))
 
     def step(self, it: int) -> float:
         s = self.s
@@ -514,8 +474,6 @@ class TrainingLoop:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
-        if self.average is not None:
-            self.average.update_parameters(self.net.unet)
         return float(loss.detach())
 
     def run(self, progress: bool, stop_after: int | None) -> None:
@@ -558,31 +516,23 @@ class TrainingLoop:
         st["best_state"] = copy.deepcopy({k: v.cpu() for k, v in
                                           self.net.unet.state_dict().items()})
 
-    def validate_held_out(self) -> torch.Tensor:
-        """Per-sample held-out e (n,) mm of the network as it stands."""
-        return validate(self.net, self.x_test, self.y_test, self.active,
-                        memory_format=self.memory_format, projection=self.test_proj)
-
     def validate_and_log(self) -> None:
         st = self.state
-        entry = {"iteration": st["iteration"],
-                 "train_loss": st["loss_sum"] / max(1, st["loss_n"])}
-        if self.average is not None:  # the raw weights' error, logged beside the average's
-            raw = self.validate_held_out()
-            entry.update(raw_val_mean_e_mm=float(raw.mean()), raw_val_max_e_mm=float(raw.max()))
-        with averaged_weights(self.net.unet, self.average):
-            e = self.validate_held_out()
-            weights = copy.deepcopy({k: v.cpu() for k, v in self.net.unet.state_dict().items()})
+        e = validate(self.net, self.x_test, self.y_test, self.active,
+                     memory_format=self.memory_format, projection=self.test_proj)
         mean_e = float(e.mean())
         if not math.isfinite(mean_e):
             raise self.diverged(f"the held-out error became {mean_e} mm", st["iteration"])
-        st["history"].append({**entry, "val_mean_e_mm": mean_e, "val_max_e_mm": float(e.max()),
+        st["history"].append({"iteration": st["iteration"],
+                              "train_loss": st["loss_sum"] / max(1, st["loss_n"]),
+                              "val_mean_e_mm": mean_e, "val_max_e_mm": float(e.max()),
                               "lr": lr_at(st["iteration"] - 1, self.s),
                               "elapsed_s": st["elapsed_s"]})
         st["loss_sum"], st["loss_n"] = 0.0, 0
         if mean_e < st["best_val"]:
             st["best_val"], st["best_iteration"] = mean_e, st["iteration"]
-            st["best_state"] = weights
+            st["best_state"] = copy.deepcopy({k: v.cpu() for k, v in
+                                              self.net.unet.state_dict().items()})
             _save_torch({"model": st["best_state"], "iteration": st["iteration"],
                          "val_mean_e_mm": mean_e}, self.out / BEST)
         from .plots import plot_loss_curve
@@ -600,8 +550,6 @@ class TrainingLoop:
 
     def save_checkpoint(self) -> None:
         self.saved_at = self.state["iteration"]
-        if self.average is not None:
-            self.state["ema"] = self.average.state_dict()
         _save_torch({"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
                      "state": self.state, "signature": self.signature}, self.out / CHECKPOINT)
 
