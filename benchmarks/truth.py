@@ -1,14 +1,15 @@
 """Lesion tracking against an independent truth: the network tracker, the FE tracker (the
 network's teacher) and the rigid assumption against a P2 tetrahedral FE of the same pushes.
 
-    python benchmarks/truth.py CASE [--lesions 3] [--depths 10 20 30] [--tet-size 10]
+    python benchmarks/truth.py CASE [--lesions 3 | --lesion-ids 2,3,7]
+                                    [--depths 10 20 30] [--tet-size 10]
                                     [--tet-fine 4] [--tet-rim 1.5] [--friction slip]
                                     [--edge-radius 2.5] [--progress]
                                     [--reference CASE-p2.json]
                                     [--out FILE]
 
 The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
-over the list as Table 2 picks them) the probe is placed over it as in Table 2
+over the list as Table 2 picks them, or named by ``--lesion-ids``) the probe is placed over it as in Table 2
 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
 truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the same
 surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
@@ -103,6 +104,26 @@ def load_reference(path: Path, key: dict) -> dict:
     return stored.get("lesions", {})
 
 
+def chosen_lesions(case: Case, count: int, ids: str | None = None) -> list[int]:
+    """Indices of the lesions evaluated: those whose ids the comma list ``ids`` names (e.g.
+    '2,3,7', as the case's lesion list spells them), else ``count`` of them spread over the
+    list as Table 2 picks them (0: all). SystemExit with one line for an id the case lacks."""
+    if not ids:
+        return select_lesions(len(case.anatomy.lesions), count)
+    index = {int(lesion.id): i for i, lesion in enumerate(case.anatomy.lesions)}
+    try:
+        wanted = [int(v) for v in ids.split(",")]
+    except ValueError:
+        raise SystemExit(f"error: --lesion-ids {ids!r} is not a comma list of lesion ids "
+                         "(e.g. 2,3,7)") from None
+    unknown = [v for v in wanted if v not in index]
+    if unknown:
+        raise SystemExit(f"error: --lesion-ids: {case.dir} has no lesion with id "
+                         f"{', '.join(map(str, unknown))} (its ids: "
+                         f"{', '.join(map(str, sorted(index)))})")
+    return sorted({index[v] for v in wanted})
+
+
 def method_trackers(case: Case) -> dict[str, Tracker]:
     """The network tracker and the FE tracker of ``case`` (Table 2's solver settings)."""
     return {"net": Tracker.load(case, engine="net"),
@@ -144,7 +165,7 @@ def run(args) -> dict:
     key = reference_key(case, e_mpa, nu, args)
     ref_path = args.reference or args.case_dir.resolve().parent / f"{args.case_dir.name}-p2.json"
     stored = load_reference(ref_path, key)
-    lesions = select_lesions(len(case.anatomy.lesions), args.lesions)
+    lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
     for li in lesions:
         if str(li) not in stored:
@@ -197,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("case_dir", type=Path)
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
+    p.add_argument("--lesion-ids", default=None,
+                   help="ids of the lesions evaluated, e.g. 2,3,7 (instead of --lesions): "
+                        "adds chosen lesions to a stored reference")
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0],
                    help="push depths, mm")
     add_reference_arguments(p, fine_mm=4.0)
