@@ -9,8 +9,9 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
                                     [--out FILE]
 
 The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
-over the list as Table 2 picks them, or named by ``--lesion-ids``) the probe is placed over it as in Table 2
-(:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by each depth. The
+over the list as Table 2 picks them, or named by ``--lesion-ids``) the probe is placed over
+it as in Table 2 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam
+by each depth. The
 truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the same
 surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
 default tissue, the chest-wall plane fixed, the skin under the face at rest moved rigidly with
