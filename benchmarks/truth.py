@@ -9,18 +9,17 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
                                     [--out FILE]
 
 The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
-over the list as Table 2 picks them, or named by ``--lesion-ids``) the probe is placed over
-it as in Table 2 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam
-by each depth. The
-truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the same
-surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the case's
-default tissue, the chest-wall plane fixed, the skin under the face at rest moved rigidly with
-the probe (the tracker's boundary conditions; ``--friction slip``: none held, every contact
-frictionless), the probe a rigid body: a flat face with sharp edges, or with
+over the list as Table 2 picks them, or named by ``--lesion-ids``) the probe is placed over it
+as in Table 2 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by
+each depth. The truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the
+same surface, its own assembly and Newton, homogeneous neo-Hookean with the E and nu of the
+case's default tissue, the chest-wall plane fixed, the skin under the face at rest moved
+rigidly with the probe (the tracker's boundary conditions; ``--friction slip``: none held,
+every contact frictionless), the probe a rigid body: a flat face with sharp edges, or with
 ``--edge-radius`` a body whose face's edges are rounded by that radius. Answers holding
-elements folded over at a node (``TetReference.tangled``: skin bent round the probe's edge)
-are said so; ``--tet-rim`` refines the mesh there, ``--progress`` logs the load steps.
-Nothing of it was used to train or choose the model. The methods:
+elements folded over at a node (``TetReference.tangled``: skin bent round the probe's edge) are
+said so; ``--tet-rim`` refines the mesh there, ``--progress`` logs the load steps. Nothing of
+it was used to train or choose the model. The methods:
 
 * ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
 * ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the teacher's
