@@ -7,7 +7,8 @@ The probe is placed over each lesion of the case as in Table 2
 through ``Tracker(engine="fem")`` with the case's own materials and ``[solver]`` settings
 (what ``biopsynav track --engine fem`` does); the rest pose itself is asked first. Printed per
 push: status, reason, wall time, Newton iterations and load increments of the solve. The last
-line reads ``RESULT`` with the number of pushes answered ``ok`` out of all, the rest poses that
+line reads ``RESULT`` with the number of pushes answered ``ok`` out of all (and how many of
+them elastic contact answered only with stiffer springs), the rest poses that
 answered at once, and the median and largest solve time.
 """
 
@@ -37,8 +38,16 @@ def push_row(tracker: Tracker, pose: np.ndarray) -> dict:
     row = {"status": res.status, "reason": res.reason, "seconds": time.perf_counter() - t0}
     solve = tracker.last_solve
     if solve is not None:
-        row.update(iterations=solve.iterations, increments=solve.increments)
+        row.update(iterations=solve.iterations, increments=solve.increments,
+                   spring_factor=solve.spring_factor)
     return row
+
+
+def springs_note(row: dict) -> str:
+    """'springs x4  ' when elastic contact answered with stiffer springs than asked
+    (:data:`biopsynav.fem.solver.SPRING_FALLBACK`), else ''."""
+    factor = row.get("spring_factor")
+    return "" if factor in (None, 1.0) else f"springs x{factor:g}  "
 
 
 def run(case: Case, depths: list[float]) -> list[dict]:
@@ -56,7 +65,7 @@ def run(case: Case, depths: list[float]) -> list[dict]:
             print(f"lesion {row['lesion']:>3} ({placement.depth_mm:4.1f} mm deep)  push "
                   f"{depth:5.2f} mm  {row['status']:<14} {row['seconds']:6.2f} s  "
                   f"{row.get('iterations', 0):3d} it  {row.get('increments', 0):2d} inc  "
-                  f"{row['reason']}", flush=True)
+                  f"{springs_note(row)}{row['reason']}", flush=True)
     return rows
 
 
@@ -66,9 +75,10 @@ def summary(rows: list[dict]) -> str:
     ok = [r for r in pushes if r["status"] == "ok"]
     times = [r["seconds"] for r in ok] or [float("nan")]
     at_once = sum(r["status"] == "ok" and r["seconds"] < 0.05 for r in rests)
-    return (f"RESULT pushes ok {len(ok)}/{len(pushes)}; rest poses answered at once "
-            f"{at_once}/{len(rests)}; solve time median {np.median(times):.2f} s, largest "
-            f"{max(times):.2f} s")
+    stiffer = sum(springs_note(r) != "" for r in ok)
+    return (f"RESULT pushes ok {len(ok)}/{len(pushes)} ({stiffer} with stiffer springs); rest "
+            f"poses answered at once {at_once}/{len(rests)}; solve time median "
+            f"{np.median(times):.2f} s, largest {max(times):.2f} s")
 
 
 def main() -> None:

@@ -457,6 +457,13 @@ class TrackerSection:
                                      "the contact points of each grid cell; converges faster "
                                      "with the cell size, docs/fem.md).",
                            choices=contact_constraint_names)
+    contact_stiffness: float = opt(10.0, "beta of fem_contact = 'elastic': each contact point "
+                                         "is tied to the face by a spring of beta E A / h "
+                                         "N/mm (E the Young's modulus of its cell, MPa; A the "
+                                         "skin area it stands for, mm^2; h the cell size, mm), "
+                                         "the penalty int beta E / h |u - g|^2 dA over the "
+                                         "contact (docs/fem.md, 'Elastic contact').",
+                                   lo=0.1, hi=1e6)
     contact_follows_pose: bool = opt(False, "Skin that the probe face reaches during a push "
                                             "(behind the face plane in the deformed state, "
                                             "in cells apart from the rest contact) is held on "

@@ -368,3 +368,101 @@ def test_prescribed_normals_are_checked():
     with pytest.raises(InputError, match="unit vectors"):
         solve(model, Loads(prescribed_matrix=w, prescribed_displacement=np.ones((1, 3)),
                            prescribed_normals=np.array([[0.0, 0.0, 2.0]])))
+
+
+def _top_springs(nodes: np.ndarray, size: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The top face's nodes (z = size) and the reference area (mm^2) each stands for."""
+    top = np.flatnonzero(nodes[:, 2] > size - 1e-9)
+    h = size / n
+    inner = lambda c: np.where((c > 1e-9) & (c < size - 1e-9), 1.0, 0.5)  # noqa: E731
+    return top, inner(nodes[top, 0]) * inner(nodes[top, 1]) * h * h
+
+
+def test_elastic_contact_matches_the_closed_form_of_a_block_on_springs():
+    """A rollered block whose top face is tied by springs of stiffness ``K`` per unit area
+    (normal only) to a plate moved down by 1.5 mm: the springs carry the nominal stress
+    ``P33 = K (g - delta)``, and the block takes the uniaxial stretch of that stress
+    (neo-Hookean closed form) with a gap between face and plate."""
+    n, size, stiffness, g = 2, 10.0, 0.002, -1.5  # K in N/mm^3 (MPa/mm)
+    nodes, hexes, fixed = _roller_block(n, size)
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, "neo-hookean")
+    top, area = _top_springs(nodes, size, n)
+    w = sp.csr_matrix((np.ones(len(top)), (np.arange(len(top)), top)),
+                      shape=(len(top), len(nodes)))
+    u, report = solve(model, Loads(
+        prescribed_matrix=w, prescribed_displacement=np.tile([0.0, 0.0, g], (len(top), 1)),
+        prescribed_normals=np.tile([0.0, 0.0, 1.0], (len(top), 1)),
+        prescribed_stiffness=stiffness * area), PENALTY_TIGHT)
+    (delta,) = fsolve(lambda d: (_uniaxial_exact("neo-hookean", stiffness * (g - d[0]))[0]
+                                 - 1.0) * size - d[0], [g / 2], xtol=1e-13)
+    np.testing.assert_allclose(u[top, 2], delta, rtol=1e-7)
+    assert g < delta < 0.5 * g  # a real gap: the springs carry the load, not a constraint
+    assert report.spring_factor == 1.0
+    assert report.constraint_error_mm == pytest.approx(delta - g, rel=1e-6)
+
+
+def test_stiffer_springs_close_the_gap_towards_the_met_points():
+    """Elastic contact tends to the points met as its springs stiffen: the gap falls about
+    in proportion, and the field approaches the constrained solve's."""
+    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
+    nodes, hexes = box_mesh(cells, size)
+    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
+    points = np.array([[12.0, 14.0, 30.0], [17.5, 11.0, 30.0], [23.0, 16.0, 29.0]])
+    w = _top_points_matrix(nodes, points, cells, size)
+    target = np.tile([1.0, 0.5, -3.0], (3, 1))
+    met, _ = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=target),
+                   PENALTY_TIGHT)
+    gaps, misfits = [], []
+    for k in (0.1, 1.0, 10.0, 100.0):
+        u, report = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=target,
+                                       prescribed_stiffness=np.full(3, k)), PENALTY_TIGHT)
+        gaps.append(report.constraint_error_mm)
+        misfits.append(np.abs(u - met).max())
+    assert np.all(np.array(gaps[:-1]) > 4 * np.array(gaps[1:]))  # 1/k once the gap is small
+    assert np.all(np.diff(misfits) < 0) and misfits[-1] < 0.01
+
+
+def test_elastic_contact_falls_back_to_stiffer_springs(monkeypatch):
+    """An elastic solve that fails is solved again with stiffer springs, then with the points
+    met; the report says which answered, and when none does the first error is raised."""
+    import biopsynav.fem.solver as solver_mod
+
+    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
+    nodes, hexes = box_mesh(cells, size)
+    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
+    w = _top_points_matrix(nodes, np.array([[12.0, 14.0, 30.0]]), cells, size)
+    loads = Loads(prescribed_matrix=w, prescribed_displacement=np.array([[0.0, 0.0, -2.0]]),
+                  prescribed_stiffness=np.array([0.05]))
+    real, tried = solver_mod.solve_once, []
+
+    def failing_below(limit):
+        def solve_once(model, loads, settings=None):
+            k = loads.prescribed_stiffness
+            tried.append(None if k is None else float(k[0]))
+            if k is not None and k[0] < limit:
+                raise SolverError("made to fail", "test")
+            return real(model, loads, settings)
+        return solve_once
+
+    monkeypatch.setattr(solver_mod, "solve_once", failing_below(0.1))
+    _, report = solve(model, loads)
+    assert tried == [0.05, 0.2] and report.spring_factor == 4.0
+    tried.clear()
+    monkeypatch.setattr(solver_mod, "solve_once", failing_below(np.inf))
+    _, report = solve(model, loads)
+    assert tried == [0.05, 0.2, None] and report.spring_factor == np.inf
+    assert report.constraint_error_mm < 1e-2
+    monkeypatch.setattr(solver_mod, "solve_once", lambda *a, **k: (_ for _ in ()).throw(
+        SolverError("always", "test")))
+    with pytest.raises(SolverError, match="always"):
+        solve(model, loads)
+
+
+def test_bad_spring_stiffness_is_an_input_error():
+    nodes, hexes, fixed = _roller_block(2, 10.0)
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, fixed, "neo-hookean")
+    w = sp.csr_matrix((np.ones(1), ([0], [len(nodes) - 1])), shape=(1, len(nodes)))
+    for bad in (np.array([0.0]), np.array([np.nan]), np.ones(2)):
+        with pytest.raises(InputError, match="prescribed stiffness"):
+            solve(model, Loads(prescribed_matrix=w, prescribed_displacement=np.ones((1, 3)),
+                               prescribed_stiffness=bad))

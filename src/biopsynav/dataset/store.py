@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from ..config import CaseConfig, DatasetSection
+from ..contact.constraints import is_elastic
 from ..errors import FingerprintError, InputError
 from ..fem.teacher import teacher_refinement
 from ..layout import DATASET_NAME
@@ -80,7 +81,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     """Everything besides anatomy and grid that decides the samples' content.
 
     [material], the FE-model inputs of other sections ([anatomy] tissue_labels, [grid]
-    min_fraction, and with rigid pushes [tracker] fem_contact), [solver] without ``backend``
+    min_fraction, and with rigid pushes [tracker] fem_contact, with its contact_stiffness
+    when elastic), [solver] without ``backend``
     and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
     (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
@@ -93,6 +95,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     fe_model = {"tissue_labels": cfg.anatomy.tissue_labels, "min_fraction": cfg.grid.min_fraction}
     if probe.get("rigid_share", 0.0) > 0.0:  # rigid pushes: the tracker's contact set and holds
         fe_model["fem_contact"] = cfg.tracker.fem_contact
+        if is_elastic(cfg.tracker.fem_contact):
+            fe_model["contact_stiffness"] = cfg.tracker.contact_stiffness
     else:  # force patches only: the protocol of before rigid pushes
         probe.pop("contact_tolerance_mm", None)
         probe.pop("rigid_share", None)

@@ -54,9 +54,12 @@ class SampleContext:
             an extrapolating teacher's case-grid solve).
         pinned: (n_vertices,) skin a rigid push may not hold (:func:`biopsynav.probe.pinned_skin`).
         centers: (k,) skin vertices that may centre a push.
+        skin_areas: (n_vertices,) mm^2, the skin area each vertex stands for (the springs of
+            elastic contact).
     """
 
     def __init__(self, case: Any) -> None:
+        from ..contact.constraints import vertex_areas
         from ..fem import SolverSettings
         from ..fem.teacher import build_teacher
         from ..grid.embedding import surface_embedding
@@ -74,6 +77,7 @@ class SampleContext:
         self.skin, self.case_skin = skin.matrix, skin
         self.pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
+        self.skin_areas = vertex_areas(case.anatomy.vertices, case.anatomy.faces)
         self.node_shape = case.grid.node_shape
         self.active = np.asarray(case.grid.active_nodes, dtype=bool).ravel()
         self.contact_input = case.cfg.dataset.contact_input
@@ -177,14 +181,21 @@ def rigid_push_loads(ctx: SampleContext, push: Any, skin: Any = None) -> Any:
     """The loads of a rigid push on the teacher's grid (or on the grid of the embedding
     ``skin``): the contact points moved by ``push.displacement`` through the constraints of
     ``[tracker] fem_contact`` (as the FE tracker holds them)."""
-    from ..contact.constraints import constraint_rows
+    from ..contact.constraints import constraint_rows, contact_springs
     from ..fem import Loads
 
+    on_case_grid = skin is not None
     skin = ctx.teacher.skin if skin is None else skin
-    rows = constraint_rows(ctx.case.cfg.tracker.fem_contact, skin.cells[push.contact])
+    model, grid = ((ctx.teacher.coarse, ctx.case.grid) if on_case_grid
+                   else (ctx.model, ctx.teacher.grid))
+    tracker = ctx.case.cfg.tracker
+    cells = skin.cells[push.contact]
+    rows = constraint_rows(tracker.fem_contact, cells)
+    springs = contact_springs(tracker.fem_contact, tracker.contact_stiffness, model.E_mpa,
+                              grid, cells, ctx.skin_areas[push.contact])
     target = np.broadcast_to(push.displacement, (len(push.contact), 3))
     return Loads(prescribed_matrix=rows @ skin.matrix[push.contact],
-                 prescribed_displacement=rows @ target)
+                 prescribed_displacement=rows @ target, prescribed_stiffness=springs)
 
 
 def not_converged(result: dict, exc: Any, start: float) -> dict:

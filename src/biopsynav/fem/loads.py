@@ -31,12 +31,18 @@ class Loads:
             vector): where given, only the component along ``n`` is prescribed,
             ``n . (W u) = n . g``, and the point slides freely normal to it (frictionless
             contact with a plane of normal ``n``).
+        prescribed_stiffness: optional (n_pts,) N/mm, all > 0: where given, each point is
+            tied to its target by a spring of this stiffness (elastic contact: energy
+            ``k_i / 2 |W_i u - g_i|^2``) and the gap that remains is part of the answer;
+            without it the targets are met (penalty and augmented-Lagrangian updates to
+            ``[solver] constraint_tolerance_mm``).
     """
 
     forces: np.ndarray | None = None
     prescribed_matrix: sp.spmatrix | None = None
     prescribed_displacement: np.ndarray | None = None
     prescribed_normals: np.ndarray | None = None
+    prescribed_stiffness: np.ndarray | None = None
 
 
 @dataclass
@@ -47,7 +53,9 @@ class PreparedLoads:
     (n_pts, 3); ``projector`` (n_pts, 3, 3): ``P_i`` = I for a whole prescribed vector,
     ``n n^T`` for a normal-only one (None: all whole); ``pen_pos`` / ``pen_val`` positions in
     the tangent's upper CSR data and values of ``W^T P W`` on free equations (penalty
-    stiffness per unit penalty).
+    stiffness per unit penalty). With elastic contact (``Loads.prescribed_stiffness``)
+    ``w`` and ``g`` hold each point's row times ``scale`` (n_pts,) = sqrt(k_i) (sqrt(N/mm)),
+    so that ``W^T P W`` is the springs' stiffness itself; ``scale`` is None otherwise.
     """
 
     f: np.ndarray
@@ -56,12 +64,24 @@ class PreparedLoads:
     pen_pos: np.ndarray | None
     pen_val: np.ndarray | None
     projector: np.ndarray | None = None
+    scale: np.ndarray | None = None
 
     def gap(self, u_nodes: np.ndarray, t: float = 1.0) -> np.ndarray:
-        """The constraint error ``P (W u - t g)`` (n_pts, 3) mm of node displacements
-        ``u_nodes`` (n_nodes, 3) at load factor ``t``."""
+        """The constraint error ``P (W u - t g)`` (n_pts, 3) of node displacements
+        ``u_nodes`` (n_nodes, 3) at load factor ``t``: mm, or with elastic contact mm times
+        ``scale``."""
         e = self.w @ u_nodes - t * self.g
         return e if self.projector is None else np.einsum("pij,pj->pi", self.projector, e)
+
+    def gap_mm(self, u_nodes: np.ndarray) -> np.ndarray:
+        """The gap ``P (W u - g)`` (n_pts, 3) mm at full load."""
+        gap = self.gap(u_nodes)
+        return gap if self.scale is None else gap / self.scale[:, None]
+
+    @property
+    def elastic(self) -> bool:
+        """Whether the points are tied by springs (elastic contact) rather than met."""
+        return self.scale is not None
 
     @property
     def has_constraints(self) -> bool:
@@ -97,11 +117,25 @@ def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:
         raise InputError("a prescribed point lies outside the active cells (it weights nodes "
                          "of no element)", "Loads")
     projector = _projectors(loads.prescribed_normals, len(g))
+    scale = _spring_scale(loads.prescribed_stiffness, len(g))
+    if scale is not None:
+        w_full, g = sp.diags(scale) @ w_full, scale[:, None] * g
     if projector is None:
         pen_pos, pen_val = _penalty_pattern(model, w_full)
     else:
         pen_pos, pen_val = _projected_penalty_pattern(model, w_full, projector)
-    return PreparedLoads(f, w_full, g, pen_pos, pen_val, projector)
+    return PreparedLoads(f, w_full.tocsr(), g, pen_pos, pen_val, projector, scale)
+
+
+def _spring_scale(stiffness: np.ndarray | None, n_pts: int) -> np.ndarray | None:
+    """sqrt of the points' spring stiffness (n_pts,), checked; None without springs."""
+    if stiffness is None:
+        return None
+    k = np.asarray(stiffness, dtype=np.float64)
+    if k.shape != (n_pts,) or not np.all(np.isfinite(k)) or np.any(k <= 0.0):
+        raise InputError(f"prescribed stiffness must be (n_pts,) = ({n_pts},) finite values "
+                         f"> 0 N/mm, got shape {k.shape}", "Loads")
+    return np.sqrt(k)
 
 
 def _projectors(normals: np.ndarray | None, n_pts: int) -> np.ndarray | None:

@@ -12,6 +12,8 @@ plus augmented-Lagrangian multiplier updates ``lam`` until the constraint error 
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -73,6 +75,9 @@ class SolveReport:
     min_det_F: float = 1.0
     max_displacement_mm: float = 0.0
     constraint_error_mm: float = 0.0
+    #: elastic contact only: how many times stiffer than asked the springs of the answer
+    #: are (1: as asked; inf: the points met, see :data:`SPRING_FALLBACK`); None otherwise
+    spring_factor: float | None = None
     #: checked only when the last factorisation reported negative pivots (else None)
     lowest_scaled_eigenvalue: float | None = None
     backend: str = ""
@@ -91,7 +96,7 @@ class _System:
         self.min_det = np.empty(n_el)
         self.energy = np.empty(n_el)
         self.fint = np.empty(model.n_eq)
-        self.alpha = penalty * reference_diagonal_mean(model) if loads.has_constraints else 0.0
+        self.alpha = _penalty_factor(model, loads, penalty)
         n_pts = loads.w.shape[0] if loads.has_constraints else 0
         self.lam = np.zeros((n_pts, 3))
         self.k0_cacheable = not loads.has_constraints
@@ -120,10 +125,11 @@ class _System:
         return residual, data, min_det, energy
 
     def constraint_error(self, u: np.ndarray) -> float:
-        """Largest |W u - g| over the prescribed points, mm (0 without constraints)."""
+        """Largest |W u - g| over the prescribed points, mm (0 without constraints): with
+        elastic contact the largest gap between a point and its target."""
         if not self.loads.has_constraints:
             return 0.0
-        gap = self.loads.gap(self.model.to_nodes(u))
+        gap = self.loads.gap_mm(self.model.to_nodes(u))
         return float(np.sqrt((gap * gap).sum(axis=1)).max())
 
     def reference_residual(self, du_full: np.ndarray) -> float:
@@ -135,6 +141,15 @@ class _System:
             reaction = self.model.to_free(self.loads.w.T @ (self.alpha * gap))
             r0 += float(np.dot(reaction, reaction))
         return float(np.sqrt(r0))
+
+
+def _penalty_factor(model: FEModel, loads: PreparedLoads, penalty: float) -> float:
+    """The factor of the loads' ``W^T P W``: ``penalty`` times the rest tangent's mean
+    diagonal for points that are met, 1 for elastic contact (its springs' stiffness is in
+    the rows already), 0 without prescribed points."""
+    if not loads.has_constraints:
+        return 0.0
+    return 1.0 if loads.elastic else penalty * reference_diagonal_mean(model)
 
 
 def rest_tangent_data(model: FEModel) -> np.ndarray:
@@ -187,8 +202,41 @@ class _IncrementFailed(Exception):
         self.reason = reason
 
 
-def solve(model: FEModel, loads: Loads,
-          settings: SolverSettings | None = None) -> tuple[np.ndarray, SolveReport]:
+#: Elastic contact (``Loads.prescribed_stiffness``) that does not converge is solved again
+#: with its springs this many times stiffer, each in turn (inf: the points met). Deep pushes
+#: can pass a limit point where a nearly empty cut cell holding contact points turns under
+#: soft springs; stiffer springs hold it, at the price of more drag.
+SPRING_FALLBACK = (4.0, math.inf)
+
+
+def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
+          ) -> tuple[np.ndarray, SolveReport]:
+    """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails is
+    solved again with stiffer springs (:data:`SPRING_FALLBACK`), and the report's
+    ``spring_factor`` says which answered. Raises the first SolverError when none does."""
+    try:
+        return solve_once(model, loads, settings)
+    except SolverError as first:
+        if loads.prescribed_stiffness is None:
+            raise
+        for factor in SPRING_FALLBACK:
+            try:
+                u, report = solve_once(model, stiffer_springs(loads, factor), settings)
+            except SolverError:
+                continue
+            report.spring_factor = factor
+            return u, report
+        raise first from None
+
+
+def stiffer_springs(loads: Loads, factor: float) -> Loads:
+    """``loads`` with its springs ``factor`` times stiffer (inf: the points met)."""
+    stiffness = None if math.isinf(factor) else factor * np.asarray(loads.prescribed_stiffness)
+    return dataclasses.replace(loads, prescribed_stiffness=stiffness)
+
+
+def solve_once(model: FEModel, loads: Loads,
+               settings: SolverSettings | None = None) -> tuple[np.ndarray, SolveReport]:
     """Static equilibrium of ``model`` under ``loads``.
 
     Returns the displacement (n_nodes, 3) in mm (zero on fixed and unused nodes) and a
@@ -205,7 +253,7 @@ def solve(model: FEModel, loads: Loads,
     start = time.perf_counter()
     model.check_anchored()
     prepared = prepare_loads(model, loads)
-    report = SolveReport(backend="none")
+    report = SolveReport(backend="none", spring_factor=1.0 if prepared.elastic else None)
     if prepared.is_zero:
         report.time_s = time.perf_counter() - start
         return np.zeros((model.n_nodes, 3)), report
@@ -417,11 +465,12 @@ def _backtrack_residual(system: _System, u: np.ndarray, du: np.ndarray, r: np.nd
 
 def _enforce_constraints(system: _System, solver: LinearSolver, settings: SolverSettings,
                          report: SolveReport, u: np.ndarray) -> np.ndarray:
-    """Augmented-Lagrangian updates until the prescribed points are within tolerance."""
+    """Augmented-Lagrangian updates until the prescribed points are within tolerance (none
+    for elastic contact, whose gap is part of the answer)."""
     for _ in range(10):
         error = system.constraint_error(u)
         report.constraint_error_mm = error
-        if error <= settings.constraint_tolerance_mm:
+        if error <= settings.constraint_tolerance_mm or system.loads.elastic:
             return u
         system.lam += system.alpha * system.loads.gap(system.model.to_nodes(u))
         try:

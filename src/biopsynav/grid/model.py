@@ -69,6 +69,12 @@ class Grid:
         """Volume fraction (n_active,) of the active cells."""
         return self.fraction[self.active_cells]
 
+    def element_of_cells(self, cells: np.ndarray) -> np.ndarray:
+        """Element index (n,) of the active flat cell ids ``cells`` (n,): their rank among
+        the active cells in flat order, the FE model's element order."""
+        rank = np.cumsum(self.active_cells.ravel()) - 1
+        return rank[np.asarray(cells, dtype=np.int64)]
+
     def active_label_share(self) -> np.ndarray:
         """Label shares (n_active, k) of the active cells, columns as ``label_values``."""
         return self.label_share[self.active_cells]

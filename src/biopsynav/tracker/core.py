@@ -120,6 +120,7 @@ class Tracker:
         self._teacher = teacher
         self._fem_contact: Embedding | None = None  # contact points in the FE engine's grid
         self._fem_surface: Embedding | None = None
+        self._vertex_areas: np.ndarray | None = None  # skin area per vertex, mm^2
         self.engine = engine
         self._surrogate = surrogate
         self._fem_model = fem_model
@@ -514,19 +515,25 @@ class Tracker:
         else:
             model, contact, surface = (self._fem_model, self._fem_contact_embedding(),
                                        self._fem_surface_embedding())
-        rows = self._constraint_rows(contact, "case" if on_case_grid else "fem")
+        key = "case" if on_case_grid else "fem"
+        rows = self._constraint_rows(contact, key)
+        springs = self._springs(model, key, contact.cells, self._contact)
         w, g = rows @ contact.matrix, rows @ u_c
         normals = None
         if len(touched):
             beam = pose[:3, 2]
             rest = self.case.anatomy.vertices[touched]
             depth = (rest - pose[:3, 3]) @ beam  # < 0: behind the face, rest position
-            w = sp.vstack([w, surface.subset(touched).matrix]).tocsr()
+            held = surface.subset(touched)
+            w = sp.vstack([w, held.matrix]).tocsr()
             g = np.vstack([g, -depth[:, None] * beam])
             normals = np.vstack([np.zeros((rows.shape[0], 3)), np.tile(beam, (len(touched), 1))])
+            if springs is not None:
+                springs = np.concatenate([springs, self._springs(model, key, held.cells,
+                                                                 touched)])
         u, report = solve(model, Loads(
-            prescribed_matrix=w, prescribed_displacement=g, prescribed_normals=normals),
-            self._fem_settings)
+            prescribed_matrix=w, prescribed_displacement=g, prescribed_normals=normals,
+            prescribed_stiffness=springs), self._fem_settings)
         if not on_case_grid:
             self.last_solve = report
         return u
@@ -577,6 +584,21 @@ class Tracker:
             self._fem_rows[key] = constraint_rows(self.case.cfg.tracker.fem_contact,
                                                   contact.cells)
         return self._fem_rows[key]
+
+    def _springs(self, model, key: str, cells: np.ndarray, vertices: np.ndarray
+                 ) -> np.ndarray | None:
+        """Spring stiffness (n,) N/mm of the skin ``vertices`` (n,) in the flat ``cells``
+        (n,) of the grid named ``key`` ("fem" or "case") with elastic contact (``[tracker]
+        fem_contact``, ``contact_stiffness``); None when the points are met."""
+        from ..contact.constraints import contact_springs, vertex_areas
+
+        cfg = self.case.cfg.tracker
+        grid = self.case.grid if key == "case" or self._teacher is None else self._teacher.grid
+        if self._vertex_areas is None:
+            self._vertex_areas = vertex_areas(self.case.anatomy.vertices,
+                                              self.case.anatomy.faces)
+        return contact_springs(cfg.fem_contact, cfg.contact_stiffness, model.E_mpa, grid,
+                               cells, self._vertex_areas[vertices])
 
     def _set_input(self, u_c: np.ndarray, op: ContactInputOperator) -> None:
         """Write ``self._input`` for the contact points of the input operator ``op`` moved by
