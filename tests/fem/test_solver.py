@@ -466,3 +466,22 @@ def test_bad_spring_stiffness_is_an_input_error():
         with pytest.raises(InputError, match="prescribed stiffness"):
             solve(model, Loads(prescribed_matrix=w, prescribed_displacement=np.ones((1, 3)),
                                prescribed_stiffness=bad))
+
+
+def test_solve_leaves_the_callers_matrix_as_it_was():
+    """A prescribed-point matrix holding explicit zeros (a point on a cell face has zero
+    weights) is pruned inside the solve on a copy: the caller's matrix keeps its arrays.
+    Pruning it in place once left the caller's indptr pointing past its data, and a later
+    column slice of it corrupted the heap."""
+    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
+    nodes, hexes = box_mesh(cells, size)
+    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
+    w = _top_points_matrix(nodes, np.array([[10.0, 10.0, 30.0], [17.5, 11.0, 30.0]]), cells,
+                           size)
+    assert np.any(w.data == 0.0)  # the first point sits on a node: seven zero weights
+    before = (w.data.copy(), w.indices.copy(), w.indptr.copy())
+    for stiffness in (None, np.array([0.05, 0.05])):
+        solve(model, Loads(prescribed_matrix=w, prescribed_displacement=np.tile(
+            [0.0, 0.0, -1.0], (2, 1)), prescribed_stiffness=stiffness))
+        for a, b in zip((w.data, w.indices, w.indptr), before, strict=True):
+            np.testing.assert_array_equal(a, b)

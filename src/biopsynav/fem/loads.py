@@ -104,7 +104,8 @@ def prepare_loads(model: FEModel, loads: Loads) -> PreparedLoads:
     if loads.prescribed_matrix is None or loads.prescribed_displacement is None:
         raise InputError("prescribed displacements need both the matrix and the targets",
                          "Loads")
-    w_full = sp.csr_matrix(loads.prescribed_matrix, dtype=np.float64)
+    # a copy: eliminate_zeros below prunes in place, and the caller keeps its matrix
+    w_full = sp.csr_matrix(loads.prescribed_matrix, dtype=np.float64, copy=True)
     g = np.asarray(loads.prescribed_displacement, dtype=np.float64)
     if w_full.shape[1] != model.n_nodes or g.shape != (w_full.shape[0], 3):
         raise InputError(f"prescribed matrix must be (n_pts, {model.n_nodes}) and targets "
