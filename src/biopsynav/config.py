@@ -420,7 +420,10 @@ class RefineSection:
                             "against the fine teacher).", lo=1, hi=10**6)
     teacher_refine: float = opt(1.46, "The fine teacher's cells are [grid] cell_size_mm divided "
                                       "by this ([dataset] teacher_refine of the refine case; "
-                                      "1.46 turns 7.3 mm cells into 5 mm).", lo=1.1, hi=4.0)
+                                      "1.46 turns 7.3 mm cells into 5 mm; 1: the case grid "
+                                      "itself, whose rigid pushes with elastic contact are "
+                                      "near the truth at a fraction of the cost; then "
+                                      "extrapolation must be 0).", lo=1.0, hi=4.0)
     extrapolation: float = opt(2.0, "Richardson extrapolation order of the fine pushes "
                                     "([dataset] teacher_extrapolation of the refine case): each "
                                     "is solved on the case grid too and extrapolated from the "
@@ -450,12 +453,16 @@ class TrackerSection:
                                  lo=1.0, hi=10.0)
     rigid_tolerance: float = opt(1e-3, "Largest deviation of a pose rotation from orthonormal.",
                                  lo=1e-9, hi=1.0)
-    fem_contact: str = opt("points", "How the FE engine (and Table 2's FE method and ground "
-                                     "truth) prescribes the probe's motion "
-                                     "(biopsynav.contact.constraints registry): 'points' "
-                                     "(every contact point) or 'cell_average' (the mean of "
-                                     "the contact points of each grid cell; converges faster "
-                                     "with the cell size, docs/fem.md).",
+    fem_contact: str = opt("elastic", "How the FE engine (and Table 2's FE method and ground "
+                                      "truth, and rigid-probe pushes in training data) "
+                                      "prescribes the probe's motion "
+                                      "(biopsynav.contact.constraints registry): 'elastic' "
+                                      "(every contact point tied to the face by a spring, "
+                                      "contact_stiffness; the default: 0.2 mm from the "
+                                      "independent P2 truth at 10 mm pushes where 'points' is "
+                                      "1.9 mm, docs/fem.md 'Elastic contact'), 'points' "
+                                      "(every contact point met) or 'cell_average' (the mean "
+                                      "of the contact points of each grid cell met).",
                            choices=contact_constraint_names)
     contact_stiffness: float = opt(10.0, "beta of fem_contact = 'elastic': each contact point "
                                          "is tied to the face by a spring of beta E A / h "
@@ -681,6 +688,10 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
         raise InputError("[dataset] teacher_extrapolation extrapolates from the case grid and "
                          "a finer teacher: set teacher_refine > 1 too (1.46 for 5 mm cells on "
                          "a 7.3 mm grid), or teacher_extrapolation = 0", where)
+    if cfg.refine.extrapolation > 0 and cfg.refine.teacher_refine == 1:
+        raise InputError("[refine] extrapolation extrapolates from the case grid and a finer "
+                         "teacher: set [refine] teacher_refine > 1 too, or extrapolation = 0 "
+                         "(the case grid's own rigid pushes)", where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)

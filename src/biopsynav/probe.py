@@ -307,7 +307,8 @@ class ContactInputOperator:
 
 
 def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
-                           compliance=None) -> ContactInputOperator:
+                           compliance=None, springs: np.ndarray | None = None
+                           ) -> ContactInputOperator:
     """How the contact displacement becomes the network input (channels 0-2; channel 3 is the
     weight sum ``w = W_P^T 1``), for the contact points of ``contact_matrix`` ``W_P`` (n,
     n_nodes), on the nodes ``c`` of the cells that hold them (``w > 0``); zero elsewhere.
@@ -320,6 +321,12 @@ def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
     undetermined. The point forces are spread to the nodes with the trilinear weights
     (``f = W_P^T f_P`` at the least-squares optimum), and a hard linear-elastic response to
     ``U_c`` reproduces the point-constrained linear solution exactly.
+
+    With ``springs`` (n,) N/mm (elastic contact, :mod:`biopsynav.contact.constraints`) the
+    points are tied to their displacements by springs instead: ``f`` minimises the linear
+    system's potential ``f^T Z_cc f / 2 + |W_P Z_cc f - u_P|^2_k / 2``, that is
+    ``(A^T k A + Z_cc) f = A^T k u_P`` with ``A = W_P Z_cc``: the linear-elastic field of the
+    teacher's contact, whose points lag as its springs let them.
 
     ``kind = "average"``: the trilinear-weighted average ``(W_P^T u_P) / w`` (first version;
     a node in the far corner of a contact cell gets the mean of points that are not near it).
@@ -350,22 +357,31 @@ def contact_input_operator(contact_matrix: sp.csr_matrix, kind: str = "elastic",
     a3 = a3.reshape(3 * n_pts, k)
     zcc = compliance.block(rows)
     a = a3 @ zcc  # point displacements per unit nodal force
-    normal = a.T @ a
-    reg = ELASTIC_REGULARISATION * max(float(np.trace(normal)) / max(k, 1), 1e-300)
-    forces = scipy.linalg.solve(normal + reg * zcc, a.T, assume_a="pos")  # (k, 3n)
-    matrix = zcc @ forces
+    matrix = zcc @ _fitted_forces(a, zcc, springs)
     free_nodes, free_axes = np.nonzero(local >= 0)
     positions = free_axes * n_nodes + nodes[free_nodes]
     order = local[free_nodes, free_axes]
     return ContactInputOperator(weights, positions, matrix[order])
 
 
+def _fitted_forces(a: np.ndarray, zcc: np.ndarray, springs: np.ndarray | None) -> np.ndarray:
+    """Nodal forces (k, 3n) per point-major point displacement: the regularised least-squares
+    fit of the points (``a`` (3n, k) mm/N, ``zcc`` (k, k) mm/N), or with ``springs`` (n,)
+    N/mm the minimum of the potential with the points on springs."""
+    if springs is None:
+        normal = a.T @ a
+        reg = ELASTIC_REGULARISATION * max(float(np.trace(normal)) / max(len(zcc), 1), 1e-300)
+        return scipy.linalg.solve(normal + reg * zcc, a.T, assume_a="pos")
+    ka = np.repeat(np.asarray(springs, dtype=np.float64), 3)[:, None] * a  # point-major rows
+    return scipy.linalg.solve(a.T @ ka + zcc, ka.T, assume_a="pos")
+
+
 def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: str = "elastic",
-                  compliance=None) -> np.ndarray:
+                  compliance=None, springs: np.ndarray | None = None) -> np.ndarray:
     """The network input as a node field (n_nodes, 4): channels 0-2 the contact displacement
-    ``contact_u`` (n, 3) mm on the contact nodes (:func:`contact_input_operator`), channel 3
-    the weight sum ``W_P^T 1``."""
-    return contact_input_operator(contact_matrix, kind, compliance).field(contact_u)
+    ``contact_u`` (n, 3) mm on the contact nodes (:func:`contact_input_operator`, with the
+    points on ``springs`` (n,) N/mm when given), channel 3 the weight sum ``W_P^T 1``."""
+    return contact_input_operator(contact_matrix, kind, compliance, springs).field(contact_u)
 
 
 __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",

@@ -123,3 +123,16 @@ def test_a_registered_runtime_is_a_case_toml_choice_and_runs(monkeypatch):
         np.zeros((1, 4, 2, 2, 2), np.float32)).shape == (1, 3, 2, 2, 2)
     with pytest.raises(InputError, match="one of auto, torchscript, openvino, zeros"):
         config_from_dict({"network": {"runtime": "tensorrt"}}, "t")
+
+
+def test_a_model_that_learnt_elastic_contact_is_never_projected(tmp_path):
+    """The contact projection would move the points onto the face, which a teacher with
+    elastic contact does not do (docs/network.md): such a model is not projected, whatever
+    the case's switch says; any other hard-baseline model follows the switch."""
+    from types import SimpleNamespace
+
+    meta = {"node_shape": [2, 2, 2], "contact_input": "elastic", "baseline": {}}
+    sur = Surrogate(SimpleNamespace(name="stub"), meta, tmp_path, SimpleNamespace(spring=None))
+    assert sur.projects(True) and not sur.projects(False)
+    meta["baseline"]["elastic_contact"] = True
+    assert not sur.projects(True) and not sur.projects(False)

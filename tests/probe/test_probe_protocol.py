@@ -153,6 +153,27 @@ def test_elastic_input_moves_the_points_as_given_and_is_linear(case, pushes, com
         assert np.abs(w @ average[:, :3] - u_p).max() > 10 * np.abs(w @ got[:, :3] - u_p).max()
 
 
+def test_elastic_input_on_springs_is_the_linear_field_of_that_contact(case, pushes, compliance):
+    """With springs the input's nodal values are those of the FE model's (linear regime)
+    solution with the points tied by the same springs: the points lag their targets."""
+    from biopsynav.fem import FEModel, Loads, SolverSettings, solve
+
+    model = FEModel.from_case(case)
+    w = Embedding.build(case.grid, case.anatomy.vertices).matrix[pushes[0].contact]
+    springs = np.linspace(0.01, 0.03, w.shape[0])  # N/mm
+    g = np.tile([0.0, 0.0, -1e-3], (w.shape[0], 1))  # a tiny push: the linear regime
+    u, _ = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=g,
+                              prescribed_stiffness=springs),
+                 SolverSettings(tol_residual=1e-10, tol_displacement=1e-10,
+                                single_precision=False))
+    op = contact_input_operator(w, "elastic", compliance, springs)
+    fe = u.T.ravel()[op.positions]  # channel-major, as the operator writes
+    got = op.matrix @ g.ravel()
+    assert np.abs(got - fe).max() < 1e-3 * np.abs(fe).max()
+    lag = np.abs(w @ op.field(g)[:, :3] - g).max()
+    assert lag > 0.05 * 1e-3
+
+
 def test_unknown_or_incomplete_contact_input_is_an_input_error(case, pushes):
     skin = Embedding.build(case.grid, case.anatomy.vertices).matrix
     w = skin[pushes[0].contact]

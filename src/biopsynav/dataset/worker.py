@@ -112,13 +112,14 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
         u_case = case_grid_solution(ctx, push)
         rejected = case_grid_rejection(ctx, u_case)
         if rejected is not None:
-            return rejected_result(result, rejected, probe_displacement(contact @ u_case), 0,
+            return rejected_result(result, rejected,
+                                   probe_displacement(face_motion(ctx, push, contact @ u_case)), 0,
                                    start)
         u, report = teacher_solution(ctx, push, loaded)
     except SolverError as exc:
         return not_converged(result, exc, start)
     contact_u = np.asarray(loaded @ u)
-    probe_disp = probe_displacement(contact_u)
+    probe_disp = probe_displacement(face_motion(ctx, push, contact_u))
     rejected = solved_rejection(ctx, push, probe_disp, u)
     if rejected is None:
         # a rigid push's contact points move by the push itself, which the case grid can hold
@@ -134,9 +135,10 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     # rebuilds it from the target
     result.update(
         ok=True,
-        inputs=field_to_tensor(contact_input(contact, np.asarray(contact @ u), ctx.contact_input,
-                                             ctx.compliance), ctx.node_shape)
-        .astype(np.float32),
+        inputs=field_to_tensor(contact_input(contact, face_motion(ctx, push, contact @ u),
+                                             ctx.contact_input, ctx.compliance,
+                                             input_springs(ctx, push)),
+                               ctx.node_shape).astype(np.float32),
         targets=field_to_tensor(u, ctx.node_shape).astype(np.float32),
         max_disp_mm=float(node_disp.max()),
         mean_disp_mm=float(node_disp[ctx.active].mean()),
@@ -240,6 +242,29 @@ def case_grid_rejection(ctx: SampleContext, u_case: np.ndarray | None
         return None
     why = implausible(ctx.teacher.coarse, u_case, ctx.case.cfg.dataset.max_edge_stretch)
     return (IMPLAUSIBLE, f"case grid: {why}") if why else None
+
+
+def face_motion(ctx: SampleContext, push: Any, contact_u: np.ndarray) -> np.ndarray:
+    """What the tracker will see of a push's contact points (n, 3) mm: with elastic contact
+    the rigid face's own motion (its springs leave the points lagging it, and the tracker
+    knows only the face), else their displacement in the solved field, ``contact_u``."""
+    from ..contact.constraints import is_elastic
+
+    if push.rigid and is_elastic(ctx.case.cfg.tracker.fem_contact):
+        return np.broadcast_to(push.displacement, np.shape(contact_u)).copy()
+    return np.asarray(contact_u)
+
+
+def input_springs(ctx: SampleContext, push: Any) -> np.ndarray | None:
+    """The springs (n,) N/mm of a rigid push's contact points on the case grid with elastic
+    contact (the input is the linear field of that contact), else None."""
+    from ..contact.constraints import case_springs, is_elastic
+
+    tracker = ctx.case.cfg.tracker
+    if not (push.rigid and is_elastic(tracker.fem_contact)):
+        return None
+    return case_springs(ctx.case, tracker.contact_stiffness, push.contact,
+                        ctx.case_skin.cells[push.contact])
 
 
 def probe_displacement(contact_u: np.ndarray) -> float:

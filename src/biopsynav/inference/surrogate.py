@@ -115,8 +115,16 @@ class Surrogate:
     def projects(self, enabled: bool) -> bool:
         """Whether predictions are projected onto the contact, given the case's ``[network]
         contact_projection`` switch ``enabled``: when the model allows it, and always for a
-        model trained through the projection."""
-        return (enabled or self.requires_projection) and self.can_project
+        model trained through the projection; never for one that learnt elastic contact."""
+        return ((enabled or self.requires_projection) and self.can_project
+                and not self.learnt_elastic_contact)
+
+    @property
+    def learnt_elastic_contact(self) -> bool:
+        """Whether the model learnt rigid pushes whose contact points were tied to the face
+        by springs (``meta.json`` ``baseline.elastic_contact``): it predicts how far they lag
+        the face, and is never projected onto the face."""
+        return bool((self.meta.get("baseline") or {}).get("elastic_contact", False))
 
     def point_operator(self, points: Embedding, input_op: ContactInputOperator,
                        projection: ContactProjection | None = None) -> PointOperator | None:

@@ -67,8 +67,9 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
 def teacher(data: Dataset) -> dict:
     """What taught the model: the data set's protocol fingerprint, its material law, its
     share of rigid-probe pushes (0: the paper's force patches only) with their contact
-    constraints, the teacher grid's refinement (1: the case grid) and the order of its
-    extrapolation from the case grid (0: none)."""
+    constraints (and the springs' beta of elastic contact, else None), the teacher grid's
+    refinement (1: the case grid) and the order of its extrapolation from the case grid
+    (0: none)."""
     from ..fem.teacher import whole_or_float
 
     protocol = data.attrs.get("protocol") or {}
@@ -77,6 +78,7 @@ def teacher(data: Dataset) -> dict:
             "material_model": protocol.get("material", {}).get("model"),
             "rigid_share": float(probe.get("rigid_share", 0.0)),
             "fem_contact": protocol.get("fe_model", {}).get("fem_contact"),
+            "contact_stiffness": protocol.get("fe_model", {}).get("contact_stiffness"),
             "teacher_refine": whole_or_float(dataset.get("teacher_refine", 1)),
             "teacher_extrapolation": float(dataset.get("teacher_extrapolation", 0.0))}
 

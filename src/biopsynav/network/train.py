@@ -395,6 +395,12 @@ def residual_dataset(data: Dataset, kind: str, case: Case | str | Path,
         print("[network] the data set records no probe pushes (probe protocol): training "
               "without the contact projection")
         project = False
+    springs = elastic_rigid_pushes(data)
+    if project and springs:
+        print("[network] rigid pushes with elastic contact ([tracker] fem_contact): their "
+              "contact points lag the face, so the model trains and predicts without the "
+              "contact projection")
+        project = False
     if project:
         baseline, projections = _projected_baselines(base, case, data, idx)
         targets[idx] -= torch.from_numpy(baseline)
@@ -403,9 +409,22 @@ def residual_dataset(data: Dataset, kind: str, case: Case | str | Path,
     meta = {"kind": kind, "contact_input": contact, "spring": base.spring,
             "spring_power": base.power,
             **({"projection": True} if projections is not None else {}),
+            **({"elastic_contact": True} if springs else {}),
             "n_candidate_dofs": base.n_candidate_dofs, "setup_s": setup_s,
             "all_samples_s": time.perf_counter() - start - setup_s}
     return dataclasses.replace(data, targets=targets), meta, projections
+
+
+def elastic_rigid_pushes(data: Dataset) -> bool:
+    """Whether the data set holds rigid pushes whose contact points were tied to the face by
+    springs (``[tracker] fem_contact = 'elastic'``): their fields do not move the points
+    exactly with the face, which the contact projection would impose."""
+    from ..contact.constraints import CONTACT_CONSTRAINTS
+
+    protocol = data.attrs.get("protocol") or {}
+    kind = (protocol.get("fe_model") or {}).get("fem_contact")
+    rigid = float((protocol.get("probe") or {}).get("rigid_share", 0.0)) > 0.0
+    return rigid and kind in CONTACT_CONSTRAINTS and CONTACT_CONSTRAINTS[kind].elastic
 
 
 def _has_pushes(data: Dataset) -> bool:

@@ -268,7 +268,7 @@ class Tracker:
         if len(touched):
             emb = Embedding.build(self.case.grid, self.case.anatomy.vertices[
                 np.concatenate([self._contact, touched])], where="contact points")
-        op = self._input_operator_of(emb)
+        op = self._input_operator_of(emb, np.concatenate([self._contact, touched]))
         proj = (sur.contact_projection(emb.matrix, op)
                 if sur.projects(self.case.cfg.network.contact_projection) else None)
         lesion_op = centre_op = None
@@ -322,13 +322,31 @@ class Tracker:
         if self._contact_emb is None:
             raise InputError("no contact points: set a rest pose with skin under the probe",
                              "tracker")
-        return self._input_operator_of(self._contact_emb)
+        return self._input_operator_of(self._contact_emb, self._contact)
 
-    def _input_operator_of(self, points: Embedding) -> ContactInputOperator:
-        """The network input operator of the contact points ``points``."""
+    def _input_operator_of(self, points: Embedding, vertices: np.ndarray
+                           ) -> ContactInputOperator:
+        """The network input operator of the contact points ``points``, the skin
+        ``vertices`` (n,): with springs when the model learnt elastic contact, as its data
+        were built (:func:`biopsynav.dataset.worker.input_springs`)."""
         kind = self.contact_input_kind
         compliance = self._contact_compliance() if kind == "elastic" else None
-        return contact_input_operator(points.matrix, kind, compliance)
+        springs = None
+        beta = self._learnt_contact_stiffness()
+        if beta is not None and kind == "elastic":
+            from ..contact.constraints import case_springs
+
+            springs = case_springs(self.case, beta, vertices, points.cells)
+        return contact_input_operator(points.matrix, kind, compliance, springs)
+
+    def _learnt_contact_stiffness(self) -> float | None:
+        """The springs' beta of the elastic contact the network learnt (its ``meta.json``
+        teacher), None for a model that did not (or the FE engine)."""
+        sur = self._surrogate
+        if sur is None or not getattr(sur, "learnt_elastic_contact", False):
+            return None
+        beta = (sur.meta.get("teacher") or {}).get("contact_stiffness")
+        return self.case.cfg.tracker.contact_stiffness if beta is None else float(beta)
 
     def _contact_compliance(self):
         """The case's :class:`~biopsynav.contact.greens.ContactCompliance`: the baseline's when
