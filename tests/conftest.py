@@ -75,6 +75,7 @@ def base_case(tmp_path_factory) -> Path:
     cfg = load_config(case_dir)
     cfg.dataset.n_train, cfg.dataset.n_test = DATASET_N_TRAIN, DATASET_N_TEST
     cfg.probe.calibrate_force = False  # tests/dataset/test_calibrate.py calibrates
+    cfg.refine.samples = 0  # tests/test_refine.py refines
     save_config(case_dir, cfg)
     return case_dir
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from biopsynav.case import Case
@@ -22,11 +23,14 @@ def test_the_refine_configuration_derives_from_the_case():
     assert out.probe.rigid_share == 1.0 and out.probe.max_push_mm == 28.0
     assert not out.probe.calibrate_force
     assert (out.dataset.n_train, out.dataset.n_test) == (25, 5)
-    assert out.dataset.teacher_refine == cfg.refine.teacher_refine == 1.46
-    assert out.dataset.teacher_extrapolation == cfg.refine.extrapolation == 2.0
-    cfg.refine.teacher_refine, cfg.refine.extrapolation = 2.0, 0.0
+    assert out.dataset.teacher_refine == cfg.refine.teacher_refine == 1.0  # the case grid
+    assert out.dataset.teacher_extrapolation == cfg.refine.extrapolation == 0.0
+    assert out.tracker.fem_contact == "elastic"  # its rigid pushes: elastic contact
+    cfg.refine.teacher_refine, cfg.refine.extrapolation = 1.46, 2.0
     out = refined_config(cfg)
-    assert (out.dataset.teacher_refine, out.dataset.teacher_extrapolation) == (2.0, 0.0)
+    assert (out.dataset.teacher_refine, out.dataset.teacher_extrapolation) == (1.46, 2.0)
+    with pytest.raises(InputError, match="extrapolation"):
+        config_from_dict({"refine": {"teacher_refine": 1.0, "extrapolation": 2.0}})
     assert out.network.init_from == "../model"
     assert out.network.iterations == cfg.refine.iterations
     assert out.refine.samples == 0  # the refine case does not refine again
@@ -43,7 +47,8 @@ def test_held_out_must_leave_training_samples():
 @pytest.fixture(scope="module")
 def refined(trained_case, tmp_path_factory):
     """The trained coarse phantom case with [refine] 4 samples (1 held out) of pushes to
-    10 mm, trained further for 4 iterations by `biopsynav refine`."""
+    10 mm of the extrapolated 5 mm teacher, trained further for 4 iterations by `biopsynav
+    refine`."""
     from biopsynav.cli import main
 
     case = tmp_path_factory.mktemp("refine") / "case"
@@ -51,6 +56,7 @@ def refined(trained_case, tmp_path_factory):
     cfg = load_config(case)
     cfg.refine.samples, cfg.refine.held_out = 4, 1
     cfg.refine.iterations, cfg.refine.max_push_mm = 4, 10.0
+    cfg.refine.teacher_refine, cfg.refine.extrapolation = 1.46, 2.0
     save_config(case, cfg)
     with pytest.raises(InputError, match="refine"):
         Case.load(case).tracking_model  # noqa: B018  (not trained further yet)
@@ -156,6 +162,7 @@ def test_run_refuses_a_truth_no_finer_than_the_refine_teacher_before_any_work(ba
     shutil.copytree(base_case, case)
     cfg = load_config(case)
     cfg.refine.samples = 4
+    cfg.refine.teacher_refine, cfg.refine.extrapolation = 1.46, 2.0
     cfg.evaluate.reference, cfg.evaluate.reference_refinement = "fine_grid", 2.0
     save_config(case, cfg)
     assert main(["run", str(case)]) == 2
@@ -178,12 +185,43 @@ def test_a_damaged_refine_case_toml_is_rewritten_and_the_fine_data_kept(refined,
 def test_a_refine_table_written_before_extrapolation_keeps_its_fitted_teacher():
     """A case.toml of the thirty-first session names [refine] teacher_refine (every key was
     written) but not extrapolation: it reads as 0, so its fine data keep their protocol; a
-    table without teacher_refine takes the new default teacher."""
+    table without teacher_refine takes today's default teacher (the case grid, elastic
+    contact)."""
     old = config_from_dict({"refine": {"samples": 60, "teacher_refine": 2}})
     assert (old.refine.teacher_refine, old.refine.extrapolation) == (2.0, 0.0)
     assert refined_config(old).dataset.teacher_extrapolation == 0.0
     new = config_from_dict({"refine": {"samples": 60}})
-    assert (new.refine.teacher_refine, new.refine.extrapolation) == (1.46, 2.0)
+    assert (new.refine.teacher_refine, new.refine.extrapolation) == (1.0, 0.0)
     both = config_from_dict({"refine": {"samples": 60, "teacher_refine": 1.46,
                                         "extrapolation": 2.0}})
     assert both.refine.extrapolation == 2.0
+
+
+def test_refine_by_default_learns_the_case_grid_with_elastic_contact(trained_case, tmp_path):
+    """With [refine]'s defaults the teacher is the case grid with elastic contact: its rigid
+    pushes train the network further without the contact projection, the model says so, and
+    the tracker answers with it, unprojected."""
+    from biopsynav.cli import main
+    from biopsynav.evaluate.placement import place_probe
+    from biopsynav.tracker import Tracker
+
+    case_dir = tmp_path / "case"
+    shutil.copytree(trained_case, case_dir)
+    cfg = load_config(case_dir)
+    cfg.refine.samples, cfg.refine.held_out = 4, 1
+    cfg.refine.iterations, cfg.refine.max_push_mm = 4, 10.0
+    save_config(case_dir, cfg)
+    assert main(["refine", str(case_dir), "--workers", "1"]) == 0
+    meta = json.loads((case_dir / "refine" / "model" / "meta.json").read_text())
+    teacher = meta["teacher"]
+    assert (teacher["teacher_refine"], teacher["teacher_extrapolation"]) == (1, 0.0)
+    assert (teacher["fem_contact"], teacher["contact_stiffness"]) == ("elastic", 10.0)
+    assert meta["baseline"]["elastic_contact"] is True and "projection" not in meta["baseline"]
+    case = Case.load(case_dir)
+    tracker = Tracker.load(case)
+    assert not tracker._surrogate.projects(case.cfg.network.contact_projection)
+    placement = place_probe(case.anatomy, 0)
+    tracker.set_rest_pose(placement.pose)
+    res = tracker.update(placement.pushed(6.0))
+    assert res.status == "ok", res.reason
+    assert np.linalg.norm(res.lesions[0].displacement) > 0.1

@@ -408,30 +408,37 @@ class NetworkSection:
 
 @dataclass
 class RefineSection:
-    samples: int = opt(0, "Multi-fidelity training (docs/dataset.md, 'Trained further on a "
+    samples: int = opt(300, "Multi-fidelity training (docs/dataset.md, 'Trained further on a "
                           "finer teacher'): after the case-grid network, this many rigid-probe "
-                          "pushes are solved on cells teacher_refine times smaller, fitted to "
-                          "the case grid, and the network is trained further on them; the "
-                          "tracker then uses that model (CASE_DIR/refine/model). They live in "
-                          "their own case folder, CASE_DIR/refine, with the same anatomy and "
-                          "grid. 0 (default): off; the case-grid network is the model.",
+                          "pushes are solved by the refine teacher (teacher_refine, "
+                          "extrapolation; by default the case grid itself with the elastic "
+                          "contact of [tracker] fem_contact) and the network is trained "
+                          "further on them; the tracker then uses that model "
+                          "(CASE_DIR/refine/model). They live in their own case folder, "
+                          "CASE_DIR/refine, with the same anatomy and grid. 300 (default): "
+                          "about 10-14 min on 2 cores, and the network 0.20-0.25 mm from the "
+                          "independent truth at 10 mm pushes instead of 1.6 mm "
+                          "(docs/dataset.md, '[refine] on the case grid'). 0: off; the "
+                          "case-grid network is the model.",
                        lo=0, hi=10**6)
-    held_out: int = opt(10, "Of those samples, held out to choose the best weights (mean e "
-                            "against the fine teacher).", lo=1, hi=10**6)
-    teacher_refine: float = opt(1.46, "The fine teacher's cells are [grid] cell_size_mm divided "
-                                      "by this ([dataset] teacher_refine of the refine case; "
-                                      "1.46 turns 7.3 mm cells into 5 mm; 1: the case grid "
-                                      "itself, whose rigid pushes with elastic contact are "
-                                      "near the truth at a fraction of the cost; then "
-                                      "extrapolation must be 0).", lo=1.0, hi=4.0)
-    extrapolation: float = opt(2.0, "Richardson extrapolation order of the fine pushes "
-                                    "([dataset] teacher_extrapolation of the refine case): each "
-                                    "is solved on the case grid too and extrapolated from the "
-                                    "two (docs/dataset.md, 'An extrapolated teacher': nearer "
-                                    "the truth than 3.65 mm cells alone, at a seventh of their "
-                                    "cost). 0: the fine solution alone. A [refine] table that "
-                                    "names teacher_refine but not this key was written before "
-                                    "it existed, and reads as 0 (its fine data stay valid).",
+    held_out: int = opt(20, "Of those samples, held out to choose the best weights (mean e "
+                            "against the refine teacher).", lo=1, hi=10**6)
+    teacher_refine: float = opt(1.0, "The refine teacher's cells are [grid] cell_size_mm "
+                                     "divided by this ([dataset] teacher_refine of the refine "
+                                     "case): 1 (default), the case grid itself, whose rigid "
+                                     "pushes with elastic contact are 0.2 mm from the truth at "
+                                     "10 mm pushes; 1.46 turns 7.3 mm cells into 5 mm (with "
+                                     "extrapolation = 2: the teacher of the thirty-second to "
+                                     "thirty-sixth sessions, about five times the cost).",
+                                lo=1.0, hi=4.0)
+    extrapolation: float = opt(0.0, "Richardson extrapolation order of the refine pushes "
+                                    "([dataset] teacher_extrapolation of the refine case), "
+                                    "with teacher_refine > 1: each is solved on the case grid "
+                                    "too and extrapolated from the two (docs/dataset.md, 'An "
+                                    "extrapolated teacher'). 0 (default): the teacher's "
+                                    "solution alone. A [refine] table that names "
+                                    "teacher_refine but not this key was written before it "
+                                    "existed, and reads as 0 (its fine data stay valid).",
                                lo=0.0, hi=8.0)
     max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
                                    "uniform up to it, tilts within [probe] "

@@ -25,6 +25,7 @@ QUICK = {
     "evaluate": {"max_lesions": 3, "reference_refinement": 1.5},
     "dataset": {"n_train": 64, "n_test": 16},
     "network": {"iterations": 500, "val_interval": 250},  # docs/network.md: physics baseline
+    "refine": {"samples": 40, "held_out": 5, "iterations": 500},
 }
 
 #: The full demo evaluates Table 2 on 3 of the 10 lesions: each lesion costs 3-9 minutes of

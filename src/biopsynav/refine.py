@@ -34,7 +34,7 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     samples of which ``held_out`` held out, solved on the finer teacher, and the training
     starting from the case's model (``../model``) with the ``[refine]`` schedule."""
     r, out = cfg.refine, copy.deepcopy(cfg)
-    out.refine = RefineSection()  # samples 0: the refine case does not refine again
+    out.refine = RefineSection(samples=0)  # the refine case does not refine again
     out.case.name = f"{cfg.case.name}-refine"
     out.case.description = (f"the fine teacher's rigid pushes of case {cfg.case.name!r} "
                             "([refine], docs/dataset.md)")
@@ -73,6 +73,12 @@ def refine_case(case: Case) -> Case:
 def fine_case(case: Case) -> Case:
     """The refine case of ``case`` as it stands on disk (nothing written)."""
     return Case(case.paths.refine, refined_config(case.cfg), case.anatomy, case.grid)
+
+
+def tracking_teacher_config(cfg: CaseConfig) -> CaseConfig:
+    """The configuration of the data that taught the model the tracker uses: the refine
+    case's with ``[refine] samples > 0``, else ``cfg`` (see :func:`tracking_teacher_case`)."""
+    return refined_config(cfg) if cfg.refine.samples else cfg
 
 
 def tracking_teacher_case(case: Case) -> Case:

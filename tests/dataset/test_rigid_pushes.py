@@ -12,7 +12,7 @@ from dataset_helpers import N_TEST, N_TRAIN, edit_config
 
 from biopsynav.case import Case
 from biopsynav.config import config_from_dict
-from biopsynav.contact.constraints import case_springs
+from biopsynav.contact.springs import case_springs
 from biopsynav.dataset.contacts import sample_contact_matrices
 from biopsynav.dataset.generate import generate_case
 from biopsynav.dataset.store import (

@@ -98,13 +98,15 @@ def test_training_rebuilds_a_refined_sample_s_input_from_its_target(refined):
 def test_a_refined_rigid_push_moves_its_stored_contact_points_with_the_probe(base_case,
                                                                               tmp_path):
     """The fit of a rigid push holds its contact points: on the case grid every one moves by
-    the same vector, along the push, as the probe face does (the input the tracker builds)."""
+    the same vector, along the push, as the probe face does (the input the tracker builds),
+    when the fine teacher meets them (``points``; elastic contact holds them where its
+    springs left them)."""
     from biopsynav.dataset.contacts import sample_contact_matrices
 
     dst = tmp_path / "case"
     shutil.copytree(base_case, dst)
     edit_config(dst, dataset={"teacher_refine": 2, "n_train": 1, "n_test": 1},
-                probe={"rigid_share": 1.0})
+                probe={"rigid_share": 1.0}, tracker={"fem_contact": "points"})
     generate_case(dst, workers=1, progress=False)
     data = zarr.open_group(str(dst / "dataset.zarr"), mode="r")
     samples = np.flatnonzero(data["done"][:])

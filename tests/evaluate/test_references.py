@@ -3,6 +3,7 @@ like a tracker, its answers are kept and reused, and a case it cannot represent 
 
 from __future__ import annotations
 
+import copy
 from types import SimpleNamespace
 
 import numpy as np
@@ -92,7 +93,8 @@ def test_labels_of_one_material_are_a_homogeneous_case_for_the_p2_reference():
 
 def test_a_fine_grid_reference_no_finer_than_the_teacher_is_refused():
     case = SimpleNamespace(cfg=config_from_dict({"evaluate": {"reference": "fine_grid"},
-                                                 "dataset": {"teacher_refine": 2}}))
+                                                 "dataset": {"teacher_refine": 2},
+                                                 "refine": {"samples": 0}}))
     with pytest.raises(InputError, match="no finer than the network.s teacher"):
         reference_registry.check_reference(case)
     case.cfg.evaluate.reference_refinement = 4.0
@@ -104,7 +106,8 @@ def test_an_extrapolating_teacher_counts_as_fine_as_its_refinement_squared():
     so the default fine_grid truth (2 times) is refused and 2.5 times is accepted."""
     case = SimpleNamespace(cfg=config_from_dict({
         "evaluate": {"reference": "fine_grid"},
-        "dataset": {"teacher_refine": 1.46, "teacher_extrapolation": 2.0}}))
+        "dataset": {"teacher_refine": 1.46, "teacher_extrapolation": 2.0},
+        "refine": {"samples": 0}}))
     with pytest.raises(InputError, match="extrapolated from the case grid: about as fine as"):
         reference_registry.check_reference(case)
     case.cfg.dataset.teacher_extrapolation = 0.0
@@ -141,9 +144,11 @@ def dome_cases(tmp_path_factory, dome_stl, dome_lesions_csv):
 def test_a_rigid_probe_push_against_the_p2_reference_converges_with_the_grid(dome_cases):
     """The probe on the dome's top pushed 4 mm down. The lesion 20 mm under it moves as in
     the independent P2 FE within 35 % on the 3 mm grid, and at least twice as near to it as
-    on the 6 mm grid: the immersed hexahedra holding the contact points drag whole cells, so
-    a coarse grid acts as if the face were wider (docs/fem.md). Measured (2026-11-24): 6 mm
-    79 %, 3 mm 26 % (against a finer P2, 6 / 3 mm tetrahedra: 4 mm 24 %, 2 mm 6 %)."""
+    on the 6 mm grid, with the points met: the immersed hexahedra holding the contact points
+    drag whole cells, so a coarse grid acts as if the face were wider (docs/fem.md). Measured
+    (2026-11-24): 6 mm 79 %, 3 mm 26 % (against a finer P2, 6 / 3 mm tetrahedra: 4 mm 24 %,
+    2 mm 6 %). With elastic contact (the default since 2026-11-27) the drag goes: 6 mm 19 %,
+    3 mm 10 %."""
     from biopsynav.tracker import Tracker
 
     rest = np.eye(4)
@@ -156,12 +161,19 @@ def test_a_rigid_probe_push_against_the_p2_reference_converges_with_the_grid(dom
     truth = ref.update(pushed).lesions[0].displacement
     assert -2.0 < truth[2] < -0.5 and np.hypot(*truth[:2]) < 0.1 * abs(truth[2])
     errors = {}
-    for cell, case in dome_cases.items():
-        tracker = Tracker.load(case, engine="fem")
-        tracker.set_rest_pose(rest)
-        u = tracker.update(pushed).lesions[0].displacement
-        errors[cell] = np.linalg.norm(u - truth) / np.linalg.norm(truth)
-    assert errors[3.0] < 0.35 and 2.0 * errors[3.0] < errors[6.0], errors
+    for kind in ("points", "elastic"):
+        for cell, case in dome_cases.items():
+            cfg = copy.deepcopy(case.cfg)
+            cfg.tracker.fem_contact = kind
+            tracker = Tracker.load(Case(case.dir, cfg, case.anatomy, case.grid), engine="fem")
+            tracker.set_rest_pose(rest)
+            u = tracker.update(pushed).lesions[0].displacement
+            errors[kind, cell] = np.linalg.norm(u - truth) / np.linalg.norm(truth)
+    assert errors["points", 3.0] < 0.35, errors
+    assert 2.0 * errors["points", 3.0] < errors["points", 6.0], errors
+    # springs: no drag of whole cells, nearer on either grid, and nearer as the cells shrink
+    assert errors["elastic", 6.0] < 0.5 * errors["points", 6.0], errors
+    assert errors["elastic", 3.0] < min(errors["elastic", 6.0], errors["points", 3.0]), errors
 
 
 def test_the_face_friction_and_rim_name_their_answers(p2_case):

@@ -23,7 +23,9 @@ def pushed(depth: float) -> np.ndarray:
 def coarse_case(tmp_path_factory):
     from biopsynav.case import make_phantom_case
 
-    return make_phantom_case(tmp_path_factory.mktemp("trk") / "case", cell_size_mm=12.0)
+    # [refine] off: the FE engine solves on [dataset] teacher_refine's grid in the tests below
+    return make_phantom_case(tmp_path_factory.mktemp("trk") / "case", cell_size_mm=12.0,
+                             overrides={"refine": {"samples": 0}})
 
 
 @pytest.fixture(scope="module")

@@ -81,19 +81,6 @@ def contact_springs(name: str, beta: float, e_mpa: np.ndarray, grid, cells: np.n
     return point_stiffness(beta, e_mpa[grid.element_of_cells(cells)], areas, grid.spacing)
 
 
-def case_springs(case, beta: float, vertices: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Spring stiffness (n,) N/mm of the skin ``vertices`` (n,) in the flat ``cells`` (n,) of
-    ``case``'s own grid (its tissues' Young's moduli, its cell size): the springs the network
-    input of elastic contact is built with (:func:`biopsynav.probe.contact_input_operator`)."""
-    from ..fem.tissues import cell_lame, label_tissues, small_strain
-
-    grid = case.grid
-    tissues = label_tissues(grid.label_values, case.cfg, case.anatomy)
-    e_mpa, _ = small_strain(*cell_lame(grid.active_label_share(), tissues, case.cfg))
-    areas = vertex_areas(case.anatomy.vertices, case.anatomy.faces)[vertices]
-    return point_stiffness(beta, e_mpa[grid.element_of_cells(cells)], areas, grid.spacing)
-
-
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Skin area (n_vertices,) mm^2 each vertex of a triangle surface stands for: a third of
     the area of every triangle around it."""

@@ -258,7 +258,8 @@ def face_motion(ctx: SampleContext, push: Any, contact_u: np.ndarray) -> np.ndar
 def input_springs(ctx: SampleContext, push: Any) -> np.ndarray | None:
     """The springs (n,) N/mm of a rigid push's contact points on the case grid with elastic
     contact (the input is the linear field of that contact), else None."""
-    from ..contact.constraints import case_springs, is_elastic
+    from ..contact.constraints import is_elastic
+    from ..contact.springs import case_springs
 
     tracker = ctx.case.cfg.tracker
     if not (push.rigid and is_elastic(tracker.fem_contact)):

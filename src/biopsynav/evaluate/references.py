@@ -50,10 +50,10 @@ class GridReference:
         """InputError when the network has a refined teacher (``[dataset] teacher_refine``
         > 1, or ``[refine]``) and the reference grid is no finer than it: it would be the
         network's own teacher, not a truth."""
-        from ..refine import tracking_teacher_case
+        from ..refine import tracking_teacher_config
 
         ev = case.cfg.evaluate
-        taught_by = tracking_teacher_case(case).cfg
+        taught_by = tracking_teacher_config(case.cfg)
         refine = teacher_refinement(taught_by)
         # an order-p extrapolation from cells h and h / r is taken to be as near the converged
         # answer as cells h / r^2 (docs/dataset.md, "An extrapolated teacher")

@@ -334,7 +334,7 @@ class Tracker:
         springs = None
         beta = self._learnt_contact_stiffness()
         if beta is not None and kind == "elastic":
-            from ..contact.constraints import case_springs
+            from ..contact.springs import case_springs
 
             springs = case_springs(self.case, beta, vertices, points.cells)
         return contact_input_operator(points.matrix, kind, compliance, springs)
