@@ -18,6 +18,24 @@ def test_info_names_the_teacher(trained_case):
     s = case_summary(trained_case)
     assert s["model_teacher"].startswith("case grid (15 mm cells), neo-hookean, force patches")
     assert "teacher   case grid" in format_summary(s)
+    text = format_summary(s)  # the FE engine's contact and the [refine] stage (off here)
+    assert "contact   elastic: each contact point on a spring of beta E A / h, beta 10" in text
+    assert "refine    off" in text
+
+
+def test_info_names_the_refine_teacher_and_its_contact():
+    from biopsynav.config import config_from_dict
+    from biopsynav.info import contact_words, refine_words, teacher_words
+
+    cfg = config_from_dict({})
+    assert refine_words(cfg) == ("300 rigid pushes (20 held out) of the case grid, to 35 mm, "
+                                 "4000 iterations")
+    assert contact_words(config_from_dict({"tracker": {"fem_contact": "points"}})) == (
+        "points: the contact points met")
+    words = teacher_words({"teacher_refine": 1, "rigid_share": 1.0, "material_model":
+                           "neo-hookean", "fem_contact": "elastic", "contact_stiffness": 10.0},
+                          7.3)
+    assert words.endswith("100% rigid-probe pushes (elastic contact, beta 10)")
 
 
 def test_a_model_from_before_teachers_were_recorded_still_loads_and_tracks(trained_case,

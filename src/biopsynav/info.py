@@ -49,8 +49,33 @@ def case_summary(case: Case | str | Path) -> dict:
                       if k in facts},
         "stages": case.stages_done(),
         "model_teacher": model_teacher(case),
+        "fe_contact": contact_words(case.cfg),
+        "refine": refine_words(case.cfg),
         "fingerprint": case.fingerprint()[:16],
     }
+
+
+def contact_words(cfg) -> str:
+    """How the FE engine holds the probe's contact points (``[tracker] fem_contact``)."""
+    from .contact.constraints import is_elastic
+
+    kind = cfg.tracker.fem_contact
+    if is_elastic(kind):
+        return (f"{kind}: each contact point on a spring of beta E A / h, beta "
+                f"{cfg.tracker.contact_stiffness:g}")
+    return f"{kind}: the contact points met"
+
+
+def refine_words(cfg) -> str:
+    """What ``[refine]`` does in words."""
+    r = cfg.refine
+    if not r.samples:
+        return "off: the case-grid network is the tracker's model"
+    grid = ("the case grid" if r.teacher_refine == 1 else
+            f"cells {r.teacher_refine:g} times smaller"
+            + (f", extrapolated (order {r.extrapolation:g})" if r.extrapolation else ""))
+    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {grid}, to "
+            f"{r.max_push_mm:g} mm, {r.iterations} iterations")
 
 
 def model_teacher(case: Case) -> str:
@@ -90,6 +115,9 @@ def teacher_words(t: dict, spacing: float) -> str:
         grid += f", extrapolated from the case grid (order {order:g})"
     rigid = float(t.get("rigid_share", 0.0))
     pushes = "force patches" if rigid == 0 else f"{rigid:.0%} rigid-probe pushes"
+    if rigid and t.get("fem_contact"):
+        beta = t.get("contact_stiffness")
+        pushes += f" ({t['fem_contact']} contact" + (f", beta {beta:g})" if beta else ")")
     return f"{grid}, {t.get('material_model')}, {pushes}"
 
 
@@ -150,6 +178,8 @@ def format_summary(s: dict) -> str:
           for t in s["tissues"]],
         "  stages    " + ", ".join(f"{k} {'done' if v else '-'}" for k, v in s["stages"].items()),
     ]
+    lines.append(f"  contact   {s['fe_contact']}")
+    lines.append(f"  refine    {s['refine']}")
     if s.get("model_teacher"):
         lines.append(f"  teacher   {s['model_teacher']}")
     return "\n".join(lines)
