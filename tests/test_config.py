@@ -147,3 +147,21 @@ def test_truncated_case_toml_is_refused_and_an_older_one_still_loads(tmp_path):
     old = text.replace(text.splitlines()[1], "# Every key is documented in docs/case_toml.md.")
     path.write_text(old[: old.rindex("# end of case.toml")])
     assert load_config(tmp_path) == CaseConfig()
+
+
+def test_a_case_toml_from_before_refine_keeps_its_own_model(tmp_path):
+    """biopsynav writes every section: its own case.toml without [refine] is from before the
+    stage existed, and reads as [refine] samples = 0 (its trained model stays the tracker's);
+    a hand-written one without the table takes the default, like any other key."""
+    import re
+
+    save_config(tmp_path, CaseConfig())
+    path = tmp_path / "case.toml"
+    text = path.read_text()
+    assert load_config(tmp_path).refine.samples == CaseConfig().refine.samples == 300
+    path.write_text(re.sub(r"\[refine\]\n(?:[^\[]*\n)", "", text))
+    assert "[refine]" not in path.read_text()
+    assert load_config(tmp_path).refine.samples == 0
+    assert load_config(tmp_path).network == CaseConfig().network  # the rest as written
+    path.write_text("[case]\nname = \"by hand\"\n")
+    assert load_config(tmp_path).refine.samples == 300

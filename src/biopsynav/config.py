@@ -813,7 +813,8 @@ def load_config(case_dir: str | Path) -> CaseConfig:
     A file written by biopsynav (its second line is :data:`ENDED_LINE`) must still end with
     :data:`END_LINE`: a truncated case.toml is refused rather than read with defaults for
     what it lost. Other files (written by hand, or before the end line) are read as they
-    are."""
+    are. A file biopsynav wrote before ``[refine]`` existed (no such table) reads as
+    ``[refine] samples = 0``: its case's model stays the tracker's."""
     path = Path(case_dir) / CASE_FILE
     if not Path(case_dir).is_dir():
         raise InputError("case folder does not exist", str(case_dir))
@@ -825,7 +826,17 @@ def load_config(case_dir: str | Path) -> CaseConfig:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid TOML: {exc}", str(path)) from None
     _check_whole(text, str(path))
+    if _written_whole(text) and "refine" not in data:
+        # biopsynav writes every section: a case.toml of its own without [refine] is from
+        # before the stage existed, and its model is the one its tracker used then
+        data["refine"] = {"samples": 0}
     return config_from_dict(data, str(path))
+
+
+def _written_whole(text: str) -> bool:
+    """Whether biopsynav wrote this case.toml (its second line is :data:`ENDED_LINE`)."""
+    lines = text.splitlines()
+    return len(lines) > 1 and lines[1].strip() == ENDED_LINE
 
 
 def _check_whole(text: str, where: str) -> None:
