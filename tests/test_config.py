@@ -78,6 +78,8 @@ def test_defaults_round_trip(tmp_path):
     ({"dataset": {"teacher_extrapolation": 2.0}}, "set teacher_refine > 1 too"),
     ({"dataset": {"teacher_extrapolation": -1.0}}, "below its minimum"),
     ({"refine": {"teacher_refine": 0.9}}, "below its minimum"),
+    ({"tracker": {"contact_stiffness": 0.0}}, "below its minimum"),
+    ({"tracker": {"contact_stiffness": "stiff"}}, "contact_stiffness"),
     ({"refine": {"teacher_refine": 1.0, "extrapolation": 2.0}}, "set [refine] teacher_refine > 1"),
     ({"dataset": {"teacher_min_fraction": 1.5}}, "above its maximum"),
     ({"dataset": {"teacher_min_fraction": "some"}}, "teacher_min_fraction"),

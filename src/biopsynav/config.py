@@ -845,7 +845,7 @@ def _check_whole(text: str, where: str) -> None:
         raise InputError("case.toml is empty; restore it, or rebuild the case with "
                          "`biopsynav init --overwrite`", where)
     lines = text.rstrip().splitlines()
-    if len(lines) > 1 and lines[1].strip() == ENDED_LINE and lines[-1].strip() != END_LINE:
+    if _written_whole(text) and lines[-1].strip() != END_LINE:
         raise InputError(f"case.toml is truncated (its last line, {END_LINE!r}, is missing); "
                          "restore it, or rebuild the case with `biopsynav init --overwrite`",
                          where)

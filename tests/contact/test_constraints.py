@@ -132,3 +132,12 @@ def test_the_protocol_of_elastic_rigid_pushes_holds_its_stiffness():
     assert "contact_stiffness" not in fe_model({"fem_contact": "points"})
     assert fe_model({"fem_contact": "elastic", "contact_stiffness": 7.0})[
         "contact_stiffness"] == 7.0
+
+
+def test_the_case_grid_moduli_are_its_fe_models(coarse):
+    """The springs of the network input use the case grid's element moduli without building
+    its FE model: the same values as the model's."""
+    from biopsynav.contact.springs import case_young_moduli
+    from biopsynav.fem import FEModel
+
+    np.testing.assert_array_equal(case_young_moduli(coarse), FEModel.from_case(coarse).E_mpa)

@@ -12,7 +12,8 @@ from dataset_helpers import N_TEST, N_TRAIN, edit_config
 
 from biopsynav.case import Case
 from biopsynav.config import config_from_dict
-from biopsynav.contact.springs import case_springs
+from biopsynav.contact.constraints import grid_springs, vertex_areas
+from biopsynav.contact.springs import case_young_moduli
 from biopsynav.dataset.contacts import sample_contact_matrices
 from biopsynav.dataset.generate import generate_case
 from biopsynav.dataset.store import (
@@ -91,8 +92,10 @@ def test_a_rigid_sample_moves_its_contact_with_the_face(mixed):
         assert data["probe_disp_mm"][i] == pytest.approx(push.push_mm, rel=1e-9)
         face = np.broadcast_to(push.displacement, moved.shape)
         inputs = tensor_to_field(np.asarray(data["inputs"][i]))
-        springs = case_springs(case, case.cfg.tracker.contact_stiffness, push.contact,
-                               skin.cells[push.contact])
+        springs = grid_springs(case.cfg.tracker.contact_stiffness, case_young_moduli(case),
+                               case.grid, skin.cells[push.contact],
+                               vertex_areas(case.anatomy.vertices,
+                                            case.anatomy.faces)[push.contact])
         expected = contact_input(w, face, case.cfg.dataset.contact_input, compliance(case),
                                  springs)
         np.testing.assert_allclose(inputs[:, :3], expected[:, :3], atol=1e-4)

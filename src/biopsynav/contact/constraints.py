@@ -78,6 +78,14 @@ def contact_springs(name: str, beta: float, e_mpa: np.ndarray, grid, cells: np.n
     None when its points are met."""
     if not is_elastic(name):
         return None
+    return grid_springs(beta, e_mpa, grid, cells, areas)
+
+
+def grid_springs(beta: float, e_mpa: np.ndarray, grid, cells: np.ndarray,
+                 areas: np.ndarray) -> np.ndarray:
+    """Spring stiffness (n_points,) N/mm of elastic contact for points in the flat cells
+    ``cells`` (n_points,) of ``grid`` standing for skin areas ``areas`` (n_points,) mm^2, with
+    the element moduli ``e_mpa`` (n_elements,) MPa of that grid's FE model."""
     return point_stiffness(beta, e_mpa[grid.element_of_cells(cells)], areas, grid.spacing)
 
 

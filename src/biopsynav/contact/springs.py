@@ -1,20 +1,15 @@
-"""Springs of elastic contact on a case's own grid (:mod:`biopsynav.contact.constraints`):
-what the network input of elastic rigid pushes is built with."""
+"""The case grid's element moduli for elastic contact (:mod:`biopsynav.contact.constraints`):
+the springs the network input of elastic rigid pushes is built with, on the case grid
+whatever grid the teacher solved on."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..fem.tissues import cell_lame, label_tissues, small_strain
-from .constraints import point_stiffness, vertex_areas
+from ..fem.tissues import grid_lame, small_strain
 
 
-def case_springs(case, beta: float, vertices: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Spring stiffness (n,) N/mm of the skin ``vertices`` (n,) in the flat ``cells`` (n,) of
-    ``case``'s own grid (its tissues' Young's moduli, its cell size): the springs the network
-    input of elastic contact is built with (:func:`biopsynav.probe.contact_input_operator`)."""
-    grid = case.grid
-    tissues = label_tissues(grid.label_values, case.cfg, case.anatomy)
-    e_mpa, _ = small_strain(*cell_lame(grid.active_label_share(), tissues, case.cfg))
-    areas = vertex_areas(case.anatomy.vertices, case.anatomy.faces)[vertices]
-    return point_stiffness(beta, e_mpa[grid.element_of_cells(cells)], areas, grid.spacing)
+def case_young_moduli(case) -> np.ndarray:
+    """Young's modulus (n_active_cells,) MPa of each element of ``case``'s own grid, its
+    tissues mixed by volume as in its FE model, without building that model."""
+    return small_strain(*grid_lame(case.grid, case.cfg, case.anatomy))[0]

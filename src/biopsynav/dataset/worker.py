@@ -56,10 +56,13 @@ class SampleContext:
         centers: (k,) skin vertices that may centre a push.
         skin_areas: (n_vertices,) mm^2, the skin area each vertex stands for (the springs of
             elastic contact).
+        case_e_mpa: (n_active_cells,) MPa, the case grid's element moduli (the springs of the
+            input of elastic rigid pushes).
     """
 
     def __init__(self, case: Any) -> None:
         from ..contact.constraints import vertex_areas
+        from ..contact.springs import case_young_moduli
         from ..fem import SolverSettings
         from ..fem.teacher import build_teacher
         from ..grid.embedding import surface_embedding
@@ -78,6 +81,7 @@ class SampleContext:
         self.pinned = pinned_skin(case.grid.fixed_nodes, skin.nodes)
         self.centers = eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
         self.skin_areas = vertex_areas(case.anatomy.vertices, case.anatomy.faces)
+        self.case_e_mpa = case_young_moduli(case)
         self.node_shape = case.grid.node_shape
         self.active = np.asarray(case.grid.active_nodes, dtype=bool).ravel()
         self.contact_input = case.cfg.dataset.contact_input
@@ -258,14 +262,14 @@ def face_motion(ctx: SampleContext, push: Any, contact_u: np.ndarray) -> np.ndar
 def input_springs(ctx: SampleContext, push: Any) -> np.ndarray | None:
     """The springs (n,) N/mm of a rigid push's contact points on the case grid with elastic
     contact (the input is the linear field of that contact), else None."""
-    from ..contact.constraints import is_elastic
-    from ..contact.springs import case_springs
+    from ..contact.constraints import contact_springs
 
     tracker = ctx.case.cfg.tracker
-    if not (push.rigid and is_elastic(tracker.fem_contact)):
+    if not push.rigid:
         return None
-    return case_springs(ctx.case, tracker.contact_stiffness, push.contact,
-                        ctx.case_skin.cells[push.contact])
+    return contact_springs(tracker.fem_contact, tracker.contact_stiffness, ctx.case_e_mpa,
+                           ctx.case.grid, ctx.case_skin.cells[push.contact],
+                           ctx.skin_areas[push.contact])
 
 
 def probe_displacement(contact_u: np.ndarray) -> float:

@@ -115,10 +115,9 @@ class FEModel:
         """The model of ``anatomy`` on ``grid`` (the case's grid, or a finer teacher grid)
         with the materials, law and chest wall of ``cfg``; the cells' integration weights are
         their tissue fractions, at least ``min_fraction`` (default ``[grid] min_fraction``)."""
-        from .tissues import cell_lame, label_tissues, small_strain
+        from .tissues import grid_lame, small_strain
 
-        tissues = label_tissues(grid.label_values, cfg, anatomy)
-        mu, lam = cell_lame(grid.active_label_share(), tissues, cfg)
+        mu, lam = grid_lame(grid, cfg, anatomy)
         e_mpa, nu = small_strain(mu, lam)
         floor = cfg.grid.min_fraction if min_fraction is None else min_fraction
         weight = np.clip(grid.active_fraction(), floor, 1.0)

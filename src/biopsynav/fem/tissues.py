@@ -76,6 +76,14 @@ def cell_lame(share: np.ndarray, tissues: list[str], cfg: CaseConfig
     return weights @ mu_t, weights @ lam_t
 
 
+def grid_lame(grid, cfg: CaseConfig, anatomy: Anatomy) -> tuple[np.ndarray, np.ndarray]:
+    """Lame constants (mu, lambda) (n_active_cells,) in MPa of the active cells of ``grid``,
+    each the volume-weighted mixture of its tissues (``cfg``'s materials, ``anatomy``'s
+    segments)."""
+    tissues = label_tissues(grid.label_values, cfg, anatomy)
+    return cell_lame(grid.active_label_share(), tissues, cfg)
+
+
 def small_strain(mu: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Young's modulus (MPa) and Poisson ratio of Lame constants (mu, lambda) in MPa."""
     return mu * (3.0 * lam + 2.0 * mu) / (lam + mu), lam / (2.0 * (lam + mu))

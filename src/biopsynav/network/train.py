@@ -419,12 +419,12 @@ def elastic_rigid_pushes(data: Dataset) -> bool:
     """Whether the data set holds rigid pushes whose contact points were tied to the face by
     springs (``[tracker] fem_contact = 'elastic'``): their fields do not move the points
     exactly with the face, which the contact projection would impose."""
-    from ..contact.constraints import CONTACT_CONSTRAINTS
+    from ..contact.constraints import contact_constraint_names, is_elastic
 
     protocol = data.attrs.get("protocol") or {}
     kind = (protocol.get("fe_model") or {}).get("fem_contact")
     rigid = float((protocol.get("probe") or {}).get("rigid_share", 0.0)) > 0.0
-    return rigid and kind in CONTACT_CONSTRAINTS and CONTACT_CONSTRAINTS[kind].elastic
+    return rigid and kind in contact_constraint_names() and is_elastic(kind)
 
 
 def _has_pushes(data: Dataset) -> bool:

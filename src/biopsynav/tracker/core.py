@@ -121,6 +121,7 @@ class Tracker:
         self._fem_contact: Embedding | None = None  # contact points in the FE engine's grid
         self._fem_surface: Embedding | None = None
         self._vertex_areas: np.ndarray | None = None  # skin area per vertex, mm^2
+        self._case_e_mpa: np.ndarray | None = None  # the case grid's element moduli, MPa
         self.engine = engine
         self._surrogate = surrogate
         self._fem_model = fem_model
@@ -134,7 +135,7 @@ class Tracker:
         self._rest: np.ndarray | None = None
         self._contact: np.ndarray = np.zeros(0, dtype=np.int64)
         self._contact_emb: Embedding | None = None
-        self._fem_rows: dict = {}  # the FE engine's constraint rows of the contact set, by grid
+        self._fem_rows: dict = {}  # the FE engine's constraint rows and springs, by grid
         self.last_touched = np.zeros(0, dtype=np.int64)  # skin the face reached, last update
         self._input = np.zeros((4, *case.grid.node_shape), dtype=np.float32)
         self._input_flat = self._input.reshape(4, -1)
@@ -334,16 +335,20 @@ class Tracker:
         springs = None
         beta = self._learnt_contact_stiffness()
         if beta is not None and kind == "elastic":
-            from ..contact.springs import case_springs
+            from ..contact.constraints import grid_springs
+            from ..contact.springs import case_young_moduli
 
-            springs = case_springs(self.case, beta, vertices, points.cells)
+            if self._case_e_mpa is None:
+                self._case_e_mpa = case_young_moduli(self.case)
+            springs = grid_springs(beta, self._case_e_mpa, self.case.grid, points.cells,
+                                   self._skin_areas()[vertices])
         return contact_input_operator(points.matrix, kind, compliance, springs)
 
     def _learnt_contact_stiffness(self) -> float | None:
         """The springs' beta of the elastic contact the network learnt (its ``meta.json``
         teacher), None for a model that did not (or the FE engine)."""
         sur = self._surrogate
-        if sur is None or not getattr(sur, "learnt_elastic_contact", False):
+        if sur is None or not sur.learnt_elastic_contact:
             return None
         beta = (sur.meta.get("teacher") or {}).get("contact_stiffness")
         return self.case.cfg.tracker.contact_stiffness if beta is None else float(beta)
@@ -534,8 +539,7 @@ class Tracker:
             model, contact, surface = (self._fem_model, self._fem_contact_embedding(),
                                        self._fem_surface_embedding())
         key = "case" if on_case_grid else "fem"
-        rows = self._constraint_rows(contact, key)
-        springs = self._springs(model, key, contact.cells, self._contact)
+        rows, springs = self._constraint_rows(contact, model, key)
         w, g = rows @ contact.matrix, rows @ u_c
         normals = None
         if len(touched):
@@ -592,15 +596,17 @@ class Tracker:
             self._fem_surface = surface_embedding(self._teacher.grid, self.case.anatomy)
         return self._fem_surface
 
-    def _constraint_rows(self, contact: Embedding, key: str):
+    def _constraint_rows(self, contact: Embedding, model, key: str):
         """The constraint rows (n_constraints, n_contact) of the rest pose's contact set
-        embedded as ``contact`` in the grid named ``key`` ("fem" or "case") (``[tracker]
-        fem_contact``, :mod:`biopsynav.contact.constraints`), built once per rest pose."""
+        embedded as ``contact`` in the grid named ``key`` ("fem" or "case") of ``model``
+        (``[tracker] fem_contact``, :mod:`biopsynav.contact.constraints`) and their springs
+        (n_contact,) N/mm with elastic contact (else None), built once per rest pose."""
         if key not in self._fem_rows:
             from ..contact.constraints import constraint_rows
 
-            self._fem_rows[key] = constraint_rows(self.case.cfg.tracker.fem_contact,
-                                                  contact.cells)
+            self._fem_rows[key] = (constraint_rows(self.case.cfg.tracker.fem_contact,
+                                                   contact.cells),
+                                   self._springs(model, key, contact.cells, self._contact))
         return self._fem_rows[key]
 
     def _springs(self, model, key: str, cells: np.ndarray, vertices: np.ndarray
@@ -608,15 +614,21 @@ class Tracker:
         """Spring stiffness (n,) N/mm of the skin ``vertices`` (n,) in the flat ``cells``
         (n,) of the grid named ``key`` ("fem" or "case") with elastic contact (``[tracker]
         fem_contact``, ``contact_stiffness``); None when the points are met."""
-        from ..contact.constraints import contact_springs, vertex_areas
+        from ..contact.constraints import contact_springs
 
         cfg = self.case.cfg.tracker
         grid = self.case.grid if key == "case" or self._teacher is None else self._teacher.grid
+        return contact_springs(cfg.fem_contact, cfg.contact_stiffness, model.E_mpa, grid,
+                               cells, self._skin_areas()[vertices])
+
+    def _skin_areas(self) -> np.ndarray:
+        """The skin area (n_vertices,) mm^2 each vertex stands for, computed once."""
         if self._vertex_areas is None:
+            from ..contact.constraints import vertex_areas
+
             self._vertex_areas = vertex_areas(self.case.anatomy.vertices,
                                               self.case.anatomy.faces)
-        return contact_springs(cfg.fem_contact, cfg.contact_stiffness, model.E_mpa, grid,
-                               cells, self._vertex_areas[vertices])
+        return self._vertex_areas
 
     def _set_input(self, u_c: np.ndarray, op: ContactInputOperator) -> None:
         """Write ``self._input`` for the contact points of the input operator ``op`` moved by
