@@ -182,6 +182,9 @@ def rejected_result(result: dict, rejected: tuple[str, str], probe_disp: float,
 #: load whose neighbourhood the budget is meant to cut short.
 RIGID_BUDGET_FACTOR = 4
 
+#: The one fallback of a data set's elastic rigid push: springs this many times stiffer.
+DATA_SPRING_FACTOR = 4.0
+
 
 def rigid_push_loads(ctx: SampleContext, push: Any, skin: Any = None) -> Any:
     """The loads of a rigid push on the teacher's grid (or on the grid of the embedding
@@ -295,9 +298,16 @@ def extrapolation_rejection(ctx: SampleContext, u: np.ndarray, u_case: np.ndarra
 
 
 def rigid_push_settings(ctx: SampleContext) -> Any:
-    """The worker's solver settings with the Newton budget of a rigid push."""
-    return dataclasses.replace(ctx.settings, max_total_iterations=RIGID_BUDGET_FACTOR
-                               * ctx.settings.max_total_iterations)
+    """The worker's solver settings with the Newton budget of a rigid push. With elastic
+    contact the springs as asked get the plain ``[dataset] newton_budget``: a draw that needs
+    more is past their limit point, and their one fallback, springs :data:`DATA_SPRING_FACTOR`
+    times stiffer, gets the whole budget. Never the points met: that teacher drags the tissue
+    (docs/dataset.md, "`[refine]` on the case grid with elastic contact"), so such a draw is
+    recorded as failed and redrawn."""
+    budget = ctx.settings.max_total_iterations
+    return dataclasses.replace(ctx.settings, max_total_iterations=RIGID_BUDGET_FACTOR * budget,
+                               first_attempt_budget=budget,
+                               spring_fallback=(DATA_SPRING_FACTOR,))
 
 
 def too_deep(probe_disp_mm: float, max_push_mm: float) -> bool:

@@ -34,11 +34,21 @@ LS_TOLERANCE = 0.25  # accept a step once the energy slope drops to this fractio
 UNSTABLE_EIGENVALUE = 1e-9  # a Jacobi-scaled tangent eigenvalue below minus this: unstable
 
 
+#: Elastic contact (``Loads.prescribed_stiffness``) that does not converge is solved again
+#: with its springs this many times stiffer, each in turn (inf: the points met). Deep pushes
+#: can pass a limit point where a nearly empty cut cell holding contact points turns under
+#: soft springs; stiffer springs hold it, at the price of more drag.
+SPRING_FALLBACK = (4.0, math.inf)
+
+
 @dataclass
 class SolverSettings:
     """Newton settings (see ``[solver]`` in case.toml). ``max_total_iterations``: give up
     after this many Newton iterations over all increments (0: no limit; data generation sets
-    it from ``[dataset] newton_budget``)."""
+    it from ``[dataset] newton_budget``). Elastic contact only: ``first_attempt_budget``, the
+    Newton iterations after which the springs as asked give way to their fallbacks (0:
+    ``max_total_iterations``), and ``spring_fallback``, the factors of those fallbacks, tried
+    in turn (inf: the points met; :data:`SPRING_FALLBACK`). Data generation sets both."""
 
     tol_residual: float = 1e-8
     tol_displacement: float = 1e-8
@@ -54,6 +64,8 @@ class SolverSettings:
     single_precision: bool = True
     threads: int = 0
     constraint_tolerance_mm: float = 1e-4
+    first_attempt_budget: int = 0
+    spring_fallback: tuple[float, ...] = SPRING_FALLBACK
 
     @classmethod
     def from_config(cls, solver_section) -> SolverSettings:
@@ -202,24 +214,20 @@ class _IncrementFailed(Exception):
         self.reason = reason
 
 
-#: Elastic contact (``Loads.prescribed_stiffness``) that does not converge is solved again
-#: with its springs this many times stiffer, each in turn (inf: the points met). Deep pushes
-#: can pass a limit point where a nearly empty cut cell holding contact points turns under
-#: soft springs; stiffer springs hold it, at the price of more drag.
-SPRING_FALLBACK = (4.0, math.inf)
-
-
 def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
           ) -> tuple[np.ndarray, SolveReport]:
-    """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails is
-    solved again with stiffer springs (:data:`SPRING_FALLBACK`), and the report's
-    ``spring_factor`` says which answered. Raises the first SolverError when none does."""
-    try:
+    """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails
+    (within ``settings.first_attempt_budget`` iterations, where set) is solved again with
+    stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``), and
+    the report's ``spring_factor`` says which answered. Raises the first SolverError when
+    none does."""
+    settings = settings or SolverSettings()
+    if loads.prescribed_stiffness is None:
         return solve_once(model, loads, settings)
+    try:
+        return solve_once(model, loads, first_attempt_settings(settings))
     except SolverError as first:
-        if loads.prescribed_stiffness is None:
-            raise
-        for factor in SPRING_FALLBACK:
+        for factor in settings.spring_fallback:
             try:
                 u, report = solve_once(model, stiffer_springs(loads, factor), settings)
             except SolverError:
@@ -227,6 +235,13 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
             report.spring_factor = factor
             return u, report
         raise first from None
+
+
+def first_attempt_settings(settings: SolverSettings) -> SolverSettings:
+    """``settings`` with the Newton budget of elastic contact's first attempt: the smaller
+    of ``first_attempt_budget`` and ``max_total_iterations`` where they are set (> 0)."""
+    budgets = [b for b in (settings.first_attempt_budget, settings.max_total_iterations) if b > 0]
+    return dataclasses.replace(settings, max_total_iterations=min(budgets, default=0))
 
 
 def stiffer_springs(loads: Loads, factor: float) -> Loads:
@@ -258,7 +273,9 @@ def solve_once(model: FEModel, loads: Loads,
         report.time_s = time.perf_counter() - start
         return np.zeros((model.n_nodes, 3)), report
     system = _System(model, prepared, settings.penalty)
-    # single precision only without the penalty (whose stiff terms need double precision)
+    # single precision only without prescribed points: the penalty's stiff terms need double
+    # precision, and so do deep elastic pushes, whose tangents near a limit point mislead
+    # single-precision factors (docs/fem.md, "Elastic contact")
     single = settings.single_precision and not prepared.has_constraints
     solver = linear_solver(model, settings, single)
     report.backend = solver.name
