@@ -451,6 +451,25 @@ def test_elastic_contact_gives_the_springs_as_asked_their_own_budget(monkeypatch
         assert budgets == [first, total]
 
 
+def test_elastic_contact_in_single_precision_converges_to_the_double_answer():
+    """Elastic contact factors in single precision (its springs are as stiff as the tissue);
+    Newton's residual in double precision brings it to the same answer."""
+    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
+    nodes, hexes = box_mesh(cells, size)
+    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
+    points = np.array([[12.0, 14.0, 30.0], [17.5, 11.0, 30.0], [23.0, 16.0, 29.0]])
+    loads = Loads(prescribed_matrix=_top_points_matrix(nodes, points, cells, size),
+                  prescribed_displacement=np.tile([1.0, 0.5, -6.0], (3, 1)),
+                  prescribed_stiffness=np.full(3, 0.5))
+    answers = []
+    for single in (True, False):
+        u, report = solve(model, loads, SolverSettings(single_precision=single))
+        answers.append(u)
+        assert report.spring_factor == 1.0
+    np.testing.assert_allclose(answers[0], answers[1], atol=1e-6)
+    assert np.abs(answers[0]).max() > 1.0
+
+
 def test_elastic_contact_falls_back_to_stiffer_springs(monkeypatch):
     """An elastic solve that fails is solved again with stiffer springs, then with the points
     met; the report says which answered, and when none does the first error is raised."""

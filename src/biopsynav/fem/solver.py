@@ -273,10 +273,10 @@ def solve_once(model: FEModel, loads: Loads,
         report.time_s = time.perf_counter() - start
         return np.zeros((model.n_nodes, 3)), report
     system = _System(model, prepared, settings.penalty)
-    # single precision only without prescribed points: the penalty's stiff terms need double
-    # precision, and so do deep elastic pushes, whose tangents near a limit point mislead
-    # single-precision factors (docs/fem.md, "Elastic contact")
-    single = settings.single_precision and not prepared.has_constraints
+    # single precision only without the penalty (whose stiff terms need double precision);
+    # elastic contact's springs are as stiff as the tissue they hold (docs/fem.md, "Elastic
+    # contact": single precision)
+    single = settings.single_precision and (not prepared.has_constraints or prepared.elastic)
     solver = linear_solver(model, settings, single)
     report.backend = solver.name
     try:
