@@ -417,7 +417,8 @@ class RefineSection:
                           "further on them; the tracker then uses that model "
                           "(CASE_DIR/refine/model). They live in their own case folder, "
                           "CASE_DIR/refine, with the same anatomy and grid. 300 (default): "
-                          "about 5-14 min on 2 cores, and the network 0.20-0.25 mm from the "
+                          "about 4 min on 2 cores (1,000: 13.6 min on the phantom; the "
+                          "network no nearer the truth), and the network 0.20-0.25 mm from the "
                           "independent truth at 10 mm pushes instead of 1.6 mm "
                           "(docs/dataset.md, '[refine] on the case grid'). 0: off; the "
                           "case-grid network is the model.",
