@@ -452,8 +452,8 @@ def test_elastic_contact_gives_the_springs_as_asked_their_own_budget(monkeypatch
 
 
 def test_elastic_contact_in_single_precision_converges_to_the_double_answer():
-    """Elastic contact factors in single precision (its springs are as stiff as the tissue);
-    Newton's residual in double precision brings it to the same answer."""
+    """Elastic contact factored in single precision where asked (data generation's first
+    attempt): Newton's residual in double precision brings it to the same answer."""
     cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
     nodes, hexes = box_mesh(cells, size)
     model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
@@ -463,7 +463,7 @@ def test_elastic_contact_in_single_precision_converges_to_the_double_answer():
                   prescribed_stiffness=np.full(3, 0.5))
     answers = []
     for single in (True, False):
-        u, report = solve(model, loads, SolverSettings(single_precision=single))
+        u, report = solve(model, loads, SolverSettings(elastic_single_precision=single))
         answers.append(u)
         assert report.spring_factor == 1.0
     np.testing.assert_allclose(answers[0], answers[1], atol=1e-6)

@@ -48,7 +48,10 @@ class SolverSettings:
     it from ``[dataset] newton_budget``). Elastic contact only: ``first_attempt_budget``, the
     Newton iterations after which the springs as asked give way to their fallbacks (0:
     ``max_total_iterations``), and ``spring_fallback``, the factors of those fallbacks, tried
-    in turn (inf: the points met; :data:`SPRING_FALLBACK`). Data generation sets both."""
+    in turn (inf: the points met; :data:`SPRING_FALLBACK`); ``elastic_single_precision``,
+    whether the springs as asked are factored in single precision (faster, but less robust
+    near a limit point; the fallbacks are always in double precision). Data generation sets
+    all three."""
 
     tol_residual: float = 1e-8
     tol_displacement: float = 1e-8
@@ -66,6 +69,7 @@ class SolverSettings:
     constraint_tolerance_mm: float = 1e-4
     first_attempt_budget: int = 0
     spring_fallback: tuple[float, ...] = SPRING_FALLBACK
+    elastic_single_precision: bool = False
 
     @classmethod
     def from_config(cls, solver_section) -> SolverSettings:
@@ -218,18 +222,19 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
           ) -> tuple[np.ndarray, SolveReport]:
     """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails
     (within ``settings.first_attempt_budget`` iterations, where set) is solved again with
-    stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``), and
-    the report's ``spring_factor`` says which answered. Raises the first SolverError when
-    none does."""
+    stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``, in
+    double precision), and the report's ``spring_factor`` says which answered. Raises the
+    first SolverError when none does."""
     settings = settings or SolverSettings()
     if loads.prescribed_stiffness is None:
         return solve_once(model, loads, settings)
     try:
         return solve_once(model, loads, first_attempt_settings(settings))
     except SolverError as first:
+        robust = dataclasses.replace(settings, elastic_single_precision=False)
         for factor in settings.spring_fallback:
             try:
-                u, report = solve_once(model, stiffer_springs(loads, factor), settings)
+                u, report = solve_once(model, stiffer_springs(loads, factor), robust)
             except SolverError:
                 continue
             report.spring_factor = factor
@@ -273,10 +278,11 @@ def solve_once(model: FEModel, loads: Loads,
         report.time_s = time.perf_counter() - start
         return np.zeros((model.n_nodes, 3)), report
     system = _System(model, prepared, settings.penalty)
-    # single precision only without the penalty (whose stiff terms need double precision);
-    # elastic contact's springs are as stiff as the tissue they hold (docs/fem.md, "Elastic
-    # contact": single precision)
-    single = settings.single_precision and (not prepared.has_constraints or prepared.elastic)
+    # single precision without prescribed points (the penalty's stiff terms need double
+    # precision), and for elastic contact only where asked: near a limit point its
+    # single-precision factors mislead Newton (docs/fem.md, "Elastic contact")
+    single = settings.single_precision and not prepared.has_constraints or (
+        prepared.elastic and settings.elastic_single_precision)
     solver = linear_solver(model, settings, single)
     report.backend = solver.name
     try:
