@@ -193,8 +193,8 @@ class SolverSection:
     single_precision: bool = opt(True, "Pardiso factors the tangent in single precision "
                                        "(about a third faster; residuals and convergence "
                                        "stay double precision). Not used with prescribed "
-                                       "displacements, except for the first attempt of a data "
-                                       "set's elastic rigid push (docs/fem.md, 'Elastic "
+                                       "displacements, except for a data set's rigid pushes "
+                                       "with elastic contact (docs/fem.md, 'Elastic "
                                        "contact').")
     threads: int = opt(0, "Pardiso threads (0: all cores).", lo=0, hi=1024)
     penalty: float = opt(1e6, "Penalty of prescribed displacements, relative to the mean "

@@ -168,3 +168,28 @@ def test_a_model_taught_by_force_patches_still_loads_in_a_case_that_asks_for_rig
     assert tracker.engine == "net"
     meta = json.loads(Case.load(case_dir).paths.model_meta.read_text())
     assert meta["teacher"]["rigid_share"] == 0.0
+
+
+def test_a_data_sets_elastic_push_gives_its_springs_a_short_budget_and_no_points_met():
+    """Data generation's rigid pushes: the springs as asked get ``[dataset] newton_budget``,
+    their one fallback 4x springs gets the rigid budget, both in single precision where
+    ``[solver] single_precision`` is on; never the points met (the dragging teacher)."""
+    from types import SimpleNamespace
+
+    from biopsynav.dataset.worker import (
+        DATA_SPRING_FACTOR,
+        RIGID_BUDGET_FACTOR,
+        rigid_push_settings,
+    )
+    from biopsynav.fem import SolverSettings
+
+    for single in (True, False):
+        ctx = SimpleNamespace(settings=SolverSettings(max_total_iterations=40,
+                                                      single_precision=single))
+        settings = rigid_push_settings(ctx)
+        assert settings.first_attempt_budget == 40
+        assert settings.max_total_iterations == RIGID_BUDGET_FACTOR * 40
+        assert settings.spring_fallback == (DATA_SPRING_FACTOR,)
+        assert all(np.isfinite(settings.spring_fallback))
+        assert settings.elastic_single_precision is single
+    assert SolverSettings().elastic_single_precision is False  # the tracker's: double

@@ -301,10 +301,10 @@ def rigid_push_settings(ctx: SampleContext) -> Any:
     """The worker's solver settings with the Newton budget of a rigid push. With elastic
     contact the springs as asked get the plain ``[dataset] newton_budget``: a draw that needs
     more is past their limit point, and their one fallback, springs :data:`DATA_SPRING_FACTOR`
-    times stiffer, gets the whole budget. The springs as asked are factored in single
-    precision (with ``[solver] single_precision``), the fallback in double. Never the points
-    met: that teacher drags the tissue (docs/dataset.md, "`[refine]` on the case grid with
-    elastic contact"), so such a draw is recorded as failed and redrawn."""
+    times stiffer, gets the whole budget; both are factored in single precision (with
+    ``[solver] single_precision``). Never the points met: that teacher drags the tissue
+    (docs/dataset.md, "`[refine]` on the case grid with elastic contact"), so a draw that
+    fails both is recorded as failed and redrawn."""
     budget = ctx.settings.max_total_iterations
     return dataclasses.replace(ctx.settings, max_total_iterations=RIGID_BUDGET_FACTOR * budget,
                                first_attempt_budget=budget,

@@ -49,9 +49,9 @@ class SolverSettings:
     Newton iterations after which the springs as asked give way to their fallbacks (0:
     ``max_total_iterations``), and ``spring_fallback``, the factors of those fallbacks, tried
     in turn (inf: the points met; :data:`SPRING_FALLBACK`); ``elastic_single_precision``,
-    whether the springs as asked are factored in single precision (faster, but less robust
-    near a limit point; the fallbacks are always in double precision). Data generation sets
-    all three."""
+    whether elastic contact is factored in single precision (faster, but less robust near a
+    limit point: springs that converge in double precision may not in single). Data
+    generation sets all three."""
 
     tol_residual: float = 1e-8
     tol_displacement: float = 1e-8
@@ -222,19 +222,18 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
           ) -> tuple[np.ndarray, SolveReport]:
     """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails
     (within ``settings.first_attempt_budget`` iterations, where set) is solved again with
-    stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``, in
-    double precision), and the report's ``spring_factor`` says which answered. Raises the
-    first SolverError when none does."""
+    stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``), and
+    the report's ``spring_factor`` says which answered. Raises the first SolverError when
+    none does."""
     settings = settings or SolverSettings()
     if loads.prescribed_stiffness is None:
         return solve_once(model, loads, settings)
     try:
         return solve_once(model, loads, first_attempt_settings(settings))
     except SolverError as first:
-        robust = dataclasses.replace(settings, elastic_single_precision=False)
         for factor in settings.spring_fallback:
             try:
-                u, report = solve_once(model, stiffer_springs(loads, factor), robust)
+                u, report = solve_once(model, stiffer_springs(loads, factor), settings)
             except SolverError:
                 continue
             report.spring_factor = factor
