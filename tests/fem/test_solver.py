@@ -422,18 +422,24 @@ def test_stiffer_springs_close_the_gap_towards_the_met_points():
     assert np.all(np.diff(misfits) < 0) and misfits[-1] < 0.01
 
 
+def _block_on_one_spring() -> tuple[FEModel, Loads]:
+    """A 4 x 3 x 3 block fixed at its base, one top point on a spring pulled down by 2 mm."""
+    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
+    nodes, hexes = box_mesh(cells, size)
+    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
+    w = _top_points_matrix(nodes, np.array([[12.0, 14.0, 30.0]]), cells, size)
+    return model, Loads(prescribed_matrix=w,
+                        prescribed_displacement=np.array([[0.0, 0.0, -2.0]]),
+                        prescribed_stiffness=np.array([0.05]))
+
+
 def test_elastic_contact_gives_the_springs_as_asked_their_own_budget(monkeypatch):
     """The springs as asked get at most ``first_attempt_budget`` Newton iterations (a solve
     past their limit point wanders until its budget is spent); the fallbacks get the whole
     ``max_total_iterations``."""
     import biopsynav.fem.solver as solver_mod
 
-    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
-    nodes, hexes = box_mesh(cells, size)
-    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
-    w = _top_points_matrix(nodes, np.array([[12.0, 14.0, 30.0]]), cells, size)
-    loads = Loads(prescribed_matrix=w, prescribed_displacement=np.array([[0.0, 0.0, -2.0]]),
-                  prescribed_stiffness=np.array([0.05]))
+    model, loads = _block_on_one_spring()
     real, budgets = solver_mod.solve_once, []
 
     def first_fails(model, loads, settings=None):
@@ -475,12 +481,7 @@ def test_elastic_contact_falls_back_to_stiffer_springs(monkeypatch):
     met; the report says which answered, and when none does the first error is raised."""
     import biopsynav.fem.solver as solver_mod
 
-    cells, size = (4, 3, 3), (40.0, 30.0, 30.0)
-    nodes, hexes = box_mesh(cells, size)
-    model = FEModel(nodes, hexes, 0.8, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
-    w = _top_points_matrix(nodes, np.array([[12.0, 14.0, 30.0]]), cells, size)
-    loads = Loads(prescribed_matrix=w, prescribed_displacement=np.array([[0.0, 0.0, -2.0]]),
-                  prescribed_stiffness=np.array([0.05]))
+    model, loads = _block_on_one_spring()
     real, tried = solver_mod.solve_once, []
 
     def failing_below(limit):

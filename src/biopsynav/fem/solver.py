@@ -280,8 +280,8 @@ def solve_once(model: FEModel, loads: Loads,
     # single precision without prescribed points (the penalty's stiff terms need double
     # precision), and for elastic contact only where asked: near a limit point its
     # single-precision factors mislead Newton (docs/fem.md, "Elastic contact")
-    single = settings.single_precision and not prepared.has_constraints or (
-        prepared.elastic and settings.elastic_single_precision)
+    single = ((settings.single_precision and not prepared.has_constraints)
+              or (prepared.elastic and settings.elastic_single_precision))
     solver = linear_solver(model, settings, single)
     report.backend = solver.name
     try:
