@@ -176,11 +176,7 @@ def test_a_data_sets_elastic_push_gives_its_springs_a_short_budget_and_no_points
     ``[solver] single_precision`` is on; never the points met (the dragging teacher)."""
     from types import SimpleNamespace
 
-    from biopsynav.dataset.worker import (
-        DATA_SPRING_FACTOR,
-        RIGID_BUDGET_FACTOR,
-        rigid_push_settings,
-    )
+    from biopsynav.dataset.worker import RIGID_BUDGET_FACTOR, rigid_push_settings
     from biopsynav.fem import SolverSettings
 
     for single in (True, False):
@@ -189,7 +185,7 @@ def test_a_data_sets_elastic_push_gives_its_springs_a_short_budget_and_no_points
         settings = rigid_push_settings(ctx)
         assert settings.first_attempt_budget == 40
         assert settings.max_total_iterations == RIGID_BUDGET_FACTOR * 40
-        assert settings.spring_fallback == (DATA_SPRING_FACTOR,)
+        assert settings.spring_fallback == (4.0,)
         assert all(np.isfinite(settings.spring_fallback))
         assert settings.elastic_single_precision is single
     assert SolverSettings().elastic_single_precision is False  # the tracker's: double

@@ -12,6 +12,7 @@ limits before numba and MKL load.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import threading
 import time
@@ -182,9 +183,6 @@ def rejected_result(result: dict, rejected: tuple[str, str], probe_disp: float,
 #: load whose neighbourhood the budget is meant to cut short.
 RIGID_BUDGET_FACTOR = 4
 
-#: The one fallback of a data set's elastic rigid push: springs this many times stiffer.
-DATA_SPRING_FACTOR = 4.0
-
 
 def rigid_push_loads(ctx: SampleContext, push: Any, skin: Any = None) -> Any:
     """The loads of a rigid push on the teacher's grid (or on the grid of the embedding
@@ -300,15 +298,18 @@ def extrapolation_rejection(ctx: SampleContext, u: np.ndarray, u_case: np.ndarra
 def rigid_push_settings(ctx: SampleContext) -> Any:
     """The worker's solver settings with the Newton budget of a rigid push. With elastic
     contact the springs as asked get the plain ``[dataset] newton_budget``: a draw that needs
-    more is past their limit point, and their one fallback, springs :data:`DATA_SPRING_FACTOR`
-    times stiffer, gets the whole budget; both are factored in single precision (with
-    ``[solver] single_precision``). Never the points met: that teacher drags the tissue
-    (docs/dataset.md, "`[refine]` on the case grid with elastic contact"), so a draw that
-    fails both is recorded as failed and redrawn."""
+    more is past their limit point, and the FE engine's fallbacks to stiffer springs
+    (:data:`biopsynav.fem.solver.SPRING_FALLBACK`) get the whole budget; all are factored in
+    single precision (with ``[solver] single_precision``). Never the points met: that teacher
+    drags the tissue (docs/dataset.md, "`[refine]` on the case grid with elastic contact"), so
+    a draw that no springs answer is recorded as failed and redrawn."""
+    from ..fem.solver import SPRING_FALLBACK
+
     budget = ctx.settings.max_total_iterations
     return dataclasses.replace(ctx.settings, max_total_iterations=RIGID_BUDGET_FACTOR * budget,
                                first_attempt_budget=budget,
-                               spring_fallback=(DATA_SPRING_FACTOR,),
+                               spring_fallback=tuple(f for f in SPRING_FALLBACK
+                                                     if math.isfinite(f)),
                                elastic_single_precision=ctx.settings.single_precision)
 
 
