@@ -246,7 +246,10 @@ def reference_line(case: Case, lesion: int, facts: dict, depths: list[float]) ->
 
 
 def extrapolated(cells: list[float], values: list) -> np.ndarray | None:
-    """First-order extrapolation to zero cell size from the two finest grids (3,) mm."""
+    """First-order extrapolation to zero cell size from the two finest grids (3,) mm; None
+    with fewer than two grids or a failed one."""
+    if len(cells) < 2:
+        return None
     (h2, u2), (h3, u3) = sorted(zip(cells, values, strict=True), reverse=True)[-2:]
     if u2 is None or u3 is None:
         return None

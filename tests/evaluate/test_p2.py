@@ -119,6 +119,23 @@ def test_convergence_reports_the_training_teachers_against_the_reference(monkeyp
     assert "teachers on the 7.3 mm grid" in out and "4.00" in out
 
 
+def test_convergence_reports_a_single_grid(monkeypatch, capsys):
+    """``convergence.py --cells 7.3`` (one grid, to check a reference): the table shows its
+    error and no extrapolation, instead of stopping in the report after the solves."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+
+    result = {"cells_mm": [7.3], "depths_mm": [10.0, 30.0], "lesions": [0], "lesion_ids": [1],
+              "grids": {"neo-hookean/elastic 7.3": {"displacement": {0: [[3.0, 0.0, 0.0],
+                                                                          None]}}},
+              "reference": {0: {"displacement": [[3.0, 4.0, 0.0], [8.0, 0.0, 0.0]]}}}
+    errors = convergence.report_variant(result, "neo-hookean/elastic")
+    assert errors == {"neo-hookean/elastic 7.3": [4.0]}
+    assert convergence.extrapolated([7.3], [[3.0, 0.0, 0.0]]) is None
+    out = capsys.readouterr().out
+    assert "4.00" in out and "failed" in out
+
+
 def one_tetrahedron() -> TetReference:
     """A lone 10 mm P2 tetrahedron (E 5 kPa, nu 0.45) with the reference's quadrature."""
     points = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]])
