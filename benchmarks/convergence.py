@@ -43,8 +43,13 @@ Printed per variant (law and contact kind), lesion and depth: the lesion displac
 every grid and of the reference, each grid's error (distance to the reference's displacement
 vector, mm), the displacement extrapolated to zero cell size from the two finest grids (first
 order, the immersed boundary's), and the observed order from the three finest (when the
-sequence is monotone). The last line reads ``RESULT`` with the mean and largest error of each
-variant, grid and teacher against the reference.
+sequence is monotone). A lesion is one point of the field: beside them, a table compares the
+whole displacement field near the probe, each series' mean error (mm) over up to
+``FIELD_POINTS`` points inside the breast, within ``FIELD_RADIUS_MM`` of the probe at rest and
+``SKIN_CLEARANCE_MM`` from the skin (drawn with a fixed seed; kept with the reference's answers
+so that a reused reference is compared at the same points). The last line reads ``RESULT``
+with the mean and largest error of each variant, grid and teacher against the reference, the
+field's as ``err_field_...``.
 """
 
 from __future__ import annotations
@@ -67,9 +72,14 @@ from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
+from biopsynav.grid.embedding import Embedding  # noqa: E402
 from biopsynav.reference_registry import P2_FRICTIONS  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 from biopsynav.tracker.core import fem_engine  # noqa: E402
+
+# the displacement fields are compared at up to FIELD_POINTS points inside the breast, within
+# FIELD_RADIUS_MM of the probe at rest and SKIN_CLEARANCE_MM or more from the skin (mm)
+FIELD_POINTS, FIELD_RADIUS_MM, SKIN_CLEARANCE_MM = 400, 50.0, 4.0
 
 
 def homogeneous(case: Case, nu: float) -> tuple[Case, float]:
@@ -128,19 +138,46 @@ def teacher_spec(text: str) -> str:
     return f"{refine:g}:{order:g}"
 
 
-def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float]) -> list:
-    """Lesion displacement (3,) mm, or None where the solve failed, for each depth."""
+def field_points(anatomy, centre: np.ndarray, radius_mm: float = FIELD_RADIUS_MM,
+                 n: int = FIELD_POINTS, seed: int = 0) -> np.ndarray:
+    """Up to ``n`` points (k, 3) mm inside the breast within ``radius_mm`` of ``centre`` (3,)
+    mm (the probe at rest), at least ``SKIN_CLEARANCE_MM`` from every skin vertex, drawn with
+    a fixed ``seed``: where the displacement fields are compared, beside the lesions."""
+    from scipy.spatial import cKDTree
+
+    from biopsynav.anatomy.model import winding_number
+
+    rng = np.random.default_rng(seed)
+    pts = centre + rng.uniform(-radius_mm, radius_mm, size=(8 * n, 3))
+    pts = pts[np.linalg.norm(pts - centre, axis=1) <= radius_mm]
+    pts = pts[winding_number(pts, anatomy.vertices, anatomy.faces) > 0.5]
+    pts = pts[cKDTree(anatomy.vertices).query(pts)[0] >= SKIN_CLEARANCE_MM]
+    return pts[:n]
+
+
+def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float],
+               points: np.ndarray | None = None) -> dict:
+    """For each depth: ``displacement``, the lesion's (3,) mm, and ``field``, the displacement
+    (k, 3) mm at ``points`` (k, 3) mm (None without points); None where the solve failed."""
+    emb = None if points is None else Embedding.build(tracker.case.grid, points,
+                                                      where="field points")
     tracker.set_rest_pose(placement.pose)
-    out = []
+    disp, field = [], []
     for depth in depths:
-        res = tracker.update(placement.pushed(depth))
-        out.append(res.lesions[lesion].displacement.tolist() if res.status == "ok" else None)
-    return out
+        res = tracker.update(placement.pushed(depth), with_field=emb is not None)
+        ok = res.status == "ok"
+        disp.append(res.lesions[lesion].displacement.tolist() if ok else None)
+        field.append(emb.interpolate(res.grid_displacement).tolist()
+                     if ok and emb is not None else None)
+    return {"displacement": disp, "field": field}
 
 
 def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
-               depths: list[float], args) -> tuple[list, dict]:
-    """The P2 reference's lesion displacements for each depth, and its mesh facts."""
+               depths: list[float], args, points: np.ndarray | None = None
+               ) -> tuple[list, dict]:
+    """The P2 reference's lesion displacements for each depth, and its mesh facts; with
+    ``points`` (k, 3) mm the facts hold them (``field_points``) and the displacement there
+    per depth (``field``, None past a failure)."""
     from biopsynav.evaluate.p2 import TetReference, rim_at
 
     t0 = time.perf_counter()
@@ -151,23 +188,29 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
                           args.friction)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
-    disp, tangled, nearest, failure = [], [], [], ""
+    at = centre if points is None else np.vstack([centre, points])
+    disp, field, tangled, nearest, failure = [], [], [], [], ""
     rest = placement.pose
     for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
         try:
-            (u,) = ref.push(rest, [placement.pushed(depth)], contact, centre,
+            (u,) = ref.push(rest, [placement.pushed(depth)], contact, at,
                             start=ref.last if disp else None, footprint=probe.footprint,
                             edge_radius_mm=args.edge_radius)
         except (FloatingPointError, RuntimeError) as exc:
             failure = f"{depth:g} mm: {exc}"
             break
         disp.append(u[0].tolist())
+        field.append(u[1:].tolist())
         tangled.append(len(ref.tangled(ref.last)))
         nearest.append(nearest_fold_mm(ref, ref.last, centre[0] + u[0]))
     disp += [None] * (len(depths) - len(disp))
-    return disp, {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
-                  "seconds": time.perf_counter() - t0, "failure": failure,
-                  "tangled_elements": tangled, "nearest_fold_mm": nearest}
+    facts = {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
+             "seconds": time.perf_counter() - t0, "failure": failure,
+             "tangled_elements": tangled, "nearest_fold_mm": nearest}
+    if points is not None:
+        facts["field_points"] = points.tolist()
+        facts["field"] = field + [None] * (len(depths) - len(field))
+    return disp, facts
 
 
 def nearest_fold_mm(ref, u: np.ndarray, point: np.ndarray) -> float | None:
@@ -288,35 +331,39 @@ def run(args) -> dict:
     print(f"case {args.case_dir}: homogeneous neo-Hookean E = {e_mpa * 1e3:g} kPa, "
           f"nu = {args.nu:g}; lesions {', '.join(str(case.anatomy.lesions[i].id) for i in lesions)}"
           f"; pushes {', '.join(f'{d:g}' for d in args.depths)} mm", flush=True)
+    earlier = reused_reference(args, e_mpa)
+    points = {li: np.asarray(earlier[str(li)]["field_points"])
+              if "field_points" in earlier.get(str(li), {})
+              else field_points(case.anatomy, placements[li].pose[:3, 3]) for li in lesions}
     grids = {}
     for variant in variants(args):
         for cell in args.cells:
             t0 = time.perf_counter()
             tracker, active = hex_tracker(case, cell, variant)
-            disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
             grids[series_key(variant, cell)] = {
                 "active_cells": active, "n_equations": int(tracker._fem_model.n_eq),
-                "seconds": time.perf_counter() - t0, "displacement": disp}
+                **series_answers(tracker, placements, points, args.depths),
+                "seconds": time.perf_counter() - t0}
             save(args.out, {"grids": grids})
             print(f"  hex {cell:g} mm, {variant}: {active} active cells, "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
     for teacher in args.teachers:
         t0 = time.perf_counter()
         tracker = teacher_tracker(case, args.cells[0], teacher)
-        disp = {li: hex_pushes(tracker, placements[li], li, args.depths) for li in lesions}
-        grids[f"teacher {teacher}"] = {"seconds": time.perf_counter() - t0, "displacement": disp}
+        grids[f"teacher {teacher}"] = {**series_answers(tracker, placements, points, args.depths),
+                                       "seconds": time.perf_counter() - t0}
         save(args.out, {"grids": grids})
         print(f"  teacher {teacher} on the {args.cells[0]:g} mm grid: "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
     reference = {}
-    earlier = reused_reference(args, e_mpa)
     for li in lesions:
         if str(li) in earlier:
             reference[li] = earlier[str(li)]
             print(f"  P2 reference, lesion {case.anatomy.lesions[li].id}: from "
                   f"{args.reuse_reference}", flush=True)
             continue
-        disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args)
+        disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args,
+                                 points[li])
         reference[li] = {"displacement": disp, **facts}
         save(args.out, {"grids": grids, "reference": reference})
         print(reference_line(case, li, facts, args.depths), flush=True)
@@ -329,6 +376,15 @@ def run(args) -> dict:
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine,
             "tet_rim_mm": args.tet_rim, "friction": args.friction,
             "edge_radius_mm": args.edge_radius}
+
+
+def series_answers(tracker: Tracker, placements: dict, points: dict, depths: list[float]
+                   ) -> dict:
+    """One series' ``displacement`` and ``field`` answers (:func:`hex_pushes`) by lesion
+    index, every lesion of ``placements`` with its field ``points``."""
+    answers = {li: hex_pushes(tracker, pl, li, depths, points[li])
+               for li, pl in placements.items()}
+    return {key: {li: a[key] for li, a in answers.items()} for key in ("displacement", "field")}
 
 
 def variants(args) -> list[str]:
@@ -373,6 +429,41 @@ def report(result: dict) -> dict[str, list[float]]:
         errors.update(report_variant(result, variant))
     if result.get("teachers"):
         errors.update(report_teachers(result))
+    errors.update(report_fields(result))
+    return errors
+
+
+def field_error(answer: list | None, reference: list | None) -> float | None:
+    """Mean distance (mm) between two displacement fields (k, 3) mm at the same points; None
+    where either is missing."""
+    if answer is None or reference is None:
+        return None
+    return float(np.linalg.norm(np.asarray(answer) - np.asarray(reference), axis=1).mean())
+
+
+def report_fields(result: dict) -> dict[str, list[float]]:
+    """The table of the displacement fields: each series' mean error (mm) against the
+    reference at the points inside the breast within ``FIELD_RADIUS_MM`` of the probe
+    (:func:`field_points`), lesion by lesion (``-`` where a reference holds no field)."""
+    keys = [k for k in result["grids"] if "field" in result["grids"][k]]
+    errors: dict[str, list[float]] = {f"field {k}": [] for k in keys}
+    head = "lesion  push  points  |u| P2  " + "  ".join(f"{k:>24}" for k in keys)
+    print(f"\nfield error, mean over points inside the breast within {FIELD_RADIUS_MM:g} mm of "
+          "the probe (mm)\n" + head + "\n" + "-" * len(head))
+    for li, lid in zip(result["lesions"], result["lesion_ids"], strict=True):
+        ref = result["reference"][li]
+        fields = ref.get("field") or [None] * len(result["depths_mm"])
+        for k, depth in enumerate(result["depths_mm"]):
+            mags = "       -" if fields[k] is None else \
+                f"{np.linalg.norm(fields[k], axis=1).mean():8.2f}"
+            cols = []
+            for key in keys:
+                err = field_error(result["grids"][key]["field"][li][k], fields[k])
+                cols.append(f"{'-' if err is None else f'{err:.2f}':>24}")
+                if err is not None:
+                    errors[f"field {key}"].append(err)
+            print(f"{lid:>6}  {depth:4g}  {len(ref.get('field_points', [])):6d}  {mags}  "
+                  + "  ".join(cols))
     return errors
 
 

@@ -136,6 +136,45 @@ def test_convergence_reports_a_single_grid(monkeypatch, capsys):
     assert "4.00" in out and "failed" in out
 
 
+def test_convergence_compares_the_fields_near_the_probe(coarse_phantom, monkeypatch, capsys):
+    """Beside the lesions, convergence.py compares the displacement fields at points inside
+    the breast near the probe: drawn the same each time, inside and clear of the skin; the
+    field a grid answers holds its lesion displacement where a point is the lesion; the
+    table is the mean distance to the reference's field, '-' where the reference has none."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+    from biopsynav.anatomy.model import winding_number
+    from biopsynav.evaluate.placement import place_probe
+
+    case, _ = convergence.homogeneous(coarse_phantom, 0.45)
+    placement = place_probe(case.anatomy, 0)
+    centre = placement.pose[:3, 3]
+    points = convergence.field_points(case.anatomy, centre, radius_mm=40.0, n=50)
+    assert len(points) == 50
+    np.testing.assert_array_equal(points, convergence.field_points(case.anatomy, centre,
+                                                                   radius_mm=40.0, n=50))
+    assert (np.linalg.norm(points - centre, axis=1) <= 40.0).all()
+    assert (winding_number(points, case.anatomy.vertices, case.anatomy.faces) > 0.5).all()
+    clearance = np.linalg.norm(points[:, None] - case.anatomy.vertices[None], axis=2).min(1)
+    assert (clearance >= convergence.SKIN_CLEARANCE_MM).all()
+    tracker, _ = convergence.hex_tracker(case, 15.0, "neo-hookean/elastic")
+    lesion = np.asarray(case.anatomy.lesions[0].center)
+    got = convergence.hex_pushes(tracker, placement, 0, [5.0], np.vstack([lesion, points]))
+    assert np.linalg.norm(got["displacement"][0]) > 0.5
+    np.testing.assert_allclose(got["field"][0][0], got["displacement"][0], atol=1e-9)
+    field = np.asarray(got["field"][0][1:])
+    result = {"depths_mm": [5.0], "lesions": [0, 1], "lesion_ids": [1, 2],
+              "grids": {"neo-hookean/elastic 15": {"field": {0: [field.tolist()],
+                                                             1: [field.tolist()]}}},
+              "reference": {0: {"field": [(field + [0.0, 0.3, 0.4]).tolist()],
+                                "field_points": points.tolist()},
+                            1: {"displacement": [[1.0, 0.0, 0.0]]}}}
+    errors = convergence.report_fields(result)
+    np.testing.assert_allclose(errors["field neo-hookean/elastic 15"], [0.5])
+    out = capsys.readouterr().out
+    assert "0.50" in out and "within 50 mm of the probe" in out
+
+
 def one_tetrahedron() -> TetReference:
     """A lone 10 mm P2 tetrahedron (E 5 kPa, nu 0.45) with the reference's quadrature."""
     points = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]])

@@ -239,6 +239,9 @@ def test_tracker_hot_path_with_the_lesion_operator_equals_the_full_prediction(
         moved = np.array([les.displacement for les in full.lesions])
         assert np.abs(moved).max() > 0.1
         assert np.abs(np.array([les.displacement for les in fast.lesions]) - moved).max() < 1e-4
+        grid = tracker.update(pose, with_field=True).grid_displacement  # the whole field too
+        assert full.grid_displacement is None and grid.shape == (case.grid.n_nodes, 3)
+        assert np.abs(tracker._centre_emb.interpolate(grid) - moved).max() < 1e-6
         fast_s = tracker.update(pose, lesion_surfaces=True)  # the lesion meshes too
         full_s = tracker.update(pose, with_surface=True, lesion_surfaces=True)
         for a, b, c in zip(fast_s.lesions, full_s.lesions, fast.lesions, strict=True):

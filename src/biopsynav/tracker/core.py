@@ -372,11 +372,13 @@ class Tracker:
         return moved - self._contact_points
 
     def update(self, pose: np.ndarray, with_surface: bool = False,
-               lesion_surfaces: bool = False) -> TrackingResult:
+               lesion_surfaces: bool = False, with_field: bool = False) -> TrackingResult:
         """Lesion positions for probe ``pose``; the status says whether to trust them.
 
         ``with_surface``: also the moved skin (``result.surface``, from the full grid field);
-        ``lesion_surfaces``: also each lesion's moved mesh vertices (``LesionResult.surface``).
+        ``lesion_surfaces``: also each lesion's moved mesh vertices (``LesionResult.surface``);
+        ``with_field``: also the case grid's displacement (``result.grid_displacement``,
+        (n_nodes, 3) mm).
         """
         start = time.perf_counter()
         self.last_solve = None
@@ -406,7 +408,7 @@ class Tracker:
                                     "mm", start)
         try:
             if self.engine == "net":
-                field, disp = self._net_answer(u_c, as_pose(pose), with_surface,
+                field, disp = self._net_answer(u_c, as_pose(pose), with_surface or with_field,
                                                lesion_surfaces)
             else:
                 field = self._fem_field(u_c, as_pose(pose))
@@ -419,6 +421,8 @@ class Tracker:
         res = TrackingResult(self._lesion_results(disp, st.OK), st.OK, "", 0.0)
         if with_surface:
             res.surface = self.case.anatomy.vertices + self._surface_embedding().interpolate(field)
+        if with_field:
+            res.grid_displacement = field
         res.latency_ms = (time.perf_counter() - start) * 1e3
         return res
 
@@ -486,13 +490,6 @@ class Tracker:
         else:
             out = self._surrogate.predict(self._input)
         return out.reshape(3, -1).T
-
-    def _predict(self, u_c: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """Grid displacement (n_nodes, 3) mm for the rest contact's displacements ``u_c``
-        (n, 3) mm at ``pose``."""
-        if self.engine == "net":
-            return self._net_answer(u_c, as_pose(pose), True, False)[0]
-        return self._fem_field(u_c, as_pose(pose))
 
     def _fem_field(self, u_c: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """The FE engine's grid displacement (n_nodes, 3) mm for contact displacements

@@ -33,13 +33,17 @@ class LesionResult:
 
 @dataclass
 class TrackingResult:
-    """All lesions for one pose; ``status`` is OK only when the numbers can be trusted."""
+    """All lesions for one pose; ``status`` is OK only when the numbers can be trusted.
+    ``surface`` (n_vertices, 3) mm: the moved skin; ``grid_displacement`` (n_nodes, 3) mm:
+    the case grid's displacement; each None unless asked for (:meth:`Tracker.update`) and
+    the pose was solved or predicted (not at rest, not refused)."""
 
     lesions: list[LesionResult]
     status: str = OK
     reason: str = ""
     latency_ms: float = 0.0
     surface: np.ndarray | None = field(default=None, repr=False)
+    grid_displacement: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def reliable(self) -> bool:
