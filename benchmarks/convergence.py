@@ -4,7 +4,8 @@ of immersed hexahedral grids, against an independent P2 tetrahedral reference in
     python benchmarks/convergence.py CASE [--cells 7.3 5 3.65] [--depths 10 20 30]
                                           [--contact points cell_average]
                                           [--laws neo-hookean neo-hookean-sri]
-                                          [--lesions 3] [--tet-size 10] [--tet-fine 2.5]
+                                          [--lesions 3 | --lesion-ids 1,5]
+                                          [--tet-size 10] [--tet-fine 2.5]
                                           [--tet-rim 1.5] [--friction slip]
                                           [--edge-radius 2.5] [--progress]
                                           [--teachers 1.46:2 2:0]
@@ -326,7 +327,7 @@ def observed_order(cells: list[float], values: list) -> float | None:
 def run(args) -> dict:
     case, e_mpa = homogeneous(Case.load(args.case_dir), args.nu)
     check_edge_radius(case, args)
-    lesions = select_lesions(len(case.anatomy.lesions), args.lesions)
+    lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
     print(f"case {args.case_dir}: homogeneous neo-Hookean E = {e_mpa * 1e3:g} kPa, "
           f"nu = {args.nu:g}; lesions {', '.join(str(case.anatomy.lesions[i].id) for i in lesions)}"
@@ -385,6 +386,26 @@ def series_answers(tracker: Tracker, placements: dict, points: dict, depths: lis
     answers = {li: hex_pushes(tracker, pl, li, depths, points[li])
                for li, pl in placements.items()}
     return {key: {li: a[key] for li, a in answers.items()} for key in ("displacement", "field")}
+
+
+def chosen_lesions(case: Case, count: int, ids: str | None = None) -> list[int]:
+    """Indices of the lesions evaluated: those whose ids the comma list ``ids`` names (e.g.
+    '2,3,7', as the case's lesion list spells them), else ``count`` of them spread over the
+    list as Table 2 picks them (0: all). SystemExit with one line for an id the case lacks."""
+    if not ids:
+        return select_lesions(len(case.anatomy.lesions), count)
+    index = {int(lesion.id): i for i, lesion in enumerate(case.anatomy.lesions)}
+    try:
+        wanted = [int(v) for v in ids.split(",")]
+    except ValueError:
+        raise SystemExit(f"error: --lesion-ids {ids!r} is not a comma list of lesion ids "
+                         "(e.g. 2,3,7)") from None
+    unknown = [v for v in wanted if v not in index]
+    if unknown:
+        raise SystemExit(f"error: --lesion-ids: {case.dir} has no lesion with id "
+                         f"{', '.join(map(str, unknown))} (its ids: "
+                         f"{', '.join(map(str, sorted(index)))})")
+    return sorted({index[v] for v in wanted})
 
 
 def variants(args) -> list[str]:
@@ -534,6 +555,8 @@ def main(argv: list[str] | None = None) -> int:
                    choices=["neo-hookean", "neo-hookean-sri"],
                    help="hexahedral integration of the neo-Hookean energy")
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
+    p.add_argument("--lesion-ids", default=None,
+                   help="comma list of the lesion ids evaluated (instead of --lesions)")
     p.add_argument("--teachers", type=teacher_spec, nargs="*", default=["1.46:2"],
                    help="training teachers on the first grid, REFINE:ORDER ([dataset] "
                         "teacher_refine and teacher_extrapolation; none: grids only)")

@@ -55,7 +55,7 @@ from biopsynav.case import Case  # noqa: E402
 from biopsynav.evaluate.p2 import probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material, other_materials  # noqa: E402
-from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
+from biopsynav.evaluate.simulation import evaluation_solver_settings  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
 from biopsynav.info import model_teacher  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
@@ -65,6 +65,7 @@ from biopsynav.tracker.core import fem_engine  # noqa: E402
 from convergence import (  # noqa: E402
     add_reference_arguments,
     check_edge_radius,
+    chosen_lesions,
     reference_line,
     show_progress,
     tet_pushes,
@@ -102,26 +103,6 @@ def load_reference(path: Path, key: dict) -> dict:
               "reference again", flush=True)
         return {}
     return stored.get("lesions", {})
-
-
-def chosen_lesions(case: Case, count: int, ids: str | None = None) -> list[int]:
-    """Indices of the lesions evaluated: those whose ids the comma list ``ids`` names (e.g.
-    '2,3,7', as the case's lesion list spells them), else ``count`` of them spread over the
-    list as Table 2 picks them (0: all). SystemExit with one line for an id the case lacks."""
-    if not ids:
-        return select_lesions(len(case.anatomy.lesions), count)
-    index = {int(lesion.id): i for i, lesion in enumerate(case.anatomy.lesions)}
-    try:
-        wanted = [int(v) for v in ids.split(",")]
-    except ValueError:
-        raise SystemExit(f"error: --lesion-ids {ids!r} is not a comma list of lesion ids "
-                         "(e.g. 2,3,7)") from None
-    unknown = [v for v in wanted if v not in index]
-    if unknown:
-        raise SystemExit(f"error: --lesion-ids: {case.dir} has no lesion with id "
-                         f"{', '.join(map(str, unknown))} (its ids: "
-                         f"{', '.join(map(str, sorted(index)))})")
-    return sorted({index[v] for v in wanted})
 
 
 def method_trackers(case: Case) -> dict[str, Tracker]:
