@@ -17,8 +17,10 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(VENV)/bin/biopsynav demo
 
+# two workers (pytest-xdist), one test file each at a time, the longest files first
+# (tests/conftest.py): CI's machine has 2 cores
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 # `biopsynav serve` against the OpenIGTLink C++ library (tests/interop): installs Debian's
 # libopenigtlink-dev, cmake and g++ when missing.

@@ -140,3 +140,19 @@ def trained(synth_case):
 
     summary = train(synth_case, settings=tiny_settings(), progress=False)
     return synth_case, summary
+
+
+#: test files that run longest, started first so that `make test`'s two workers (pytest-xdist,
+#: one file per worker at a time) finish together rather than one waiting on the demo
+LONGEST_FILES = ("test_demo.py", "dataset/test_calibrate.py", "network/test_train.py",
+                 "tracker/test_tracker.py", "test_refine.py", "test_damage.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Run the files of ``LONGEST_FILES`` first, in that order; the rest keep theirs."""
+    def rank(item) -> int:
+        path = item.nodeid.split("::")[0]
+        return next((i for i, name in enumerate(LONGEST_FILES)
+                     if path == f"tests/{name}"), len(LONGEST_FILES))
+
+    items.sort(key=rank)
