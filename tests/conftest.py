@@ -150,9 +150,5 @@ LONGEST_FILES = ("test_demo.py", "dataset/test_calibrate.py", "network/test_trai
 
 def pytest_collection_modifyitems(config, items):
     """Run the files of ``LONGEST_FILES`` first, in that order; the rest keep theirs."""
-    def rank(item) -> int:
-        path = item.nodeid.split("::")[0]
-        return next((i for i, name in enumerate(LONGEST_FILES)
-                     if path == f"tests/{name}"), len(LONGEST_FILES))
-
-    items.sort(key=rank)
+    rank = {f"tests/{name}": i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
