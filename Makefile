@@ -18,9 +18,11 @@ demo: $(STAMP)
 	$(VENV)/bin/biopsynav demo
 
 # two workers (pytest-xdist), one test file each at a time, the longest files first
-# (tests/conftest.py): CI's machine has 2 cores
+# (tests/conftest.py): CI's machine has 2 cores. A worker that dies ends the run at once
+# (--max-worker-restart 0): pytest-xdist 3.8 replacing it under --dist loadfile can wait forever
+# (pytest-xdist issues 784, 1323)
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --max-worker-restart 0
 
 # `biopsynav serve` against the OpenIGTLink C++ library (tests/interop): installs Debian's
 # libopenigtlink-dev, cmake and g++ when missing.

@@ -458,11 +458,11 @@ def test_run_service_stops_on_event_and_on_sigint(tracker):
     assert not thread.is_alive() and holder["stats"].poses_handled == 1
     raw.close()
 
-    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
-    timer.start()
+    # the SIGINT is sent once the service says it listens, its handlers installed: a timer
+    # could fire before then (the skin model's decimation) and interrupt pytest itself
     before = signal.getsignal(signal.SIGINT)
-    stats = run_service(tracker, None, (HOST, 0))  # main thread: SIGINT stops it
-    timer.join()
+    stats = run_service(tracker, None, (HOST, 0),  # main thread: SIGINT stops it
+                        on_started=lambda server: os.kill(os.getpid(), signal.SIGINT))
     assert stats.poses_handled == 0 and signal.getsignal(signal.SIGINT) is before
 
 
