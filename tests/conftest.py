@@ -152,3 +152,13 @@ def pytest_collection_modifyitems(config, items):
     """Run the files of ``LONGEST_FILES`` first, in that order; the rest keep theirs."""
     rank = {f"tests/{name}": i for i, name in enumerate(LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
+
+
+def pytest_sessionstart(session) -> None:
+    """Compile the FE kernels once, in the process that starts pytest-xdist's workers (or in a
+    plain run) and before it starts them: the workers and the processes their tests start
+    then load numba's cache, rather than several compiling the same kernels on two cores."""
+    if not hasattr(session.config, "workerinput"):
+        from biopsynav.fem import compile_kernels
+
+        compile_kernels()

@@ -9,6 +9,7 @@ from .model import FEModel, lame_constants
 from .solver import (
     SolveReport,
     SolverSettings,
+    compile_kernels,
     internal_forces,
     largest_edge_stretch,
     smallest_det_f,
@@ -16,5 +17,6 @@ from .solver import (
     tangent_matrix,
 )
 
-__all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "internal_forces", "lame_constants",
-           "largest_edge_stretch", "smallest_det_f", "solve", "tangent_matrix"]
+__all__ = ["FEModel", "Loads", "SolveReport", "SolverSettings", "compile_kernels",
+           "internal_forces", "lame_constants", "largest_edge_stretch", "smallest_det_f", "solve",
+           "tangent_matrix"]

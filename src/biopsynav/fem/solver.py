@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import SolverError
+from ..grid.index import HEX_CORNERS
 from . import kernels
 from .linsolve import FactorizationError, LinearSolver, make_solver
 from .loads import Loads, PreparedLoads, prepare_loads
@@ -606,3 +607,15 @@ def tangent_matrix(model: FEModel, u: np.ndarray):
     system = _System(model, prepare_loads(model, Loads()), 0.0)
     _, data, _, _ = system.evaluate(model.to_free(u), 0.0, tangent=True)
     return full_matrix(model.indptr, model.indices, data)
+
+
+def compile_kernels() -> None:
+    """Compile the numba kernels, or load them from numba's on-disk cache, by one solve on a
+    one-cell model (a 1 mm cube on a fixed base, pressed by 0.1 mN). A process that starts
+    several others at once (a test run on several workers) calls it first: they then load the
+    kernels instead of each compiling its own at the same time."""
+    nodes = HEX_CORNERS.astype(np.float64)
+    forces = np.zeros((8, 3))
+    forces[nodes[:, 2] == 1.0, 2] = -1e-4 / 4
+    model = FEModel(nodes, np.arange(8)[None, :], 1.0, 0.005, 0.45, nodes[:, 2] == 0.0)
+    solve(model, Loads(forces=forces))
