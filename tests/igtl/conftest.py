@@ -81,6 +81,11 @@ class RawClient:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
         self.sock.settimeout(WAIT_S)
         self.sock.connect((HOST, port))
+        if self.sock.getsockname() == self.sock.getpeername():
+            # TCP simultaneous open: a retried connect to a loopback port nobody listens on
+            # yet can be given that port as its own source port and connect to itself
+            self.sock.close()
+            raise ConnectionRefusedError(f"connected to itself on port {port}")
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
     def send(self, data: bytes) -> None:

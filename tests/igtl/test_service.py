@@ -15,7 +15,7 @@ import pytest
 
 from biopsynav.errors import InputError
 from biopsynav.igtl.protocol import HEADER_SIZE, encode_string, encode_transform
-from biopsynav.igtl.server import IgtlServer
+from biopsynav.igtl.server import IgtlServer, connected_to_itself
 from biopsynav.igtl.service import run_service
 from biopsynav.tracker.result import INVALID_POSE, OK, REST, TrackingResult
 from tests.igtl.rigid import RigidLesionTracker
@@ -542,3 +542,20 @@ def test_ipv6_listen_address(tracker):
         assert host == "::1" and port > 0
     finally:
         server._close_all()
+
+
+def test_a_connection_to_itself_is_told_from_a_tracker_server():
+    """A connect to a loopback port nobody listens on can reach itself (TCP simultaneous open
+    when the kernel picks that port as the source): made here on purpose by binding first."""
+    with socket.socket() as own:
+        own.bind((HOST, 0))
+        own.connect(own.getsockname())
+        assert connected_to_itself(own)
+    plus = FakePlus()
+    try:
+        with socket.create_connection((HOST, plus.port)) as sock:
+            assert not connected_to_itself(sock)
+    finally:
+        plus.close()
+    with socket.socket() as unconnected:
+        assert not connected_to_itself(unconnected)

@@ -76,6 +76,16 @@ def _nodelay(sock: socket.socket) -> None:
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
+def connected_to_itself(sock: socket.socket) -> bool:
+    """True when ``sock`` reached itself: a connect to a local port that nobody listens on can
+    be given that very port as its source port (TCP simultaneous open). Such a connection is
+    no tracker server; it is treated as refused."""
+    try:
+        return sock.getsockname() == sock.getpeername()
+    except OSError:  # not connected
+        return False
+
+
 class IgtlServer:
     """The service's transport. No side effects until :meth:`start`; :meth:`run` loops until
     :meth:`stop`. One use: once :meth:`run` has returned, make a new server to serve again.
@@ -305,6 +315,8 @@ class IgtlServer:
         sock.setblocking(False)
         _nodelay(sock)
         err = sock.connect_ex(sockaddr)
+        if err == 0 and connected_to_itself(sock):
+            err = errno.ECONNREFUSED
         conn = _Conn(sock, name, True, MessageReader(self.settings.max_body_bytes),
                      self.session.add_peer(name, is_tracker=True))
         self._tracker_conn = conn
@@ -322,6 +334,8 @@ class IgtlServer:
 
     def _finish_connect(self, conn: _Conn) -> None:
         err = conn.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+        if not err and connected_to_itself(conn.sock):
+            err = errno.ECONNREFUSED
         if err:
             self._close(conn, "", logging.DEBUG)
             self._tracker_unavailable(errno.errorcode.get(err, str(err)))
