@@ -310,25 +310,31 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
         law = ISOCHORIC if decoupled else (NEO_HOOKEAN if split or inner else material)
         lam_g = 0.0 if split else lam[e]
         lam_c = lam[e] + 2.0 / 3.0 * mu[e] if decoupled else lam[e]
-        for g in range(8):
-            w = jw[gset, g] * scale[e]
-            en, det_f = _add_point(ue, grads[gset, g], w, mu[e], lam_g, law, want_tangent,
+        # the 8 Gauss points, then (split laws) the volumetric point; one call site of the
+        # inlined point kernel keeps numba's compile time to half of two
+        for g in range(9):
+            if g < 8:
+                dn = grads[gset, g]
+                w = jw[gset, g] * scale[e]
+                mu_p, lam_p, law_p = mu[e], lam_g, law
+            elif split:
+                for a in range(8):
+                    for i in range(3):
+                        dn_c[a, i] /= w_c
+                dn = dn_c
+                w = w_c
+                mu_p, lam_p, law_p = 0.0, lam_c, NEO_HOOKEAN
+            else:
+                break
+            en, det_f = _add_point(ue, dn, w, mu_p, lam_p, law_p, want_tangent,
                                    f_el, k_el, f, s, d, b, db, gsn, sv, pairs)
             w_el += en
             dmin = min(dmin, det_f)
-            if split:
+            if split and g < 8:
                 w_c += w
                 for a in range(8):
                     for i in range(3):
                         dn_c[a, i] += w * grads[gset, g, a, i]
-        if split:
-            for a in range(8):
-                for i in range(3):
-                    dn_c[a, i] /= w_c
-            en, det_f = _add_point(ue, dn_c, w_c, 0.0, lam_c, NEO_HOOKEAN, want_tangent,
-                                   f_el, k_el, f, s, d, b, db, gsn, sv, pairs)
-            w_el += en
-            dmin = min(dmin, det_f)
         for i in range(24):
             fe[e, i] = f_el[i]
         if want_tangent:
