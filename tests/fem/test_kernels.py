@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 
 from biopsynav.fem import FEModel, internal_forces, tangent_matrix
@@ -115,3 +118,35 @@ def test_inner_law_is_split_sri_in_whole_cells_and_neo_hookean_in_cut_cells():
     assert np.array_equal(inner_whole, forces("neo-hookean-split-sri", 1.0))
     assert np.array_equal(inner_cut, forces("neo-hookean", 0.5))
     assert not np.allclose(inner_whole, forces("neo-hookean", 1.0))
+
+
+COMPILE_THEN_SOLVE = """
+import sys
+import numpy as np
+from biopsynav.case import as_case
+from biopsynav.fem import FEModel, Loads, compile_kernels, kernels, solve
+
+compile_kernels()
+jitted = (kernels.element_kernel, kernels.scatter_matrix, kernels.scatter_vector)
+compiled = [list(f.signatures) for f in jitted]
+assert all(len(s) == 1 for s in compiled), compiled
+model = FEModel.from_case(as_case(sys.argv[1]))
+used = np.unique(model.hexes)
+top = used[model.nodes[used, 2] >= model.nodes[used, 2].max() - 1e-9]
+forces = np.zeros((model.n_nodes, 3))
+forces[top, 2] = -0.05 / len(top)  # N, down on the highest nodes of the breast
+u, _ = solve(model, Loads(forces=forces))
+assert np.abs(u).max() > 0
+added = [sorted(set(map(str, f.signatures)) - set(map(str, s))) for f, s in zip(jitted, compiled)]
+assert not any(added), f"specialisations that compile_kernels did not compile: {added}"
+"""
+
+
+def test_compile_kernels_compiles_what_a_case_model_runs(phantom_case):
+    """`compile_kernels` (run before the test workers start, so that they load numba's cache)
+    must compile the argument types that a case's model solves with: otherwise each process
+    would still compile its own specialisation. In a new process, where nothing else has
+    called the kernels first."""
+    proc = subprocess.run([sys.executable, "-c", COMPILE_THEN_SOLVE, str(phantom_case.dir)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
