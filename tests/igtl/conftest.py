@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import socket
 import threading
 import time
@@ -36,10 +37,31 @@ def translation(x: float, y: float, z: float) -> np.ndarray:
     return T
 
 
+def _ephemeral_low() -> int:
+    """Lowest port of the kernel's ephemeral range (where bind(0) and connect() draw theirs)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range", encoding="ascii") as fh:
+            return int(fh.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return s.getsockname()[1]
+    """A loopback port free now, for a server a test starts later, drawn below the ephemeral
+    range: no other process's bind(0) or outgoing connection can take it in between, and a
+    client retrying a connection to it cannot be given it as its own source port."""
+    rng = random.Random()
+    high = min(_ephemeral_low(), 32768)
+    low = 20000 if high > 21000 else 1024
+    for _ in range(200):
+        port = rng.randrange(low, high)
+        with socket.socket() as s:
+            try:
+                s.bind((HOST, port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free loopback port found below the ephemeral range")
 
 
 class FakePlus:

@@ -27,18 +27,13 @@ import pytest
 
 from biopsynav.igtl.messages import TriangleMesh
 from biopsynav.igtl.protocol import pack, points_message
+from tests.igtl.conftest import free_port
 
 pytestmark = pytest.mark.interop
 
 CPP = Path(__file__).parent / "cpp"
 HOST = "127.0.0.1"
 STREAM_S, INVALID_AT, RECONNECT_AT = 30.0, 18.0, 23.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="session")
@@ -68,7 +63,7 @@ def _wait_for_line(path: Path, text: str, timeout: float, proc: subprocess.Popen
 
 
 def test_serve_streams_every_message_type_to_the_cpp_library(trained_case, cpp_bin, tmp_path):
-    plus_port, listen_port = _free_port(), _free_port()
+    plus_port, listen_port = free_port(), free_port()
     plus = subprocess.Popen([str(cpp_bin / "plus_server"), str(plus_port), str(STREAM_S + 6),
                              str(INVALID_AT), str(RECONNECT_AT)], stdout=subprocess.PIPE,
                             text=True)
