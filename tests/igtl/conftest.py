@@ -14,7 +14,7 @@ import pytest
 
 from biopsynav.config import IgtlSection
 from biopsynav.igtl.protocol import Message, encode_transform, read_message
-from biopsynav.igtl.server import IgtlServer
+from biopsynav.igtl.server import IgtlServer, connected_to_itself
 from tests.igtl.rigid import RigidLesionTracker
 
 HOST = "127.0.0.1"
@@ -103,9 +103,7 @@ class RawClient:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
         self.sock.settimeout(WAIT_S)
         self.sock.connect((HOST, port))
-        if self.sock.getsockname() == self.sock.getpeername():
-            # TCP simultaneous open: a retried connect to a loopback port nobody listens on
-            # yet can be given that port as its own source port and connect to itself
+        if connected_to_itself(self.sock):  # nobody listens on the port yet
             self.sock.close()
             raise ConnectionRefusedError(f"connected to itself on port {port}")
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

@@ -310,8 +310,8 @@ def element_kernel(u, hexes, elem_set, grads, jw, scale, mu, lam, material, want
         law = ISOCHORIC if decoupled else (NEO_HOOKEAN if split or inner else material)
         lam_g = 0.0 if split else lam[e]
         lam_c = lam[e] + 2.0 / 3.0 * mu[e] if decoupled else lam[e]
-        # the 8 Gauss points, then (split laws) the volumetric point; one call site of the
-        # inlined point kernel keeps numba's compile time to half of two
+        # the 8 Gauss points, then (split laws) the volumetric point: a single call site, so
+        # numba inlines (and compiles) the point kernel once rather than twice
         for g in range(9):
             if g < 8:
                 dn = grads[gset, g]
