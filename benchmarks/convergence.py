@@ -8,6 +8,7 @@ of immersed hexahedral grids, against an independent P2 tetrahedral reference in
                                           [--tet-size 10] [--tet-fine 2.5]
                                           [--tet-rim 1.5] [--friction slip]
                                           [--edge-radius 2.5] [--progress]
+                                          [--no-probe-body]
                                           [--teachers 1.46:2 2:0]
                                           [--nu 0.45] [--out convergence.json]
                                           [--reuse-reference earlier.json]
@@ -32,7 +33,11 @@ slides on it, none passes through it; the hexahedral FE adds that contact when t
   loop; its face holds the skin it touches at rest (``--friction stick``) or lets every
   contact slide (``slip``); the probe is a flat face with sharp edges, or with
   ``--edge-radius`` a body whose face's edges are rounded by that radius and whose sides no
-  skin passes (``--progress`` logs its load steps and contact rounds).
+  skin passes (``--progress`` logs its load steps and contact rounds). ``--no-probe-body``
+  leaves the body out: only the skin touched at rest is held and the rest of the skin may
+  pass through the face, the contact model of the hexahedral FE without ``[tracker]
+  contact_follows_pose``; run beside the full reference, it tells how much of a grid's
+  error is its contact model rather than its discretisation.
 
 Beside the grids, each ``--teachers REFINE:ORDER`` is a training teacher on the first grid
 (``[dataset] teacher_refine`` and ``teacher_extrapolation``, answered by the FE engine as
@@ -174,11 +179,12 @@ def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float],
 
 
 def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
-               depths: list[float], args, points: np.ndarray | None = None
-               ) -> tuple[list, dict]:
+               depths: list[float], args, points: np.ndarray | None = None,
+               probe_body: bool = True) -> tuple[list, dict]:
     """The P2 reference's lesion displacements for each depth, and its mesh facts; with
     ``points`` (k, 3) mm the facts hold them (``field_points``) and the displacement there
-    per depth (``field``, None past a failure)."""
+    per depth (``field``, None past a failure). Without ``probe_body`` only the skin touched
+    at rest is held (other skin may pass through the face)."""
     from biopsynav.evaluate.p2 import TetReference, rim_at
 
     t0 = time.perf_counter()
@@ -195,7 +201,8 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
         try:
             (u,) = ref.push(rest, [placement.pushed(depth)], contact, at,
-                            start=ref.last if disp else None, footprint=probe.footprint,
+                            start=ref.last if disp else None,
+                            footprint=probe.footprint if probe_body else None,
                             edge_radius_mm=args.edge_radius)
         except (FloatingPointError, RuntimeError) as exc:
             failure = f"{depth:g} mm: {exc}"
@@ -332,6 +339,9 @@ def run(args) -> dict:
     print(f"case {args.case_dir}: homogeneous neo-Hookean E = {e_mpa * 1e3:g} kPa, "
           f"nu = {args.nu:g}; lesions {', '.join(str(case.anatomy.lesions[i].id) for i in lesions)}"
           f"; pushes {', '.join(f'{d:g}' for d in args.depths)} mm", flush=True)
+    if args.no_probe_body:
+        print("P2 reference without the probe body: only the skin touched at rest is held, "
+              "other skin may pass through the face", flush=True)
     earlier = reused_reference(args, e_mpa)
     points = {li: np.asarray(earlier[str(li)]["field_points"])
               if "field_points" in earlier.get(str(li), {})
@@ -364,7 +374,7 @@ def run(args) -> dict:
                   f"{args.reuse_reference}", flush=True)
             continue
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args,
-                                 points[li])
+                                 points[li], probe_body=not args.no_probe_body)
         reference[li] = {"displacement": disp, **facts}
         save(args.out, {"grids": grids, "reference": reference})
         print(reference_line(case, li, facts, args.depths), flush=True)
@@ -376,7 +386,7 @@ def run(args) -> dict:
             "grids": grids, "reference": reference,
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine,
             "tet_rim_mm": args.tet_rim, "friction": args.friction,
-            "edge_radius_mm": args.edge_radius}
+            "edge_radius_mm": args.edge_radius, "probe_body": not args.no_probe_body}
 
 
 def series_answers(tracker: Tracker, placements: dict, points: dict, depths: list[float]
@@ -424,7 +434,8 @@ def reused_reference(args, e_mpa: float) -> dict:
             and earlier.get("tet_fine_mm") == args.tet_fine
             and earlier.get("tet_rim_mm", 0.0) == args.tet_rim
             and earlier.get("friction", "stick") == args.friction
-            and earlier.get("edge_radius_mm", 0.0) == args.edge_radius)
+            and earlier.get("edge_radius_mm", 0.0) == args.edge_radius
+            and earlier.get("probe_body", True) == (not args.no_probe_body))
     if not same:
         raise SystemExit(f"{args.reuse_reference}: another depth list, material or reference "
                          "mesh; run the reference again")
@@ -561,12 +572,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="training teachers on the first grid, REFINE:ORDER ([dataset] "
                         "teacher_refine and teacher_extrapolation; none: grids only)")
     add_reference_arguments(p, fine_mm=2.5)
+    p.add_argument("--no-probe-body", action="store_true",
+                   help="the reference holds the skin touched at rest only: other skin may "
+                        "pass through the probe face (the hexahedral FE's contact without "
+                        "[tracker] contact_follows_pose)")
     p.add_argument("--nu", type=float, default=0.45)
     p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
     p.add_argument("--reuse-reference", type=Path, default=None,
                    help="take the P2 figures of an earlier run's --out JSON (same case, depths, "
                         "material and reference mesh) instead of running the reference again")
     args = p.parse_args(argv)
+    if args.no_probe_body and args.edge_radius:
+        p.error("--edge-radius shapes the probe body that --no-probe-body leaves out")
     show_progress(args)
     start = time.perf_counter()
     result = run(args)

@@ -50,6 +50,16 @@ class Footprint:
                              "cannot have rounded edges")
         return make_footprint(self.name, tuple(size - 2.0 * radius_mm))
 
+    def inside_by(self, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:
+        """Which points ``xy`` (m, 2) mm lie inside the shape by at least ``margin`` (m,)
+        mm along both face axes (the point moved by its margin either way stays inside)."""
+        xy = np.asarray(xy, dtype=np.float64)
+        inside = self.inside(xy)
+        for axis in np.eye(2):
+            shift = np.asarray(margin, dtype=np.float64)[:, None] * axis
+            inside &= self.inside(xy + shift) & self.inside(xy - shift)
+        return inside
+
     def covers(self, local: np.ndarray, depth_tol: float) -> np.ndarray:
         """Which points ``local`` (n, 3) mm in the probe frame (z along the beam) lie under
         the face: inside the shape and within ``depth_tol`` of the face plane."""

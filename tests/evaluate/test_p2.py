@@ -3,6 +3,7 @@ derivative of its forces, rigid motions cost nothing, and it interpolates P2 fie
 
 from __future__ import annotations
 
+import json
 import signal
 from pathlib import Path
 from types import SimpleNamespace
@@ -338,13 +339,12 @@ def test_a_slipping_face_holds_no_skin_at_rest_and_lets_it_slide(cube):
 def test_skin_beside_the_face_is_not_put_on_it():
     """Skin behind the face plane is put on the face only where it is nearer the face than
     the footprint's edge: further behind, it came in beside the probe."""
-    from biopsynav.evaluate.p2_contact import _inside_by
     from biopsynav.footprint import make_footprint
 
     face = make_footprint("rectangle", (50.0, 10.0))
     xy = np.array([[0.0, 0.0], [0.0, 3.0], [0.0, 3.0], [24.0, 0.0], [0.0, 6.0]])
     depth = np.array([4.0, 1.5, 2.5, 0.5, 0.1])
-    assert _inside_by(face, xy, depth).tolist() == [True, True, False, True, False]
+    assert face.inside_by(xy, depth).tolist() == [True, True, False, True, False]
 
 
 def test_a_singular_tangent_fails_the_step_not_the_run():
@@ -443,6 +443,48 @@ def test_the_benchmarks_refuse_an_edge_radius_the_face_cannot_have(coarse_phanto
         truth.main([str(coarse_phantom.dir), "--edge-radius", "-1"])
     assert stop.value.code == 2 and "--edge-radius" in capsys.readouterr().err
     assert not (tmp_path / "ref.json").exists()
+
+
+def test_convergence_keeps_a_reference_without_the_probe_body_apart(tmp_path, capsys,
+                                                                     monkeypatch):
+    """``convergence.py --no-probe-body`` (the P2 reference holding only the skin touched at
+    rest): refused with ``--edge-radius``, which shapes the body it leaves out, before any
+    case is read; and a stored reference of the other probe model is not reused for it, nor
+    one without the body for the full reference."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+
+    with pytest.raises(SystemExit) as stop:
+        convergence.main([str(tmp_path / "missing"), "--no-probe-body", "--edge-radius", "2"])
+    assert stop.value.code == 2 and "--no-probe-body" in capsys.readouterr().err
+    stored = tmp_path / "earlier.json"
+    run = {"depths_mm": [10.0], "nu": 0.45, "E_mpa": 0.005, "tet_size_mm": 10.0,
+           "tet_fine_mm": 4.0, "reference": {"0": {"displacement": [[1.0, 0.0, 0.0]]}}}
+    for body_stored, body_asked in ((True, False), (False, True)):
+        stored.write_text(json.dumps({**run, "probe_body": body_stored}))
+        args = convergence_args(convergence, monkeypatch, stored, "--depths", "10",
+                                "--tet-fine", "4", *([] if body_asked else ["--no-probe-body"]))
+        with pytest.raises(SystemExit, match="run the reference again"):
+            convergence.reused_reference(args, 0.005)
+    stored.write_text(json.dumps({**run, "probe_body": False}))
+    args = convergence_args(convergence, monkeypatch, stored, "--depths", "10",
+                            "--tet-fine", "4", "--no-probe-body")
+    assert convergence.reused_reference(args, 0.005) == run["reference"]
+
+
+def convergence_args(convergence, monkeypatch, reuse: Path, *argv: str):
+    """``convergence.py``'s parsed arguments for ``argv`` reusing the reference ``reuse``,
+    without running it (its parser, taken from ``main`` by stopping at the run)."""
+    seen = {}
+
+    def stop(args):
+        seen["args"] = args
+        raise LookupError("stopped before the run")
+
+    monkeypatch.setattr(convergence, "run", stop)
+    with pytest.raises(LookupError):
+        convergence.main(["case", "--reuse-reference", str(reuse), *argv])
+    return seen["args"]
 
 
 def test_a_surface_gmsh_cannot_remesh_is_filled_inside_its_own_triangles(ucdavis_dir, caplog):

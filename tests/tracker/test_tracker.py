@@ -242,6 +242,26 @@ def test_fe_engine_holds_skin_that_the_face_reaches(phantom_case):
     assert np.abs(moved - rest_only).max() > 0.5
 
 
+def test_fe_engine_lets_go_of_skin_its_springs_pull(fem_tracker):
+    """Elastic contact holds reached skin by springs, which can pull: skin that a solve puts
+    in front of the face plane (the tissue side) is let go, skin behind it stays held; with
+    the points met nothing is let go (they lie on the plane)."""
+    fem_tracker.set_rest_pose(TOP)
+    skin = fem_tracker.case.anatomy.vertices
+    near = np.flatnonzero(np.abs(skin[:, 2] - (75.0 - 8.0)) < 2.0)[:20]
+    assert len(near) > 0
+    u = np.zeros((fem_tracker._fem_model.n_nodes, 3))
+    assert fem_tracker.case.cfg.tracker.fem_contact == "elastic"
+    np.testing.assert_array_equal(fem_tracker._skin_pulled(u, pushed(4.0), near), near)
+    assert len(fem_tracker._skin_pulled(u, pushed(12.0), near)) == 0
+    assert len(fem_tracker._skin_pulled(u, pushed(4.0), near[:0])) == 0
+    fem_tracker.case.cfg.tracker.fem_contact = "points"
+    try:
+        assert len(fem_tracker._skin_pulled(u, pushed(4.0), near)) == 0
+    finally:
+        fem_tracker.case.cfg.tracker.fem_contact = "elastic"
+
+
 def test_the_fe_engine_solves_on_a_refined_teacher_grid(coarse_case):
     """With [dataset] teacher_refine = 2 the FE engine solves on the teacher's grid (about 8x
     the cells) and answers on the case grid: the central lesion moves the same way, by a

@@ -47,7 +47,7 @@ class FlatFace:
         (further behind it than from the edge, the skin came in beside the probe, where its
         side, not its face, would stop it)."""
         depth = -local[:, 2]
-        return (depth > PENETRATION_TOL_MM) & _inside_by(self.footprint, local[:, :2], depth)
+        return (depth > PENETRATION_TOL_MM) & self.footprint.inside_by(local[:, :2], depth)
 
     def slid_off(self, local: np.ndarray) -> np.ndarray:
         """Which held points ``local`` (m, 3) mm slid off the face (out of the footprint)."""
@@ -177,12 +177,3 @@ def in_plane_directions(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     return t1, np.cross(normals, t1)
 
-
-def _inside_by(footprint: Any, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:
-    """Whether points ``xy`` (m, 2) mm lie inside ``footprint`` by at least ``margin`` (m,)
-    mm along both face axes (the point moved by the margin either way stays inside)."""
-    inside = footprint.inside(xy)
-    for axis in np.eye(2):
-        shift = margin[:, None] * axis
-        inside &= footprint.inside(xy + shift) & footprint.inside(xy - shift)
-    return inside

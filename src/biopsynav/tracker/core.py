@@ -47,7 +47,8 @@ from .result import LesionResult, TrackingResult
 LIFT_OFF_MM = 0.5  # contact points moved this far out of the tissue: the probe left the skin
 AT_REST_MM = 1e-6  # no contact point moved further: the rest pose (up to rounding), no solve
 PENETRATION_TOL_MM = 0.1  # FE engine: skin further behind the probe face is held on it
-CONTACT_ROUNDS = 4  # FE engine: most solves of the active set (skin the face reaches)
+CONTACT_ROUNDS = 4  # network engine: most predictions of the grown contact set
+FE_CONTACT_ROUNDS = 8  # FE engine: most solves of the active set (skin the face reaches)
 
 
 def as_pose(matrix: np.ndarray) -> np.ndarray:
@@ -497,21 +498,24 @@ class Tracker:
         move with the probe (``[tracker] fem_contact`` constraints); with ``[tracker]
         contact_follows_pose`` skin that the face reaches is added as frictionless contact
         (an active set: solve, find skin behind the face plane under the footprint, hold it
-        on the plane along the beam, free to slide, and solve again; at most
-        ``CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin vertices added. With a
-        refined teacher the solve runs on its grid and the answer is fitted to the case
-        grid; when that teacher extrapolates (``[dataset] teacher_extrapolation``), the case
-        grid solves the same contact too and the answer is extrapolated from both, as the
-        teacher's data are (cells it would stretch beyond ``[dataset] max_edge_stretch``
-        keep the fitted field)."""
-        touched = np.zeros(0, dtype=np.int64)
+        on the plane along the beam, free to slide, let go held skin that elastic contact's
+        springs pull (a vertex at most once: one that passes the face again stays held), and
+        solve again; at most ``FE_CONTACT_ROUNDS`` solves). ``self.last_touched``: the skin
+        vertices added. With a refined teacher the solve runs on its grid and the answer is
+        fitted to the case grid; when that teacher extrapolates (``[dataset]
+        teacher_extrapolation``), the case grid solves the same contact too and the answer is
+        extrapolated from both, as the teacher's data are (cells it would stretch beyond
+        ``[dataset] max_edge_stretch`` keep the fitted field)."""
+        touched = released = np.zeros(0, dtype=np.int64)
         u = self._fem_solve(u_c, pose, touched)
         if self.case.cfg.tracker.contact_follows_pose:
-            for _ in range(CONTACT_ROUNDS - 1):
+            for _ in range(FE_CONTACT_ROUNDS - 1):
                 new = self._skin_behind_face(u, pose, touched)
-                if not len(new):
+                pulled = np.setdiff1d(self._skin_pulled(u, pose, touched), released)
+                if not len(new) and not len(pulled):
                     break
-                touched = np.concatenate([touched, new])
+                touched = np.union1d(np.setdiff1d(touched, pulled), new)
+                released = np.union1d(released, pulled)
                 u = self._fem_solve(u_c, pose, touched)
         self.last_touched = touched
         if self._teacher is None:
@@ -575,6 +579,20 @@ class Tracker:
         # small weight on the other nodes, invert the cell)
         behind &= ~pinned_by_contact(skin.nodes, self._fem_contact_embedding().nodes, len(u))
         return np.flatnonzero(behind)
+
+    def _skin_pulled(self, u: np.ndarray, pose: np.ndarray, touched: np.ndarray
+                     ) -> np.ndarray:
+        """The ``touched`` skin vertices that the displacement ``u`` (n_fem_nodes, 3) mm of
+        the FE engine's grid puts in front of the face plane at ``pose``: with elastic
+        contact their springs pull them towards the probe, which a face cannot do. Empty when
+        the contact points are met (they lie on the plane)."""
+        from ..contact.constraints import is_elastic
+
+        if not len(touched) or not is_elastic(self.case.cfg.tracker.fem_contact):
+            return touched[:0]
+        moved = self.case.anatomy.vertices[touched] + \
+            self._fem_surface_embedding().subset(touched).interpolate(u)
+        return touched[(moved - pose[:3, 3]) @ pose[:3, 2] > 0.0]
 
     def _fem_contact_embedding(self) -> Embedding:
         """The rest contact points in the FE engine's grid (the teacher's, or the case's)."""
