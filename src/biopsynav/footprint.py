@@ -54,9 +54,10 @@ class Footprint:
         """Which points ``xy`` (m, 2) mm lie inside the shape by at least ``margin`` (m,)
         mm along both face axes (the point moved by its margin either way stays inside)."""
         xy = np.asarray(xy, dtype=np.float64)
+        margin = np.asarray(margin, dtype=np.float64)[:, None]
         inside = self.inside(xy)
         for axis in np.eye(2):
-            shift = np.asarray(margin, dtype=np.float64)[:, None] * axis
+            shift = margin * axis
             inside &= self.inside(xy + shift) & self.inside(xy - shift)
         return inside
 

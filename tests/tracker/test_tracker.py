@@ -250,14 +250,15 @@ def test_fe_engine_lets_go_of_skin_its_springs_pull(fem_tracker):
     skin = fem_tracker.case.anatomy.vertices
     near = np.flatnonzero(np.abs(skin[:, 2] - (75.0 - 8.0)) < 2.0)[:20]
     assert len(near) > 0
-    u = np.zeros((fem_tracker._fem_model.n_nodes, 3))
+    moved = fem_tracker._moved_skin(np.zeros((fem_tracker._fem_model.n_nodes, 3)))
+    np.testing.assert_array_equal(moved, skin)
     assert fem_tracker.case.cfg.tracker.fem_contact == "elastic"
-    np.testing.assert_array_equal(fem_tracker._skin_pulled(u, pushed(4.0), near), near)
-    assert len(fem_tracker._skin_pulled(u, pushed(12.0), near)) == 0
-    assert len(fem_tracker._skin_pulled(u, pushed(4.0), near[:0])) == 0
+    np.testing.assert_array_equal(fem_tracker._skin_pulled(moved, pushed(4.0), near), near)
+    assert len(fem_tracker._skin_pulled(moved, pushed(12.0), near)) == 0
+    assert len(fem_tracker._skin_pulled(moved, pushed(4.0), near[:0])) == 0
     fem_tracker.case.cfg.tracker.fem_contact = "points"
     try:
-        assert len(fem_tracker._skin_pulled(u, pushed(4.0), near)) == 0
+        assert len(fem_tracker._skin_pulled(moved, pushed(4.0), near)) == 0
     finally:
         fem_tracker.case.cfg.tracker.fem_contact = "elastic"
 

@@ -510,8 +510,9 @@ class Tracker:
         u = self._fem_solve(u_c, pose, touched)
         if self.case.cfg.tracker.contact_follows_pose:
             for _ in range(FE_CONTACT_ROUNDS - 1):
-                new = self._skin_behind_face(u, pose, touched)
-                pulled = np.setdiff1d(self._skin_pulled(u, pose, touched), released)
+                moved = self._moved_skin(u)
+                new = self._skin_behind_face(moved, pose, touched)
+                pulled = np.setdiff1d(self._skin_pulled(moved, pose, touched), released)
                 if not len(new) and not len(pulled):
                     break
                 touched = np.union1d(np.setdiff1d(touched, pulled), new)
@@ -561,38 +562,42 @@ class Tracker:
             self.last_solve = report
         return u
 
-    def _skin_behind_face(self, u: np.ndarray, pose: np.ndarray, touched: np.ndarray
+    def _moved_skin(self, u: np.ndarray) -> np.ndarray:
+        """Every skin vertex (n_vertices, 3) mm moved by the displacement ``u``
+        (n_fem_nodes, 3) mm of the FE engine's grid."""
+        return self.case.anatomy.vertices + self._fem_surface_embedding().interpolate(u)
+
+    def _skin_behind_face(self, moved: np.ndarray, pose: np.ndarray, touched: np.ndarray
                           ) -> np.ndarray:
         """Skin vertices not yet held (off the chest wall, facing the probe, not in a cell of
-        the rest contact set) that the displacement ``u`` (n_fem_nodes, 3) mm of the FE
-        engine's grid puts under the footprint and more than ``PENETRATION_TOL_MM`` behind the
-        face plane at ``pose``."""
+        the rest contact set) that lie, moved to ``moved`` (n_vertices, 3) mm by the FE
+        engine (:meth:`_moved_skin`), under the footprint and more than
+        ``PENETRATION_TOL_MM`` behind the face plane at ``pose``."""
         a = self.case.anatomy
         skin = self._fem_surface_embedding()
-        behind, _ = behind_face(a.vertices + skin.interpolate(u), pose,
-                                as_footprint(self.case.cfg.probe.footprint), PENETRATION_TOL_MM)
+        behind, _ = behind_face(moved, pose, as_footprint(self.case.cfg.probe.footprint),
+                                PENETRATION_TOL_MM)
         behind &= (a.normals @ pose[:3, 2] < 0.0) & a.pushable
         behind[self._contact] = False
         behind[touched] = False
         # nodes of the cells holding rest contact points move with the probe already: a
         # constraint on a point of a cell sharing them could only contradict them (and, with a
         # small weight on the other nodes, invert the cell)
-        behind &= ~pinned_by_contact(skin.nodes, self._fem_contact_embedding().nodes, len(u))
+        behind &= ~pinned_by_contact(skin.nodes, self._fem_contact_embedding().nodes,
+                                     self._fem_model.n_nodes)
         return np.flatnonzero(behind)
 
-    def _skin_pulled(self, u: np.ndarray, pose: np.ndarray, touched: np.ndarray
+    def _skin_pulled(self, moved: np.ndarray, pose: np.ndarray, touched: np.ndarray
                      ) -> np.ndarray:
-        """The ``touched`` skin vertices that the displacement ``u`` (n_fem_nodes, 3) mm of
-        the FE engine's grid puts in front of the face plane at ``pose``: with elastic
-        contact their springs pull them towards the probe, which a face cannot do. Empty when
-        the contact points are met (they lie on the plane)."""
+        """The ``touched`` skin vertices that lie, moved to ``moved`` (n_vertices, 3) mm by
+        the FE engine (:meth:`_moved_skin`), in front of the face plane at ``pose``: with
+        elastic contact their springs pull them towards the probe, which a face cannot do.
+        Empty when the contact points are met (they lie on the plane)."""
         from ..contact.constraints import is_elastic
 
-        if not len(touched) or not is_elastic(self.case.cfg.tracker.fem_contact):
+        if not is_elastic(self.case.cfg.tracker.fem_contact):
             return touched[:0]
-        moved = self.case.anatomy.vertices[touched] + \
-            self._fem_surface_embedding().subset(touched).interpolate(u)
-        return touched[(moved - pose[:3, 3]) @ pose[:3, 2] > 0.0]
+        return touched[(moved[touched] - pose[:3, 3]) @ pose[:3, 2] > 0.0]
 
     def _fem_contact_embedding(self) -> Embedding:
         """The rest contact points in the FE engine's grid (the teacher's, or the case's)."""
