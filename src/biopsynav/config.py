@@ -481,6 +481,14 @@ class TrackerSection:
                                          "the penalty int beta E / h |u - g|^2 dA over the "
                                          "contact (docs/fem.md, 'Elastic contact').",
                                    lo=0.1, hi=1e6)
+    spring_budget: int = opt(80, "Elastic contact in the FE engine and in Table 2's FE method "
+                                 "and ground truth: Newton iterations after which the "
+                                 "springs as asked give way to springs 4 times stiffer (then "
+                                 "to the points met). Solves that converge take far fewer "
+                                 "(at most 42 over 40 phantom pushes to 35 mm); those past a "
+                                 "limit point ran 94-320 before failing (docs/fem.md, 'Deep "
+                                 "pushes and the fallback'). 0: no limit. Data generation "
+                                 "uses [dataset] newton_budget instead.", lo=0, hi=100000)
     contact_follows_pose: bool = opt(False, "Skin that the probe face reaches during a push "
                                             "(behind the face plane in the deformed state, "
                                             "in cells apart from the rest contact) is held on "

@@ -33,6 +33,7 @@ def test_search_steps_stay_in_the_bracket():
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,
                                                                     monkeypatch):
+    monkeypatch.setattr(calibrate, "CALIBRATION_PUSHES", 6)  # half as many: the same search
     case_dir = tmp_path / "case"
     shutil.copytree(base_case, case_dir)
     cfg = load_config(case_dir)
@@ -67,7 +68,9 @@ def test_a_refined_teacher_starts_its_search_from_the_case_grid(base_case, tmp_p
     """With [dataset] teacher_refine = 2 the search runs on the case grid first and the
     teacher's own rounds start from its answer. The teacher's search is held to two rounds
     (its first force may fail on the finer grid and the second halve it; the rounds after
-    are the plain search's, tested above), which keeps this test at a third of its time."""
+    are the plain search's, tested above) and each round to 4 pushes instead of
+    :data:`~biopsynav.dataset.calibrate.CALIBRATION_PUSHES`, which keeps this test at a
+    fraction of its time."""
     from biopsynav.case import Case
 
     searches = []
@@ -80,6 +83,7 @@ def test_a_refined_teacher_starts_its_search_from_the_case_grid(base_case, tmp_p
         return search(*args)
 
     monkeypatch.setattr(calibrate, "search_force", teacher_once)
+    monkeypatch.setattr(calibrate, "CALIBRATION_PUSHES", 4)
     case_dir = tmp_path / "case"
     shutil.copytree(base_case, case_dir)
     cfg = load_config(case_dir)

@@ -166,6 +166,32 @@ def test_solver_failure_is_solver_failed_not_out_of_envelope(fem_tracker, monkey
     assert all(np.isnan(les.center).all() for les in r.lesions)
 
 
+def test_the_springs_as_asked_get_the_tracker_s_budget_then_their_fallback(coarse_case,
+                                                                          monkeypatch):
+    """The FE engine and Table 2's solves give elastic contact's first attempt ``[tracker]
+    spring_budget`` Newton iterations; a push whose first attempt runs out of them is
+    answered by the stiffer springs, with no limit of their own."""
+    import biopsynav.fem.solver as solver_mod
+    from biopsynav.evaluate.simulation import evaluation_solver_settings
+
+    budget = coarse_case.cfg.tracker.spring_budget
+    assert budget > 0 and evaluation_solver_settings(coarse_case).first_attempt_budget == budget
+    real, budgets = solver_mod.solve_once, []
+
+    def first_runs_out(model, loads, settings=None):
+        budgets.append(settings.max_total_iterations)
+        if len(budgets) == 1:
+            raise solver_mod.SolverError("no convergence within max_total_iterations", "test")
+        return real(model, loads, settings)
+
+    tracker = Tracker.load(coarse_case.dir, engine="fem")
+    tracker.set_rest_pose(TOP)
+    monkeypatch.setattr(solver_mod, "solve_once", first_runs_out)
+    r = tracker.update(pushed(10.0))
+    assert r.status == st.OK and budgets == [budget, 0]
+    assert tracker.last_solve.spring_factor == 4.0
+
+
 def _poses_csv(path, poses):
     lines = ["frame,sequence," + ",".join(MATRIX_COLUMNS)]
     for i, (seq, pose) in enumerate(poses):

@@ -23,7 +23,7 @@ from ..case import Case, as_case
 from ..fem import SolverSettings
 from ..grid.build import build_grid
 from ..reference_registry import build_reference
-from ..tracker.core import Tracker, fem_engine
+from ..tracker.core import Tracker, fem_engine, fem_solver_settings
 from ..tracker.result import TrackingResult
 from .placement import Placement, place_probe, push_depths
 from .table import AGREEMENT, BIN_NAMES, Record, aggregate, bin_name
@@ -38,10 +38,10 @@ RESIDUAL_TOLERANCE = 1e-6
 
 
 def evaluation_solver_settings(case: Case) -> SolverSettings:
-    """Solver settings of the evaluation solves (reference and ``fem`` method alike): the
-    case's ``[solver]`` with tolerances loosened to ``CONSTRAINT_TOLERANCE_MM`` and
-    ``RESIDUAL_TOLERANCE`` where they are tighter."""
-    s = SolverSettings.from_config(case.cfg.solver)
+    """Solver settings of the evaluation solves (reference and ``fem`` method alike): the FE
+    engine's (:func:`~biopsynav.tracker.core.fem_solver_settings`) with tolerances loosened
+    to ``CONSTRAINT_TOLERANCE_MM`` and ``RESIDUAL_TOLERANCE`` where they are tighter."""
+    s = fem_solver_settings(case)
     s.constraint_tolerance_mm = max(s.constraint_tolerance_mm, CONSTRAINT_TOLERANCE_MM)
     s.tol_residual = max(s.tol_residual, RESIDUAL_TOLERANCE)
     s.tol_displacement = max(s.tol_displacement, RESIDUAL_TOLERANCE)

@@ -186,9 +186,7 @@ class Tracker:
                                  else threads)
             return cls(case, engine, surrogate=sur)
         if engine == "fem":
-            from ..fem import SolverSettings
-
-            return fem_engine(case, SolverSettings.from_config(case.cfg.solver))
+            return fem_engine(case, fem_solver_settings(case))
         raise InputError(f"unknown engine {engine!r}; use net or fem", "tracker")
 
     @property
@@ -703,6 +701,16 @@ class Tracker:
         nan = np.full(3, np.nan)
         lesions = [LesionResult(i, nan.copy(), nan.copy(), status) for i in self._lesion_ids]
         return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
+
+
+def fem_solver_settings(case: Case):
+    """The FE engine's solver settings: ``[solver]``, with elastic contact's springs as asked
+    given ``[tracker] spring_budget`` Newton iterations before their fallbacks."""
+    from ..fem import SolverSettings
+
+    settings = SolverSettings.from_config(case.cfg.solver)
+    settings.first_attempt_budget = int(case.cfg.tracker.spring_budget)
+    return settings
 
 
 def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
