@@ -486,7 +486,7 @@ class TrackerSection:
                                  "springs as asked give way to springs 4 times stiffer (then "
                                  "to the points met). Solves that converge take far fewer "
                                  "(at most 42 over 40 phantom pushes to 35 mm); those past a "
-                                 "limit point ran 94-320 before failing (docs/fem.md, 'Deep "
+                                 "limit point ran 94-319 before failing (docs/fem.md, 'Deep "
                                  "pushes and the fallback'). 0: no limit. Data generation "
                                  "uses [dataset] newton_budget instead.", lo=0, hi=100000)
     contact_follows_pose: bool = opt(False, "Skin that the probe face reaches during a push "

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -43,6 +44,9 @@ from .contactset import (
     reach_candidates,
 )
 from .result import LesionResult, TrackingResult
+
+if TYPE_CHECKING:
+    from ..fem import SolverSettings
 
 LIFT_OFF_MM = 0.5  # contact points moved this far out of the tissue: the probe left the skin
 AT_REST_MM = 1e-6  # no contact point moved further: the rest pose (up to rounding), no solve
@@ -703,7 +707,7 @@ class Tracker:
         return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
 
 
-def fem_solver_settings(case: Case):
+def fem_solver_settings(case: Case) -> SolverSettings:
     """The FE engine's solver settings: ``[solver]``, with elastic contact's springs as asked
     given ``[tracker] spring_budget`` Newton iterations before their fallbacks."""
     from ..fem import SolverSettings
