@@ -190,6 +190,11 @@ def test_the_springs_as_asked_get_the_tracker_s_budget_then_their_fallback(coars
     r = tracker.update(pushed(10.0))
     assert r.status == st.OK and budgets == [budget, 0]
     assert tracker.last_solve.spring_factor == 4.0
+    # the answer says which springs gave it (`track`'s reason column, Table 2's records)
+    assert r.reason == "answered with contact springs 4 times stiffer: those asked did not " \
+                       "converge"
+    monkeypatch.setattr(solver_mod, "solve_once", real)
+    assert tracker.update(pushed(10.0)).reason == ""
 
 
 def _poses_csv(path, poses):

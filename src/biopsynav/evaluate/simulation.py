@@ -174,7 +174,8 @@ def push_records(placement: Placement, lesion_index: int, push: int, depth_mm: f
         else:
             results[m] = trackers[m].update(pose)
             out.append(method_record(base, m, results[m], lesion_index, true_centre))
-    out.append(Record(**base, method="reference", tre_mm=0.0, time_ms=truth.latency_ms))
+    out.append(Record(**base, method="reference", tre_mm=0.0, reason=truth.reason,
+                      time_ms=truth.latency_ms))
     net, fem = results.get("net"), results.get("fem")
     if net is not None and fem is not None and net.reliable and fem.reliable:
         gap = net.lesions[lesion_index].center - fem.lesions[lesion_index].center
@@ -189,7 +190,8 @@ def method_record(base: dict, method: str, result: TrackingResult, lesion_index:
         return Record(**base, method=method, tre_mm=None, status=result.status,
                       reason=result.reason, time_ms=result.latency_ms)
     tre = float(np.linalg.norm(result.lesions[lesion_index].center - true_centre))
-    return Record(**base, method=method, tre_mm=tre, time_ms=result.latency_ms)
+    return Record(**base, method=method, tre_mm=tre, reason=result.reason,
+                  time_ms=result.latency_ms)
 
 
 def _timing(records: list[Record], ref_build_s: float, total_s: float) -> dict:

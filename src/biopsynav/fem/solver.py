@@ -242,6 +242,18 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
         raise first from None
 
 
+def fallback_note(report: SolveReport | None) -> str:
+    """What a user should know of an answer of elastic contact's fallbacks: '' when the
+    springs as asked answered (or the solve had no springs), else which fallback did."""
+    factor = None if report is None else report.spring_factor
+    if factor is None or factor == 1.0:
+        return ""
+    if math.isinf(factor):
+        return ("answered with the contact points met: elastic contact did not converge "
+                "(lesions tend to move too far)")
+    return f"answered with contact springs {factor:g} times stiffer: those asked did not converge"
+
+
 def first_attempt_settings(settings: SolverSettings) -> SolverSettings:
     """``settings`` with the Newton budget of elastic contact's first attempt: the smaller
     of ``first_attempt_budget`` and ``max_total_iterations`` where they are set (> 0)."""
