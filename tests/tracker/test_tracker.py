@@ -168,14 +168,20 @@ def test_solver_failure_is_solver_failed_not_out_of_envelope(fem_tracker, monkey
 
 def test_the_springs_as_asked_get_the_tracker_s_budget_then_their_fallback(coarse_case,
                                                                           monkeypatch):
-    """The FE engine and Table 2's solves give elastic contact's first attempt ``[tracker]
-    spring_budget`` Newton iterations; a push whose first attempt runs out of them is
-    answered by the stiffer springs, with no limit of their own."""
+    """The FE engine and Table 2's FE method give elastic contact's first attempt ``[tracker]
+    spring_budget`` Newton iterations on the case grid (Table 2's finer ground truth none); a
+    push whose first attempt runs out of them is answered by the stiffer springs, with no
+    limit of their own."""
     import biopsynav.fem.solver as solver_mod
-    from biopsynav.evaluate.simulation import evaluation_solver_settings
+    from biopsynav.evaluate.references import GridReference
+    from biopsynav.evaluate.simulation import evaluation_solver_settings, setup_for
 
     budget = coarse_case.cfg.tracker.spring_budget
-    assert budget > 0 and evaluation_solver_settings(coarse_case).first_attempt_budget == budget
+    settings = evaluation_solver_settings(coarse_case)
+    assert budget > 0 and settings.first_attempt_budget == budget
+    # a finer grid (Table 2's ground truth) has no budget: converging solves there need more
+    truth = GridReference(coarse_case, setup_for(coarse_case, quick=True), settings)
+    assert truth.tracker._fem_settings.first_attempt_budget == 0
     real, budgets = solver_mod.solve_once, []
 
     def first_runs_out(model, loads, settings=None):
