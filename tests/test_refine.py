@@ -143,12 +143,14 @@ def test_the_fe_engine_and_the_truth_follow_the_fine_teacher(refined):
     """The FE engine (track --engine fem, Table 2's FE column) solves on the fine teacher's
     grid, and a fine-grid truth no finer than that teacher is refused."""
     from biopsynav import reference_registry
-    from biopsynav.tracker.core import fem_engine
+    from biopsynav.tracker.core import fem_engine, fem_solver_settings
 
     case = Case.load(refined)
     tracker = fem_engine(case, None)
     assert tracker._teacher is not None and tracker._teacher.coarse is not None
     assert len(tracker._fem_model.hexes) > 2 * case.grid.active_cells.sum()
+    # [tracker] spring_budget is for the case grid: the finer teacher's solves have none
+    assert fem_engine(case, fem_solver_settings(case))._fem_settings.first_attempt_budget == 0
     case.cfg.evaluate.reference, case.cfg.evaluate.reference_refinement = "fine_grid", 2.0
     with pytest.raises(InputError, match="no finer than the network.s teacher"):
         reference_registry.check_reference(case)

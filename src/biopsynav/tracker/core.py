@@ -726,13 +726,14 @@ def fem_solver_settings(case: Case) -> SolverSettings:
     return settings
 
 
-def without_spring_budget(settings: SolverSettings) -> SolverSettings:
-    """``settings`` for a grid finer than the case's: no budget for the springs as asked.
-    ``[tracker] spring_budget`` was measured on the case grid; on 3.65 mm cells a first attempt
-    converged after 110 Newton iterations (docs/fem.md, "The FE engine's budget")."""
+def without_spring_budget(settings: SolverSettings | None) -> SolverSettings | None:
+    """``settings`` for a grid finer than the case's: no budget for the springs as asked
+    (None stays None: the solver's defaults have none). ``[tracker] spring_budget`` was
+    measured on the case grid; on 3.65 mm cells a first attempt converged after 110 Newton
+    iterations (docs/fem.md, "The FE engine's budget")."""
     import dataclasses
 
-    return dataclasses.replace(settings, first_attempt_budget=0)
+    return None if settings is None else dataclasses.replace(settings, first_attempt_budget=0)
 
 
 def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
