@@ -40,7 +40,8 @@ RESIDUAL_TOLERANCE = 1e-6
 def evaluation_solver_settings(case: Case) -> SolverSettings:
     """Solver settings of the evaluation solves (reference and ``fem`` method alike): the FE
     engine's (:func:`~biopsynav.tracker.core.fem_solver_settings`) with tolerances loosened
-    to ``CONSTRAINT_TOLERANCE_MM`` and ``RESIDUAL_TOLERANCE`` where they are tighter."""
+    to ``CONSTRAINT_TOLERANCE_MM`` and ``RESIDUAL_TOLERANCE`` where they are tighter. A
+    fine-grid reference drops their spring budget (``GridReference``)."""
     s = fem_solver_settings(case)
     s.constraint_tolerance_mm = max(s.constraint_tolerance_mm, CONSTRAINT_TOLERANCE_MM)
     s.tol_residual = max(s.tol_residual, RESIDUAL_TOLERANCE)
