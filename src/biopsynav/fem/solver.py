@@ -100,6 +100,18 @@ class SolveReport:
     backend: str = ""
     log: list[dict] = field(default_factory=list)
 
+    def fallback_note(self) -> str:
+        """What a user should know of an answer of elastic contact's fallbacks: '' when the
+        springs as asked answered (or the solve had no springs), else which fallback did."""
+        factor = self.spring_factor
+        if factor is None or factor == 1.0:
+            return ""
+        if math.isinf(factor):
+            return ("answered with the contact points met: elastic contact did not converge "
+                    "(lesions tend to move too far)")
+        return (f"answered with contact springs {factor:g} times stiffer: those asked did not "
+                "converge")
+
 
 class _System:
     """Residual, tangent and potential energy of one model under prepared loads."""
@@ -240,18 +252,6 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
             report.spring_factor = factor
             return u, report
         raise first from None
-
-
-def fallback_note(report: SolveReport | None) -> str:
-    """What a user should know of an answer of elastic contact's fallbacks: '' when the
-    springs as asked answered (or the solve had no springs), else which fallback did."""
-    factor = None if report is None else report.spring_factor
-    if factor is None or factor == 1.0:
-        return ""
-    if math.isinf(factor):
-        return ("answered with the contact points met: elastic contact did not converge "
-                "(lesions tend to move too far)")
-    return f"answered with contact springs {factor:g} times stiffer: those asked did not converge"
 
 
 def first_attempt_settings(settings: SolverSettings) -> SolverSettings:

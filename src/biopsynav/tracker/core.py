@@ -421,22 +421,14 @@ class Tracker:
             return self._unreliable(st.SOLVER_FAILED, exc.what, start)
         except Exception as exc:  # never a confident number from a failed prediction
             return self._unreliable(st.TRACKER_ERROR, f"{type(exc).__name__}: {exc}", start)
-        res = TrackingResult(self._lesion_results(disp, st.OK), st.OK, self._answer_note(), 0.0)
+        note = "" if self.last_solve is None else self.last_solve.fallback_note()
+        res = TrackingResult(self._lesion_results(disp, st.OK), st.OK, note, 0.0)
         if with_surface:
             res.surface = self.case.anatomy.vertices + self._surface_embedding().interpolate(field)
         if with_field:
             res.grid_displacement = field
         res.latency_ms = (time.perf_counter() - start) * 1e3
         return res
-
-    def _answer_note(self) -> str:
-        """The FE engine's word on its last answer (which of elastic contact's fallbacks gave
-        it, :func:`~biopsynav.fem.solver.fallback_note`); '' for the network engine."""
-        if self.last_solve is None:
-            return ""
-        from ..fem.solver import fallback_note
-
-        return fallback_note(self.last_solve)
 
     def _net_answer(self, u_c: np.ndarray, pose: np.ndarray, with_surface: bool,
                     surfaces: bool) -> tuple[np.ndarray | None, np.ndarray]:
