@@ -316,3 +316,26 @@ def test_corrupt_or_foreign_store_is_refused(reference, tmp_path, damage):
         shutil.rmtree(path / "targets")
     with pytest.raises(InputError, match="--overwrite"):
         generate_case(case_dir, workers=1, progress=False)
+
+
+def test_training_samples_draw_their_force_by_the_exponent(fresh_case):
+    """With [probe] train_force_exponent the training samples (below the data set's own
+    n_train, here a generate override) draw f_max u^e, the held-out ones the uniform force;
+    the exponent is part of the protocol, and the uniform default is not (as before it)."""
+    from biopsynav.dataset.store import protocol_dict
+
+    edit_config(fresh_case, probe={"train_force_exponent": 0.5},
+                dataset={"max_failure_share": 1.0})
+    generate_case(fresh_case, workers=1, progress=False, n_train=3, n_test=2)
+    g = open_data(fresh_case)
+    case = Case.load(fresh_case)
+    probe, seed = case.cfg.probe, case.cfg.dataset.seed
+    for i in range(5):
+        attempt = int(g["attempt"][i])
+        push = push_for_sample(case.anatomy, probe, seed, i, attempt, training=i < 3)
+        uniform = push_for_sample(case.anatomy, probe, seed, i, attempt)
+        assert g["force_n"][i] == push.force_n
+        assert (push.force_n > uniform.force_n) == (i < 3)
+    assert g.attrs["protocol"]["probe"]["train_force_exponent"] == 0.5
+    case.cfg.probe.train_force_exponent = 1.0
+    assert "train_force_exponent" not in protocol_dict(case.cfg, 3, 2)["probe"]

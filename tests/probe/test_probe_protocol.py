@@ -187,3 +187,25 @@ def test_tilt_zero_pushes_along_the_inward_normal(case):
     probe = ProbeSection(max_tilt_deg=0.0)
     push = push_for_sample(case.anatomy, probe, 0, 0, 0)
     assert np.allclose(push.direction, -push.normal)
+
+
+def test_training_force_exponent_skews_only_training_forces(case, pushes):
+    """A training push draws f_max u^e from the same random numbers as the uniform force: the
+    patch, tilt and direction stay; a held-out push (``training`` false) keeps the uniform
+    force whatever the exponent."""
+    import dataclasses
+
+    probe = dataclasses.replace(case.cfg.probe, train_force_exponent=0.5)
+    centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
+    for i, ref in enumerate(pushes[::2][:10]):
+        held_out = push_for_sample(case.anatomy, probe, 7, i, 0, centers)
+        trained = push_for_sample(case.anatomy, probe, 7, i, 0, centers, training=True)
+        assert held_out.force_n == ref.force_n
+        assert trained.vertex == ref.vertex and trained.tilt_deg == ref.tilt_deg
+        assert np.array_equal(trained.direction, ref.direction)
+        u = ref.force_n / probe.f_max_n
+        assert np.isclose(trained.force_n, probe.f_max_n * np.sqrt(u), rtol=1e-12)
+        assert trained.force_n >= held_out.force_n
+    uniform = dataclasses.replace(probe, train_force_exponent=1.0)
+    assert push_for_sample(case.anatomy, uniform, 7, 4, 0, centers,
+                           training=True).force_n == pushes[8].force_n

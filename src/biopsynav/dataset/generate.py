@@ -94,7 +94,7 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
     preflight(case)  # input errors here, before a store or a worker exists
     store = prepare_store(case, n_train, n_test, overwrite)
-    work = with_calibrated_force(case, store)
+    work = with_store_split(with_calibrated_force(case, store), n_train)
     spec = WorkerSpec(work, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
     done = store.done_mask()
     todo = np.flatnonzero(~done)
@@ -128,6 +128,20 @@ def with_calibrated_force(case: Case, store: DatasetStore) -> Case:
     work = copy.copy(case)
     work.cfg = copy.deepcopy(case.cfg)
     work.cfg.probe.f_max_n = float(found["f_max_n"])
+    return work
+
+
+def with_store_split(case: Case, n_train: int) -> Case:
+    """``case`` with ``[dataset] n_train`` = ``n_train``, the data set's own split (a
+    ``generate`` override may differ from case.toml): the workers draw a training sample's
+    force by ``[probe] train_force_exponent``. ``case`` itself when they agree."""
+    import copy
+
+    if case.cfg.dataset.n_train == n_train:
+        return case
+    work = copy.copy(case)
+    work.cfg = copy.deepcopy(case.cfg)
+    work.cfg.dataset.n_train = int(n_train)
     return work
 
 

@@ -74,7 +74,8 @@ def dataset_path(case_dir: str | Path) -> Path:
 #: [probe] keys that only force patches use: not in the protocol of a data set of rigid
 #: pushes alone (``rigid_share = 1``, as a ``[refine]`` data set), which a new force range
 #: or its calibration then leaves valid.
-FORCE_PATCH_KEYS = ("f_max_n", "calibrate_force", "max_tilt_deg", "depth_tolerance_mm")
+FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "calibrate_force", "max_tilt_deg",
+                    "depth_tolerance_mm")
 
 
 def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
@@ -102,6 +103,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
         probe.pop("rigid_share", None)
     if probe.get("shape") == "rectangle":  # the only shape before the registry: same protocol
         probe.pop("shape")
+    if probe.get("train_force_exponent") == 1.0:  # uniform forces: the protocol of before it
+        probe.pop("train_force_exponent")
     stretch = cfg.dataset.max_edge_stretch
     checks = {} if stretch == DEFAULT_MAX_EDGE_STRETCH else {"max_edge_stretch": stretch}
     return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),

@@ -108,7 +108,7 @@ def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
 
     cfg = ctx.case.cfg
     push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
-                           ctx.centers, pinned=ctx.pinned)
+                           ctx.centers, pinned=ctx.pinned, training=index < cfg.dataset.n_train)
     contact, loaded = ctx.skin[push.contact], ctx.teacher.skin.matrix[push.contact]
     start = time.perf_counter()
     result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
