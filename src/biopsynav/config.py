@@ -223,14 +223,15 @@ class ProbeSection:
                               "5 kPa phantom up to ~46 mm probe displacement, of which [probe] "
                               "max_push_mm keeps up to 35 mm (docs/dataset.md).",
                          lo=0.0, hi=1e4)
-    train_force_exponent: float = opt(1.0, "Training pushes (samples below [dataset] n_train) "
+    train_force_exponent: float = opt(0.5, "Training pushes (samples below [dataset] n_train) "
                                            "draw the total force as f_max_n * u^e, u uniform "
                                            "in [0, 1]: e = 1 is the paper's uniform force, e < "
                                            "1 draws strong pushes more often (force density "
                                            "proportional to F^(1/e - 1)), where the network "
                                            "errs most. Held-out pushes keep the paper's "
                                            "uniform force, so Table 1 measures on its protocol "
-                                           "(docs/dataset.md).", lo=0.05, hi=1.0)
+                                           "(docs/network.md, 'Strong pushes drawn more "
+                                           "often').", lo=0.05, hi=1.0)
     calibrate_force: bool = opt(True, "Before generation, set the data set's force range "
                                       "for the breast at hand: f_max_n is searched (from the "
                                       "value above) until 90 % of 12 calibration pushes at "

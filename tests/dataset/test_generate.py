@@ -111,7 +111,7 @@ def test_contract_of_the_stored_samples(reference):
         u = tensor_to_field(g["targets"][i]).astype(np.float64)
         assert np.all(g["targets"][i][:, inactive] == 0)
         push = push_for_sample(case.anatomy, probe, case.cfg.dataset.seed, i,
-                               int(g["attempt"][i]))
+                               int(g["attempt"][i]), training=i < N_TRAIN)
         assert int(g["vertex"][i]) == push.vertex and g["force_n"][i] == push.force_n
         contact = probe_patch(case.anatomy, push.vertex, push.long_axis, probe.footprint_mm,
                               probe.depth_tolerance_mm)
@@ -200,7 +200,7 @@ def test_failed_solves_are_logged_and_replaced(fresh_case):
     assert replaced.size
     for i in replaced:
         push = push_for_sample(case.anatomy, case.cfg.probe, case.cfg.dataset.seed, i,
-                               int(attempts[i]))
+                               int(attempts[i]), training=i < N_TRAIN)
         assert g["force_n"][i] == push.force_n
 
 
