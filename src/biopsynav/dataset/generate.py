@@ -94,7 +94,7 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
     preflight(case)  # input errors here, before a store or a worker exists
     store = prepare_store(case, n_train, n_test, overwrite)
-    work = with_store_split(with_calibrated_force(case, store), n_train)
+    work = working_case(case, store)
     spec = WorkerSpec(work, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
     done = store.done_mask()
     todo = np.flatnonzero(~done)
@@ -111,37 +111,30 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
     return summary
 
 
-def with_calibrated_force(case: Case, store: DatasetStore) -> Case:
-    """``case`` with ``[probe] f_max_n`` set by the force calibration
-    (:mod:`biopsynav.dataset.calibrate`), run once per data set and kept in its attributes; the
-    loaded case itself is left as it is. ``case`` unchanged when ``calibrate_force`` is off."""
+def working_case(case: Case, store: DatasetStore) -> Case:
+    """The case the workers draw and solve with: ``case`` with the data set's own
+    ``[dataset] n_train`` (a ``generate`` override may differ from case.toml; a training
+    sample's force follows ``[probe] train_force_exponent``) and ``[probe] f_max_n`` set by the
+    force calibration (:mod:`biopsynav.dataset.calibrate`), run once per data set and kept in
+    its attributes. The loaded case itself is left as it is; returned as it is when nothing
+    differs."""
     import copy
 
     from .calibrate import calibrate_force
 
-    if not case.cfg.probe.calibrate_force or case.cfg.probe.rigid_share >= 1.0:
-        return case
-    found = store.group.attrs.get("force_calibration")
-    if found is None:
-        found = calibrate_force(case)
-        store.group.attrs["force_calibration"] = found
-    work = copy.copy(case)
-    work.cfg = copy.deepcopy(case.cfg)
-    work.cfg.probe.f_max_n = float(found["f_max_n"])
-    return work
-
-
-def with_store_split(case: Case, n_train: int) -> Case:
-    """``case`` with ``[dataset] n_train`` = ``n_train``, the data set's own split (a
-    ``generate`` override may differ from case.toml): the workers draw a training sample's
-    force by ``[probe] train_force_exponent``. ``case`` itself when they agree."""
-    import copy
-
-    if case.cfg.dataset.n_train == n_train:
+    f_max_n = case.cfg.probe.f_max_n
+    if case.cfg.probe.calibrate_force and case.cfg.probe.rigid_share < 1.0:
+        found = store.group.attrs.get("force_calibration")
+        if found is None:
+            found = calibrate_force(case)
+            store.group.attrs["force_calibration"] = found
+        f_max_n = float(found["f_max_n"])
+    n_train = int(store.group.attrs["n_train"])
+    if (f_max_n, n_train) == (case.cfg.probe.f_max_n, case.cfg.dataset.n_train):
         return case
     work = copy.copy(case)
     work.cfg = copy.deepcopy(case.cfg)
-    work.cfg.dataset.n_train = int(n_train)
+    work.cfg.probe.f_max_n, work.cfg.dataset.n_train = f_max_n, n_train
     return work
 
 
