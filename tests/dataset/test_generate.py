@@ -286,7 +286,8 @@ def test_guard_against_mixing(reference, tmp_path):
     edit_config(case_dir, probe={"contact_tolerance_mm": 3.0})
     assert generate_case(case_dir, workers=1, progress=False)["computed_this_run"] == 0
     edit_config(case_dir, probe={"f_max_n": 2.0})
-    with pytest.raises(FingerprintError, match=r"another protocol.*f_max_n.*--overwrite"):
+    with pytest.raises(FingerprintError, match=r"another protocol.*f_max_n \(data set [\d.]+, "
+                       r"case 2\.0\).*--overwrite.*in case\.toml to keep it"):
         generate_case(case_dir, workers=1, progress=False)
     with pytest.raises(FingerprintError, match="n_train"):
         generate_case(case_dir, workers=1, progress=False, n_train=N_TRAIN + 1)
@@ -339,3 +340,7 @@ def test_training_samples_draw_their_force_by_the_exponent(fresh_case):
     assert g.attrs["protocol"]["probe"]["train_force_exponent"] == 0.5
     case.cfg.probe.train_force_exponent = 1.0
     assert "train_force_exponent" not in protocol_dict(case.cfg, 3, 2)["probe"]
+    edit_config(fresh_case, probe={"train_force_exponent": 1.0})  # left out: read as 1.0
+    with pytest.raises(FingerprintError, match=r"train_force_exponent \(data set 0\.5, case "
+                       r"1\.0\)"):
+        generate_case(fresh_case, workers=1, progress=False, n_train=3, n_test=2)

@@ -77,6 +77,10 @@ def dataset_path(case_dir: str | Path) -> Path:
 FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "calibrate_force", "max_tilt_deg",
                     "depth_tolerance_mm")
 
+#: [probe] values that a protocol leaves out, being what every data set had before the key
+#: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
+FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "shape": "rectangle", "rigid_share": 0.0}
+
 
 def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     """Everything besides anatomy and grid that decides the samples' content.
@@ -101,10 +105,9 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     else:  # force patches only: the protocol of before rigid pushes
         probe.pop("contact_tolerance_mm", None)
         probe.pop("rigid_share", None)
-    if probe.get("shape") == "rectangle":  # the only shape before the registry: same protocol
-        probe.pop("shape")
-    if probe.get("train_force_exponent") == 1.0:  # uniform forces: the protocol of before it
-        probe.pop("train_force_exponent")
+    for key, former in FORMER_PROBE_VALUES.items():  # e.g. uniform forces: the former protocol
+        if probe.get(key) == former:
+            probe.pop(key)
     stretch = cfg.dataset.max_edge_stretch
     checks = {} if stretch == DEFAULT_MAX_EDGE_STRETCH else {"max_edge_stretch": stretch}
     return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
@@ -298,7 +301,8 @@ def check_compatible(store: DatasetStore, fingerprint: str, protocol: dict) -> N
     if not same_protocol(attrs, protocol):
         changed = _changed_sections(_comparable(attrs.get("protocol")), protocol)
         raise FingerprintError("the data set was generated with another protocol (changed: "
-                               f"{', '.join(changed) or 'unknown'}){hint}", str(store.path))
+                               f"{'; '.join(changed) or 'unknown'}){hint}, or set those "
+                               "values in case.toml to keep it", str(store.path))
 
 
 def same_protocol(attrs: Any, protocol: dict) -> bool:
@@ -321,7 +325,8 @@ def _comparable(stored: Any) -> dict:
 
 
 def _changed_sections(old: dict, new: dict) -> list[str]:
-    """Names of protocol sections (and keys) that differ, e.g. ``[probe] f_max_n``."""
+    """What differs between a stored protocol ``old`` and the case's ``new``, one entry per
+    key with both values, e.g. ``[probe] f_max_n (data set 3.0, case 4.0)``."""
     out = []
     for section in sorted(set(old) | set(new)):
         a, b = old.get(section), new.get(section)
@@ -329,10 +334,19 @@ def _changed_sections(old: dict, new: dict) -> list[str]:
             continue
         if isinstance(a, dict) and isinstance(b, dict):
             keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-            out += [f"[{section}] {k}" for k in keys]
+            out += [f"[{section}] {k} (data set {_recorded(a, section, k)}, case "
+                    f"{_recorded(b, section, k)})" for k in keys]
         else:
             out.append(f"[{section}]")
     return out
+
+
+def _recorded(values: dict, section: str, key: str) -> str:
+    """One protocol value as text; a key left out reads as its former value."""
+    if key in values:
+        return repr(values[key])
+    former = FORMER_PROBE_VALUES.get(key) if section == "probe" else None
+    return "not recorded" if former is None else repr(former)
 
 
 def remove_store(path: Path) -> None:
