@@ -102,9 +102,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
         fe_model["fem_contact"] = cfg.tracker.fem_contact
         if is_elastic(cfg.tracker.fem_contact):
             fe_model["contact_stiffness"] = cfg.tracker.contact_stiffness
-    else:  # force patches only: the protocol of before rigid pushes
+    else:  # force patches only: the protocol of before rigid pushes (rigid_share 0: below)
         probe.pop("contact_tolerance_mm", None)
-        probe.pop("rigid_share", None)
     for key, former in FORMER_PROBE_VALUES.items():  # e.g. uniform forces: the former protocol
         if probe.get(key) == former:
             probe.pop(key)
