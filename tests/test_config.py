@@ -83,6 +83,8 @@ def test_defaults_round_trip(tmp_path):
     ({"probe": {"train_force_exponent": 0.0}}, "below its minimum"),
     ({"probe": {"train_force_exponent": 1.5}}, "above its maximum"),
     ({"probe": {"train_force_exponent": "skewed"}}, "train_force_exponent"),
+    ({"probe": {"train_force_scale": 0.5}}, "below its minimum"),
+    ({"probe": {"train_force_scale": 5.0}}, "above its maximum"),
     ({"tracker": {"spring_budget": -1}}, "below its minimum"),
     ({"tracker": {"spring_budget": 1.5}}, "must be an integer"),
     ({"tracker": {"spring_budget": "many"}}, "spring_budget"),

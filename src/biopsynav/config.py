@@ -232,11 +232,27 @@ class ProbeSection:
                                            "uniform force, so Table 1 measures on its protocol "
                                            "(docs/network.md, 'Strong pushes drawn more "
                                            "often').", lo=0.05, hi=1.0)
+    train_force_scale: float = opt(1.5, "Training pushes draw their force up to this multiple "
+                                        "of f_max_n (s f_max_n u^e); a draw deeper than "
+                                        "max_push_mm is redrawn, so where the breast is stiff "
+                                        "the training pushes still reach the clinical depth, "
+                                        "and the deep range that the held-out pushes reach "
+                                        "where it is soft is sampled more densely. Held-out "
+                                        "pushes keep [0, f_max_n] (docs/network.md, 'Training "
+                                        "forces beyond the held-out range').", lo=1.0, hi=4.0)
     calibrate_force: bool = opt(True, "Before generation, set the data set's force range "
                                       "for the breast at hand: f_max_n is searched (from the "
-                                      "value above) until 90 % of 12 calibration pushes at "
-                                      "f_max_n reach max_push_mm, and recorded in the data "
-                                      "set (docs/dataset.md). false: f_max_n as given.")
+                                      "value above) until 90 % of calibration_pushes "
+                                      "pushes at f_max_n reach max_push_mm, and recorded in "
+                                      "the data set (docs/dataset.md). false: f_max_n as "
+                                      "given.")
+    calibration_pushes: int = opt(48, "Probe pushes of the force calibration (each solved in "
+                                      "every round of the search). Fewer are faster but leave "
+                                      "the force range to chance: with 12, the UC Davis "
+                                      "breast's range moved from 3.1 to 5.5 N with the seed "
+                                      "(docs/network.md). Not part of the data set's "
+                                      "protocol: the calibration it found is recorded in it.",
+                                  lo=4, hi=100000)
     max_push_mm: float = opt(35.0, "Deepest training push (mm of probe displacement, the mean "
                                    "norm of the contact points' displacement): a draw that "
                                    "goes deeper is recorded and redrawn, like a failed solve, so "

@@ -24,6 +24,7 @@ QUICK = {
     "grid": {"cell_size_mm": 12.0},
     "evaluate": {"max_lesions": 3, "reference_refinement": 1.5},
     "dataset": {"n_train": 64, "n_test": 16},
+    "probe": {"calibration_pushes": 12},  # a quicker, rougher force range
     "network": {"iterations": 500, "val_interval": 250},  # docs/network.md: physics baseline
     "refine": {"samples": 40, "held_out": 5, "iterations": 500},
 }

@@ -14,9 +14,9 @@ Paper section 2.3 (Mendizabal, Tagliabue et al. 2019), every number from ``[prob
    random stream;
 4. the force direction ``d``: ``-n_p`` tilted by ``alpha`` uniform in
    ``[-max_tilt_deg, max_tilt_deg]`` about a random tangent axis (always into the tissue);
-5. the total force ``|F|`` uniform in ``[0, f_max_n]`` (a training sample's ``f_max_n u^e``,
-   ``u`` uniform in ``[0, 1]``, ``e`` = ``train_force_exponent``), shared equally by the points
-   of ``P``:
+5. the total force ``|F|`` uniform in ``[0, f_max_n]`` (a training sample's ``s f_max_n u^e``,
+   ``u`` uniform in ``[0, 1]``, ``e`` = ``train_force_exponent``, ``s`` =
+   ``train_force_scale``), shared equally by the points of ``P``:
    ``f_max_n`` is the force of the whole probe, so the load does not depend on the density
    of the skin mesh; nodal forces are ``W_P^T (F / |P|)`` with ``W_P`` the trilinear
    embedding of ``P``.
@@ -186,7 +186,7 @@ def sample_rng(seed: int, index: int, attempt: int) -> np.random.Generator:
 def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
               centers: np.ndarray | None = None, attempt: int = 0,
               rigid: bool = False, pinned: np.ndarray | None = None,
-              force_exponent: float = 1.0) -> ProbePush:
+              force_exponent: float = 1.0, force_scale: float = 1.0) -> ProbePush:
     """One random push following the protocol (module docstring); ``rigid``: a rigid-probe
     push instead (contact within ``contact_tolerance_mm`` of the face, tilt within
     ``rigid_max_tilt_deg``, a depth uniform in ``[0, max_push_mm]`` instead of the force; a
@@ -195,8 +195,9 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
     ``centers``: the eligible centre vertices (:func:`eligible_centers`, precomputed by
     callers that draw many). The draw order (centre, in-plane angle, then tilt axis, tilt,
     force or depth) is part of the protocol: changing it changes every sample.
-    ``force_exponent``: the force is ``f_max_n u^force_exponent`` (1: uniform; the same random
-    numbers whatever the exponent, so the patch and tilt do not depend on it).
+    ``force_exponent``, ``force_scale``: the force (N) is ``force_scale f_max_n
+    u^force_exponent`` (1, 1: uniform in ``[0, f_max_n]``; the same random numbers whatever
+    they are, so the patch and tilt do not depend on them).
     """
     if centers is None:
         centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
@@ -221,7 +222,7 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
     max_tilt = probe.rigid_max_tilt_deg if rigid else probe.max_tilt_deg
     tilt = np.radians(rng.uniform(-max_tilt, max_tilt))
     amount = float(rng.uniform(0.0, probe.max_push_mm) if rigid
-                   else probe.f_max_n * rng.uniform(0.0, 1.0) ** force_exponent)
+                   else force_scale * probe.f_max_n * rng.uniform(0.0, 1.0) ** force_exponent)
     return ProbePush(vertex, anatomy.vertices[vertex].copy(), normal, long_axis, short_axis,
                      contact, tilted_direction(normal, tilt, axis_angle),
                      float(np.degrees(tilt)), 0.0 if rigid else amount, attempt,
@@ -250,12 +251,14 @@ def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int
                     training: bool = False) -> ProbePush:
     """The push of sample ``index``, draw ``attempt`` (deterministic); ``rigid``: its kind
     (None: :func:`is_rigid_sample`); ``pinned``: see :func:`draw_push`; ``training``: a
-    training sample, whose force follows ``[probe] train_force_exponent``."""
+    training sample, whose force follows ``[probe] train_force_exponent`` and
+    ``train_force_scale``."""
     if rigid is None:
         rigid = is_rigid_sample(probe, seed, index)
-    exponent = probe.train_force_exponent if training else 1.0
+    exponent, scale = ((probe.train_force_exponent, probe.train_force_scale) if training
+                       else (1.0, 1.0))
     return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt, rigid,
-                     pinned, exponent)
+                     pinned, exponent, scale)
 
 
 def pinned_skin(fixed_nodes: np.ndarray, skin_nodes: np.ndarray) -> np.ndarray:

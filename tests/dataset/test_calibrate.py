@@ -11,7 +11,7 @@ from biopsynav.config import load_config, save_config
 from biopsynav.dataset import calibrate
 from biopsynav.dataset.calibrate import best_force, next_force
 from biopsynav.dataset.generate import format_run_summary, generate_case
-from biopsynav.dataset.store import open_store
+from biopsynav.dataset.store import open_store, protocol_dict
 from biopsynav.errors import BiopsynavError
 
 
@@ -33,25 +33,30 @@ def test_search_steps_stay_in_the_bracket():
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,
                                                                     monkeypatch):
-    monkeypatch.setattr(calibrate, "CALIBRATION_PUSHES", 6)  # half as many: the same search
     case_dir = tmp_path / "case"
     shutil.copytree(base_case, case_dir)
     cfg = load_config(case_dir)
     cfg.probe.calibrate_force = True
+    cfg.probe.calibration_pushes = 6  # fewer: the same search
     cfg.probe.f_max_n = 40.0  # far too strong a first guess: the search must come down
     cfg.dataset.n_train, cfg.dataset.n_test = 6, 2
     save_config(case_dir, cfg)
     summary = generate_case(case_dir, workers=1, progress=False)
     found = summary["force_calibration"]
-    assert found["f_max_n"] < 40.0 and found["pushes"] == calibrate.CALIBRATION_PUSHES
+    assert found["f_max_n"] < 40.0 and found["pushes"] == 6
     assert abs(found["quantile_depth_mm"] - cfg.probe.max_push_mm) \
         <= calibrate.TOLERANCE * cfg.probe.max_push_mm or found["rounds"][-1][1] is None
     store = open_store(case_dir / "dataset.zarr")
     assert store.group.attrs["force_calibration"] == found
-    assert store.read_meta()["force_n"].max() <= found["f_max_n"] + 1e-9
+    force = store.read_meta()["force_n"]  # training: up to train_force_scale times the range
+    assert force[6:].max() <= found["f_max_n"] + 1e-9
+    assert force[:6].max() <= cfg.probe.train_force_scale * found["f_max_n"] + 1e-9
     assert load_config(case_dir).probe.f_max_n == 40.0, "case.toml is left as the user wrote it"
+    assert "calibration_pushes" not in protocol_dict(cfg, 6, 2)["probe"]  # recorded instead
     text = format_run_summary(summary)  # what `biopsynav generate` prints
-    assert f"up to {found['f_max_n']:.2f} N, calibrated" in text
+    training = cfg.probe.train_force_scale * found["f_max_n"]
+    assert f"up to {found['f_max_n']:.2f} N (training pushes up to {training:.2f} N), " \
+        "calibrated (6 pushes" in text
     assert text.startswith(f"data set: 8 of 8 samples (6 training, 2 held out) in {case_dir}")
     assert "{" not in text and str(case_dir / "dataset.png") in text
 
@@ -68,9 +73,8 @@ def test_a_refined_teacher_starts_its_search_from_the_case_grid(base_case, tmp_p
     """With [dataset] teacher_refine = 2 the search runs on the case grid first and the
     teacher's own rounds start from its answer. The teacher's search is held to two rounds
     (its first force may fail on the finer grid and the second halve it; the rounds after
-    are the plain search's, tested above) and each round to 4 pushes instead of
-    :data:`~biopsynav.dataset.calibrate.CALIBRATION_PUSHES`, which keeps this test at a
-    fraction of its time."""
+    are the plain search's, tested above) and each round to 4 pushes instead of ``[probe]
+    calibration_pushes``, which keeps this test at a fraction of its time."""
     from biopsynav.case import Case
 
     searches = []
@@ -83,11 +87,11 @@ def test_a_refined_teacher_starts_its_search_from_the_case_grid(base_case, tmp_p
         return search(*args)
 
     monkeypatch.setattr(calibrate, "search_force", teacher_once)
-    monkeypatch.setattr(calibrate, "CALIBRATION_PUSHES", 4)
     case_dir = tmp_path / "case"
     shutil.copytree(base_case, case_dir)
     cfg = load_config(case_dir)
     cfg.dataset.teacher_refine = 2
+    cfg.probe.calibration_pushes = 4
     save_config(case_dir, cfg)
     found = calibrate.calibrate_force(Case.load(case_dir))
     coarse = found["case_grid_rounds"]

@@ -319,13 +319,14 @@ def test_corrupt_or_foreign_store_is_refused(reference, tmp_path, damage):
         generate_case(case_dir, workers=1, progress=False)
 
 
-def test_training_samples_draw_their_force_by_the_exponent(fresh_case):
-    """With [probe] train_force_exponent the training samples (below the data set's own
-    n_train, here a generate override) draw f_max u^e, the held-out ones the uniform force;
-    the exponent is part of the protocol, and the uniform default is not (as before it)."""
+def test_training_samples_draw_their_force_by_the_exponent_and_scale(fresh_case):
+    """With [probe] train_force_exponent and train_force_scale the training samples (below the
+    data set's own n_train, here a generate override) draw s f_max u^e, the held-out ones the
+    uniform force in [0, f_max]; both are part of the protocol, and their former values (1,
+    the paper's uniform force) are not (as before the keys)."""
     from biopsynav.dataset.store import protocol_dict
 
-    edit_config(fresh_case, probe={"train_force_exponent": 0.5},
+    edit_config(fresh_case, probe={"train_force_exponent": 0.5, "train_force_scale": 1.5},
                 dataset={"max_failure_share": 1.0})
     generate_case(fresh_case, workers=1, progress=False, n_train=3, n_test=2)
     g = open_data(fresh_case)
@@ -338,9 +339,15 @@ def test_training_samples_draw_their_force_by_the_exponent(fresh_case):
         assert g["force_n"][i] == push.force_n
         assert (push.force_n > uniform.force_n) == (i < 3)
     assert g.attrs["protocol"]["probe"]["train_force_exponent"] == 0.5
-    case.cfg.probe.train_force_exponent = 1.0
-    assert "train_force_exponent" not in protocol_dict(case.cfg, 3, 2)["probe"]
+    assert g.attrs["protocol"]["probe"]["train_force_scale"] == 1.5
+    case.cfg.probe.train_force_exponent = case.cfg.probe.train_force_scale = 1.0
+    assert not {"train_force_exponent", "train_force_scale"} & set(
+        protocol_dict(case.cfg, 3, 2)["probe"])
     edit_config(fresh_case, probe={"train_force_exponent": 1.0})  # left out: read as 1.0
     with pytest.raises(FingerprintError, match=r"train_force_exponent \(data set 0\.5, case "
+                       r"1\.0\)"):
+        generate_case(fresh_case, workers=1, progress=False, n_train=3, n_test=2)
+    edit_config(fresh_case, probe={"train_force_exponent": 0.5, "train_force_scale": 1.0})
+    with pytest.raises(FingerprintError, match=r"train_force_scale \(data set 1\.5, case "
                        r"1\.0\)"):
         generate_case(fresh_case, workers=1, progress=False, n_train=3, n_test=2)

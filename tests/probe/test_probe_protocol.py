@@ -189,13 +189,13 @@ def test_tilt_zero_pushes_along_the_inward_normal(case):
     assert np.allclose(push.direction, -push.normal)
 
 
-def test_training_force_exponent_skews_only_training_forces(case, pushes):
-    """A training push draws f_max u^e from the same random numbers as the uniform force: the
-    patch, tilt and direction stay; a held-out push (``training`` false) keeps the uniform
-    force whatever the exponent."""
+def test_training_force_exponent_and_scale_shape_only_training_forces(case, pushes):
+    """A training push draws s f_max u^e from the same random numbers as the uniform force:
+    the patch, tilt and direction stay; a held-out push (``training`` false) keeps the uniform
+    force in [0, f_max] whatever the exponent and scale."""
     import dataclasses
 
-    probe = dataclasses.replace(case.cfg.probe, train_force_exponent=0.5)
+    probe = dataclasses.replace(case.cfg.probe, train_force_exponent=0.5, train_force_scale=1.5)
     centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
     for i, ref in enumerate(pushes[::2][:10]):
         held_out = push_for_sample(case.anatomy, probe, 7, i, 0, centers)
@@ -204,8 +204,8 @@ def test_training_force_exponent_skews_only_training_forces(case, pushes):
         assert trained.vertex == ref.vertex and trained.tilt_deg == ref.tilt_deg
         assert np.array_equal(trained.direction, ref.direction)
         u = ref.force_n / probe.f_max_n
-        assert np.isclose(trained.force_n, probe.f_max_n * np.sqrt(u), rtol=1e-12)
+        assert np.isclose(trained.force_n, 1.5 * probe.f_max_n * np.sqrt(u), rtol=1e-12)
         assert trained.force_n >= held_out.force_n
-    uniform = dataclasses.replace(probe, train_force_exponent=1.0)
+    uniform = dataclasses.replace(probe, train_force_exponent=1.0, train_force_scale=1.0)
     assert push_for_sample(case.anatomy, uniform, 7, 4, 0, centers,
                            training=True).force_n == pushes[8].force_n

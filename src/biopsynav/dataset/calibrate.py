@@ -1,12 +1,13 @@
 """A force range that fits the breast at hand: ``[probe] calibrate_force``.
 
-Before the first sample, :func:`calibrate_force` pushes :data:`CALIBRATION_PUSHES` probe
+Before the first sample, :func:`calibrate_force` pushes ``[probe] calibration_pushes`` probe
 patches of the protocol (centre, angle and tilt drawn as for samples, from their own seeds)
 with one total force and measures each probe displacement (mean contact-point displacement,
 mm). The force is searched (secant steps on log force against log displacement) until the
 :data:`QUANTILE` of those displacements is ``[probe] max_push_mm`` within
 :data:`TOLERANCE`; that force becomes the data set's ``f_max_n``. Forces are then drawn
-uniformly in ``[0, f_max_n]`` as before, so the probe displacements spread up to the clinical
+in ``[0, f_max_n]`` as before (training forces up to ``[probe] train_force_scale`` times it),
+so the probe displacements spread up to the clinical
 depth on a stiff breast and a soft one alike, and few draws go deeper than the limit. A
 push whose solve fails counts as deeper than any. The result is recorded in the data set,
 and a resumed job reuses it.
@@ -22,7 +23,6 @@ import numpy as np
 
 from ..errors import BiopsynavError, SolverError
 
-CALIBRATION_PUSHES = 12
 QUANTILE = 0.9
 TOLERANCE = 0.05
 MAX_ROUNDS = 8
@@ -86,7 +86,7 @@ def calibration_pushes(case: Any) -> list:
     cfg = case.cfg
     centers = eligible_centers(case.anatomy, cfg.probe.min_chest_distance_mm)
     return [push_for_sample(case.anatomy, cfg.probe, cfg.dataset.seed, CALIBRATION_INDEX + i,
-                            0, centers, rigid=False) for i in range(CALIBRATION_PUSHES)]
+                            0, centers, rigid=False) for i in range(cfg.probe.calibration_pushes)]
 
 
 def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float

@@ -27,6 +27,7 @@ from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
 from .store import (
+    FORMER_PROBE_VALUES,
     DatasetStore,
     check_compatible,
     create_store,
@@ -474,6 +475,8 @@ def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "mean_disp_mm": stat("mean_disp_mm", np.mean),
         "max_probe_disp_mm": stat("probe_disp_mm", np.max),
         "force_calibration": store.group.attrs.get("force_calibration"),
+        "train_force_scale": float(store.group.attrs["protocol"]["probe"].get(
+            "train_force_scale", FORMER_PROBE_VALUES["train_force_scale"])),
         "mean_probe_disp_mm": stat("probe_disp_mm", np.mean),
         "max_force_n": stat("force_n", np.max),
         "rigid_pushes": int(np.count_nonzero(meta["force_n"] == 0.0)),  # force patches: > 0 N
@@ -494,16 +497,19 @@ def format_run_summary(s: dict) -> str:
              f"  pushes: probe displacement up to {s['max_probe_disp_mm']:.1f} mm (mean "
              f"{s['mean_probe_disp_mm']:.1f}), largest nodal displacement "
              f"{s['max_disp_mm']:.1f} mm, {s['rigid_pushes']} by the rigid probe face"]
-    lines += _calibration_line(s.get("force_calibration"))
+    lines += _calibration_line(s.get("force_calibration"), s.get("train_force_scale", 1.0))
     lines.append(f"  figures: {folder / SUMMARY_FILE}, histograms: {folder / PLOT_FILE}")
     return "\n".join(lines)
 
 
-def _calibration_line(found: dict | None) -> list[str]:
-    """The force calibration's line of :func:`format_run_summary` (none when it did not run)."""
+def _calibration_line(found: dict | None, scale: float) -> list[str]:
+    """The force calibration's line of :func:`format_run_summary` (none when it did not run);
+    ``scale``: ``[probe] train_force_scale`` of the data set."""
     if not found:
         return []
-    return [f"  force range: up to {found['f_max_n']:.2f} N, calibrated ({found['pushes']} "
+    training = f" (training pushes up to {scale * found['f_max_n']:.2f} N)" if scale != 1 else ""
+    return [f"  force range: up to {found['f_max_n']:.2f} N{training}, calibrated "
+            f"({found['pushes']} "
             f"pushes, {100 * found['quantile']:.0f}th percentile depth "
             f"{found['quantile_depth_mm']:.1f} mm for a target of {found['target_mm']:.1f} mm)"]
 

@@ -74,12 +74,13 @@ def dataset_path(case_dir: str | Path) -> Path:
 #: [probe] keys that only force patches use: not in the protocol of a data set of rigid
 #: pushes alone (``rigid_share = 1``, as a ``[refine]`` data set), which a new force range
 #: or its calibration then leaves valid.
-FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "calibrate_force", "max_tilt_deg",
-                    "depth_tolerance_mm")
+FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "calibrate_force",
+                    "max_tilt_deg", "depth_tolerance_mm")
 
 #: [probe] values that a protocol leaves out, being what every data set had before the key
 #: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
-FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "shape": "rectangle", "rigid_share": 0.0}
+FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "shape": "rectangle",
+                       "rigid_share": 0.0}
 
 
 def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
@@ -91,7 +92,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
     (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
-    push is rigid), and the seed, sizes, Newton budget and contact input of [dataset].
+    push is rigid; never ``calibration_pushes``: the calibration it found is recorded in the
+    data set), and the seed, sizes, Newton budget and contact input of [dataset].
     """
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
@@ -104,6 +106,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
             fe_model["contact_stiffness"] = cfg.tracker.contact_stiffness
     else:  # force patches only: the protocol of before rigid pushes (rigid_share 0: below)
         probe.pop("contact_tolerance_mm", None)
+    probe.pop("calibration_pushes", None)  # its calibration is recorded in the data set
     for key, former in FORMER_PROBE_VALUES.items():  # e.g. uniform forces: the former protocol
         if probe.get(key) == former:
             probe.pop(key)
