@@ -38,6 +38,7 @@ def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tm
     cfg = load_config(case_dir)
     cfg.probe.calibrate_force = True
     cfg.probe.calibration_pushes = 6  # fewer: the same search
+    cfg.probe.train_force_scale = 1.5  # training forces beyond the calibrated range
     cfg.probe.f_max_n = 40.0  # far too strong a first guess: the search must come down
     cfg.dataset.n_train, cfg.dataset.n_test = 6, 2
     save_config(case_dir, cfg)
