@@ -238,7 +238,8 @@ class ProbeSection:
                                         "f_max_n]. Above 1 it was measured worse on the UC "
                                         "Davis breast (1.5: Table 1 max e 0.46 against 0.25 mm "
                                         "on the same held-out pushes; docs/network.md, "
-                                        "'Training forces beyond the held-out range').",
+                                        "'A steadier force calibration, and training "
+                                        "forces beyond the held-out range').",
                                    lo=1.0, hi=4.0)
     calibrate_force: bool = opt(True, "Before generation, set the data set's force range "
                                       "for the breast at hand: f_max_n is searched (from the "

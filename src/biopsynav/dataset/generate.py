@@ -27,7 +27,6 @@ from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
 from .store import (
-    FORMER_PROBE_VALUES,
     DatasetStore,
     check_compatible,
     create_store,
@@ -35,6 +34,7 @@ from .store import (
     open_store,
     protocol_dict,
     protocol_fingerprint,
+    recorded_probe_value,
     remove_store,
 )
 from .worker import (
@@ -475,8 +475,8 @@ def run_summary(store: DatasetStore, stats: Counter, seconds: float) -> dict:
         "mean_disp_mm": stat("mean_disp_mm", np.mean),
         "max_probe_disp_mm": stat("probe_disp_mm", np.max),
         "force_calibration": store.group.attrs.get("force_calibration"),
-        "train_force_scale": float(store.group.attrs["protocol"]["probe"].get(
-            "train_force_scale", FORMER_PROBE_VALUES["train_force_scale"])),
+        "train_force_scale": float(recorded_probe_value(store.group.attrs["protocol"],
+                                                        "train_force_scale")),
         "mean_probe_disp_mm": stat("probe_disp_mm", np.mean),
         "max_force_n": stat("force_n", np.max),
         "rigid_pushes": int(np.count_nonzero(meta["force_n"] == 0.0)),  # force patches: > 0 N
@@ -497,7 +497,7 @@ def format_run_summary(s: dict) -> str:
              f"  pushes: probe displacement up to {s['max_probe_disp_mm']:.1f} mm (mean "
              f"{s['mean_probe_disp_mm']:.1f}), largest nodal displacement "
              f"{s['max_disp_mm']:.1f} mm, {s['rigid_pushes']} by the rigid probe face"]
-    lines += _calibration_line(s.get("force_calibration"), s.get("train_force_scale", 1.0))
+    lines += _calibration_line(s.get("force_calibration"), s["train_force_scale"])
     lines.append(f"  figures: {folder / SUMMARY_FILE}, histograms: {folder / PLOT_FILE}")
     return "\n".join(lines)
 
@@ -509,8 +509,7 @@ def _calibration_line(found: dict | None, scale: float) -> list[str]:
         return []
     training = f" (training pushes up to {scale * found['f_max_n']:.2f} N)" if scale != 1 else ""
     return [f"  force range: up to {found['f_max_n']:.2f} N{training}, calibrated "
-            f"({found['pushes']} "
-            f"pushes, {100 * found['quantile']:.0f}th percentile depth "
+            f"({found['pushes']} pushes, {100 * found['quantile']:.0f}th percentile depth "
             f"{found['quantile_depth_mm']:.1f} mm for a target of {found['target_mm']:.1f} mm)"]
 
 

@@ -83,6 +83,12 @@ FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "s
                        "rigid_share": 0.0}
 
 
+def recorded_probe_value(protocol: dict, key: str) -> Any:
+    """The stored ``protocol``'s [probe] ``key``; a key it leaves out reads as its
+    :data:`FORMER_PROBE_VALUES` entry."""
+    return (protocol.get("probe") or {}).get(key, FORMER_PROBE_VALUES[key])
+
+
 def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     """Everything besides anatomy and grid that decides the samples' content.
 

@@ -420,12 +420,11 @@ def elastic_rigid_pushes(data: Dataset) -> bool:
     springs (``[tracker] fem_contact = 'elastic'``): their fields do not move the points
     exactly with the face, which the contact projection would impose."""
     from ..contact.constraints import contact_constraint_names, is_elastic
-    from ..dataset.store import FORMER_PROBE_VALUES
+    from ..dataset.store import recorded_probe_value
 
     protocol = data.attrs.get("protocol") or {}
     kind = (protocol.get("fe_model") or {}).get("fem_contact")
-    share = (protocol.get("probe") or {}).get("rigid_share", FORMER_PROBE_VALUES["rigid_share"])
-    rigid = float(share) > 0.0
+    rigid = float(recorded_probe_value(protocol, "rigid_share")) > 0.0
     return rigid and kind in contact_constraint_names() and is_elastic(kind)
 
 
