@@ -21,6 +21,13 @@ Paper section 2.3 (Mendizabal, Tagliabue et al. 2019), every number from ``[prob
    of the skin mesh; nodal forces are ``W_P^T (F / |P|)`` with ``W_P`` the trilinear
    embedding of ``P``.
 
+A training push that goes deeper than ``[probe] max_push_mm`` is, with ``[probe]
+too_deep_redraw = "same-place"``, solved again at the same place (centre, angle, tilt) with its
+``u`` times a new uniform number (:func:`weaker_push`), until it stays within the limit: each
+place keeps its share of the training pushes, and the force that is kept follows the protocol's
+distribution cut at that place's depth limit (a uniform draw below a bound that is above the
+cut is, given that it falls below the cut, uniform below it).
+
 With ``[probe] rigid_share`` > 0 that share of the samples is a rigid-probe push instead
 (docs/dataset.md): contact points within ``contact_tolerance_mm`` of the face plane (the
 tracker's rest contact), avoiding skin in cells anchored to the chest wall; the direction
@@ -34,7 +41,7 @@ made it, in which order, or how many draws other samples needed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
@@ -259,6 +266,21 @@ def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int
                        else (1.0, 1.0))
     return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt, rigid,
                      pinned, exponent, scale)
+
+
+#: The stream of a training push's same-place redraws
+#: (``SeedSequence([seed, index, attempt, WEAKER_FORCE_STREAM, redraw])``).
+WEAKER_FORCE_STREAM = 11
+
+
+def weaker_push(push: ProbePush, probe: ProbeSection, seed: int, index: int, redraw: int
+                ) -> ProbePush:
+    """Redraw ``redraw`` (1, 2, ...) of sample ``index``'s too-deep training ``push``: the same
+    place and direction, its force (N) times ``v^train_force_exponent``, ``v`` uniform in
+    [0, 1] (its ``u`` times ``v``; module docstring)."""
+    stream = [int(seed), int(index), int(push.attempt), WEAKER_FORCE_STREAM, int(redraw)]
+    v = np.random.default_rng(np.random.SeedSequence(stream)).uniform(0.0, 1.0)
+    return replace(push, force_n=push.force_n * v ** probe.train_force_exponent)
 
 
 def pinned_skin(fixed_nodes: np.ndarray, skin_nodes: np.ndarray) -> np.ndarray:

@@ -204,14 +204,22 @@ def test_failed_solves_are_logged_and_replaced(fresh_case):
         assert g["force_n"][i] == push.force_n
 
 
-def test_pushes_deeper_than_the_limit_are_logged_and_redrawn(fresh_case, reference):
+def generate_with_half_the_pushes_too_deep(fresh_case, reference, redraw: str):
+    """``fresh_case`` generated with the reference's median probe displacement as the depth
+    limit and ``[probe] too_deep_redraw = redraw``: (summary, store, reference store, limit)."""
     ref = open_data(reference)
-    ref_disp = ref["probe_disp_mm"][:]
-    limit = float(np.median(ref_disp))  # about half the reference's pushes go deeper
-    edit_config(fresh_case, probe={"max_push_mm": limit}, dataset={"max_failure_share": 1.0})
+    limit = float(np.median(ref["probe_disp_mm"][:]))  # about half the pushes go deeper
+    edit_config(fresh_case, probe={"max_push_mm": limit, "too_deep_redraw": redraw},
+                dataset={"max_failure_share": 1.0})
     summary = generate_case(fresh_case, workers=2, progress=False)
-    g = open_data(fresh_case)
+    return summary, open_data(fresh_case), ref, limit
+
+
+def check_too_deep_log(summary, g, ref, limit) -> set:
+    """Every kept push within ``limit``, every earlier draw logged as what it was; the logged
+    draws' keys (index, attempt, redraw)."""
     disp, attempts = g["probe_disp_mm"][:], g["attempt"][:]
+    ref_disp = ref["probe_disp_mm"][:]
     assert summary["count"] == N and disp.max() <= limit
     deep = [f for f in g.attrs["failures"] if f["kind"] == "too_deep"]
     assert len(deep) == summary["too_deep"] == summary["too_deep_total"] >= (ref_disp > limit).sum()
@@ -222,9 +230,43 @@ def test_pushes_deeper_than_the_limit_are_logged_and_redrawn(fresh_case, referen
         if ref_disp[i] <= limit:
             assert attempts[i] == ref["attempt"][i]
             assert np.array_equal(g["targets"][i], ref["targets"][i])
-    assert (attempts > ref["attempt"][:]).any()
     # the summary's max probe displacement, and the histogram, are of the kept pushes
     assert summary["max_probe_disp_mm"] <= round(limit, 4) + 1e-4
+    return {(f["index"], f["attempt"], f.get("redraw", 0)) for f in g.attrs["failures"]}
+
+
+def test_pushes_deeper_than_the_limit_are_redrawn_elsewhere(fresh_case, reference):
+    summary, g, ref, limit = generate_with_half_the_pushes_too_deep(fresh_case, reference,
+                                                                    "elsewhere")
+    logged = check_too_deep_log(summary, g, ref, limit)
+    assert all(redraw == 0 for _, _, redraw in logged)
+    deep = ref["probe_disp_mm"][:] > limit
+    assert (g["attempt"][:][deep] > ref["attempt"][:][deep]).all()  # each moved to a new draw
+
+
+def test_training_pushes_deeper_than_the_limit_are_redrawn_weaker_at_the_same_place(
+        fresh_case, reference):
+    """[probe] too_deep_redraw = "same-place" (the default): a too-deep training push keeps its
+    patch and gets a weaker force, logged redraw by redraw; held-out pushes move elsewhere."""
+    from biopsynav.probe import weaker_push
+
+    summary, g, ref, limit = generate_with_half_the_pushes_too_deep(fresh_case, reference,
+                                                                    "same-place")
+    logged = check_too_deep_log(summary, g, ref, limit)
+    case = Case.load(fresh_case)
+    deep = np.flatnonzero(ref["probe_disp_mm"][:] > limit)
+    kept_in_place = [i for i in deep if i < N_TRAIN and g["attempt"][i] == ref["attempt"][i]]
+    assert kept_in_place and all(g["attempt"][i] > ref["attempt"][i] for i in deep
+                                 if i >= N_TRAIN)
+    for i in kept_in_place:  # the same patch, a force the logged redraws reproduce
+        a = int(g["attempt"][i])
+        redraws = max(r for j, att, r in logged if (j, att) == (i, a)) + 1
+        push = push_for_sample(case.anatomy, case.cfg.probe, case.cfg.dataset.seed, i, a,
+                               training=True)
+        for k in range(1, redraws + 1):
+            push = weaker_push(push, case.cfg.probe, case.cfg.dataset.seed, i, k)
+        assert g["vertex"][i] == ref["vertex"][i] and g["n_contact"][i] == ref["n_contact"][i]
+        assert g["force_n"][i] == push.force_n < ref["force_n"][i]
 
 
 def test_too_many_deep_pushes_stop_the_job(fresh_case):

@@ -6,8 +6,9 @@ most two samples in flight per worker. A kill of anything loses only the samples
 running again computes just the missing ones. Sample ``i`` depends only on ``(seed, i, attempt)``
 (:func:`biopsynav.probe.sample_rng`), and a draw whose solve does not converge, or that pushes
 deeper than ``[probe] max_push_mm``, is recorded and replaced by the next attempt of the same
-index, so the result is bit-identical whatever
-the worker count, order or interruptions.
+index (a too-deep training push first by weaker forces at the same place, within the same task:
+``[probe] too_deep_redraw``), so the result is bit-identical whatever the worker count, order or
+interruptions.
 """
 
 from __future__ import annotations
@@ -335,6 +336,7 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                         f"{attempt}) several times ({exc}); the samples written so far are "
                         "kept: check the workers' memory and logs, then run the same command "
                         "again to resume", "generate") from None
+                _record_same_place_redraws(store, result, stats)
                 if result["ok"]:
                     store.write_sample(result)
                     stats["computed"] += 1
@@ -349,6 +351,15 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     _check_failure_share(store, max_failure_share, n_total)
     finally:
         bar.close()
+
+
+def _record_same_place_redraws(store: DatasetStore, result: dict, stats: Counter) -> None:
+    """Log the too-deep draws that ``result`` redrew at the same place (``[probe]
+    too_deep_redraw``), before its own outcome is written."""
+    before = result.get("too_deep_before") or []
+    if before:
+        store.add_failures([_failure_record(r) for r in before])
+        stats["too_deep"] += len(before)
 
 
 def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
@@ -381,7 +392,9 @@ def _failure_record(result: dict) -> dict:
     """What the failures log keeps of a draw that was not kept (``kind``: why)."""
     extra = {"probe_disp_mm": round(result["probe_disp_mm"], 3)} if "probe_disp_mm" in result \
         else {}
-    return {"index": result["index"], "attempt": result["attempt"], "kind": result["kind"],
+    redraw = {"redraw": result["redraw"]} if result.get("redraw") else {}
+    return {"index": result["index"], "attempt": result["attempt"], **redraw,
+            "kind": result["kind"],
             "error": result["error"], **extra,
             "force_n": result["force_n"], "tilt_deg": result["tilt_deg"],
             "vertex": result["vertex"], "newton_iters": result["newton_iters"],

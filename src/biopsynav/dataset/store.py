@@ -74,13 +74,13 @@ def dataset_path(case_dir: str | Path) -> Path:
 #: [probe] keys that only force patches use: not in the protocol of a data set of rigid
 #: pushes alone (``rigid_share = 1``, as a ``[refine]`` data set), which a new force range
 #: or its calibration then leaves valid.
-FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "calibrate_force",
-                    "max_tilt_deg", "depth_tolerance_mm")
+FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "too_deep_redraw",
+                    "calibrate_force", "max_tilt_deg", "depth_tolerance_mm")
 
 #: [probe] values that a protocol leaves out, being what every data set had before the key
 #: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
 FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "shape": "rectangle",
-                       "rigid_share": 0.0}
+                       "rigid_share": 0.0, "too_deep_redraw": "elsewhere"}
 
 
 def recorded_probe_value(protocol: dict, key: str) -> Any:
@@ -161,6 +161,12 @@ def protocol_fingerprint(protocol: dict) -> str:
     return hashlib.sha256(json.dumps(protocol, sort_keys=True).encode()).hexdigest()
 
 
+def failure_key(record: dict) -> tuple[int, int, int]:
+    """What identifies a logged draw: its sample index, attempt and same-place redraw (0 for
+    the attempt's own draw, and for records written before redraws existed)."""
+    return int(record["index"]), int(record["attempt"]), int(record.get("redraw", 0))
+
+
 @dataclass
 class DatasetStore:
     """An open ``dataset.zarr`` (read-write), with handles on its arrays."""
@@ -190,10 +196,10 @@ class DatasetStore:
         self.arrays["done"][i] = True
 
     def add_failures(self, records: list[dict]) -> None:
-        """Append records of draws not kept (deduplicated on index and attempt)."""
+        """Append records of draws not kept (deduplicated on index, attempt and redraw)."""
         known = self.failures()
-        seen = {(f["index"], f["attempt"]) for f in known}
-        new = [r for r in records if (r["index"], r["attempt"]) not in seen]
+        seen = {failure_key(f) for f in known}
+        new = [r for r in records if failure_key(r) not in seen]
         if new:
             self.group.attrs["failures"] = known + new
 

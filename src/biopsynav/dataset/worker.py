@@ -93,26 +93,55 @@ class SampleContext:
             self.compliance = ContactCompliance.from_case(case)
 
 
-def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
-    """Draw, solve and package sample ``index`` (draw ``attempt``).
+#: Same-place redraws of a too-deep training push (``[probe] too_deep_redraw``) before the
+#: attempt is given up as too deep (the next attempt draws a new place).
+MAX_SAME_PLACE_REDRAWS = 8
 
-    Returns a dict with ``index``, ``attempt``, ``ok``; when ok: ``inputs`` (4, nx, ny, nz)
-    float32, ``targets`` (3, nx, ny, nz) float32 and the per-sample metadata; when the draw
-    was not kept: ``kind`` (:data:`NOT_CONVERGED`, :data:`TOO_DEEP` or :data:`IMPLAUSIBLE`),
-    ``error`` (message) and ``diagnostics`` (last Newton iterations; empty for a push that
-    was solved).
+
+def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
+    """Draw, solve and package sample ``index`` (draw ``attempt``), a too-deep training push
+    redrawn at the same place (``[probe] too_deep_redraw``) within the same call.
+
+    Returns a dict with ``index``, ``attempt``, ``redraw`` (same-place redraws before it),
+    ``ok``, ``too_deep_before`` (the results of those redraws' too-deep draws); when ok:
+    ``inputs`` (4, nx, ny, nz) float32, ``targets`` (3, nx, ny, nz) float32 and the
+    per-sample metadata; when the draw was not kept: ``kind`` (:data:`NOT_CONVERGED`,
+    :data:`TOO_DEEP` or :data:`IMPLAUSIBLE`), ``error`` (message) and ``diagnostics`` (last
+    Newton iterations; empty for a push that was solved).
     """
-    from ..errors import SolverError
-    from ..grid.index import field_to_tensor
-    from ..probe import contact_input, push_for_sample
+    from ..probe import push_for_sample, weaker_push
 
     cfg = ctx.case.cfg
+    training = index < cfg.dataset.n_train
     push = push_for_sample(ctx.case.anatomy, cfg.probe, cfg.dataset.seed, index, attempt,
-                           ctx.centers, pinned=ctx.pinned, training=index < cfg.dataset.n_train)
+                           ctx.centers, pinned=ctx.pinned, training=training)
+    result, before = solve_draw(ctx, push, index, 0), []
+    while redraws_here(ctx, result, training) and len(before) < MAX_SAME_PLACE_REDRAWS:
+        before.append(result)
+        push = weaker_push(push, cfg.probe, cfg.dataset.seed, index, len(before))
+        result = solve_draw(ctx, push, index, len(before))
+    result["too_deep_before"] = before
+    return result
+
+
+def redraws_here(ctx: SampleContext, result: dict, training: bool) -> bool:
+    """Whether ``result`` is a too-deep training force patch that ``[probe] too_deep_redraw``
+    redraws at the same place."""
+    return (training and not result["ok"] and result["kind"] == TOO_DEEP
+            and result["force_n"] > 0.0 and ctx.case.cfg.probe.too_deep_redraw == "same-place")
+
+
+def solve_draw(ctx: SampleContext, push: Any, index: int, redraw: int) -> dict:
+    """Solve and package one draw ``push`` of sample ``index`` (``redraw``: its same-place
+    redraws before it); the dict of :func:`compute_sample` without ``too_deep_before``."""
+    from ..errors import SolverError
+    from ..grid.index import field_to_tensor
+    from ..probe import contact_input
+
     contact, loaded = ctx.skin[push.contact], ctx.teacher.skin.matrix[push.contact]
     start = time.perf_counter()
-    result: dict[str, Any] = {"index": int(index), "attempt": int(attempt),
-                              **push_metadata(push)}
+    result: dict[str, Any] = {"index": int(index), "attempt": int(push.attempt),
+                              "redraw": int(redraw), **push_metadata(push)}
     try:  # an extrapolating teacher's case grid first: it costs a fraction of the fine solve
         u_case = case_grid_solution(ctx, push)
         rejected = case_grid_rejection(ctx, u_case)
