@@ -251,7 +251,7 @@ class ProbeSection:
                                              "before the forty-seventh session), which moves "
                                              "training pushes away from the soft places where "
                                              "pushes go deep. Held-out pushes are always redrawn "
-                                             "elsewhere (docs/dataset.md, 'The depth limit').",
+                                             "elsewhere (docs/dataset.md, protocol step 6).",
                                choices=("same-place", "elsewhere"))
     calibrate_force: bool = opt(True, "Before generation, set the data set's force range "
                                       "for the breast at hand: f_max_n is searched (from the "
