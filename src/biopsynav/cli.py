@@ -14,6 +14,7 @@ from pathlib import Path
 
 from .errors import BiopsynavError, InputError
 from .fileio import json_default
+from .layout import CasePaths
 from .reference_registry import reference_names
 
 LABEL_OPTIONS = ("--breast-labels", "--lesion-labels", "--chest-labels", "--tissue-labels")
@@ -96,6 +97,11 @@ def cmd_init(args: argparse.Namespace) -> int:
                      overwrite=args.overwrite)
     print(f"case written to {case.dir} ({case.grid.active_cells.sum()} active cells, "
           f"{len(case.anatomy.lesions)} lesions)")
+    kept = CasePaths(case.dir).outputs()
+    if kept:
+        print(f"kept from before: {', '.join(p.name for p in kept)}; each is checked against "
+              "the rebuilt case when it is used (a data set or model of another anatomy, grid "
+              "or protocol is refused; 'generate --overwrite' starts the data again)")
     return 0
 
 

@@ -122,3 +122,7 @@ class CasePaths:
     @property
     def lock(self) -> Path:
         return self.dir / LOCK_NAME
+
+    def outputs(self) -> list[Path]:
+        """The pipeline outputs the folder holds (data set, model, refined case, evaluation)."""
+        return [p for p in (self.dataset, self.model, self.refine, self.eval) if p.exists()]

@@ -75,6 +75,9 @@ def test_init_info_show_phantom(tmp_path, capsys):
     assert code == 0 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     code, _, err = run(capsys, "init", case, "--phantom")
     assert code == 2 and "already exists" in err
+    (case / "model").mkdir()  # a rebuilt case names what it keeps from before
+    code, out, err = run(capsys, "init", case, "--phantom", "--overwrite")
+    assert code == 0 and "kept from before: model;" in out and (case / "model").is_dir()
 
 
 def test_init_from_stl_and_csv(tmp_path, capsys, dome_stl, dome_lesions_csv):
