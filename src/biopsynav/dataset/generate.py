@@ -336,7 +336,8 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                         f"{attempt}) several times ({exc}); the samples written so far are "
                         "kept: check the workers' memory and logs, then run the same command "
                         "again to resume", "generate") from None
-                _record_same_place_redraws(store, result, stats)
+                if _record_same_place_redraws(store, result, stats):
+                    _check_failure_share(store, max_failure_share, n_total)
                 if result["ok"]:
                     store.write_sample(result)
                     stats["computed"] += 1
@@ -353,13 +354,14 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
         bar.close()
 
 
-def _record_same_place_redraws(store: DatasetStore, result: dict, stats: Counter) -> None:
+def _record_same_place_redraws(store: DatasetStore, result: dict, stats: Counter) -> int:
     """Log the too-deep draws that ``result`` redrew at the same place (``[probe]
-    too_deep_redraw``), before its own outcome is written."""
+    too_deep_redraw``), before its own outcome is written; how many."""
     before = result.get("too_deep_before") or []
     if before:
         store.add_failures([_failure_record(r) for r in before])
         stats["too_deep"] += len(before)
+    return len(before)
 
 
 def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
