@@ -246,8 +246,8 @@ def test_pushes_deeper_than_the_limit_are_redrawn_elsewhere(fresh_case, referenc
 
 def test_training_pushes_deeper_than_the_limit_are_redrawn_weaker_at_the_same_place(
         fresh_case, reference):
-    """[probe] too_deep_redraw = "same-place" (the default): a too-deep training push keeps its
-    patch and gets a weaker force, logged redraw by redraw; held-out pushes move elsewhere."""
+    """[probe] too_deep_redraw = "same-place": a too-deep training push keeps its patch and gets
+    a weaker force, logged redraw by redraw; held-out pushes move elsewhere."""
     from biopsynav.probe import weaker_push
 
     summary, g, ref, limit = generate_with_half_the_pushes_too_deep(fresh_case, reference,

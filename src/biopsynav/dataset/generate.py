@@ -6,9 +6,9 @@ most two samples in flight per worker. A kill of anything loses only the samples
 running again computes just the missing ones. Sample ``i`` depends only on ``(seed, i, attempt)``
 (:func:`biopsynav.probe.sample_rng`), and a draw whose solve does not converge, or that pushes
 deeper than ``[probe] max_push_mm``, is recorded and replaced by the next attempt of the same
-index (a too-deep training push first by weaker forces at the same place, within the same task:
-``[probe] too_deep_redraw``), so the result is bit-identical whatever the worker count, order or
-interruptions.
+index (with ``[probe] too_deep_redraw = "same-place"`` a too-deep training push first by
+weaker forces at the same place, within the same task), so the result is bit-identical
+whatever the worker count, order or interruptions.
 """
 
 from __future__ import annotations

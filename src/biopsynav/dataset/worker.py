@@ -100,7 +100,7 @@ MAX_SAME_PLACE_REDRAWS = 8
 
 def compute_sample(ctx: SampleContext, index: int, attempt: int) -> dict:
     """Draw, solve and package sample ``index`` (draw ``attempt``), a too-deep training push
-    redrawn at the same place (``[probe] too_deep_redraw``) within the same call.
+    redrawn at the same place (``[probe] too_deep_redraw = "same-place"``) within the same call.
 
     Returns a dict with ``index``, ``attempt``, ``redraw`` (same-place redraws before it),
     ``ok``, ``too_deep_before`` (the results of those redraws' too-deep draws); when ok:
