@@ -12,7 +12,8 @@ over active nodes), then the mean nodal error (mm) and the mean target displacem
 bands of distance from the push's centre vertex (mm, at rest), for all active nodes and for
 those inside and outside the breast surface (immersed-grid nodes outside it carry the field's
 extension, not tissue), and the same at the lesion centres (the trilinear interpolation of
-the nodal error there, by the lesion's distance from the push's centre). A training error as
+the nodal error there, by the lesion's distance from the push's centre), and the mean and max
+e by the push's probe displacement (:data:`DEPTHS_MM`). A training error as
 large as the held-out one says that the network cannot fit its teacher there (the targets
 are not smooth enough for the grid, or the network too small), not that it lacks samples.
 The last line reads ``RESULT train_e_mm=... test_e_mm=... test_band_10_20_mm=...
@@ -31,6 +32,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 BANDS_MM = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, np.inf))
+#: Bins of the push's probe displacement (mm; Table 1's depth bins, the paper's D30 from 27.5).
+DEPTHS_MM = ((0.0, 10.0), (10.0, 20.0), (20.0, 27.5), (27.5, np.inf))
 
 
 def predictions(sur, case, data, idx: np.ndarray) -> np.ndarray:
@@ -53,6 +56,19 @@ def band_rows(err: np.ndarray, disp: np.ndarray, dist: np.ndarray, keep: np.ndar
         rows.append([lo, hi if np.isfinite(hi) else None, n,
                      float(err[m].mean()) if n else None,
                      float(disp[m].mean()) if n else None])
+    return rows
+
+
+def depth_rows(e: np.ndarray, depth: np.ndarray) -> list:
+    """Per probe-displacement bin of :data:`DEPTHS_MM`: [lo, hi (None: open), samples, mean
+    e mm, max e mm] of the per-sample errors ``e`` (n,) with probe displacements ``depth``
+    (n,) mm; an empty bin has None for both errors."""
+    rows = []
+    for lo, hi in DEPTHS_MM:
+        m = (depth >= lo) & (depth < hi)
+        n = int(m.sum())
+        rows.append([lo, hi if np.isfinite(hi) else None, n,
+                     float(e[m].mean()) if n else None, float(e[m].max()) if n else None])
     return rows
 
 
@@ -86,13 +102,15 @@ def sample_set_figures(sur, case, data, idx: np.ndarray, nodes: np.ndarray,
     e = mean_norm_error_np(pred, y, active)
     err = np.linalg.norm(pred - y, axis=1)[:, active]
     disp = np.linalg.norm(y, axis=1)[:, active]
-    centres = np.asarray(zarr.open_group(str(data.path), mode="r")["center"][:])[idx]
+    store = zarr.open_group(str(data.path), mode="r")
+    centres = np.asarray(store["center"][:])[idx]
+    depth = np.asarray(store["probe_disp_mm"][:])[idx]
     dist = np.linalg.norm(nodes[None] - centres[:, None], axis=2)
     every = np.ones_like(err, dtype=bool)
     inner = np.broadcast_to(inside, err.shape)
     l_err, l_disp, l_dist = lesion_errors(case, pred, y, centres)
     return {"samples": len(idx), "mean_e_mm": float(e.mean()), "max_e_mm": float(e.max()),
-            "lesion_mm": float(l_err.mean()),
+            "lesion_mm": float(l_err.mean()), "by_depth": depth_rows(e, depth),
             "bands": {"all": band_rows(err, disp, dist, every),
                       "inside": band_rows(err, disp, dist, inner),
                       "outside": band_rows(err, disp, dist, ~inner),
@@ -109,6 +127,11 @@ def print_figures(name: str, f: dict) -> None:
             band = f">{lo:g}" if hi is None else f"{lo:g}-{hi:g}"
             if n:
                 print(f"{where:>8} {band:>10} {n:>8} {err:>9.3f} {disp:>8.2f}")
+    print(f"{'probe displacement mm':>22} {'samples':>8} {'mean e mm':>10} {'max e mm':>9}")
+    for lo, hi, n, mean, worst in f["by_depth"]:
+        if n:
+            band = f">{lo:g}" if hi is None else f"{lo:g}-{hi:g}"
+            print(f"{band:>22} {n:>8} {mean:>10.3f} {worst:>9.3f}")
 
 
 def run(case_dir: Path, train_samples: int) -> dict:

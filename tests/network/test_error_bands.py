@@ -41,6 +41,12 @@ def test_the_held_out_error_is_table_1s_and_the_bands_share_its_nodes(trained_ca
         n_lesions = len(Case.load(trained_case).anatomy.lesions)
         assert sum(row[2] for row in bands["lesions"]) == figures["samples"] * n_lesions
         assert 0.0 <= figures["lesion_mm"] < np.inf
+        # every sample in one probe-displacement bin; their means give the mean e back
+        depth = figures["by_depth"]
+        assert sum(row[2] for row in depth) == figures["samples"]
+        assert sum(row[2] * row[3] for row in depth if row[2]) == pytest.approx(
+            figures["samples"] * figures["mean_e_mm"], rel=1e-6)
+        assert max(row[4] for row in depth if row[2]) == pytest.approx(figures["max_e_mm"])
     assert capsys.readouterr().out.splitlines()[-1].startswith("RESULT train_e_mm=")
 
 
