@@ -13,8 +13,8 @@ Layout (a Zarr v3 group; N = n_train + n_test; node arrays follow
 * per-sample metadata (N,) or (N, 3): see :data:`META_FIELDS`;
 * attrs: ``n_train``, ``n_test``, ``fingerprint`` (anatomy + grid), ``protocol_fingerprint``,
   ``protocol`` (what it hashes), ``node_shape``, ``format``, ``failures`` (the draws not kept:
-  index, attempt, ``kind`` ``not_converged``, ``too_deep`` or ``implausible``, message, last
-  Newton iterations).
+  index, attempt, ``redraw`` for a same-place redraw (``[probe] too_deep_redraw``), ``kind``
+  ``not_converged``, ``too_deep`` or ``implausible``, message, last Newton iterations).
 
 Samples ``[0, n_train)`` are for training, ``[n_train, N)`` held out. Every chunk carries a
 CRC-32C (:func:`checked_compressors`; stores written before it have none and are read unchecked).
