@@ -118,20 +118,23 @@ def sample_set_figures(sur, case, data, idx: np.ndarray, nodes: np.ndarray,
                                            np.ones_like(l_err, dtype=bool))}}
 
 
+def band_label(lo: float, hi: float | None) -> str:
+    """"lo-hi", or ">lo" for an open band (``hi`` None)."""
+    return f">{lo:g}" if hi is None else f"{lo:g}-{hi:g}"
+
+
 def print_figures(name: str, f: dict) -> None:
     print(f"\n{name}: {f['samples']} samples, mean e {f['mean_e_mm']:.3f} mm, max e "
           f"{f['max_e_mm']:.3f} mm, at the lesion centres {f['lesion_mm']:.3f} mm")
     print(f"{'nodes':>8} {'band mm':>10} {'values':>8} {'error mm':>9} {'|u| mm':>8}")
     for where, rows in f["bands"].items():
         for lo, hi, n, err, disp in rows:
-            band = f">{lo:g}" if hi is None else f"{lo:g}-{hi:g}"
             if n:
-                print(f"{where:>8} {band:>10} {n:>8} {err:>9.3f} {disp:>8.2f}")
+                print(f"{where:>8} {band_label(lo, hi):>10} {n:>8} {err:>9.3f} {disp:>8.2f}")
     print(f"{'probe displacement mm':>22} {'samples':>8} {'mean e mm':>10} {'max e mm':>9}")
     for lo, hi, n, mean, worst in f["by_depth"]:
         if n:
-            band = f">{lo:g}" if hi is None else f"{lo:g}-{hi:g}"
-            print(f"{band:>22} {n:>8} {mean:>10.3f} {worst:>9.3f}")
+            print(f"{band_label(lo, hi):>22} {n:>8} {mean:>10.3f} {worst:>9.3f}")
 
 
 def run(case_dir: Path, train_samples: int) -> dict:

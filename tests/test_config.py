@@ -88,6 +88,8 @@ def test_defaults_round_trip(tmp_path):
     ({"probe": {"calibration_pushes": 2}}, "below its minimum"),
     ({"probe": {"calibration_pushes": 12.5}}, "must be an integer"),
     ({"probe": {"calibration_pushes": "many"}}, "calibration_pushes"),
+    ({"probe": {"too_deep_redraw": "nowhere"}}, "must be one of"),
+    ({"probe": {"too_deep_redraw": 1}}, "too_deep_redraw"),
     ({"tracker": {"spring_budget": -1}}, "below its minimum"),
     ({"tracker": {"spring_budget": 1.5}}, "must be an integer"),
     ({"tracker": {"spring_budget": "many"}}, "spring_budget"),
