@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import shutil
 
+import numpy as np
 import pytest
 
 from biopsynav.config import load_config, save_config
@@ -29,6 +30,17 @@ def test_search_steps_stay_in_the_bracket():
     assert best_force([(4.0, 36.0), (3.0, 30.0)], 35.0) == (4.0, 36.0)
     with pytest.raises(BiopsynavError, match="every force tried"):
         best_force([(4.0, math.inf), (2.0, 50.0)], 35.0)
+
+
+def test_a_round_stops_once_its_quantile_can_only_be_a_failure():
+    """failures_allowed is the count of failed pushes the QUANTILE depth survives: one more
+    and it is inf whatever the unsolved pushes would give (so a round may stop there)."""
+    for n in range(1, 120):
+        allowed = calibrate.failures_allowed(n)
+        for failed in range(n + 1):
+            depths = np.concatenate([np.linspace(1.0, 40.0, n - failed), np.full(failed, np.inf)])
+            assert math.isinf(calibrate.quantile_depth(depths)) == (failed > allowed), (n, failed)
+    assert calibrate.failures_allowed(48) == 4 and calibrate.failures_allowed(6) == 0
 
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,

@@ -9,8 +9,10 @@ mm). The force is searched (secant steps on log force against log displacement) 
 in ``[0, f_max_n]`` as before (training forces up to ``[probe] train_force_scale`` times it),
 so the probe displacements spread up to the clinical
 depth on a stiff breast and a soft one alike, and few draws go deeper than the limit. A
-push whose solve fails counts as deeper than any. The result is recorded in the data set,
-and a resumed job reuses it.
+push whose solve fails counts as deeper than any; a round stops once so many have failed
+that its quantile is a failure whatever the rest give (:func:`failures_allowed`), solving
+first the pushes that went deepest at the force before. The result is recorded in the data
+set, and a resumed job reuses it.
 """
 
 from __future__ import annotations
@@ -68,9 +70,12 @@ def search_force(model: Any, settings: Any, contacts: list, force: float, target
     :data:`QUANTILE` depth of the ``contacts`` pushes (see :func:`calibration_depths`) is
     within :data:`TOLERANCE` of ``target``, the bracket closes, or :data:`MAX_ROUNDS` pass."""
     history: list[tuple[float, float]] = []
+    depths = np.zeros(len(contacts))
     for _ in range(MAX_ROUNDS):
-        depths = calibration_depths(model, settings, contacts, force)
-        history.append((force, float(np.quantile(depths, QUANTILE, method="inverted_cdf"))))
+        # the pushes deepest (or failed) at the last force first: a round that fails ends soon
+        depths = calibration_depths(model, settings, contacts, force,
+                                    order=np.argsort(-depths, kind="stable"))
+        history.append((force, quantile_depth(depths)))
         if abs(history[-1][1] - target) <= TOLERANCE * target:
             break
         force = next_force(history, target)
@@ -89,21 +94,40 @@ def calibration_pushes(case: Any) -> list:
                             0, centers, rigid=False) for i in range(cfg.probe.calibration_pushes)]
 
 
-def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float
-                       ) -> np.ndarray:
+def quantile_depth(depths: np.ndarray) -> float:
+    """The :data:`QUANTILE` of the pushes' probe displacements (mm; inf when too many
+    failed)."""
+    return float(np.quantile(depths, QUANTILE, method="inverted_cdf"))
+
+
+def failures_allowed(n_pushes: int) -> int:
+    """How many of ``n_pushes`` solves may fail before the :data:`QUANTILE` depth is inf
+    (it is the ``ceil(QUANTILE n)``-th smallest depth)."""
+    return n_pushes - math.ceil(QUANTILE * n_pushes - 1e-9)
+
+
+def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float,
+                       order: np.ndarray | None = None) -> np.ndarray:
     """Probe displacement (mm) of each push at ``force_n`` N total; inf where the solve
     fails. ``contacts``: per push, the contact points' embedding (CSR (n, n_nodes)) and the
-    unit force direction (3,)."""
+    unit force direction (3,). The pushes are solved in ``order`` (default: as given); once
+    more have failed than :func:`failures_allowed`, the rest are left unsolved (inf too):
+    the round's quantile is inf whatever they give."""
     from ..fem import Loads, solve
     from ..probe import nodal_forces
     from .worker import probe_displacement
 
     depths = np.full(len(contacts), np.inf)
-    for i, (contact, direction) in enumerate(contacts):
+    allowed, failed = failures_allowed(len(contacts)), 0
+    for i in range(len(contacts)) if order is None else order:
+        contact, direction = contacts[i]
         try:
             u, _ = solve(model, Loads(forces=nodal_forces(contact, force_n * direction)),
                          settings)
         except SolverError:
+            failed += 1
+            if failed > allowed:
+                break
             continue
         depths[i] = probe_displacement(contact @ u)
     return depths
