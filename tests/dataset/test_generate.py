@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -27,10 +28,13 @@ from biopsynav.probe import contact_input, probe_patch, push_for_sample
 N = N_TRAIN + N_TEST
 
 SCRIPT = """
+import faulthandler
 import sys
 from biopsynav.dataset.generate import generate_case
 
 if __name__ == "__main__":
+    # a run that hangs prints every thread's stack and exits: the test shows where it hung
+    faulthandler.dump_traceback_later(100, exit=True)
     generate_case(sys.argv[1], workers=int(sys.argv[2]), progress=False)
 """
 
@@ -160,6 +164,44 @@ def test_resume_after_sigkill_of_the_main_process(fresh_case, reference, tmp_pat
     assert summary["count"] == N
     assert summary["computed_this_run"] == N - at_kill
     assert_same_dataset(fresh_case, reference)
+
+
+def test_a_dead_worker_is_noticed_when_no_future_says_so(fresh_case, monkeypatch):
+    """A worker killed at the wrong moment can leave the executor's futures pending for ever;
+    the local runner's wait then notices the dead process itself (BrokenProcessPool, which
+    the main loop answers by restarting the pool) instead of waiting for ever."""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from biopsynav.dataset import generate
+    from biopsynav.dataset.worker import WorkerSpec
+
+    monkeypatch.setattr(generate, "WORKER_WATCH_S", 0.2)
+    runner = generate.LocalRunner(WorkerSpec(Case.load(fresh_case), "key"), 1)
+    try:
+        assert runner.submit(0, 0).result(timeout=120)["index"] == 0  # the worker is up
+        never = Future()  # a future no worker will ever finish
+        assert runner.wait_any([never, runner.submit(1, 0)])  # a live worker: its result
+        pid = next(iter(runner.pool._processes))
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30
+        while alive(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        outcome: list[BaseException] = []
+
+        def wait_for_never() -> None:
+            try:
+                runner.wait_any([never])
+            except BrokenProcessPool as exc:
+                outcome.append(exc)
+
+        waiter = threading.Thread(target=wait_for_never, daemon=True)
+        waiter.start()
+        waiter.join(60)
+        assert not waiter.is_alive(), "the wait did not notice the dead worker"
+        assert len(outcome) == 1 and str(pid) in str(outcome[0])
+    finally:
+        runner.close()
 
 
 def test_a_killed_worker_is_replaced(fresh_case, reference, tmp_path, assert_same_dataset):

@@ -56,6 +56,9 @@ STAT_OF_KIND = {NOT_CONVERGED: "failures", TOO_DEEP: "too_deep", IMPLAUSIBLE: "i
 MIN_DRAWS_FOR_SHARE = 20
 #: A sample whose draw crashes the worker pool this many times stops the job.
 MAX_POOL_CRASHES = 3
+#: How often (s) a local pool with nothing finished checks that its worker processes live: a
+#: worker killed at the wrong moment can leave the executor's own futures pending for ever.
+WORKER_WATCH_S = 5.0
 #: Samples in flight per worker (bounds memory and the work lost to a kill).
 IN_FLIGHT_PER_WORKER = 2
 
@@ -208,7 +211,20 @@ class LocalRunner:
             return self.pool.submit(process_sample, int(index), int(attempt))
 
     def wait_any(self, futures: list) -> set:
-        return wait(futures, return_when=FIRST_COMPLETED)[0]
+        """The futures of ``futures`` that finished, once one has; BrokenProcessPool when a
+        worker process died and the executor did not say so on any future."""
+        while True:
+            done = wait(futures, timeout=WORKER_WATCH_S, return_when=FIRST_COMPLETED)[0]
+            if done:
+                return done
+            dead = self._dead_workers()
+            if dead:
+                raise BrokenProcessPool(f"worker process(es) {dead} died, their tasks pending")
+
+    def _dead_workers(self) -> list[int]:
+        """Process ids of this pool's workers that have exited."""
+        processes = dict(getattr(self.pool, "_processes", None) or {})
+        return [pid for pid, proc in processes.items() if proc.exitcode is not None]
 
     def restart(self) -> None:
         """Replace a broken pool (a worker died) by a fresh one."""
@@ -314,7 +330,13 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     stats["pool_restarts"] += 1
             if not in_flight:
                 continue
-            for future in runner.wait_any(list(in_flight)):
+            try:
+                finished = runner.wait_any(list(in_flight))
+            except BrokenProcessPool:  # a worker died and no future said so
+                _recover_pool(runner, queue, in_flight, crashes, None)
+                stats["pool_restarts"] += 1
+                continue
+            for future in finished:
                 if future not in in_flight:
                     continue  # resubmitted after a pool crash
                 index, attempt = in_flight.pop(future)
