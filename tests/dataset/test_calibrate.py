@@ -43,6 +43,43 @@ def test_a_round_stops_once_its_quantile_can_only_be_a_failure():
     assert calibrate.failures_allowed(48) == 4 and calibrate.failures_allowed(6) == 0
 
 
+def test_a_failing_round_is_left_at_its_first_failure_too_many(base_case, monkeypatch):
+    """At a force far too strong, a round of 6 pushes (no failure allowed) stops at its first
+    failed solve, the rest unsolved; solving every push gives the same failed quantile."""
+    from biopsynav import fem
+    from biopsynav.case import Case
+    from biopsynav.grid.embedding import surface_embedding
+
+    case = Case.load(base_case)
+    case.cfg.probe.calibration_pushes = 6
+    settings = fem.SolverSettings.from_config(case.cfg.solver)
+    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
+    skin = surface_embedding(case.grid, case.anatomy).matrix
+    contacts = [(skin[p.contact], p.direction) for p in calibrate.calibration_pushes(case)]
+    model, solve, outcomes = fem.FEModel.from_case(case), fem.solve, []
+
+    def recorded(*args, **kwargs):
+        try:
+            result = solve(*args, **kwargs)
+        except Exception:
+            outcomes.append("failed")
+            raise
+        outcomes.append("solved")
+        return result
+
+    monkeypatch.setattr(fem, "solve", recorded)
+    order = np.arange(6)[::-1]
+    depths = calibrate.calibration_depths(model, settings, contacts, 40.0, order=order)
+    assert outcomes and outcomes[-1] == "failed" and outcomes.count("failed") == 1
+    assert np.isinf(depths[order[len(outcomes) - 1:]]).all()  # the failed one and the rest
+    assert np.isfinite(depths[order[:len(outcomes) - 1]]).all()
+    assert math.isinf(calibrate.quantile_depth(depths))
+    outcomes.clear()
+    monkeypatch.setattr(calibrate, "failures_allowed", lambda n: n)
+    every = calibrate.calibration_depths(model, settings, contacts, 40.0, order=order)
+    assert len(outcomes) == 6 and math.isinf(calibrate.quantile_depth(every))
+
+
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,
                                                                     monkeypatch):
     case_dir = tmp_path / "case"
