@@ -52,10 +52,9 @@ def test_a_failing_round_is_left_at_its_first_failure_too_many(base_case, monkey
 
     case = Case.load(base_case)
     case.cfg.probe.calibration_pushes = 6
-    settings = fem.SolverSettings.from_config(case.cfg.solver)
-    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
-    skin = surface_embedding(case.grid, case.anatomy).matrix
-    contacts = [(skin[p.contact], p.direction) for p in calibrate.calibration_pushes(case)]
+    settings = calibrate.calibration_settings(case)
+    contacts = calibrate.push_contacts(surface_embedding(case.grid, case.anatomy).matrix,
+                                       calibrate.calibration_pushes(case))
     model, solve, outcomes = fem.FEModel.from_case(case), fem.solve, []
 
     def recorded(*args, **kwargs):

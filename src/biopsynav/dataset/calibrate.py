@@ -38,25 +38,23 @@ def calibrate_force(case: Any) -> dict:
     With a refined teacher (``[dataset] teacher_refine`` > 1) the search runs on the case
     grid first, where a round costs a fraction of the teacher's, and the teacher's own search
     starts from that force (``case_grid_rounds`` in the record)."""
-    from ..fem import FEModel, SolverSettings
+    from ..fem import FEModel
     from ..fem.teacher import build_teacher
     from ..grid.embedding import surface_embedding
 
     start = time.perf_counter()
     target = float(case.cfg.probe.max_push_mm)
-    settings = SolverSettings.from_config(case.cfg.solver)
-    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
+    settings = calibration_settings(case)
     pushes = calibration_pushes(case)
     teacher = build_teacher(case)
     force, record = float(case.cfg.probe.f_max_n), {}
     if teacher.transfer is not None:
         skin = surface_embedding(case.grid, case.anatomy).matrix
-        coarse = search_force(FEModel.from_case(case), settings,
-                              [(skin[p.contact], p.direction) for p in pushes], force, target)
+        coarse = search_force(FEModel.from_case(case), settings, push_contacts(skin, pushes),
+                              force, target)
         force, record = best_force(coarse, target)[0], {"case_grid_rounds": _rounded(coarse)}
-    history = search_force(teacher.model, settings,
-                           [(teacher.skin.matrix[p.contact], p.direction) for p in pushes], force,
-                           target)
+    history = search_force(teacher.model, settings, push_contacts(teacher.skin.matrix, pushes),
+                           force, target)
     chosen = best_force(history, target)
     return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),
             "quantile": QUANTILE, "target_mm": target, "pushes": len(pushes),
@@ -82,6 +80,22 @@ def search_force(model: Any, settings: Any, contacts: list, force: float, target
         if force is None:
             break
     return history
+
+
+def calibration_settings(case: Any) -> Any:
+    """The solver settings of a calibration solve: ``[solver]`` with data generation's Newton
+    budget (``[dataset] newton_budget``), as a sample's."""
+    from ..fem import SolverSettings
+
+    settings = SolverSettings.from_config(case.cfg.solver)
+    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
+    return settings
+
+
+def push_contacts(skin: Any, pushes: list) -> list:
+    """Per push, its contact points' rows of the skin embedding ``skin`` (CSR (n_skin,
+    n_nodes)) and its unit force direction (3,): what :func:`calibration_depths` solves."""
+    return [(skin[p.contact], p.direction) for p in pushes]
 
 
 def calibration_pushes(case: Any) -> list:

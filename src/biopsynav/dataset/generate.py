@@ -223,8 +223,11 @@ class LocalRunner:
 
     def _dead_workers(self) -> list[int]:
         """Process ids of this pool's workers that have exited."""
-        processes = dict(getattr(self.pool, "_processes", None) or {})
-        return [pid for pid, proc in processes.items() if proc.exitcode is not None]
+        return [proc.pid for proc in self._processes() if proc.exitcode is not None]
+
+    def _processes(self) -> list:
+        """The pool's worker processes (none once the executor has let them go)."""
+        return list((getattr(self.pool, "_processes", None) or {}).values())
 
     def restart(self) -> None:
         """Replace a broken pool (a worker died) by a fresh one."""
@@ -233,7 +236,7 @@ class LocalRunner:
         self.pool = self._new_pool()
 
     def _kill_processes(self) -> None:
-        for proc in list(getattr(self.pool, "_processes", {}).values()):
+        for proc in self._processes():
             if proc.is_alive():
                 proc.kill()
 
@@ -326,15 +329,13 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                     in_flight[runner.submit(index, attempt)] = (index, attempt)
                 except BrokenProcessPool:  # a worker died before its future said so
                     queue.appendleft((index, attempt))
-                    _recover_pool(runner, queue, in_flight, crashes, None)
-                    stats["pool_restarts"] += 1
+                    _recover_pool(runner, queue, in_flight, crashes, None, stats)
             if not in_flight:
                 continue
             try:
                 finished = runner.wait_any(list(in_flight))
             except BrokenProcessPool:  # a worker died and no future said so
-                _recover_pool(runner, queue, in_flight, crashes, None)
-                stats["pool_restarts"] += 1
+                _recover_pool(runner, queue, in_flight, crashes, None, stats)
                 continue
             for future in finished:
                 if future not in in_flight:
@@ -343,8 +344,7 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
                 try:
                     result = future.result()
                 except BrokenProcessPool:
-                    _recover_pool(runner, queue, in_flight, crashes, (index, attempt))
-                    stats["pool_restarts"] += 1
+                    _recover_pool(runner, queue, in_flight, crashes, (index, attempt), stats)
                     break
                 except BiopsynavError:
                     raise  # an input error found in a worker: its own one line
@@ -387,8 +387,9 @@ def _record_same_place_redraws(store: DatasetStore, result: dict, stats: Counter
 
 
 def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
-                  lost: tuple[int, int] | None) -> None:
-    """A worker died: restart the pool and put every sample that was in flight back."""
+                  lost: tuple[int, int] | None, stats: Counter) -> None:
+    """A worker died: restart the pool (counted in ``stats["pool_restarts"]``) and put every
+    sample that was in flight back."""
     lost_all = ([lost] if lost else []) + list(in_flight.values())
     in_flight.clear()
     for item in lost_all:
@@ -401,6 +402,7 @@ def _recover_pool(runner: Any, queue: deque, in_flight: dict, crashes: Counter,
                                  "errors are checked before the workers start); stopping",
                                  "generate")
     runner.restart()
+    stats["pool_restarts"] += 1
     queue.extendleft(sorted(lost_all, reverse=True))
 
 
