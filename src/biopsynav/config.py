@@ -521,9 +521,10 @@ class TrackerSection:
                                          "contact (docs/fem.md, 'Elastic contact').",
                                    lo=0.1, hi=1e6)
     spring_budget: int = opt(80, "Elastic contact in the FE engine and in Table 2's FE method, "
-                                 "on the case grid (finer grids, such as Table 2's ground "
-                                 "truth or a refined teacher's, have none: there converging "
-                                 "solves took up to 110): Newton iterations after which the "
+                                 "on the case grid (a grid r times finer, such as Table 2's "
+                                 "ground truth or a refined teacher's, gets r times as many: "
+                                 "converging solves took up to 110 on 2 times finer cells): "
+                                 "Newton iterations after which the "
                                  "springs as asked give way to springs 4 times stiffer (then "
                                  "to the points met). Solves that converge take far fewer "
                                  "(at most 42 over 40 phantom pushes to 35 mm); those past a "

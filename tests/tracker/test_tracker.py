@@ -169,19 +169,29 @@ def test_solver_failure_is_solver_failed_not_out_of_envelope(fem_tracker, monkey
 def test_the_springs_as_asked_get_the_tracker_s_budget_then_their_fallback(coarse_case,
                                                                           monkeypatch):
     """The FE engine and Table 2's FE method give elastic contact's first attempt ``[tracker]
-    spring_budget`` Newton iterations on the case grid (Table 2's finer ground truth none); a
-    push whose first attempt runs out of them is answered by the stiffer springs, with no
-    limit of their own."""
+    spring_budget`` Newton iterations on the case grid (Table 2's ground truth, r times finer, r
+    times as many); a push whose first attempt runs out of them is answered by the stiffer
+    springs, with no limit of their own."""
+    import dataclasses
+    import math
+
     import biopsynav.fem.solver as solver_mod
     from biopsynav.evaluate.references import GridReference
     from biopsynav.evaluate.simulation import evaluation_solver_settings, setup_for
+    from biopsynav.tracker.core import finer_grid_spring_budget
 
     budget = coarse_case.cfg.tracker.spring_budget
     settings = evaluation_solver_settings(coarse_case)
     assert budget > 0 and settings.first_attempt_budget == budget
-    # a finer grid (Table 2's ground truth) has no budget: converging solves there need more
-    truth = GridReference(coarse_case, setup_for(coarse_case, quick=True), settings)
-    assert truth.tracker._fem_settings.first_attempt_budget == 0
+    # a finer grid (Table 2's ground truth, 1.5 times finer in quick mode) gets a budget as
+    # many times larger: converging solves there need more iterations
+    setup = setup_for(coarse_case, quick=True)
+    truth = GridReference(coarse_case, setup, settings)
+    assert setup.refinement == 1.5
+    assert truth.tracker._fem_settings.first_attempt_budget == math.ceil(1.5 * budget)
+    assert finer_grid_spring_budget(settings, 1.0).first_attempt_budget == budget
+    assert finer_grid_spring_budget(dataclasses.replace(settings, first_attempt_budget=0),
+                                    2.0).first_attempt_budget == 0  # no budget stays none
     real, budgets = solver_mod.solve_once, []
 
     def first_runs_out(model, loads, settings=None):

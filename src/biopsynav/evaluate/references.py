@@ -34,14 +34,15 @@ class GridReference:
     """biopsynav's FE tracker on a finer grid (``fine_grid``)."""
 
     def __init__(self, case: Any, setup: Any, settings: Any) -> None:
-        from ..tracker.core import fem_engine, without_spring_budget
+        from ..tracker.core import fem_engine, finer_grid_spring_budget
         from .simulation import reference_case
 
         t0 = time.perf_counter()
         self.case = case
         self.check(case)
         self.fine = reference_case(case, setup.refinement)
-        self.tracker = fem_engine(self.fine, without_spring_budget(settings), on_teacher=False)
+        self.tracker = fem_engine(self.fine, finer_grid_spring_budget(settings, setup.refinement),
+                                  on_teacher=False)
         self.refinement = setup.refinement
         self.build_s = time.perf_counter() - t0
 
