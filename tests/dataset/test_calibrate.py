@@ -44,39 +44,38 @@ def test_a_round_stops_once_its_quantile_can_only_be_a_failure():
 
 
 def test_a_failing_round_is_left_at_its_first_failure_too_many(base_case, monkeypatch):
-    """At a force far too strong, a round of 6 pushes (no failure allowed) stops at its first
-    failed solve, the rest unsolved; solving every push gives the same failed quantile."""
-    from biopsynav import fem
+    """At a force far too strong, a round of 6 pushes (no failure allowed) solved by one
+    worker process stops at its first failed solve, the rest unsolved; solving every push
+    gives the same failed quantile."""
     from biopsynav.case import Case
-    from biopsynav.grid.embedding import surface_embedding
 
     case = Case.load(base_case)
     case.cfg.probe.calibration_pushes = 6
-    settings = calibrate.calibration_settings(case)
-    contacts = calibrate.push_contacts(surface_embedding(case.grid, case.anatomy).matrix,
-                                       calibrate.calibration_pushes(case))
-    model, solve, outcomes = fem.FEModel.from_case(case), fem.solve, []
-
-    def recorded(*args, **kwargs):
-        try:
-            result = solve(*args, **kwargs)
-        except Exception:
-            outcomes.append("failed")
-            raise
-        outcomes.append("solved")
-        return result
-
-    monkeypatch.setattr(fem, "solve", recorded)
     order = np.arange(6)[::-1]
-    depths = calibrate.calibration_depths(model, settings, contacts, 40.0, order=order)
-    assert outcomes and outcomes[-1] == "failed" and outcomes.count("failed") == 1
-    assert np.isinf(depths[order[len(outcomes) - 1:]]).all()  # the failed one and the rest
-    assert np.isfinite(depths[order[:len(outcomes) - 1]]).all()
-    assert math.isinf(calibrate.quantile_depth(depths))
-    outcomes.clear()
-    monkeypatch.setattr(calibrate, "failures_allowed", lambda n: n)
-    every = calibrate.calibration_depths(model, settings, contacts, 40.0, order=order)
-    assert len(outcomes) == 6 and math.isinf(calibrate.quantile_depth(every))
+    with calibrate.CalibrationSolves(case, workers=1) as solves:
+        depths = solves.depths(calibrate.TEACHER, 40.0, order)
+        solved = solves.count
+        assert 0 < solved < 6  # left at the first failure: the rest unsolved
+        assert np.isinf(depths[order[solved - 1]])  # the one that failed
+        assert np.isfinite(depths[order[:solved - 1]]).all()
+        assert np.isinf(depths[order[solved:]]).all()
+        assert math.isinf(calibrate.quantile_depth(depths))
+        monkeypatch.setattr(calibrate, "failures_allowed", lambda n: n)
+        every = solves.depths(calibrate.TEACHER, 40.0, order)
+        assert solves.count - solved == 6 and math.isinf(calibrate.quantile_depth(every))
+    np.testing.assert_array_equal(every[order[:solved]], depths[order[:solved]])
+
+
+def test_two_workers_find_the_force_one_worker_finds(base_case):
+    """The calibration's solves spread over two worker processes give the same rounds, to
+    the bit, as one worker: each solve runs on one thread whatever their number."""
+    from biopsynav.case import Case
+
+    case = Case.load(base_case)
+    case.cfg.probe.calibration_pushes = 6
+    one, two = (calibrate.calibrate_force(case, workers) for workers in (1, 2))
+    assert one["rounds"] == two["rounds"] and one["f_max_n"] == two["f_max_n"]
+    assert len(one["rounds"]) >= 2 and one["solves"] >= 6
 
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,
@@ -132,7 +131,7 @@ def test_a_refined_teacher_starts_its_search_from_the_case_grid(base_case, tmp_p
     def teacher_once(*args):
         if searches:
             monkeypatch.setattr(calibrate, "MAX_ROUNDS", 2)
-        searches.append(args[3])
+        searches.append(args[2])  # its first force
         return search(*args)
 
     monkeypatch.setattr(calibrate, "search_force", teacher_once)

@@ -11,14 +11,17 @@ so the probe displacements spread up to the clinical
 depth on a stiff breast and a soft one alike, and few draws go deeper than the limit. A
 push whose solve fails counts as deeper than any; a round stops once so many have failed
 that its quantile is a failure whatever the rest give (:func:`failures_allowed`), solving
-first the pushes that went deepest at the force before. The result is recorded in the data
-set, and a resumed job reuses it.
+first the pushes that went deepest at the force before. The solves run in local worker
+processes (:class:`CalibrationSolves`, as many as generation's), one thread each as a
+sample's, so the force found does not depend on their number. The result is recorded in the
+data set, and a resumed job reuses it.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,47 +35,43 @@ MAX_ROUNDS = 8
 CALIBRATION_INDEX = 2 ** 40
 
 
-def calibrate_force(case: Any) -> dict:
-    """The calibrated ``f_max_n`` (N) of ``case`` and how it was found (plain dict).
+def calibrate_force(case: Any, workers: int = 1) -> dict:
+    """The calibrated ``f_max_n`` (N) of ``case`` and how it was found (plain dict), its FE
+    solves spread over ``workers`` local processes (0: one per core).
 
     With a refined teacher (``[dataset] teacher_refine`` > 1) the search runs on the case
     grid first, where a round costs a fraction of the teacher's, and the teacher's own search
     starts from that force (``case_grid_rounds`` in the record)."""
-    from ..fem import FEModel
-    from ..fem.teacher import build_teacher
-    from ..grid.embedding import surface_embedding
+    from ..fem.teacher import teacher_refinement
 
     start = time.perf_counter()
     target = float(case.cfg.probe.max_push_mm)
-    settings = calibration_settings(case)
-    pushes = calibration_pushes(case)
-    teacher = build_teacher(case)
+    n_pushes = int(case.cfg.probe.calibration_pushes)
     force, record = float(case.cfg.probe.f_max_n), {}
-    if teacher.transfer is not None:
-        skin = surface_embedding(case.grid, case.anatomy).matrix
-        coarse = search_force(FEModel.from_case(case), settings, push_contacts(skin, pushes),
-                              force, target)
-        force, record = best_force(coarse, target)[0], {"case_grid_rounds": _rounded(coarse)}
-    history = search_force(teacher.model, settings, push_contacts(teacher.skin.matrix, pushes),
-                           force, target)
+    with CalibrationSolves(case, workers) as solves:
+        if teacher_refinement(case.cfg) > 1:
+            coarse = search_force(solves.round_on(CASE_GRID), n_pushes, force, target)
+            force, record = best_force(coarse, target)[0], {"case_grid_rounds": _rounded(coarse)}
+        history = search_force(solves.round_on(TEACHER), n_pushes, force, target)
     chosen = best_force(history, target)
     return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),
-            "quantile": QUANTILE, "target_mm": target, "pushes": len(pushes),
-            "rounds": _rounded(history), **record,
+            "quantile": QUANTILE, "target_mm": target, "pushes": n_pushes,
+            "rounds": _rounded(history), **record, "solves": solves.count,
             "seconds": round(time.perf_counter() - start, 1)}
 
 
-def search_force(model: Any, settings: Any, contacts: list, force: float, target: float
-                 ) -> list[tuple[float, float]]:
+def search_force(round_depths: Callable[[float, np.ndarray], np.ndarray], n_pushes: int,
+                 force: float, target: float) -> list[tuple[float, float]]:
     """The (force N, quantile depth mm) rounds of the search from ``force`` until the
-    :data:`QUANTILE` depth of the ``contacts`` pushes (see :func:`calibration_depths`) is
-    within :data:`TOLERANCE` of ``target``, the bracket closes, or :data:`MAX_ROUNDS` pass."""
+    :data:`QUANTILE` depth of the ``n_pushes`` pushes is within :data:`TOLERANCE` of
+    ``target``, the bracket closes, or :data:`MAX_ROUNDS` pass. ``round_depths(force,
+    order)``: each push's probe displacement (mm, inf: failed or left unsolved) at ``force``
+    N, solved in ``order`` (:meth:`CalibrationSolves.depths`)."""
     history: list[tuple[float, float]] = []
-    depths = np.zeros(len(contacts))
+    depths = np.zeros(n_pushes)
     for _ in range(MAX_ROUNDS):
         # the pushes deepest (or failed) at the last force first: a round that fails ends soon
-        depths = calibration_depths(model, settings, contacts, force,
-                                    order=np.argsort(-depths, kind="stable"))
+        depths = round_depths(force, np.argsort(-depths, kind="stable"))
         history.append((force, quantile_depth(depths)))
         if abs(history[-1][1] - target) <= TOLERANCE * target:
             break
@@ -80,6 +79,106 @@ def search_force(model: Any, settings: Any, contacts: list, force: float, target
         if force is None:
             break
     return history
+
+
+class CalibrationSolves:
+    """The calibration's FE solves in ``workers`` local processes (0: one per core), each
+    holding the case's models once (:func:`init_calibration`); ``count``: solves answered."""
+
+    def __init__(self, case: Any, workers: int) -> None:
+        from .pool import WorkerProcesses
+
+        self.n_pushes = int(case.cfg.probe.calibration_pushes)
+        self.processes = WorkerProcesses(workers, init_calibration, (case,))
+        self.count = 0
+
+    def round_on(self, stage: str) -> Callable[[float, np.ndarray], np.ndarray]:
+        """:meth:`depths` on the model of ``stage`` (:data:`CASE_GRID` or :data:`TEACHER`)."""
+        return lambda force, order: self.depths(stage, force, order)
+
+    def depths(self, stage: str, force_n: float, order: np.ndarray) -> np.ndarray:
+        """Probe displacement (mm) of each push at ``force_n`` N total; inf where the solve
+        fails. The pushes are queued in ``order``; once more have failed than
+        :func:`failures_allowed`, the rest are left unsolved (inf too): the round's quantile
+        is inf whatever they give."""
+        from concurrent.futures.process import BrokenProcessPool
+
+        depths = np.full(self.n_pushes, np.inf)
+        allowed, failed = failures_allowed(self.n_pushes), 0
+        pending = {self.processes.submit(calibration_depth, stage, int(i), float(force_n)):
+                   (rank, int(i)) for rank, i in enumerate(order)}
+        try:
+            while pending:
+                for future in sorted(self.processes.wait_any(list(pending)), key=pending.get):
+                    index = pending.pop(future)[1]
+                    depths[index] = future.result()
+                    self.count += 1
+                    failed += bool(np.isinf(depths[index]))
+                    if failed > allowed:
+                        return depths
+        except BrokenProcessPool:
+            raise BiopsynavError("force calibration: a worker process died (killed by the "
+                                 "system, for instance out of memory); run again",
+                                 "generate") from None
+        finally:
+            for future in pending:
+                future.cancel()
+        return depths
+
+    def __enter__(self) -> CalibrationSolves:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.processes.close()
+
+
+#: The models a calibration solves on: the case grid's (a refined teacher's first search)
+#: and the teacher's.
+CASE_GRID, TEACHER = "case_grid", "teacher"
+#: A calibration worker's case and, per stage, its (model, settings, push contacts).
+_WORKER: dict[str, Any] = {}
+
+
+def init_calibration(case: Any) -> None:
+    """Set-up of a calibration worker process: its case (the models are built on first use)."""
+    _WORKER.clear()
+    _WORKER["case"] = case
+
+
+def calibration_depth(stage: str, index: int, force_n: float) -> float:
+    """Task of a calibration worker: the probe displacement (mm) of push ``index`` at
+    ``force_n`` N total on the model of ``stage``; inf when the solve fails."""
+    from ..fem import Loads, solve
+    from ..probe import nodal_forces
+    from .worker import probe_displacement
+
+    model, settings, contacts = _stage_context(stage)
+    contact, direction = contacts[index]
+    try:
+        u, _ = solve(model, Loads(forces=nodal_forces(contact, force_n * direction)), settings)
+    except SolverError:
+        return math.inf
+    return probe_displacement(contact @ u)
+
+
+def _stage_context(stage: str) -> tuple[Any, Any, list]:
+    """This worker's (model, solver settings, push contacts) of ``stage``, built once."""
+    if stage not in _WORKER:
+        from ..fem import FEModel
+        from ..fem.teacher import build_teacher
+        from ..grid.embedding import surface_embedding
+
+        case = _WORKER["case"]
+        if stage == CASE_GRID:
+            model = FEModel.from_case(case)
+            skin = surface_embedding(case.grid, case.anatomy).matrix
+        else:
+            teacher = build_teacher(case)
+            model, skin = teacher.model, teacher.skin.matrix
+        settings = calibration_settings(case)
+        settings.threads = 1  # as a sample's solve: the same bits whatever the worker count
+        _WORKER[stage] = (model, settings, push_contacts(skin, calibration_pushes(case)))
+    return _WORKER[stage]
 
 
 def calibration_settings(case: Any) -> Any:
@@ -118,33 +217,6 @@ def failures_allowed(n_pushes: int) -> int:
     """How many of ``n_pushes`` solves may fail before the :data:`QUANTILE` depth is inf
     (it is the ``ceil(QUANTILE n)``-th smallest depth)."""
     return n_pushes - math.ceil(QUANTILE * n_pushes - 1e-9)
-
-
-def calibration_depths(model: Any, settings: Any, contacts: list, force_n: float,
-                       order: np.ndarray | None = None) -> np.ndarray:
-    """Probe displacement (mm) of each push at ``force_n`` N total; inf where the solve
-    fails. ``contacts``: per push, the contact points' embedding (CSR (n, n_nodes)) and the
-    unit force direction (3,). The pushes are solved in ``order`` (default: as given); once
-    more have failed than :func:`failures_allowed`, the rest are left unsolved (inf too):
-    the round's quantile is inf whatever they give."""
-    from ..fem import Loads, solve
-    from ..probe import nodal_forces
-    from .worker import probe_displacement
-
-    depths = np.full(len(contacts), np.inf)
-    allowed, failed = failures_allowed(len(contacts)), 0
-    for i in range(len(contacts)) if order is None else order:
-        contact, direction = contacts[i]
-        try:
-            u, _ = solve(model, Loads(forces=nodal_forces(contact, force_n * direction)),
-                         settings)
-        except SolverError:
-            failed += 1
-            if failed > allowed:
-                break
-            continue
-        depths[i] = probe_displacement(contact @ u)
-    return depths
 
 
 def next_force(history: list[tuple[float, float]], target: float) -> float | None:

@@ -13,10 +13,9 @@ whatever the worker count, order or interruptions.
 
 from __future__ import annotations
 
-import os
 import time
 from collections import Counter, deque
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,7 @@ from ..case import Case, as_case
 from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
+from .pool import WorkerProcesses
 from .store import (
     DatasetStore,
     check_compatible,
@@ -41,7 +41,6 @@ from .store import (
 from .worker import (
     IMPLAUSIBLE,
     NOT_CONVERGED,
-    SINGLE_THREAD_ENV,
     TOO_DEEP,
     WorkerSpec,
     dask_sample,
@@ -56,9 +55,6 @@ STAT_OF_KIND = {NOT_CONVERGED: "failures", TOO_DEEP: "too_deep", IMPLAUSIBLE: "i
 MIN_DRAWS_FOR_SHARE = 20
 #: A sample whose draw crashes the worker pool this many times stops the job.
 MAX_POOL_CRASHES = 3
-#: How often (s) a local pool with nothing finished checks that its worker processes live: a
-#: worker killed at the wrong moment can leave the executor's own futures pending for ever.
-WORKER_WATCH_S = 5.0
 #: Samples in flight per worker (bounds memory and the work lost to a kill).
 IN_FLIGHT_PER_WORKER = 2
 
@@ -99,7 +95,7 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
     preflight(case)  # input errors here, before a store or a worker exists
     store = prepare_store(case, n_train, n_test, overwrite)
-    work = working_case(case, store)
+    work = working_case(case, store, workers)
     spec = WorkerSpec(work, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
     done = store.done_mask()
     todo = np.flatnonzero(~done)
@@ -116,13 +112,13 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
     return summary
 
 
-def working_case(case: Case, store: DatasetStore) -> Case:
+def working_case(case: Case, store: DatasetStore, workers: int = 1) -> Case:
     """The case the workers draw and solve with: ``case`` with the data set's own
     ``[dataset] n_train`` (a ``generate`` override may differ from case.toml; a training
     sample's force follows ``[probe] train_force_exponent``) and ``[probe] f_max_n`` set by the
-    force calibration (:mod:`biopsynav.dataset.calibrate`), run once per data set and kept in
-    its attributes. The loaded case itself is left as it is; returned as it is when nothing
-    differs."""
+    force calibration (:mod:`biopsynav.dataset.calibrate`, its solves in ``workers`` local
+    processes, 0: one per core), run once per data set and kept in its attributes. The
+    loaded case itself is left as it is; returned as it is when nothing differs."""
     import copy
 
     from .calibrate import calibrate_force
@@ -131,7 +127,7 @@ def working_case(case: Case, store: DatasetStore) -> Case:
     if case.cfg.probe.calibrate_force and case.cfg.probe.rigid_share < 1.0:
         found = store.group.attrs.get("force_calibration")
         if found is None:
-            found = calibrate_force(case)
+            found = calibrate_force(case, workers)
             store.group.attrs["force_calibration"] = found
         f_max_n = float(found["f_max_n"])
     n_train = int(store.group.attrs["n_train"])
@@ -176,92 +172,27 @@ def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool) -> Data
 # ----- runners: local processes or Dask -----------------------------------------------------
 
 class LocalRunner:
-    """A ``ProcessPoolExecutor`` (spawned processes, one MKL thread each) that is rebuilt when
-    a worker dies."""
+    """Samples in local worker processes (:class:`~.pool.WorkerProcesses`), the pool rebuilt
+    when a worker dies."""
 
     def __init__(self, spec: WorkerSpec, workers: int) -> None:
-        self.spec = spec
-        self.workers = workers or os.cpu_count() or 1
-        threads = max(1, (os.cpu_count() or 1) // self.workers)
-        self.env = {**SINGLE_THREAD_ENV, "NUMBA_NUM_THREADS": str(threads)}
-        self.pool = self._new_pool()
-
-    def _new_pool(self) -> ProcessPoolExecutor:
-        import multiprocessing
-
-        saved = {k: os.environ.get(k) for k in self.env}
-        os.environ.update(self.env)  # spawned children inherit it before importing MKL
-        try:
-            return ProcessPoolExecutor(self.workers, multiprocessing.get_context("spawn"),
-                                       initializer=init_process,
-                                       initargs=(self.spec, self.env, os.getpid()))
-        finally:
-            for key, value in saved.items():
-                if value is None:
-                    os.environ.pop(key, None)
-                else:
-                    os.environ[key] = value
+        self.processes = WorkerProcesses(workers, init_process, (spec,))
 
     @property
     def capacity(self) -> int:
-        return self.workers
+        return self.processes.workers
 
     def submit(self, index: int, attempt: int) -> Future:
-        with _env(self.env):
-            return self.pool.submit(process_sample, int(index), int(attempt))
+        return self.processes.submit(process_sample, int(index), int(attempt))
 
     def wait_any(self, futures: list) -> set:
-        """The futures of ``futures`` that finished, once one has; BrokenProcessPool when a
-        worker process died and the executor did not say so on any future."""
-        while True:
-            done = wait(futures, timeout=WORKER_WATCH_S, return_when=FIRST_COMPLETED)[0]
-            if done:
-                return done
-            dead = self._dead_workers()
-            if dead:
-                raise BrokenProcessPool(f"worker process(es) {dead} died, their tasks pending")
-
-    def _dead_workers(self) -> list[int]:
-        """Process ids of this pool's workers that have exited."""
-        return [proc.pid for proc in self._processes() if proc.exitcode is not None]
-
-    def _processes(self) -> list:
-        """The pool's worker processes (none once the executor has let them go)."""
-        return list((getattr(self.pool, "_processes", None) or {}).values())
+        return self.processes.wait_any(futures)
 
     def restart(self) -> None:
-        """Replace a broken pool (a worker died) by a fresh one."""
-        self._kill_processes()
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        self.pool = self._new_pool()
-
-    def _kill_processes(self) -> None:
-        for proc in self._processes():
-            if proc.is_alive():
-                proc.kill()
+        self.processes.restart()
 
     def close(self) -> None:
-        self._kill_processes()  # in-flight samples are lost by design; no waiting on them
-        self.pool.shutdown(wait=True, cancel_futures=True)
-
-
-class _env:
-    """Context manager: set environment variables temporarily (pool processes spawn lazily)."""
-
-    def __init__(self, env: dict[str, str]) -> None:
-        self.env = env
-        self.saved: dict[str, str | None] = {}
-
-    def __enter__(self) -> None:
-        self.saved = {k: os.environ.get(k) for k in self.env}
-        os.environ.update(self.env)
-
-    def __exit__(self, *exc: object) -> None:
-        for key, value in self.saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        self.processes.close()
 
 
 class DaskRunner:

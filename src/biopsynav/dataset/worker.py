@@ -1,6 +1,6 @@
 """What a worker does: build the FE model of a case once, then compute samples on request.
 
-Runs in local worker processes (``ProcessPoolExecutor`` initializer :func:`init_process`, task
+Runs in local worker processes (set up by :func:`init_process`, task
 :func:`process_sample`) and in Dask workers (task :func:`dask_sample`, the context cached per
 worker thread). Workers never touch the store: they return plain arrays and the main process
 writes them.
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -25,12 +24,6 @@ import numpy as np
 #: pushed deeper than ``[probe] max_push_mm``, or its solution stretches a cell edge beyond
 #: ``[dataset] max_edge_stretch``.
 NOT_CONVERGED, TOO_DEEP, IMPLAUSIBLE = "not_converged", "too_deep", "implausible"
-
-#: Environment of a worker process: one MKL/OpenMP thread keeps Pardiso's results
-#: bit-identical whatever the number of workers.
-SINGLE_THREAD_ENV = {"MKL_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
-                     "OPENBLAS_NUM_THREADS": "1", "MKL_DYNAMIC": "FALSE"}
-
 
 @dataclass
 class WorkerSpec:
@@ -387,23 +380,11 @@ def push_metadata(push: Any) -> dict:
 _PROCESS_CONTEXT: SampleContext | None = None
 
 
-def init_process(spec: WorkerSpec, env: dict[str, str], parent: int) -> None:
-    """``ProcessPoolExecutor`` initializer: thread limits, a watchdog that ends the process
-    when the main process dies (kill -9 leaves no orphan computing), then the case's
-    context, once. ``parent``: the main process id (passed in, so that a main process that
-    died before this ran is noticed too)."""
+def init_process(spec: WorkerSpec) -> None:
+    """Set-up of a local worker process (:class:`~biopsynav.dataset.pool.WorkerProcesses`,
+    after its thread limits and watchdog): the case's context, once."""
     global _PROCESS_CONTEXT
-    os.environ.update(env)
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True,
-                     name="parent-watchdog").start()
     _PROCESS_CONTEXT = SampleContext(spec.case)
-
-
-def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
-    """Poll the parent id; once the parent is gone (re-parented), exit at once."""
-    while os.getppid() == parent:
-        time.sleep(period_s)
-    os._exit(1)
 
 
 def process_sample(index: int, attempt: int) -> dict:
