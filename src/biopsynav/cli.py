@@ -291,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("generate", cmd_generate, "Generate the training data (random probe pushes).")
     p.add_argument("case_dir", type=Path)
     p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
-                   "cores)")
+                   "cores); the force calibration uses them with --scheduler too")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--overwrite", action="store_true", help="discard data made for another "
                    "anatomy, grid or protocol")
