@@ -193,7 +193,7 @@ def calibration_settings(case: Any) -> Any:
 
 def push_contacts(skin: Any, pushes: list) -> list:
     """Per push, its contact points' rows of the skin embedding ``skin`` (CSR (n_skin,
-    n_nodes)) and its unit force direction (3,): what :func:`calibration_depths` solves."""
+    n_nodes)) and its unit force direction (3,): what :func:`calibration_depth` solves."""
     return [(skin[p.contact], p.direction) for p in pushes]
 
 
