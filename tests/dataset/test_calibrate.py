@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
 import shutil
+import signal
 
 import numpy as np
 import pytest
@@ -80,6 +82,30 @@ def test_two_workers_solve_a_round_to_the_bits_of_one(base_case):
     assert np.isfinite(alone).all() and alone.min() > 0
     np.testing.assert_array_equal(alone, shared)
     assert one.count == two.count == 6
+
+
+def _die(stage, index, force_n):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _raise(stage, index, force_n):
+    raise ValueError(f"no model for {stage}")
+
+
+def test_a_worker_that_dies_or_errs_is_one_line_naming_the_calibration(base_case,
+                                                                        monkeypatch):
+    """A calibration worker killed (out of memory, say) or raising is said in one line that
+    names the force calibration, never a traceback from the pool."""
+    from biopsynav.case import Case
+
+    case = Case.load(base_case)
+    case.cfg.probe.calibration_pushes = 4
+    for task, words in ((_die, "a worker process died"),
+                        (_raise, "a solve failed in its worker: ValueError: no model for")):
+        monkeypatch.setattr(calibrate, "calibration_depth", task)  # sent to the worker by name
+        with calibrate.CalibrationSolves(case, 1) as solves:
+            with pytest.raises(BiopsynavError, match=f"force calibration: {words}"):
+                solves.depths(calibrate.TEACHER, 1.0, np.arange(4))
 
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,

@@ -104,32 +104,55 @@ class CalibrationSolves:
         from concurrent.futures.process import BrokenProcessPool
 
         depths = np.full(self.n_pushes, np.inf)
-        allowed, failed = failures_allowed(self.n_pushes), 0
         pending = {self.processes.submit(calibration_depth, stage, int(i), float(force_n)):
                    (rank, int(i)) for rank, i in enumerate(order)}
         try:
-            while pending:
-                for future in sorted(self.processes.wait_any(list(pending)), key=pending.get):
-                    index = pending.pop(future)[1]
-                    depths[index] = future.result()
-                    self.count += 1
-                    failed += bool(np.isinf(depths[index]))
-                    if failed > allowed:
-                        return depths
-        except BrokenProcessPool:
-            raise BiopsynavError("force calibration: a worker process died (killed by the "
-                                 "system, for instance out of memory); run again",
-                                 "generate") from None
+            self._collect(pending, depths, failures_allowed(self.n_pushes))
+        except BrokenProcessPool:  # the wait saw a worker die that no future names
+            raise _worker_died() from None
         finally:
             for future in pending:
                 future.cancel()
         return depths
+
+    def _collect(self, pending: dict, depths: np.ndarray, allowed: int) -> None:
+        """Write the answers of ``pending`` (future -> (rank, push index)) into ``depths``,
+        in rank order as they come, until none is left or more than ``allowed`` failed."""
+        failed = 0
+        while pending:
+            for future in sorted(self.processes.wait_any(list(pending)), key=pending.get):
+                index = pending.pop(future)[1]
+                depths[index] = _answer(future)
+                self.count += 1
+                failed += bool(np.isinf(depths[index]))
+                if failed > allowed:
+                    return
 
     def __enter__(self) -> CalibrationSolves:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.processes.close()
+
+
+def _answer(future: Any) -> float:
+    """A calibration solve's depth (mm); a worker's death or error as one line."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        raise _worker_died() from None
+    except BiopsynavError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a worker's error, said in one line
+        raise BiopsynavError(f"force calibration: a solve failed in its worker: "
+                             f"{type(exc).__name__}: {exc}", "generate") from None
+
+
+def _worker_died() -> BiopsynavError:
+    return BiopsynavError("force calibration: a worker process died (killed by the system, "
+                          "for instance out of memory); run again", "generate")
 
 
 #: The models a calibration solves on: the case grid's (a refined teacher's first search)
