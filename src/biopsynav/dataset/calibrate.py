@@ -46,16 +46,15 @@ def calibrate_force(case: Any, workers: int = 1) -> dict:
 
     start = time.perf_counter()
     target = float(case.cfg.probe.max_push_mm)
-    n_pushes = int(case.cfg.probe.calibration_pushes)
     force, record = float(case.cfg.probe.f_max_n), {}
     with CalibrationSolves(case, workers) as solves:
         if teacher_refinement(case.cfg) > 1:
-            coarse = search_force(solves.round_on(CASE_GRID), n_pushes, force, target)
+            coarse = search_force(solves.round_on(CASE_GRID), solves.n_pushes, force, target)
             force, record = best_force(coarse, target)[0], {"case_grid_rounds": _rounded(coarse)}
-        history = search_force(solves.round_on(TEACHER), n_pushes, force, target)
+        history = search_force(solves.round_on(TEACHER), solves.n_pushes, force, target)
     chosen = best_force(history, target)
     return {"f_max_n": round(chosen[0], 6), "quantile_depth_mm": round(chosen[1], 2),
-            "quantile": QUANTILE, "target_mm": target, "pushes": n_pushes,
+            "quantile": QUANTILE, "target_mm": target, "pushes": solves.n_pushes,
             "rounds": _rounded(history), **record, "solves": solves.count,
             "seconds": round(time.perf_counter() - start, 1)}
 
@@ -190,6 +189,7 @@ def _stage_context(stage: str) -> tuple[Any, Any, list]:
         from ..fem import FEModel
         from ..fem.teacher import build_teacher
         from ..grid.embedding import surface_embedding
+        from .worker import sample_solver_settings
 
         case = _WORKER["case"]
         if stage == CASE_GRID:
@@ -198,20 +198,9 @@ def _stage_context(stage: str) -> tuple[Any, Any, list]:
         else:
             teacher = build_teacher(case)
             model, skin = teacher.model, teacher.skin.matrix
-        settings = calibration_settings(case)
-        settings.threads = 1  # as a sample's solve: the same bits whatever the worker count
-        _WORKER[stage] = (model, settings, push_contacts(skin, calibration_pushes(case)))
+        _WORKER[stage] = (model, sample_solver_settings(case),
+                          push_contacts(skin, calibration_pushes(case)))
     return _WORKER[stage]
-
-
-def calibration_settings(case: Any) -> Any:
-    """The solver settings of a calibration solve: ``[solver]`` with data generation's Newton
-    budget (``[dataset] newton_budget``), as a sample's."""
-    from ..fem import SolverSettings
-
-    settings = SolverSettings.from_config(case.cfg.solver)
-    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
-    return settings
 
 
 def push_contacts(skin: Any, pushes: list) -> list:

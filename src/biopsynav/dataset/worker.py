@@ -57,7 +57,6 @@ class SampleContext:
     def __init__(self, case: Any) -> None:
         from ..contact.constraints import vertex_areas
         from ..contact.springs import case_young_moduli
-        from ..fem import SolverSettings
         from ..fem.teacher import build_teacher
         from ..grid.embedding import surface_embedding
         from ..probe import eligible_centers, pinned_skin
@@ -65,10 +64,7 @@ class SampleContext:
         self.case = case
         self.teacher = build_teacher(case)
         self.model = self.teacher.model
-        self.settings = SolverSettings.from_config(case.cfg.solver)
-        if hasattr(self.settings, "threads"):
-            self.settings.threads = 1  # parallel over samples; one thread keeps bits stable
-        self.settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
+        self.settings = sample_solver_settings(case)
         skin = (self.teacher.skin if self.teacher.transfer is None
                 else surface_embedding(case.grid, case.anatomy))
         self.skin, self.case_skin = skin.matrix, skin
@@ -84,6 +80,18 @@ class SampleContext:
             from ..contact.greens import ContactCompliance
 
             self.compliance = ContactCompliance.from_case(case)
+
+
+def sample_solver_settings(case: Any) -> Any:
+    """The solver settings of data generation's solves (a sample's, a force calibration's):
+    ``[solver]`` on one thread (parallel over solves; one thread keeps the bits the same
+    whatever the worker count) with the Newton budget ``[dataset] newton_budget``."""
+    from ..fem import SolverSettings
+
+    settings = SolverSettings.from_config(case.cfg.solver)
+    settings.threads = 1
+    settings.max_total_iterations = int(case.cfg.dataset.newton_budget)
+    return settings
 
 
 #: Same-place redraws of a too-deep training push (``[probe] too_deep_redraw``) before the

@@ -743,9 +743,10 @@ def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
     from ..refine import tracking_teacher_case
 
     taught_by = tracking_teacher_case(case)
-    if on_teacher and teacher_refinement(taught_by.cfg) > 1:
+    refinement = teacher_refinement(taught_by.cfg)
+    if on_teacher and refinement > 1:
         teacher = build_teacher(taught_by)
-        budget = finer_grid_spring_budget(settings, teacher_refinement(taught_by.cfg))
-        return Tracker(case, "fem", fem_model=teacher.model, fem_settings=budget,
+        return Tracker(case, "fem", fem_model=teacher.model,
+                       fem_settings=finer_grid_spring_budget(settings, refinement),
                        teacher=teacher)
     return Tracker(case, "fem", fem_model=FEModel.from_case(case), fem_settings=settings)
