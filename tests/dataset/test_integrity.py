@@ -108,3 +108,31 @@ def test_unmapped_tissue_label_is_refused_before_workers_start(reference, tmp_pa
     assert out.err.strip().splitlines() == [line for line in out.err.strip().splitlines()
                                             if "tissue labels 7 with no tissue" in line]
     assert not (case_dir / "dataset.zarr").exists()
+
+
+def test_a_negative_worker_count_is_refused_before_the_calibration_and_the_store(
+        reference, base_case, tmp_path, capfd):
+    """`generate --workers -1` (the force calibration's processes as well as the samples'):
+    one line naming the option, exit 2, and no data set created or touched."""
+    import hashlib
+
+    from biopsynav.cli import main
+    from biopsynav.config import load_config, save_config
+
+    def tree(folder: Path) -> dict:
+        return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(folder.rglob("*")) if p.is_file()}
+
+    done = _copy(reference, tmp_path / "done")
+    fresh = _copy(base_case, tmp_path / "fresh")
+    cfg = load_config(fresh)
+    cfg.probe.calibrate_force = True  # a calibration would run first
+    save_config(fresh, cfg)
+    before = tree(done / "dataset.zarr")
+    for case_dir in (done, fresh):
+        rc = main(["generate", str(case_dir), "--workers", "-1"])
+        err = capfd.readouterr().err
+        assert rc == 2 and "Traceback" not in err
+        assert "--workers must be >= 0, got -1" in err and len(err.strip().splitlines()) == 1
+    assert tree(done / "dataset.zarr") == before
+    assert not (fresh / "dataset.zarr").exists()
