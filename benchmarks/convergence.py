@@ -56,6 +56,11 @@ whole displacement field near the probe, each series' mean error (mm) over up to
 so that a reused reference is compared at the same points). The last line reads ``RESULT``
 with the mean and largest error of each variant, grid and teacher against the reference, the
 field's as ``err_field_...``.
+
+Everything is written to ``CASE/eval/convergence.json`` (or ``--out``), with a ``summary`` of
+each series' errors that the case's report shows beside Table 2; a run in progress keeps its
+figures in ``convergence.partial.json`` beside it, and the last finished study stays as it is
+until the new one ends.
 """
 
 from __future__ import annotations
@@ -77,8 +82,10 @@ from biopsynav.contact.constraints import contact_constraint_names  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
+from biopsynav.fileio import write_json_atomic  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
 from biopsynav.grid.embedding import Embedding  # noqa: E402
+from biopsynav.layout import CasePaths  # noqa: E402
 from biopsynav.reference_registry import P2_FRICTIONS  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 from biopsynav.tracker.core import fem_engine  # noqa: E402
@@ -332,7 +339,9 @@ def observed_order(cells: list[float], values: list) -> float | None:
 
 
 def run(args) -> dict:
-    case, e_mpa = homogeneous(Case.load(args.case_dir), args.nu)
+    loaded = Case.load(args.case_dir)
+    own = case_series(loaded)
+    case, e_mpa = homogeneous(loaded, args.nu)
     check_edge_radius(case, args)
     lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
@@ -386,7 +395,15 @@ def run(args) -> dict:
             "grids": grids, "reference": reference,
             "tet_size_mm": args.tet_size, "tet_fine_mm": args.tet_fine,
             "tet_rim_mm": args.tet_rim, "friction": args.friction,
-            "edge_radius_mm": args.edge_radius, "probe_body": not args.no_probe_body}
+            "edge_radius_mm": args.edge_radius, "probe_body": not args.no_probe_body,
+            "case_series": own}
+
+
+def case_series(case: Case) -> str:
+    """The key (:func:`series_key`) of the series that is the case's own FE: its material
+    law, ``[tracker] fem_contact`` and cell size."""
+    variant = f"{case.cfg.material.model}/{case.cfg.tracker.fem_contact}"
+    return series_key(variant, case.cfg.grid.cell_size_mm)
 
 
 def series_answers(tracker: Tracker, placements: dict, points: dict, depths: list[float]
@@ -447,10 +464,52 @@ def series_key(variant: str, cell: float) -> str:
     return f"{variant} {cell:g}"
 
 
-def save(path: Path | None, partial: dict) -> None:
+def partial_path(out: Path) -> Path:
+    """Where a run keeps what it has computed so far, beside ``out`` (which keeps the last
+    finished study until this one ends)."""
+    return out.with_name(out.stem + ".partial.json")
+
+
+def save(path: Path, partial: dict) -> None:
     """Write what is computed so far (a long run keeps its figures if a later part fails)."""
-    if path is not None:
-        path.write_text(json.dumps(partial, indent=1, default=str))
+    write_json_atomic(partial_path(path), partial)
+
+
+def finish(out: Path, result: dict) -> None:
+    """Write the finished study to ``out`` atomically and remove its partial file."""
+    write_json_atomic(out, result)
+    partial_path(out).unlink(missing_ok=True)
+
+
+def lesion_error(answer: list | None, reference: list | None) -> float | None:
+    """Distance (mm) between two lesion displacements (3,) mm; None where either is missing."""
+    if answer is None or reference is None:
+        return None
+    return float(np.linalg.norm(np.asarray(answer) - np.asarray(reference)))
+
+
+def summary(result: dict) -> dict:
+    """The study as plain data for the report (``eval/convergence.json``, key ``summary``):
+    each series' lesion and field errors (mm) against the reference, ``[lesion][depth]``
+    (None where a solve or the reference failed), and what the reference was."""
+    ref, depths = result["reference"], result["depths_mm"]
+    series = []
+    for key, grid in result["grids"].items():
+        fields = grid.get("field", {})
+        series.append({
+            "name": key, "active_cells": grid.get("active_cells"),
+            "lesion_error_mm": [[lesion_error(grid["displacement"][li][k],
+                                              ref[li]["displacement"][k])
+                                 for k in range(len(depths))] for li in result["lesions"]],
+            "field_error_mm": [[field_error((fields.get(li) or [None] * len(depths))[k],
+                                            (ref[li].get("field") or [None] * len(depths))[k])
+                                for k in range(len(depths))] for li in result["lesions"]]})
+    return {"depths_mm": depths, "lesion_ids": result["lesion_ids"], "series": series,
+            "case_series": result.get("case_series"),
+            "material": {"E_mpa": result["E_mpa"], "nu": result["nu"]},
+            "reference": {key: result[key] for key in
+                          ("tet_size_mm", "tet_fine_mm", "tet_rim_mm", "friction",
+                           "edge_radius_mm", "probe_body")}}
 
 
 def report(result: dict) -> dict[str, list[float]]:
@@ -577,7 +636,9 @@ def main(argv: list[str] | None = None) -> int:
                         "pass through the probe face (the hexahedral FE's contact without "
                         "[tracker] contact_follows_pose)")
     p.add_argument("--nu", type=float, default=0.45)
-    p.add_argument("--out", type=Path, default=None, help="write the figures as JSON")
+    p.add_argument("--out", type=Path, default=None,
+                   help="write the figures as JSON here (default: CASE/eval/convergence.json, "
+                        "which the case's report shows)")
     p.add_argument("--reuse-reference", type=Path, default=None,
                    help="take the P2 figures of an earlier run's --out JSON (same case, depths, "
                         "material and reference mesh) instead of running the reference again")
@@ -585,13 +646,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_probe_body and args.edge_radius:
         p.error("--edge-radius shapes the probe body that --no-probe-body leaves out")
     show_progress(args)
+    args.out = args.out or CasePaths(args.case_dir).convergence
     start = time.perf_counter()
     result = run(args)
     errors = report(result)
     result["seconds"] = time.perf_counter() - start
-    if args.out:
-        args.out.write_text(json.dumps(result, indent=1))
-    print(f"\ntotal {result['seconds'] / 60:.1f} min")
+    result["summary"] = summary(result)
+    finish(args.out, result)
+    print(f"\ntotal {result['seconds'] / 60:.1f} min; written to {args.out}")
     names = {key: key.replace(" ", "_").replace("/", ":") for key in errors}
     print("RESULT " + " ".join(
         f"err_{names[key]}mm_mean={np.mean(e):.3f} err_{names[key]}mm_max={np.max(e):.3f}"

@@ -33,6 +33,7 @@ TABLE1_FILE = "table1.json"
 TABLE2 = "table2"  # by simulation: eval/table2.json and eval/table2.md
 TABLE2_MEASURED = "table2_measured"  # from user data: eval/table2_measured.json and .md
 TABLE2_REFERENCE_CACHE = "table2_p2_answers.json"  # the P2 reference's answers, by push
+CONVERGENCE_FILE = "convergence.json"  # benchmarks/convergence.py's study of this case
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
 REPORT_FILES = "report_files"  # figures the report makes, beside report.html
@@ -106,6 +107,12 @@ class CasePaths:
     def table2_reference_cache(self) -> Path:
         """The P2 reference's answers by push (``[evaluate] reference = "p2"``)."""
         return self.eval / TABLE2_REFERENCE_CACHE
+
+    @property
+    def convergence(self) -> Path:
+        """The convergence study of the FE against the P2 reference
+        (``benchmarks/convergence.py CASE``), which the report shows."""
+        return self.eval / CONVERGENCE_FILE
 
     @property
     def report_html(self) -> Path:

@@ -27,6 +27,7 @@ from .blocks import to_html, to_markdown  # noqa: E402
 from .sections import (  # noqa: E402
     FIG_DIR,
     case_section,
+    convergence_section,
     dataset_section,
     machine_section,
     parameters_section,
@@ -50,7 +51,8 @@ def build_sections(case_dir: Path, case: Case | None = None) -> tuple[str, list]
     stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     title = f"biopsynav report: {cfg.case.name} ({stamp})"
     sections = [table1_section(case_dir), table2_section(case_dir, fig_dir),
-                timing_section(case_dir, fig_dir), stages_section(case_dir),
+                timing_section(case_dir, fig_dir), convergence_section(case_dir),
+                stages_section(case_dir),
                 case_section(case_dir, cfg, case), dataset_section(case_dir),
                 training_section(case_dir), machine_section(), parameters_section(cfg)]
     return title, sections

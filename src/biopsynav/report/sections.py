@@ -14,6 +14,7 @@ from ..evaluate.run import TABLE2, TABLE2_MEASURED, shown_tables, table2_text
 from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
 from ..layout import (
     ANATOMY_PICTURE,
+    CONVERGENCE_FILE,
     DATASET_PLOT,
     DATASET_SUMMARY,
     FACTS_FILE,
@@ -48,7 +49,8 @@ def read_stage_json(path: Path) -> dict | None:
 #: The command that writes each JSON file the report reads.
 _WRITER = {TABLE1_FILE: "`biopsynav evaluate`", f"{TABLE2}.json": "`biopsynav evaluate`",
            META: "`biopsynav train`", DATASET_SUMMARY: "`biopsynav generate`",
-           FACTS_FILE: "`biopsynav init --overwrite`"}
+           FACTS_FILE: "`biopsynav init --overwrite`",
+           CONVERGENCE_FILE: "`python benchmarks/convergence.py CASE`"}
 
 
 def _num(v, fmt: str = ".4g") -> str:
@@ -237,6 +239,76 @@ def _grid_rows(t: dict) -> list[list[str]]:
     rows = [line.split() for i, line in enumerate(lines) if i != 1]
     width = len(rows[0])
     return [r + [""] * (width - len(r)) for r in rows]
+
+
+def convergence_section(case_dir: Path) -> Section:
+    """The FE against an independent P2 reference on a sequence of grids
+    (``eval/convergence.json`` of ``benchmarks/convergence.py``), or how to run it."""
+    s = Section("Convergence: the FE against an independent reference")
+    study = read_stage_json(CasePaths(case_dir).convergence)
+    if study is None:
+        s.blocks.append(Note("No convergence study: `python benchmarks/convergence.py "
+                             f"{case_dir}` (a P2 tetrahedral reference per lesion: minutes "
+                             "to hours) writes eval/convergence.json, shown here."))
+    else:
+        s.blocks += study_blocks(study)
+    return s
+
+
+def study_blocks(study: dict) -> list:
+    """The blocks of a convergence study, or a note naming what is wrong with its file."""
+    again = "run `python benchmarks/convergence.py CASE` again"
+    if not isinstance(study.get("summary"), dict):
+        return [Note(f"eval/convergence.json holds no summary (an unfinished run, or one of "
+                     f"an older script): {again}.")]
+    try:
+        return convergence_blocks(study["summary"])
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        return [Note(f"eval/convergence.json is damaged ({type(exc).__name__}: {exc}): "
+                     f"{again}.")]
+
+
+def convergence_blocks(summary: dict) -> list:
+    """What the reference was, then one row per FE series: the lesion error mean (max) and
+    the field error mean at each push depth, mm."""
+    depths = summary["depths_mm"]
+    header = ["FE", "active cells"] + [f"{d:g} mm: lesion mean (max)" for d in depths] + \
+             [f"{d:g} mm: field" for d in depths]
+    rows = [[_series_title(row["name"], summary.get("case_series")),
+             _num(row.get("active_cells"))]
+            + [_mean_max(row["lesion_error_mm"], k) for k in range(len(depths))]
+            + [_mean_max(row["field_error_mm"], k, with_max=False) for k in range(len(depths))]
+            for row in summary["series"]]
+    return [Para(_reference_text(summary)), GridTable(header, rows)]
+
+
+def _reference_text(summary: dict) -> str:
+    ref, mat = summary["reference"], summary["material"]
+    body = ("the probe a rigid body (skin it reaches slides on it)" if ref.get("probe_body")
+            else "only the skin touched at rest held (no probe body)")
+    return (f"Error (mm) of each FE against an independent reference: quadratic tetrahedra "
+            f"(P2) of a gmsh mesh, {_num(ref.get('tet_size_mm'))} mm, "
+            f"{_num(ref.get('tet_fine_mm'))} mm within 35 mm of the probe, face "
+            f"{ref.get('friction', '-')}, {body}; homogeneous neo-Hookean, E = "
+            f"{_num(1e3 * mat['E_mpa'])} kPa, nu = {_num(mat['nu'])}. Probe over lesions "
+            f"{', '.join(map(str, summary['lesion_ids']))} as in Table 2. Lesion: distance "
+            "between the lesion displacements, mean (max) over the lesions; field: mean "
+            "distance over points inside the breast within 50 mm of the probe.")
+
+
+def _series_title(name: str, own: str | None) -> str:
+    """A series key (``law/contact cell``) as a row title; the case's own FE marked."""
+    title = name if name.startswith("teacher") else f"{name} mm"
+    return title + (" (this case's FE)" if name == own else "")
+
+
+def _mean_max(errors: list, k: int, with_max: bool = True) -> str:
+    """Mean (max) over the lesions of depth ``k``'s errors, mm; '-' when none answered."""
+    values = [e[k] for e in errors if e[k] is not None]
+    if not values:
+        return "-"
+    text = f"{sum(values) / len(values):.2f}"
+    return text + (f" ({max(values):.2f})" if with_max else "")
 
 
 def timing_section(case_dir: Path, fig_dir: Path) -> Section:
