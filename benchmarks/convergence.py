@@ -507,9 +507,20 @@ def summary(result: dict) -> dict:
     return {"depths_mm": depths, "lesion_ids": result["lesion_ids"], "series": series,
             "case_series": result.get("case_series"),
             "material": {"E_mpa": result["E_mpa"], "nu": result["nu"]},
-            "reference": {key: result[key] for key in
-                          ("tet_size_mm", "tet_fine_mm", "tet_rim_mm", "friction",
-                           "edge_radius_mm", "probe_body")}}
+            "reference": {**{key: result[key] for key in
+                             ("tet_size_mm", "tet_fine_mm", "tet_rim_mm", "friction",
+                              "edge_radius_mm", "probe_body")},
+                          "folded": folded_answers(result)}}
+
+
+def folded_answers(result: dict) -> list[list]:
+    """[lesion id, depth (mm), elements] of every reference answer with elements folded over
+    at a node (:meth:`TetReference.tangled`: not to be trusted)."""
+    return [[lid, depth, int(n)]
+            for li, lid in zip(result["lesions"], result["lesion_ids"], strict=True)
+            for depth, n in zip(result["depths_mm"],
+                                result["reference"][li].get("tangled_elements", []),
+                                strict=False) if n]
 
 
 def report(result: dict) -> dict[str, list[float]]:

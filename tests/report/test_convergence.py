@@ -30,7 +30,7 @@ def case_dir(tmp_path):
 def _result(case_dir: Path) -> dict:
     """A study of two lesions: grids of 15 and 10 mm and a teacher; the 10 mm grid failed at
     30 mm over lesion 7, and the reference has no field there."""
-    ref = {0: {"displacement": [[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]],
+    ref = {0: {"displacement": [[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]], "tangled_elements": [0, 4],
                "field": [[[1.0, 0.0, 0.0]] * 2, [[3.0, 0.0, 0.0]] * 2],
                "field_points": [[0.0, 0.0, 0.0]] * 2},
            1: {"displacement": [[0.0, 2.0, 0.0], [0.0, 6.0, 0.0]],
@@ -66,6 +66,7 @@ def test_the_summary_holds_each_series_error_against_the_reference(convergence, 
     assert coarse["field_error_mm"][1] == [pytest.approx(1.0), None]  # no reference field
     assert s["case_series"] == "neo-hookean/elastic 15" and s["lesion_ids"] == [3, 7]
     assert s["reference"]["probe_body"] is True and s["material"]["nu"] == 0.45
+    assert s["reference"]["folded"] == [[3, 30.0, 4]]  # the reference's folded answer
 
 
 def test_a_study_goes_to_the_case_and_its_report_shows_it(convergence, case_dir, monkeypatch,
@@ -79,6 +80,7 @@ def test_a_study_goes_to_the_case_and_its_report_shows_it(convergence, case_dir,
     md = write_report(case_dir)[1].read_text()
     section = md.split("## Convergence")[1].split("\n## ")[0]
     assert "P2" in section and "rigid body" in section and "lesions 3, 7" in section
+    assert "folded over at a node (not to be trusted; elements): lesion 3 at 30 mm (4)" in section
     # the case's own FE marked; lesion mean (max) at 10 and 30 mm, field means
     assert "| neo-hookean/elastic 15 mm (this case's FE) | 66 | 0.75 (1.00) | 2.25 (3.00) " \
            "| 0.75 | 1.50 |" in section

@@ -288,12 +288,26 @@ def _reference_text(summary: dict) -> str:
             else "only the skin touched at rest held (no probe body)")
     return (f"Error (mm) of each FE against an independent reference: quadratic tetrahedra "
             f"(P2) of a gmsh mesh, {_num(ref.get('tet_size_mm'))} mm, "
-            f"{_num(ref.get('tet_fine_mm'))} mm within 35 mm of the probe, face "
+            f"{_num(ref.get('tet_fine_mm'))} mm within 35 mm of the probe, face friction "
             f"{ref.get('friction', '-')}, {body}; homogeneous neo-Hookean, E = "
-            f"{_num(1e3 * mat['E_mpa'])} kPa, nu = {_num(mat['nu'])}. Probe over lesions "
-            f"{', '.join(map(str, summary['lesion_ids']))} as in Table 2. Lesion: distance "
+            f"{_num(1e3 * mat['E_mpa'])} kPa, nu = {_num(mat['nu'])}. Probe over "
+            f"{_lesions_text(summary['lesion_ids'])} as in Table 2. Lesion: distance "
             "between the lesion displacements, mean (max) over the lesions; field: mean "
-            "distance over points inside the breast within 50 mm of the probe.")
+            "distance over points inside the breast within 50 mm of the probe."
+            + _folded_text(ref.get("folded") or []))
+
+
+def _lesions_text(ids: list) -> str:
+    return ("lesion " if len(ids) == 1 else "lesions ") + ", ".join(map(str, ids))
+
+
+def _folded_text(folded: list) -> str:
+    """The reference's answers with elements folded over at a node, as a sentence."""
+    if not folded:
+        return ""
+    where = ", ".join(f"lesion {lid} at {depth:g} mm ({n})" for lid, depth, n in folded)
+    return (f" Reference answers holding elements folded over at a node (not to be trusted; "
+            f"elements): {where}.")
 
 
 def _series_title(name: str, own: str | None) -> str:
