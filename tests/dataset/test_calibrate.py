@@ -96,16 +96,24 @@ def test_a_worker_that_dies_or_errs_is_one_line_naming_the_calibration(base_case
                                                                         monkeypatch):
     """A calibration worker killed (out of memory, say) or raising is said in one line that
     names the force calibration, never a traceback from the pool."""
+    from concurrent.futures import Future
+
     from biopsynav.case import Case
 
     case = Case.load(base_case)
     case.cfg.probe.calibration_pushes = 4
+    cancelled, cancel = [], Future.cancel
+    monkeypatch.setattr(Future, "cancel", lambda f: cancelled.append(f) or cancel(f))
     for task, words in ((_die, "a worker process died"),
                         (_raise, "a solve failed in its worker: ValueError: no model for")):
         monkeypatch.setattr(calibrate, "calibration_depth", task)  # sent to the worker by name
         with calibrate.CalibrationSolves(case, 1) as solves:
             with pytest.raises(BiopsynavError, match=f"force calibration: {words}"):
                 solves.depths(calibrate.TEACHER, 1.0, np.arange(4))
+            # the queued solves are left to the pool's close: a future cancelled from outside
+            # a pool that then breaks is an InvalidStateError traceback in the executor's
+            # thread on Python 3.11 (seen in CI)
+            assert not cancelled
 
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,

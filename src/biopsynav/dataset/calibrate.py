@@ -109,9 +109,11 @@ class CalibrationSolves:
             self._collect(pending, depths, failures_allowed(self.n_pushes))
         except BrokenProcessPool:  # the wait saw a worker die that no future names
             raise _worker_died() from None
-        finally:
-            for future in pending:
-                future.cancel()
+        # left early: the rest are not needed. After a death or an error they are left to the
+        # pool's close: on Python 3.11 an executor whose pool breaks raises InvalidStateError
+        # in its manager thread on a future cancelled from outside (a traceback on stderr)
+        for future in pending:
+            future.cancel()
         return depths
 
     def _collect(self, pending: dict, depths: np.ndarray, allowed: int) -> None:
