@@ -79,6 +79,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.contact.constraints import contact_constraint_names  # noqa: E402
+from biopsynav.errors import BiopsynavError  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
@@ -659,11 +660,14 @@ def main(argv: list[str] | None = None) -> int:
     show_progress(args)
     args.out = args.out or CasePaths(args.case_dir).convergence
     start = time.perf_counter()
-    result = run(args)
-    errors = report(result)
-    result["seconds"] = time.perf_counter() - start
-    result["summary"] = summary(result)
-    finish(args.out, result)
+    try:
+        result = run(args)
+        errors = report(result)
+        result["seconds"] = time.perf_counter() - start
+        result["summary"] = summary(result)
+        finish(args.out, result)
+    except BiopsynavError as exc:  # a bad case, a failed reference mesh, an unwritable file
+        raise SystemExit(f"error: {exc}") from None
     print(f"\ntotal {result['seconds'] / 60:.1f} min; written to {args.out}")
     names = {key: key.replace(" ", "_").replace("/", ":") for key in errors}
     print("RESULT " + " ".join(

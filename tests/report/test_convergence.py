@@ -85,7 +85,7 @@ def test_a_study_goes_to_the_case_and_its_report_shows_it(convergence, case_dir,
     assert "| neo-hookean/elastic 15 mm (this case's FE) | 66 | 0.75 (1.00) | 2.25 (3.00) " \
            "| 0.75 | 1.50 |" in section
     assert "| neo-hookean/elastic 10 mm | 80 | 0.38 (0.50) | 0.75 (0.75) |" in section
-    assert "| teacher 2:0 |" in section
+    assert "| teacher 2:0 ([dataset] teacher_refine:teacher_extrapolation) |" in section
 
 
 @pytest.mark.parametrize("content, note", [
@@ -99,3 +99,8 @@ def test_the_report_says_what_is_missing_or_wrong(case_dir, content, note):
         (case_dir / "eval" / "convergence.json").write_text(json.dumps(content))
     md = write_report(case_dir)[1].read_text()
     assert note in md.split("## Convergence")[1].split("\n## ")[0]
+
+
+def test_a_missing_case_is_one_line(convergence, tmp_path):
+    with pytest.raises(SystemExit, match=r"^error: .*nowhere: case folder does not exist$"):
+        convergence.main([str(tmp_path / "nowhere")])

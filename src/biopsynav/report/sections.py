@@ -312,7 +312,8 @@ def _folded_text(folded: list) -> str:
 
 def _series_title(name: str, own: str | None) -> str:
     """A series key (``law/contact cell``) as a row title; the case's own FE marked."""
-    title = name if name.startswith("teacher") else f"{name} mm"
+    title = f"{name} ([dataset] teacher_refine:teacher_extrapolation)" \
+        if name.startswith("teacher") else f"{name} mm"
     return title + (" (this case's FE)" if name == own else "")
 
 
