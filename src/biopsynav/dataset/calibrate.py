@@ -111,7 +111,8 @@ class CalibrationSolves:
             raise _worker_died() from None
         # left early: the rest are not needed. After a death or an error they are left to the
         # pool's close: on Python 3.11 an executor whose pool breaks raises InvalidStateError
-        # in its manager thread on a future cancelled from outside (a traceback on stderr)
+        # in its manager thread on a future cancelled from outside (a traceback on stderr;
+        # CPython gh-107219, fixed in 3.12)
         for future in pending:
             future.cancel()
         return depths
