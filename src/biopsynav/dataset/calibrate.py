@@ -97,31 +97,31 @@ class CalibrationSolves:
 
     def depths(self, stage: str, force_n: float, order: np.ndarray) -> np.ndarray:
         """Probe displacement (mm) of each push at ``force_n`` N total; inf where the solve
-        fails. The pushes are queued in ``order``; once more have failed than
-        :func:`failures_allowed`, the rest are left unsolved (inf too): the round's quantile
-        is inf whatever they give."""
+        fails. The pushes go to the workers in ``order``, two per worker at a time; once more
+        have failed than :func:`failures_allowed`, the rest are not sent (inf too): the
+        round's quantile is inf whatever they give. Nothing is ever cancelled: the solves
+        still running when a round ends finish unread (on Python 3.11 a future cancelled from
+        outside a pool that then breaks is an InvalidStateError traceback in the executor's
+        thread, CPython gh-107219)."""
         from concurrent.futures.process import BrokenProcessPool
 
         depths = np.full(self.n_pushes, np.inf)
-        pending = {self.processes.submit(calibration_depth, stage, int(i), float(force_n)):
-                   (rank, int(i)) for rank, i in enumerate(order)}
+        queue = [(rank, int(i)) for rank, i in enumerate(order)]
         try:
-            self._collect(pending, depths, failures_allowed(self.n_pushes))
+            self._collect(stage, float(force_n), queue, depths,
+                          failures_allowed(self.n_pushes))
         except BrokenProcessPool:  # the wait saw a worker die that no future names
             raise _worker_died() from None
-        # left early: the rest are not needed. After a death or an error they are left to the
-        # pool's close: on Python 3.11 an executor whose pool breaks raises InvalidStateError
-        # in its manager thread on a future cancelled from outside (a traceback on stderr;
-        # CPython gh-107219, fixed in 3.12)
-        for future in pending:
-            future.cancel()
         return depths
 
-    def _collect(self, pending: dict, depths: np.ndarray, allowed: int) -> None:
-        """Write the answers of ``pending`` (future -> (rank, push index)) into ``depths``,
-        in rank order as they come, until none is left or more than ``allowed`` failed."""
+    def _collect(self, stage: str, force_n: float, queue: list, depths: np.ndarray,
+                 allowed: int) -> None:
+        """Send the ``queue`` of (rank, push index) and write the answers into ``depths``, in
+        rank order as they come, until none is left or more than ``allowed`` failed."""
+        pending: dict = {}
         failed = 0
-        while pending:
+        while queue or pending:
+            self._send(stage, force_n, queue, pending)
             for future in sorted(self.processes.wait_any(list(pending)), key=pending.get):
                 index = pending.pop(future)[1]
                 depths[index] = _answer(future)
@@ -129,6 +129,15 @@ class CalibrationSolves:
                 failed += bool(np.isinf(depths[index]))
                 if failed > allowed:
                     return
+
+    def _send(self, stage: str, force_n: float, queue: list, pending: dict) -> None:
+        """Move pushes from the front of ``queue`` into ``pending`` (future -> (rank, push
+        index)) until each worker has one running and one waiting (no worker idles while the
+        main process reads an answer)."""
+        while queue and len(pending) < 2 * self.processes.workers:
+            rank, index = queue.pop(0)
+            future = self.processes.submit(calibration_depth, stage, index, force_n)
+            pending[future] = (rank, index)
 
     def __enter__(self) -> CalibrationSolves:
         return self
