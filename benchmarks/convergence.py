@@ -68,7 +68,6 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -83,7 +82,7 @@ from biopsynav.errors import BiopsynavError  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
-from biopsynav.fileio import write_json_atomic  # noqa: E402
+from biopsynav.fileio import read_json, write_json_atomic  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
 from biopsynav.grid.embedding import Embedding  # noqa: E402
 from biopsynav.layout import CasePaths  # noqa: E402
@@ -446,7 +445,9 @@ def reused_reference(args, e_mpa: float) -> dict:
     the same depths, material and reference mesh sizes; else {} (the reference runs)."""
     if args.reuse_reference is None:
         return {}
-    earlier = json.loads(args.reuse_reference.read_text())
+    earlier = read_json(args.reuse_reference, "give the --out JSON of a finished run")
+    if not isinstance(earlier, dict):
+        raise SystemExit(f"error: {args.reuse_reference}: not a convergence.py result")
     same = (earlier.get("depths_mm") == args.depths and earlier.get("nu") == args.nu
             and earlier.get("E_mpa") == e_mpa and earlier.get("tet_size_mm") == args.tet_size
             and earlier.get("tet_fine_mm") == args.tet_fine
@@ -582,9 +583,7 @@ def report_teachers(result: dict) -> dict[str, list[float]]:
             ref_k = result["reference"][li]["displacement"][k]
             cols = []
             for key in keys:
-                v = result["grids"][key]["displacement"][li][k]
-                err = None if v is None or ref_k is None else \
-                    float(np.linalg.norm(np.asarray(v) - np.asarray(ref_k)))
+                err = lesion_error(result["grids"][key]["displacement"][li][k], ref_k)
                 cols.append(f"{'-' if err is None else f'{err:.2f}':>12}")
                 if err is not None:
                     errors[key].append(err)
@@ -610,8 +609,7 @@ def report_variant(result: dict, variant: str) -> dict[str, list[float]]:
             mags, errs = [], []
             for key, v in zip(keys, values, strict=True):
                 mags.append("  failed" if v is None else f"{np.linalg.norm(v):8.2f}")
-                err = None if v is None or ref_k is None else \
-                    float(np.linalg.norm(np.asarray(v) - ref))
+                err = lesion_error(v, ref_k)
                 errs.append("       -" if err is None else f"{err:8.2f}")
                 if err is not None:
                     errors[key].append(err)

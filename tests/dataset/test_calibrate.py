@@ -45,16 +45,25 @@ def test_a_round_stops_once_its_quantile_can_only_be_a_failure():
     assert calibrate.failures_allowed(48) == 4 and calibrate.failures_allowed(6) == 0
 
 
-def test_a_failing_round_is_left_at_its_first_failure_too_many(base_case, monkeypatch):
+@pytest.fixture()
+def cancelled(monkeypatch) -> list:
+    """The futures cancelled from outside their pool while the test runs: none should be (on
+    Python 3.11 a future cancelled so in a pool that then breaks is an InvalidStateError
+    traceback in the executor's thread, seen in CI)."""
+    from concurrent.futures import Future
+
+    calls, cancel = [], Future.cancel
+    monkeypatch.setattr(Future, "cancel", lambda f: calls.append(f) or cancel(f))
+    return calls
+
+
+def test_a_failing_round_is_left_at_its_first_failure_too_many(base_case, monkeypatch,
+                                                               cancelled):
     """At a force far too strong, a round of 6 pushes (no failure allowed) solved by one
     worker process stops at its first failed solve, the rest never sent (nothing cancelled);
     solving every push gives the same failed quantile."""
-    from concurrent.futures import Future
-
     from biopsynav.case import Case
 
-    cancelled, cancel = [], Future.cancel
-    monkeypatch.setattr(Future, "cancel", lambda f: cancelled.append(f) or cancel(f))
     case = Case.load(base_case)
     case.cfg.probe.calibration_pushes = 6
     order = np.arange(6)[::-1]
@@ -96,28 +105,21 @@ def _raise(stage, index, force_n):
     raise ValueError(f"no model for {stage}")
 
 
-def test_a_worker_that_dies_or_errs_is_one_line_naming_the_calibration(base_case,
-                                                                        monkeypatch):
+def test_a_worker_that_dies_or_errs_is_one_line_naming_the_calibration(base_case, monkeypatch,
+                                                                        cancelled):
     """A calibration worker killed (out of memory, say) or raising is said in one line that
     names the force calibration, never a traceback from the pool."""
-    from concurrent.futures import Future
-
     from biopsynav.case import Case
 
     case = Case.load(base_case)
     case.cfg.probe.calibration_pushes = 4
-    cancelled, cancel = [], Future.cancel
-    monkeypatch.setattr(Future, "cancel", lambda f: cancelled.append(f) or cancel(f))
     for task, words in ((_die, "a worker process died"),
                         (_raise, "a solve failed in its worker: ValueError: no model for")):
         monkeypatch.setattr(calibrate, "calibration_depth", task)  # sent to the worker by name
         with calibrate.CalibrationSolves(case, 1) as solves:
             with pytest.raises(BiopsynavError, match=f"force calibration: {words}"):
                 solves.depths(calibrate.TEACHER, 1.0, np.arange(4))
-            # nothing is cancelled from outside the pool: on Python 3.11 a future cancelled
-            # so in a pool that then breaks is an InvalidStateError traceback in the
-            # executor's thread (seen in CI)
-            assert not cancelled
+            assert not cancelled  # the queued solves are left to the pool
 
 
 def test_generation_calibrates_once_records_it_and_draws_within_it(base_case, tmp_path,

@@ -104,3 +104,43 @@ def test_the_report_says_what_is_missing_or_wrong(case_dir, content, note):
 def test_a_missing_case_is_one_line(convergence, tmp_path):
     with pytest.raises(SystemExit, match=r"^error: .*nowhere: case folder does not exist$"):
         convergence.main([str(tmp_path / "nowhere")])
+
+
+def test_an_unwritable_output_is_one_line(convergence, case_dir, monkeypatch):
+    monkeypatch.setattr(convergence, "run", lambda args: _result(case_dir))
+    blocker = case_dir / "not-a-folder"
+    blocker.write_text("a file where the output's folder should be")
+    with pytest.raises(SystemExit, match=r"^error: .*not-a-folder.*cannot write"):
+        convergence.main([str(case_dir), "--depths", *map(str, DEPTHS),
+                          "--out", str(blocker / "study.json")])
+    assert blocker.read_text().startswith("a file")
+
+
+def test_a_truncated_study_stops_the_report_in_one_line_and_keeps_the_last_one(case_dir,
+                                                                               capfd):
+    from biopsynav.cli import main
+
+    assert main(["report", str(case_dir)]) == 0
+    before = (case_dir / "report.md").read_text()
+    (case_dir / "eval").mkdir()
+    (case_dir / "eval" / "convergence.json").write_text('{"summary": {"depths_mm": [10')
+    capfd.readouterr()
+    assert main(["report", str(case_dir)]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "eval/convergence.json: damaged, not valid JSON" in err[0]
+    assert "benchmarks/convergence.py" in err[0]
+    assert (case_dir / "report.md").read_text() == before
+
+
+@pytest.mark.parametrize("content, words", [
+    ('{"reference": {', "damaged, not valid JSON"),
+    (None, "missing; give the --out JSON of a finished run"),
+])
+def test_a_bad_reused_reference_is_one_line(convergence, case_dir, tmp_path, content, words):
+    earlier = tmp_path / "earlier.json"
+    if content is not None:
+        earlier.write_text(content)
+    with pytest.raises(SystemExit, match=f"^error: {earlier}: {words}"):
+        convergence.main([str(case_dir), "--lesions", "1", "--depths", "10",
+                          "--reuse-reference", str(earlier)])
+    assert not (case_dir / "eval" / "convergence.json").exists()
