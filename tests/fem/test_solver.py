@@ -256,6 +256,26 @@ def test_every_installed_backend_gives_the_same_answer(backend):
     assert np.abs(u - reference).max() < 1e-8 * np.abs(reference).max()
 
 
+def test_pardiso_s_library_is_searched_for_once(monkeypatch):
+    """pypardiso searches for MKL at every construction (about 0.8 s); after the first, the
+    project's solvers are handed the library found, and a path the user set is kept."""
+    pardiso_wrapper = pytest.importorskip("pypardiso.pardiso_wrapper")
+    from biopsynav.fem import linsolve
+
+    linsolve.pypardiso_solver(mtype=2)
+    searched = []
+    monkeypatch.setattr(pardiso_wrapper, "find_library", lambda n: searched.append(n))
+    monkeypatch.setattr(pardiso_wrapper.glob, "glob", lambda *a, **k: searched.append(a))
+    model, forces = _pushed_box()
+    reference, _ = solve(model, Loads(forces=forces), TIGHT)
+    u, report = solve(model, Loads(forces=forces), SolverSettings(backend="pardiso"))
+    assert report.backend == "pardiso" and not searched
+    assert np.abs(u - reference).max() < 1e-6 * np.abs(reference).max()
+    monkeypatch.setenv("PYPARDISO_MKL_RT", "/nowhere/libmkl_rt.so")
+    with pytest.raises(OSError, match="nowhere"):
+        linsolve.pypardiso_solver(mtype=2)
+
+
 def test_smallest_det_f_finds_the_inverted_element():
     """A homogeneous stretch gives det F = its volume ratio in every element; moving one node
     through its element's opposite face inverts that element (det F < 0 there), and only the

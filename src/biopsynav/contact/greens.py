@@ -143,7 +143,9 @@ def _factorised(k):
 
         upper = sp.triu(k, format="csr")
         upper.sort_indices()
-        solver = pypardiso.PyPardisoSolver(mtype=2)  # SPD: K(u = 0) is positive definite
+        from ..fem.linsolve import pypardiso_solver
+
+        solver = pypardiso_solver(mtype=2)  # SPD: K(u = 0) is positive definite
         solver.factorize(upper)
         solver.iparm[7] = 0  # no iterative refinement: 3x faster, same result to 1e-15
 

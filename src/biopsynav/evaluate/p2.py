@@ -780,9 +780,9 @@ class _SymmetricSolver:
     values, stay off (iparm 11 and 13 are 0)."""
 
     def __init__(self) -> None:
-        import pypardiso
+        from ..fem.linsolve import pypardiso_solver
 
-        self.pardiso = pypardiso.PyPardisoSolver(mtype=-2)
+        self.pardiso = pypardiso_solver(mtype=-2)
         self.pattern: tuple[np.ndarray, np.ndarray] | None = None
 
     def solve(self, upper: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:

@@ -18,6 +18,8 @@ factored (singular, or not positive definite for a Cholesky-type backend).
 from __future__ import annotations
 
 import ctypes
+import functools
+import os
 from typing import Protocol
 
 import numpy as np
@@ -170,6 +172,25 @@ class _PardisoHandle:
             pass
 
 
+@functools.cache
+def _mkl_runtime() -> str:
+    """The MKL runtime library pypardiso finds (its path or soname), searched once."""
+    import pypardiso
+
+    return pypardiso.PyPardisoSolver().libmkl._name
+
+
+def pypardiso_solver(mtype: int = 11):
+    """A ``pypardiso.PyPardisoSolver(mtype)`` whose MKL library is searched for once per
+    process. pypardiso searches at every construction (``ctypes.util.find_library``, then a
+    recursive glob of the environment), about 0.8 s each; the path found first is handed to
+    the later ones through pypardiso's ``PYPARDISO_MKL_RT`` (a path the user set is kept)."""
+    import pypardiso
+
+    os.environ.setdefault("PYPARDISO_MKL_RT", _mkl_runtime())
+    return pypardiso.PyPardisoSolver(mtype=mtype)
+
+
 class PardisoSolver:
     """MKL Pardiso: SPD Cholesky first, symmetric indefinite LDL^T when that fails."""
 
@@ -177,9 +198,7 @@ class PardisoSolver:
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, threads: int = 0,
                  single: bool = False) -> None:
-        import pypardiso
-
-        wrapper = pypardiso.PyPardisoSolver()
+        wrapper = pypardiso_solver()
         function = wrapper._mkl_pardiso  # argtypes already declared by pypardiso
         if threads > 0:
             wrapper.libmkl.MKL_Domain_Set_Num_Threads(int(threads), MKL_DOMAIN_PARDISO)

@@ -8,7 +8,8 @@ Files in ``model_dir`` (``CASE_DIR/model`` by default), all written atomically:
 * ``model.ts`` - the exported inference model (frozen TorchScript, fp32, mm in and out);
 * ``model.onnx`` - the same graph as ONNX (for ONNX Runtime / OpenVINO);
 * ``meta.json`` - architecture, normalisation, grid, fingerprint, envelope, training figures;
-* ``loss_curve.png`` - training loss and validation error against iterations.
+* ``loss_curve.png`` - training loss and validation error against iterations (drawn at most
+  once a minute while the training runs, and when it ends or stops).
 
 Determinism: batches and learning rates are pure functions of (seed, iteration), so a run killed
 at any point and restarted from its last checkpoint ends with the same weights as an
@@ -57,6 +58,9 @@ from .unet import UNetSpec, count_parameters, preset_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
 #: Every file training writes into the model folder (all atomically).
+#: seconds between drawings of ``loss_curve.png`` while a training runs (drawn again when it
+#: ends or stops); a drawing takes about a second of the training's time
+LOSS_CURVE_INTERVAL_S = 60.0
 MODEL_FILES = (CHECKPOINT, BEST, LOSS_CURVE, TORCHSCRIPT, ONNX, META, HISTORY)
 
 
@@ -472,6 +476,7 @@ class TrainingLoop:
         self.y_test = data.targets[data.test_idx].to(dev)
         self.amp = use_bf16(s.precision, dev)
         self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
+        self.drawn_at = time.perf_counter()  # when loss_curve.png was last drawn
         # channels-last convolutions train 1.4x faster on one CPU thread and 2x on two
         # (oneDNN; measured on the 2-core machine, docs/network.md); GPUs keep their default
         self.memory_format = (torch.channels_last_3d if dev.type == "cpu"
@@ -504,12 +509,20 @@ class TrainingLoop:
         bar = tqdm(total=s.iterations, initial=st["iteration"], disable=not progress,
                    desc="train", unit="it", dynamic_ncols=True)
         t0 = time.perf_counter() - st["elapsed_s"]
+        try:
+            self.iterate(end, t0, bar)
+        finally:
+            bar.close()  # an error's message then starts a line of its own
+        self.draw_loss_curve()
+
+    def iterate(self, end: int, t0: float, bar) -> None:
+        """Train up to iteration ``end``, validating and saving every ``val_interval``."""
+        st, s = self.state, self.s
         self.net.train()
         while st["iteration"] < end:
             it = st["iteration"]
             loss = self.step(it)
             if not math.isfinite(loss):
-                bar.close()
                 raise self.diverged(f"the training loss became {loss}", it + 1)
             st["loss_sum"] += loss
             st["loss_n"] += 1
@@ -525,7 +538,6 @@ class TrainingLoop:
         st["elapsed_s"] = time.perf_counter() - t0
         if st["iteration"] < s.iterations and st["iteration"] % s.val_interval:
             self.save_checkpoint()
-        bar.close()
 
     def keep_initial(self) -> None:
         """Take the initial weights as the best so far (validated, not logged)."""
@@ -555,9 +567,16 @@ class TrainingLoop:
                                               self.net.unet.state_dict().items()})
             _save_torch({"model": st["best_state"], "iteration": st["iteration"],
                          "val_mean_e_mm": mean_e}, self.out / BEST)
+        if time.perf_counter() - self.drawn_at >= LOSS_CURVE_INTERVAL_S:
+            self.draw_loss_curve()
+
+    def draw_loss_curve(self) -> None:
+        """Write ``loss_curve.png`` from the history so far (when it has any validation)."""
         from .plots import plot_loss_curve
 
-        plot_loss_curve(st["history"], self.out / LOSS_CURVE)
+        if self.state["history"]:
+            plot_loss_curve(self.state["history"], self.out / LOSS_CURVE)
+        self.drawn_at = time.perf_counter()
 
     def diverged(self, what: str, iteration: int) -> TrainingError:
         """The error that stops a diverged training at 1-based ``iteration``: nothing of it is
