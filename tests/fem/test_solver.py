@@ -128,6 +128,31 @@ def test_newton_converges_quadratically():
     assert report.log[-1]["residual_rel"] <= 1e-13
 
 
+def test_a_failed_increment_halves_the_step_it_tried(monkeypatch):
+    """An easy increment doubles the next, which is clipped at the full load: when that one
+    fails, the retry halves the step tried (0.5 -> 0.25, to load 0.75), never the same
+    increment again (halving the doubled nominal step gave 0.5 -> load 1.0 once more)."""
+    import biopsynav.fem.solver as solver_mod
+
+    model, forces = _pushed_box(force=0.01)
+    tried = []
+    newton = solver_mod._newton
+
+    def failing_once(system, solver, settings, report, u0, t_prev, t, *a, **k):
+        tried.append((t_prev, t))
+        if (t_prev, t) == (0.5, 1.0) and tried.count((t_prev, t)) == 1:
+            raise solver_mod._IncrementFailed("a failure forced by the test")
+        return newton(system, solver, settings, report, u0, t_prev, t, *a, **k)
+
+    monkeypatch.setattr(solver_mod, "_newton", failing_once)
+    u, report = solve(model, Loads(forces=forces), SolverSettings(initial_load_step=0.5))
+    assert tried[:3] == [(0.0, 0.5), (0.5, 1.0), (0.5, 0.75)], tried
+    assert len(set(tried)) == len(tried) and report.increments == len(tried) - 1
+    monkeypatch.undo()
+    reference, _ = solve(model, Loads(forces=forces), SolverSettings())
+    assert np.abs(u - reference).max() < 1e-6 * np.abs(reference).max()
+
+
 def test_report_and_log_fields():
     model, forces = _pushed_box()
     u, report = solve(model, Loads(forces=forces))

@@ -324,7 +324,8 @@ def _continuation(system: _System, solver: LinearSolver, settings: SolverSetting
             u_new, n_it = _newton(system, solver, settings, report, guess, t, target, base=u)
         except _IncrementFailed as exc:
             last_reason = exc.reason
-            dt *= 0.5
+            dt = 0.5 * (target - t)  # the step tried, not the nominal one: clipped at t = 1,
+            # halving a doubled dt would try the same target again
             if dt < settings.min_load_step:
                 raise SolverError(
                     f"no convergence: the load increment fell below min_load_step "
