@@ -36,6 +36,26 @@ def test_training_reduces_error(trained):
         assert (case / "model" / name).is_file(), name
 
 
+def test_the_loss_curve_is_drawn_every_interval_and_when_the_training_stops(synth_case,
+                                                                              tmp_path,
+                                                                              monkeypatch):
+    """Drawn at a validation only once ``LOSS_CURVE_INTERVAL_S`` has passed since the last
+    drawing, and always when the run ends or stops, with the whole history so far."""
+    import biopsynav.network.plots as plots
+    import biopsynav.network.train as train_mod
+
+    drawn = []
+    monkeypatch.setattr(plots, "plot_loss_curve", lambda h, path: drawn.append(len(h)))
+    s = tiny_settings(iterations=12, val_interval=4)
+    monkeypatch.setattr(train_mod, "LOSS_CURVE_INTERVAL_S", 1e9)  # never due at a validation
+    train(synth_case, settings=s, model_dir=tmp_path / "a", progress=False, stop_after=9)
+    assert drawn == [2]  # validations at 4 and 8, drawn when the run stopped at 9
+    drawn.clear()
+    monkeypatch.setattr(train_mod, "LOSS_CURVE_INTERVAL_S", 0.0)
+    train(synth_case, settings=s, model_dir=tmp_path / "b", progress=False, stop_after=11)
+    assert drawn == [1, 2, 2]  # at every validation, then when the run stopped
+
+
 def test_schedule_and_batches_are_pure_functions():
     s = tiny_settings(iterations=100, warmup_iterations=10, learning_rate=1.0)
     assert lr_at(0, s) == 0.1 and lr_at(9, s) == 1.0

@@ -57,10 +57,10 @@ from .model_io import write_model
 from .unet import UNetSpec, count_parameters, preset_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
-#: Every file training writes into the model folder (all atomically).
 #: seconds between drawings of ``loss_curve.png`` while a training runs (drawn again when it
-#: ends or stops); a drawing takes about a second of the training's time
+#: ends or stops); each drawing holds the training up
 LOSS_CURVE_INTERVAL_S = 60.0
+#: Every file training writes into the model folder (all atomically).
 MODEL_FILES = (CHECKPOINT, BEST, LOSS_CURVE, TORCHSCRIPT, ONNX, META, HISTORY)
 
 
