@@ -29,6 +29,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -56,6 +57,9 @@ from .metrics import masked_loss, mean_norm_error
 from .model_io import write_model
 from .unet import UNetSpec, count_parameters, preset_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 #: seconds between drawings of ``loss_curve.png`` while a training runs (drawn again when it
 #: ends or stops); each drawing holds the training up
@@ -515,8 +519,9 @@ class TrainingLoop:
             bar.close()  # an error's message then starts a line of its own
         self.draw_loss_curve()
 
-    def iterate(self, end: int, t0: float, bar) -> None:
-        """Train up to iteration ``end``, validating and saving every ``val_interval``."""
+    def iterate(self, end: int, t0: float, bar: tqdm) -> None:
+        """Train up to iteration ``end`` (``t0``: the clock's start, less the time already
+        trained), validating and saving every ``val_interval``; ``bar`` shows the progress."""
         st, s = self.state, self.s
         self.net.train()
         while st["iteration"] < end:
