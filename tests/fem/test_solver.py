@@ -3,6 +3,8 @@ prescribed displacements."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -297,8 +299,26 @@ def test_pardiso_s_library_is_searched_for_once(monkeypatch):
     assert report.backend == "pardiso" and not searched
     assert np.abs(u - reference).max() < 1e-6 * np.abs(reference).max()
     monkeypatch.setenv("PYPARDISO_MKL_RT", "/nowhere/libmkl_rt.so")
-    with pytest.raises(OSError, match="nowhere"):
+    with pytest.raises(InputError, match="nowhere.*PYPARDISO_MKL_RT") as bad:
         linsolve.pypardiso_solver(mtype=2)
+    assert bad.value.where == "PYPARDISO_MKL_RT"
+
+
+def test_a_bad_mkl_path_is_named_when_pypardiso_is_imported():
+    """pypardiso makes a solver when it is imported: a wrong ``PYPARDISO_MKL_RT`` fails there,
+    in the backend choice, and is still an InputError naming the variable."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("pypardiso")
+    code = ("from biopsynav.errors import InputError\n"
+            "from biopsynav.fem.linsolve import available_backends\n"
+            "try:\n    available_backends()\n"
+            "except InputError as e:\n    print('where', e.where)\n")
+    env = {**os.environ, "PYPARDISO_MKL_RT": "/nowhere/libmkl_rt.so"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, timeout=120)
+    assert done.returncode == 0 and "where PYPARDISO_MKL_RT" in done.stdout, done.stderr
 
 
 def test_smallest_det_f_finds_the_inverted_element():

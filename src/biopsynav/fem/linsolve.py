@@ -49,7 +49,7 @@ def available_backends() -> list[str]:
     """Installed backends, fastest first."""
     found = []
     try:
-        import pypardiso  # noqa: F401
+        _pypardiso()
         found.append("pardiso")
     except ImportError:
         pass
@@ -172,23 +172,40 @@ class _PardisoHandle:
             pass
 
 
+def _unloadable(exc: OSError) -> InputError:
+    return InputError(f"cannot load MKL's runtime library for Pardiso: {exc}; point "
+                      "PYPARDISO_MKL_RT at libmkl_rt or unset it (pypardiso then searches)",
+                      "PYPARDISO_MKL_RT")
+
+
+def _pypardiso():
+    """The pypardiso module (importing it makes its one default solver, ``pypardiso.ps``,
+    which searches for MKL); InputError when the library cannot be loaded."""
+    try:
+        import pypardiso
+    except OSError as exc:
+        raise _unloadable(exc) from None
+    return pypardiso
+
+
 @functools.cache
 def _mkl_runtime() -> str:
-    """The MKL runtime library pypardiso finds (its path or soname), searched once."""
-    import pypardiso
-
-    return pypardiso.PyPardisoSolver().libmkl._name
+    """The MKL runtime library pypardiso found on import (its path or soname)."""
+    return _pypardiso().ps.libmkl._name
 
 
 def pypardiso_solver(mtype: int = 11):
-    """A ``pypardiso.PyPardisoSolver(mtype)`` whose MKL library is searched for once per
-    process. pypardiso searches at every construction (``ctypes.util.find_library``, then a
-    recursive glob of the environment), about 0.8 s each; the path found first is handed to
-    the later ones through pypardiso's ``PYPARDISO_MKL_RT`` (a path the user set is kept)."""
-    import pypardiso
-
+    """A ``pypardiso.PyPardisoSolver(mtype)`` that does not search for MKL again.
+    pypardiso searches at every construction (``ctypes.util.find_library``, then a recursive
+    glob of the environment), about 0.8 s each; the library it found on import is handed to
+    the later ones through pypardiso's ``PYPARDISO_MKL_RT`` (a path the user set is kept).
+    Raises InputError naming that variable when the library cannot be loaded."""
+    pypardiso = _pypardiso()
     os.environ.setdefault("PYPARDISO_MKL_RT", _mkl_runtime())
-    return pypardiso.PyPardisoSolver(mtype=mtype)
+    try:
+        return pypardiso.PyPardisoSolver(mtype=mtype)
+    except OSError as exc:
+        raise _unloadable(exc) from None
 
 
 class PardisoSolver:
