@@ -155,10 +155,13 @@ def pytest_collection_modifyitems(config, items):
 
 
 def pytest_sessionstart(session) -> None:
-    """Compile the FE kernels once, in the process that starts pytest-xdist's workers (or in a
-    plain run) and before it starts them: the workers and the processes their tests start
-    then load numba's cache, rather than several compiling the same kernels on two cores."""
+    """Compile the FE kernels and the P2 reference's once, in the process that starts
+    pytest-xdist's workers (or in a plain run) and before it starts them: the workers and the
+    processes their tests start then load numba's cache, rather than several compiling the
+    same kernels on two cores."""
     if not hasattr(session.config, "workerinput"):
+        from biopsynav.evaluate.p2_kernels import compile_kernels as compile_p2_kernels
         from biopsynav.fem import compile_kernels
 
         compile_kernels()
+        compile_p2_kernels()

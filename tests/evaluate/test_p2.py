@@ -544,6 +544,41 @@ def test_a_factored_pattern_is_reused_and_a_new_one_analysed_again():
     assert phases == [13, 23, 23, 23, 13, 23]  # analysed once per pattern
 
 
+def test_newton_reuses_a_factored_tangent_once_it_converges_fast(monkeypatch):
+    """A 12 mm push of the rigid face into a 5 mm cube: Newton factors fewer tangents than it
+    takes updates (the late ones reuse the last factors) and lands where Newton factoring
+    every tangent lands, to its tolerance."""
+    from biopsynav.evaluate import p2
+    from biopsynav.footprint import make_footprint
+
+    ref = cube_reference(5.0)
+    face = make_footprint("rectangle", (60.0, 60.0))
+    rest = _tilted_face_over_the_top(10.0)
+    pushed = rest.copy()
+    pushed[:3, 3] += 12.0 * rest[:3, 2]
+    contact = ref.contact(rest, face, 0.5)
+    calls = {"factor": 0, "reuse": 0}
+    factor, reuse = p2.solve_symmetric, p2.resolve_symmetric
+
+    def counted(name, solve):
+        def run(*args):
+            calls[name] += 1
+            return solve(*args)
+        return run
+
+    monkeypatch.setattr(p2, "solve_symmetric", counted("factor", factor))
+    monkeypatch.setattr(p2, "resolve_symmetric", counted("reuse", reuse))
+    ref.push(rest, [pushed], contact, np.zeros((1, 3)), footprint=face, tol=1e-9)
+    reused = ref.last.copy()
+    assert calls["reuse"] > 0
+    factored_with_reuse = calls["factor"]
+    monkeypatch.setattr(p2, "FRESH_CONTRACTION", -1.0)  # never reuse
+    calls.update(factor=0, reuse=0)
+    ref.push(rest, [pushed], contact, np.zeros((1, 3)), footprint=face, tol=1e-9)
+    assert calls["reuse"] == 0 and calls["factor"] > factored_with_reuse
+    assert np.abs(ref.last - reused).max() < 1e-6
+
+
 def test_a_surface_gmsh_cannot_fill_either_way_is_a_clear_error():
     """An open surface (a box without its top) cannot be filled remeshed or as it is: one
     InputError names both failures, not gmsh's bare Exception."""
