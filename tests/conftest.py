@@ -160,7 +160,7 @@ def pytest_sessionstart(session) -> None:
     processes their tests start then load numba's cache, rather than several compiling the
     same kernels on two cores."""
     if not hasattr(session.config, "workerinput"):
-        from biopsynav.evaluate.p2_kernels import compile_kernels as compile_p2_kernels
+        from biopsynav.evaluate.p2_kernels import compile_p2_kernels
         from biopsynav.fem import compile_kernels
 
         compile_kernels()

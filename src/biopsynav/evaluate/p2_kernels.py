@@ -153,7 +153,7 @@ def scatter_add(slot: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def compile_kernels() -> None:
+def compile_p2_kernels() -> None:
     """Compile these kernels, or load them from numba's on-disk cache, on one undeformed
     element (as :func:`biopsynav.fem.compile_kernels` does for the FE's)."""
     grads = np.zeros((1, 1, 10, 3))
