@@ -304,9 +304,10 @@ def shape_gradients(bary: np.ndarray, grad_l: np.ndarray) -> np.ndarray:
 
 def element_quadrature(points: np.ndarray, tets: np.ndarray,
                        degree: int = QUADRATURE_DEGREE) -> tuple[np.ndarray, np.ndarray]:
-    """Shape-function gradients (q, t, 10, 3) per mm and weights x volume (q, t) mm^3 at the
+    """Shape-function gradients (t, q, 10, 3) per mm and weights x volume (t, q) mm^3 at the
     quadrature points of the ``degree`` rule over tetrahedra ``tets`` (t, 4) of ``points``
-    (n, 3) mm; ValueError for a rule with a weight <= 0 (:data:`QUADRATURE_DEGREE`)."""
+    (n, 3) mm, element-major as :mod:`~biopsynav.evaluate.p2_kernels` reads them; ValueError
+    for a rule with a weight <= 0 (:data:`QUADRATURE_DEGREE`)."""
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTet
 
@@ -316,8 +317,8 @@ def element_quadrature(points: np.ndarray, tets: np.ndarray,
                          "hyperelastic energy would be unbounded below")
     bary = np.vstack([1.0 - xq.sum(axis=0), xq]).T  # (q, 4)
     grad_l = _barycentric_gradients(points, tets)
-    grads = np.stack([shape_gradients(b, grad_l) for b in bary])
-    return grads, 6.0 * wq[:, None] * _volumes(points, tets)[None, :]
+    grads = np.stack([shape_gradients(b, grad_l) for b in bary], axis=1)
+    return grads, 6.0 * wq[None, :] * _volumes(points, tets)[:, None]
 
 
 def shape_values(bary: np.ndarray) -> np.ndarray:
@@ -334,8 +335,8 @@ class TetReference:
     nodes: np.ndarray  # (n, 3) mm
     elements: np.ndarray  # (t, 10)
     corners: np.ndarray  # (t, 4) the linear tetrahedra
-    grads: np.ndarray  # (q, t, 10, 3) reference shape-function gradients per quadrature point
-    weights: np.ndarray  # (q, t) quadrature weight x volume
+    grads: np.ndarray  # (t, q, 10, 3) reference shape-function gradients per quadrature point
+    weights: np.ndarray  # (t, q) quadrature weight x volume
     mu: float
     lam: float
     fixed_nodes: np.ndarray
@@ -403,19 +404,12 @@ class TetReference:
         """Element forces (t, 10, 3) N, tangents (t, 30, 30) N/mm (empty without
         ``tangent``) and energies (t,) N mm at ``u`` (n, 3) mm; FloatingPointError when an
         element inverts (J <= 0 at a quadrature point)."""
-        grads, weights = self._quadrature_by_element
-        f, k, energies, valid = element_terms(np.ascontiguousarray(u[self.elements]), grads,
-                                              weights, self.mu, self.lam, tangent)
+        f, k, energies, valid = element_terms(np.ascontiguousarray(u[self.elements]),
+                                              self.grads, self.weights, self.mu, self.lam,
+                                              tangent)
         if not valid.all():
             raise FloatingPointError("an element inverted")
         return f, k, energies
-
-    @cached_property
-    def _quadrature_by_element(self) -> tuple[np.ndarray, np.ndarray]:
-        """``grads`` as (t, q, 10, 3) and ``weights`` as (t, q), element-major (the kernels'
-        layout)."""
-        return (np.ascontiguousarray(self.grads.transpose(1, 0, 2, 3)),
-                np.ascontiguousarray(self.weights.T))
 
     @cached_property
     def _element_dofs(self) -> np.ndarray:
@@ -821,19 +815,11 @@ class _SymmetricSolver:
 
     def solve(self, upper: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
         """``upper``'s symmetric matrix ^-1 ``rhs``; RuntimeError where Pardiso refuses it."""
-        from pypardiso.pardiso_wrapper import PyPardisoError
-
         if not np.diff(upper.indptr).all():
             raise RuntimeError("P2 reference: the linear solve failed (an empty row)")
         known = self.pattern is not None and np.array_equal(upper.indptr, self.pattern[0]) \
             and np.array_equal(upper.indices, self.pattern[1])
-        self.pardiso.set_phase(23 if known else 13)
-        try:
-            x = self.pardiso._call_pardiso(upper, np.asfortranarray(rhs, dtype=np.float64))
-        except PyPardisoError as exc:
-            self.pattern = self.factored = None  # a failed analysis serves no later matrix
-            raise RuntimeError(f"P2 reference: the linear solve failed (Pardiso error "
-                               f"{exc.value})") from None
+        x = self._call(23 if known else 13, upper, rhs)
         if not known:
             self.pattern = (upper.indptr.copy(), upper.indices.copy())
         self.factored = upper
@@ -842,15 +828,20 @@ class _SymmetricSolver:
     def resolve(self, rhs: np.ndarray) -> np.ndarray:
         """The last factored matrix ^-1 ``rhs`` (phase 33: back-substitution only);
         RuntimeError where nothing is factored or Pardiso refuses."""
-        from pypardiso.pardiso_wrapper import PyPardisoError
-
         if self.factored is None:
             raise RuntimeError("P2 reference: no factored tangent to reuse")
-        self.pardiso.set_phase(33)
+        return self._call(33, self.factored, rhs)
+
+    def _call(self, phase: int, upper: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
+        """Pardiso's ``phase`` on ``upper`` and ``rhs``; RuntimeError where it refuses, after
+        which neither the analysis nor the factors serve a later solve."""
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
+        self.pardiso.set_phase(phase)
         try:
-            return self.pardiso._call_pardiso(self.factored,
-                                              np.asfortranarray(rhs, dtype=np.float64))
+            return self.pardiso._call_pardiso(upper, np.asfortranarray(rhs, dtype=np.float64))
         except PyPardisoError as exc:
+            self.pattern = self.factored = None
             raise RuntimeError(f"P2 reference: the linear solve failed (Pardiso error "
                                f"{exc.value})") from None
 
