@@ -59,8 +59,10 @@ field's as ``err_field_...``.
 
 Everything is written to ``CASE/eval/convergence.json`` (or ``--out``), with a ``summary`` of
 each series' errors that the case's report shows beside Table 2; a run in progress keeps its
-figures in ``convergence.partial.json`` beside it, and the last finished study stays as it is
-until the new one ends.
+figures in ``convergence.partial.json`` beside it (the P2 pushes of the lesion in progress,
+its answers and state after each depth, in ``convergence.p2-lesion<index>.partial.npz``: a
+stopped run continues from the last depth solved), and the last finished study stays as it
+is until the new one ends.
 """
 
 from __future__ import annotations
@@ -68,6 +70,8 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import hashlib
+import json
 import sys
 import time
 from pathlib import Path
@@ -82,7 +86,7 @@ from biopsynav.errors import BiopsynavError  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
-from biopsynav.fileio import read_json, write_json_atomic  # noqa: E402
+from biopsynav.fileio import read_json, save_npz_atomic, write_json_atomic  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
 from biopsynav.grid.embedding import Embedding  # noqa: E402
 from biopsynav.layout import CasePaths  # noqa: E402
@@ -187,11 +191,14 @@ def hex_pushes(tracker: Tracker, placement, lesion: int, depths: list[float],
 
 def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                depths: list[float], args, points: np.ndarray | None = None,
-               probe_body: bool = True) -> tuple[list, dict]:
+               probe_body: bool = True, checkpoint: Path | None = None) -> tuple[list, dict]:
     """The P2 reference's lesion displacements for each depth, and its mesh facts; with
     ``points`` (k, 3) mm the facts hold them (``field_points``) and the displacement there
     per depth (``field``, None past a failure). Without ``probe_body`` only the skin touched
-    at rest is held (other skin may pass through the face)."""
+    at rest is held (other skin may pass through the face). With ``checkpoint`` (an ``.npz``
+    path) the answers and the model's state are kept there after each depth, a run stopped
+    between depths continues after the last one kept (the same mesh and settings; else it
+    starts again), and the file is removed once every depth is answered or one failed."""
     from biopsynav.evaluate.p2 import TetReference, rim_at
 
     t0 = time.perf_counter()
@@ -203,29 +210,111 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
                           args.friction)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
     at = centre if points is None else np.vstack([centre, points])
-    disp, field, tangled, nearest, failure = [], [], [], [], ""
+    kept = PushCheckpoint(checkpoint, push_key(ref, e_mpa, nu, placement, at, args, probe_body)
+                          ) if checkpoint is not None else None
+    got = kept.load(ref, depths) if kept is not None else new_answers()
+    failure = ""
     rest = placement.pose
-    for depth in depths:  # one push at a time, each from the last: a failure ends the lesion
+    for depth in depths[len(got["disp"]):]:  # one push at a time, each from the last
         try:
             (u,) = ref.push(rest, [placement.pushed(depth)], contact, at,
-                            start=ref.last if disp else None,
+                            start=ref.last if got["disp"] else None,
                             footprint=probe.footprint if probe_body else None,
                             edge_radius_mm=args.edge_radius)
-        except (FloatingPointError, RuntimeError) as exc:
+        except (FloatingPointError, RuntimeError) as exc:  # a failure ends the lesion
             failure = f"{depth:g} mm: {exc}"
             break
-        disp.append(u[0].tolist())
-        field.append(u[1:].tolist())
-        tangled.append(len(ref.tangled(ref.last)))
-        nearest.append(nearest_fold_mm(ref, ref.last, centre[0] + u[0]))
-    disp += [None] * (len(depths) - len(disp))
+        record_depth(got, ref, u, centre[0])
+        if kept is not None:
+            kept.save(ref, got, depths, time.perf_counter() - t0)
+    if kept is not None:
+        kept.clear()
+    return pushes_facts(ref, contact, got, depths, points, failure,
+                        got["seconds"] + time.perf_counter() - t0)
+
+
+def new_answers() -> dict:
+    """The answers of no depth yet: lesion displacement, field, folded elements, nearest fold
+    per depth, and the seconds spent before this run (a resumed run's earlier time)."""
+    return {"disp": [], "field": [], "tangled": [], "nearest": [], "seconds": 0.0}
+
+
+def record_depth(got: dict, ref, u: np.ndarray, centre: np.ndarray) -> None:
+    """Add one depth's answer ``u`` (1 + k, 3) mm (the lesion, then the field points) to
+    ``got`` (:func:`new_answers`), with the folds of ``ref``'s last push."""
+    got["disp"].append(u[0].tolist())
+    got["field"].append(u[1:].tolist())
+    got["tangled"].append(len(ref.tangled(ref.last)))
+    got["nearest"].append(nearest_fold_mm(ref, ref.last, centre + u[0]))
+
+
+def pushes_facts(ref, contact: np.ndarray, got: dict, depths: list[float],
+                 points: np.ndarray | None, failure: str, seconds: float) -> tuple[list, dict]:
+    """:func:`tet_pushes`' answer: the lesion displacement per depth (None past a failure)
+    and the facts of the mesh and the run."""
+    pad = [None] * (len(depths) - len(got["disp"]))
     facts = {"tets": len(ref.elements), "dofs": ref.n_dofs, "contact_nodes": len(contact),
-             "seconds": time.perf_counter() - t0, "failure": failure,
-             "tangled_elements": tangled, "nearest_fold_mm": nearest}
+             "seconds": seconds, "failure": failure,
+             "tangled_elements": got["tangled"], "nearest_fold_mm": got["nearest"]}
     if points is not None:
         facts["field_points"] = points.tolist()
-        facts["field"] = field + [None] * (len(depths) - len(field))
-    return disp, facts
+        facts["field"] = got["field"] + pad
+    return got["disp"] + pad, facts
+
+
+def push_key(ref, e_mpa: float, nu: float, placement, at: np.ndarray, args,
+             probe_body: bool) -> dict:
+    """What a lesion's P2 pushes depend on besides their depths: the mesh, the material, the
+    probe's pose and body, and the points answered."""
+    return {"mesh": ref.mesh_fingerprint(), "E_mpa": e_mpa, "nu": nu,
+            "pose": np.asarray(placement.pose).tolist(), "friction": args.friction,
+            "edge_radius_mm": args.edge_radius, "probe_body": probe_body,
+            "points": hashlib.sha256(np.ascontiguousarray(at, dtype=np.float64).tobytes()
+                                     ).hexdigest()}
+
+
+@dataclasses.dataclass(frozen=True)
+class PushCheckpoint:
+    """A lesion's P2 pushes kept after each depth (``path``, an ``.npz``): the answers so
+    far and :meth:`TetReference.push_state`, valid for pushes of the same ``key``."""
+
+    path: Path
+    key: dict
+
+    def load(self, ref, depths: list[float]) -> dict:
+        """The answers kept for the first depths of ``depths``, with ``ref`` set to continue
+        after them; new answers (and a line saying why) when there are none to continue."""
+        if not self.path.is_file():
+            return new_answers()
+        try:
+            with np.load(self.path, allow_pickle=False) as data:
+                kept = json.loads(str(data["answers"]))
+                state = {k: data[k] for k in ("last", "last_rel", "sliding", "kept")}
+        except Exception as exc:  # noqa: BLE001 - zipfile, zlib, json and numpy raise many kinds
+            print(f"{self.path}: unreadable ({type(exc).__name__}); starting the lesion again",
+                  flush=True)
+            return new_answers()
+        done = kept["depths_mm"]
+        if kept["key"] != self.key or done != list(depths[:len(done)]):
+            print(f"{self.path}: another mesh, probe or depth list; starting the lesion again",
+                  flush=True)
+            return new_answers()
+        ref.resume(state)
+        print(f"{self.path}: continuing after {', '.join(f'{d:g}' for d in done)} mm",
+              flush=True)
+        return kept["answers"]
+
+    def save(self, ref, got: dict, depths: list[float], seconds: float) -> None:
+        """Keep ``got`` (:func:`new_answers`, for the first of ``depths``; ``seconds`` more
+        spent) and ``ref``'s state."""
+        answers = {**got, "seconds": got["seconds"] + seconds}
+        text = json.dumps({"key": self.key, "depths_mm": list(depths[:len(got["disp"])]),
+                           "answers": answers})
+        save_npz_atomic(self.path, answers=np.array(text), **ref.push_state())
+
+    def clear(self) -> None:
+        """Remove the file (the lesion is finished)."""
+        self.path.unlink(missing_ok=True)
 
 
 def nearest_fold_mm(ref, u: np.ndarray, point: np.ndarray) -> float | None:
@@ -383,7 +472,9 @@ def run(args) -> dict:
                   f"{args.reuse_reference}", flush=True)
             continue
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args,
-                                 points[li], probe_body=not args.no_probe_body)
+                                 points[li], probe_body=not args.no_probe_body,
+                                 checkpoint=args.out.with_name(
+                                     f"{args.out.stem}.p2-lesion{li}.partial.npz"))
         reference[li] = {"displacement": disp, **facts}
         save(args.out, {"grids": grids, "reference": reference})
         print(reference_line(case, li, facts, args.depths), flush=True)

@@ -32,7 +32,9 @@ in the table); a method that does not answer a push with a reference counts agai
 ``answered``. The reference's figures are kept in ``--reference`` (default
 ``CASE/../<case>-p2.json``) after every lesion and reused when the case's anatomy, material,
 depths and reference mesh are the same: a stopped run resumes there, and a second model of the
-same case is compared without solving the reference again.
+same case is compared without solving the reference again. Within a lesion, the depths solved
+so far and the model's state are kept beside it (``<reference>.lesion<index>.partial.npz``,
+removed once the lesion is stored), so a run stopped at 30 mm continues from its 20 mm answer.
 
 The last line reads ``RESULT tre_d10_mm=... tre_d30_mm=... answered=N/M`` for the network
 (D10: pushes under 12.5 mm, D30: over 27.5 mm, the paper's Table 2 bins), then the same
@@ -105,6 +107,12 @@ def load_reference(path: Path, key: dict) -> dict:
     return stored.get("lesions", {})
 
 
+def lesion_checkpoint(ref_path: Path, lesion: int) -> Path:
+    """Where the reference's pushes over lesion index ``lesion`` keep their state between
+    depths, beside ``ref_path``."""
+    return ref_path.with_name(f"{ref_path.stem}.lesion{lesion}.partial.npz")
+
+
 def method_trackers(case: Case) -> dict[str, Tracker]:
     """The network tracker and the FE tracker of ``case`` (Table 2's solver settings)."""
     return {"net": Tracker.load(case, engine="net"),
@@ -150,7 +158,8 @@ def run(args) -> dict:
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
     for li in lesions:
         if str(li) not in stored:
-            disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args)
+            disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args,
+                                     checkpoint=lesion_checkpoint(ref_path, li))
             stored[str(li)] = {"displacement": disp, **facts}
             write_text_atomic(ref_path, json.dumps({"key": key, "lesions": stored}, indent=1))
             print(reference_line(case, li, facts, args.depths), flush=True)

@@ -587,3 +587,50 @@ def test_a_surface_gmsh_cannot_fill_either_way_is_a_clear_error():
     box = trimesh.creation.box(extents=(30.0, 30.0, 30.0))
     with pytest.raises(InputError, match=r"cannot fill the breast surface.*remeshed.*as it is"):
         tet_mesh(np.asarray(box.vertices), np.asarray(box.faces)[2:], 10.0)
+
+
+def test_a_lesion_stopped_between_depths_continues_from_the_last_one(coarse_phantom, tmp_path,
+                                                                     monkeypatch):
+    """The P2 pushes over a lesion keep their answers and state after each depth: a run
+    stopped during the second depth solves only that depth again, and lands where a run
+    never stopped lands; the kept state is removed once the lesion is finished, and a kept
+    state of other settings is not continued."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+    from biopsynav.evaluate.placement import place_probe
+
+    case, e_mpa = convergence.homogeneous(coarse_phantom, 0.45)
+    placement = place_probe(case.anatomy, 0)
+    args = SimpleNamespace(tet_size=25.0, tet_fine=15.0, tet_rim=0.0, friction="stick",
+                           edge_radius=0.0)
+    kept = tmp_path / "lesion0.partial.npz"
+
+    def pushes(e: float, stop_at: int = 0) -> tuple[list, list[bool]]:
+        """The answers of a run (None: stopped at push ``stop_at``), and whether each push
+        started from a state."""
+        starts, push = [], TetReference.push
+
+        def counted(self, *a, **k):
+            starts.append(k["start"] is not None)
+            if len(starts) == stop_at:
+                raise KeyboardInterrupt("stopped")
+            return push(self, *a, **k)
+
+        monkeypatch.setattr(TetReference, "push", counted)
+        try:
+            disp, _ = convergence.tet_pushes(case, e, 0.45, placement, 0, [4.0, 8.0], args,
+                                             checkpoint=kept)
+        except KeyboardInterrupt:
+            disp = None
+        monkeypatch.setattr(TetReference, "push", push)
+        return disp, starts
+
+    whole, _ = convergence.tet_pushes(case, e_mpa, 0.45, placement, 0, [4.0, 8.0], args)
+    assert pushes(e_mpa, stop_at=2)[0] is None and kept.is_file()
+    again, starts = pushes(e_mpa)
+    assert starts == [True]  # the 8 mm push alone, from the kept 4 mm state
+    np.testing.assert_allclose(again, whole, atol=1e-6)
+    assert not kept.exists()
+    assert pushes(e_mpa, stop_at=2)[0] is None and kept.is_file()
+    assert pushes(0.5 * e_mpa)[1] == [False, True]  # another material: both depths again
+    assert not kept.exists()

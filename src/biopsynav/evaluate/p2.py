@@ -25,6 +25,7 @@ reference; needs gmsh.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import signal
 import tempfile
@@ -454,6 +455,35 @@ class TetReference:
     sliding: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     #: sliding nodes that passed the face again once let go: held for the rest of the push
     kept: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def mesh_fingerprint(self) -> str:
+        """A hash of the mesh (node coordinates and elements): equal for the same mesh."""
+        digest = hashlib.sha256(np.ascontiguousarray(self.nodes, dtype=np.float64).tobytes())
+        digest.update(np.ascontiguousarray(self.elements, dtype=np.int64).tobytes())
+        return digest.hexdigest()
+
+    def push_state(self) -> dict[str, np.ndarray]:
+        """What the next push from ``self.last`` continues with (``start=self.last``): the
+        equilibrium (n, 3) mm, the last pose relative to the rest pose (4, 4; NaN: none), the
+        sliding and kept skin nodes. Plain arrays, for :meth:`resume` (a stopped run)."""
+        if self.last is None:
+            raise ValueError("no push to continue from: push first")
+        rel = np.full((4, 4), np.nan) if self.last_rel is None else self.last_rel
+        return {"last": np.asarray(self.last, dtype=np.float64), "last_rel": rel,
+                "sliding": np.asarray(self.sliding, dtype=np.int64),
+                "kept": np.asarray(self.kept, dtype=np.int64)}
+
+    def resume(self, state: dict[str, np.ndarray]) -> None:
+        """Take the state of :meth:`push_state` (of a model of the same mesh) as the last
+        push's, so that ``push(..., start=self.last)`` continues as the stopped run would."""
+        last = np.asarray(state["last"], dtype=np.float64)
+        if last.shape != self.nodes.shape:
+            raise ValueError(f"a push state of {last.shape[0]} nodes for a mesh of "
+                             f"{len(self.nodes)}")
+        rel = np.asarray(state["last_rel"], dtype=np.float64)
+        self.last, self.last_rel = last, None if np.isnan(rel).any() else rel
+        self.sliding = np.asarray(state["sliding"], dtype=np.int64)
+        self.kept = np.asarray(state["kept"], dtype=np.int64)
 
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
              points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
