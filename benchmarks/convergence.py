@@ -8,6 +8,7 @@ of immersed hexahedral grids, against an independent P2 tetrahedral reference in
                                           [--tet-size 10] [--tet-fine 2.5]
                                           [--tet-rim 1.5] [--friction slip]
                                           [--edge-radius 2.5] [--progress]
+                                          [--push-minutes 20]
                                           [--no-probe-body]
                                           [--teachers 1.46:2 2:0]
                                           [--nu 0.45] [--out convergence.json]
@@ -199,7 +200,7 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     path) the answers and the model's state are kept there after each depth, a run stopped
     between depths continues after the last one kept (the same mesh and settings; else it
     starts again), and the file is removed once every depth is answered or one failed."""
-    from biopsynav.evaluate.p2 import TetReference, rim_at
+    from biopsynav.evaluate.p2 import PushTimeout, TetReference, rim_at
 
     t0 = time.perf_counter()
     probe = case.cfg.probe
@@ -220,9 +221,12 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
             (u,) = ref.push(rest, [placement.pushed(depth)], contact, at,
                             start=ref.last if got["disp"] else None,
                             footprint=probe.footprint if probe_body else None,
-                            edge_radius_mm=args.edge_radius)
+                            edge_radius_mm=args.edge_radius, time_limit_s=push_limit_s(args))
         except (FloatingPointError, RuntimeError) as exc:  # a failure ends the lesion
             failure = f"{depth:g} mm: {exc}"
+            break
+        except PushTimeout:
+            failure = f"{depth:g} mm: gave up after {args.push_minutes:g} min (--push-minutes)"
             break
         record_depth(got, ref, u, centre[0])
         if kept is not None:
@@ -231,6 +235,12 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
         kept.clear()
     return pushes_facts(ref, contact, got, depths, points, failure,
                         got["seconds"] + time.perf_counter() - t0)
+
+
+def push_limit_s(args) -> float | None:
+    """Seconds a reference push may run (``--push-minutes``; None: no limit)."""
+    minutes = getattr(args, "push_minutes", 0.0)
+    return 60.0 * minutes if minutes > 0 else None
 
 
 def new_answers() -> dict:
@@ -330,9 +340,23 @@ def nearest_fold_mm(ref, u: np.ndarray, point: np.ndarray) -> float | None:
 
 def non_negative_mm(text: str) -> float:
     """A size in mm given on the command line: a finite number, 0 or more."""
-    value = float(text)
+    return non_negative(text, "a size in mm")
+
+
+def non_negative_minutes(text: str) -> float:
+    """A time in minutes given on the command line: a finite number, 0 or more."""
+    return non_negative(text, "a time in minutes")
+
+
+def non_negative(text: str, what: str) -> float:
+    """``text`` as a finite number, 0 or more; else an argument error saying it must be
+    ``what``."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
     if not np.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: a size in mm, 0 or more")
+        raise argparse.ArgumentTypeError(f"{text!r}: {what}, 0 or more")
     return value
 
 
@@ -353,6 +377,10 @@ def add_reference_arguments(p: argparse.ArgumentParser, fine_mm: float) -> None:
                         "with sides that no skin passes (0: a flat face with sharp edges)")
     p.add_argument("--progress", action="store_true",
                    help="log the reference's load steps and contact rounds to stderr")
+    p.add_argument("--push-minutes", type=non_negative_minutes, default=0.0,
+                   help="give up a reference push still solving after this many minutes: "
+                        "that depth and the deeper ones are recorded as failed ('gave up'), "
+                        "the depths before kept (0: no limit)")
 
 
 def check_edge_radius(case: Case, args) -> None:

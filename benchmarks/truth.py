@@ -5,6 +5,7 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
                                     [--depths 10 20 30] [--tet-size 10]
                                     [--tet-fine 4] [--tet-rim 1.5] [--friction slip]
                                     [--edge-radius 2.5] [--progress]
+                                    [--push-minutes 20]
                                     [--reference CASE-p2.json]
                                     [--out FILE]
 
@@ -35,6 +36,9 @@ depths and reference mesh are the same: a stopped run resumes there, and a secon
 same case is compared without solving the reference again. Within a lesion, the depths solved
 so far and the model's state are kept beside it (``<reference>.lesion<index>.partial.npz``,
 removed once the lesion is stored), so a run stopped at 30 mm continues from its 20 mm answer.
+``--push-minutes`` bounds each reference push: one still solving after that long is recorded
+as given up at its depth (stored like a failure, the depths before it kept; remove the
+lesion's entry from the reference file to try it again).
 
 The last line reads ``RESULT tre_d10_mm=... tre_d30_mm=... answered=N/M`` for the network
 (D10: pushes under 12.5 mm, D30: over 27.5 mm, the paper's Table 2 bins), then the same

@@ -634,3 +634,29 @@ def test_a_lesion_stopped_between_depths_continues_from_the_last_one(coarse_phan
     assert pushes(e_mpa, stop_at=2)[0] is None and kept.is_file()
     assert pushes(0.5 * e_mpa)[1] == [False, True]  # another material: both depths again
     assert not kept.exists()
+
+
+def test_a_push_past_its_time_limit_is_given_up_and_said_so(coarse_phantom, monkeypatch):
+    """``--push-minutes``: a reference push still solving past its limit ends that lesion's
+    pushes as failed from that depth on, said to be given up, not as a failure of the
+    model; the depths before it keep their answers."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import convergence
+    from biopsynav.evaluate.placement import place_probe
+
+    case, e_mpa = convergence.homogeneous(coarse_phantom, 0.45)
+    placement = place_probe(case.anatomy, 0)
+    args = SimpleNamespace(tet_size=25.0, tet_fine=15.0, tet_rim=0.0, friction="stick",
+                           edge_radius=0.0, push_minutes=1.0)
+    push = TetReference.push
+    limits = []
+
+    def second_out_of_time(self, *a, time_limit_s=None, **k):
+        limits.append(time_limit_s)
+        return push(self, *a, time_limit_s=0.0 if len(limits) == 2 else time_limit_s, **k)
+
+    monkeypatch.setattr(TetReference, "push", second_out_of_time)
+    disp, facts = convergence.tet_pushes(case, e_mpa, 0.45, placement, 0, [4.0, 8.0], args)
+    assert limits == [60.0, 60.0]
+    assert disp[0] is not None and disp[1] is None
+    assert facts["failure"] == "8 mm: gave up after 1 min (--push-minutes)"

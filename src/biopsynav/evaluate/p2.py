@@ -30,6 +30,7 @@ import logging
 import signal
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -329,6 +330,11 @@ def shape_values(bary: np.ndarray) -> np.ndarray:
     return np.hstack([vertex, edge])
 
 
+class PushTimeout(Exception):
+    """A push ran past its time limit (:meth:`TetReference.push`, ``time_limit_s``): the
+    reference gave up, which says nothing about the model's answer."""
+
+
 @dataclass
 class TetReference:
     """The P2 model of one case's anatomy (homogeneous neo-Hookean, chest wall fixed)."""
@@ -455,6 +461,8 @@ class TetReference:
     sliding: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     #: sliding nodes that passed the face again once let go: held for the rest of the push
     kept: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    #: time.monotonic() after which the push in progress gives up (PushTimeout); None: never
+    deadline: float | None = None
 
     def mesh_fingerprint(self) -> str:
         """A hash of the mesh (node coordinates and elements): equal for the same mesh."""
@@ -488,7 +496,8 @@ class TetReference:
     def push(self, rest: np.ndarray, poses: list[np.ndarray], contact: np.ndarray,
              points: np.ndarray, step_mm: float = 5.0, tol: float = 1e-6,
              start: np.ndarray | None = None, footprint: Any = None,
-             edge_radius_mm: float = 0.0) -> list[np.ndarray]:
+             edge_radius_mm: float = 0.0, time_limit_s: float | None = None
+             ) -> list[np.ndarray]:
         """Displacements (k, 3) mm at ``points`` (k, 3) for each of ``poses`` (in turn, each
         solve starting from the last; the first from ``start``, an equilibrium (n, 3) mm of
         the same contact set, or from rest): the contact nodes follow the probe rigidly from
@@ -501,9 +510,12 @@ class TetReference:
         slide (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS``
         times); ``self.sliding`` lists those nodes. Without it, skin may pass through the
         face. With no ``contact`` nodes (a ``slip`` face, :meth:`contact`) only the face
-        pushes, so a ``footprint`` is needed; the load steps follow the face's corners."""
+        pushes, so a ``footprint`` is needed; the load steps follow the face's corners. With
+        ``time_limit_s``, a call still solving after that many seconds raises
+        :class:`PushTimeout` (checked at each Newton iteration)."""
         if not len(contact) and footprint is None:
             raise ValueError("a push with no contact nodes needs the face's footprint")
+        self.deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
         x0 = self.nodes[contact]
         surface = None if footprint is None else probe_surface(footprint, edge_radius_mm)
         u = np.zeros_like(self.nodes) if start is None else np.array(start, dtype=np.float64)
@@ -679,6 +691,7 @@ class TetReference:
             u = self._predicted(u, lift, basis)
         r0, last, shift, frozen = None, None, 0, False
         for it in range(NEWTON_ITERATIONS):
+            self._check_deadline()
             forces = self.forces_and_tangent(u, tangent=False)
             rhs = -(basis.T @ forces)
             r_norm = float(np.linalg.norm(rhs))
@@ -698,6 +711,11 @@ class TetReference:
                 u, slide = self._retracted(u, slide, *on)
                 basis, frozen = self._basis(held, slide), False
         raise RuntimeError("P2 reference: Newton did not converge")
+
+    def _check_deadline(self) -> None:
+        """PushTimeout when the push in progress has run past ``self.deadline``."""
+        if self.deadline is not None and time.monotonic() > self.deadline:
+            raise PushTimeout("the push ran past its time limit")
 
     def _retracted(self, u: np.ndarray, slide: Sliding, face: np.ndarray,
                    surface: Any) -> tuple[np.ndarray, Sliding]:
