@@ -200,15 +200,11 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     path) the answers and the model's state are kept there after each depth, a run stopped
     between depths continues after the last one kept (the same mesh and settings; else it
     starts again), and the file is removed once every depth is answered or one failed."""
-    from biopsynav.evaluate.p2 import PushTimeout, TetReference, rim_at
+    from biopsynav.evaluate.p2 import PushTimeout
 
     t0 = time.perf_counter()
     probe = case.cfg.probe
-    ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
-                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
-                             rim=rim_at(placement.pose, probe.footprint, args.tet_rim))
-    contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
-                          args.friction)
+    ref, contact = reference_model(case, e_mpa, nu, placement, args)
     centre = np.asarray(case.anatomy.lesions[lesion].center)[None]
     at = centre if points is None else np.vstack([centre, points])
     kept = PushCheckpoint(checkpoint, push_key(ref, e_mpa, nu, placement, at, args, probe_body)
@@ -235,6 +231,20 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
         kept.clear()
     return pushes_facts(ref, contact, got, depths, points, failure,
                         got["seconds"] + time.perf_counter() - t0)
+
+
+def reference_model(case: Case, e_mpa: float, nu: float, placement, args) -> tuple:
+    """The P2 model (:class:`~biopsynav.evaluate.p2.TetReference`) of ``case``'s anatomy
+    meshed for pushes at ``placement`` (``args``' mesh sizes), and its skin nodes the face
+    holds at rest."""
+    from biopsynav.evaluate.p2 import TetReference, rim_at
+
+    probe = case.cfg.probe
+    ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
+                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
+                             rim=rim_at(placement.pose, probe.footprint, args.tet_rim))
+    return ref, ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
+                            args.friction)
 
 
 def push_limit_s(args) -> float | None:
