@@ -304,6 +304,44 @@ def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     assert held[0, 2] < free[0, 2] < 0.0, "the face pushes the centre further"
 
 
+def test_a_contact_set_that_keeps_changing_settles_once_pulled_skin_stays_held(monkeypatch):
+    """Where letting pulled skin go never settles the contact set (here forced: one more
+    held node is said to be pulled after every solve), the step does not fail after
+    ``CONTACT_ROUNDS``: later rounds let no pulled skin go, the set settles, and no skin
+    passes the face."""
+    from biopsynav.evaluate.p2 import CONTACT_ROUNDS
+    from biopsynav.evaluate.p2_contact import PENETRATION_TOL_MM
+    from biopsynav.footprint import make_footprint
+
+    cube = cube_reference(10.0)
+    face = make_footprint("rectangle", (60.0, 60.0))
+    rest = _tilted_face_over_the_top(10.0)
+    pushed = rest.copy()
+    pushed[:3, 3] += 4.0 * rest[:3, 2]
+    contact = cube.contact(rest, face, 0.5)
+    released, rounds = TetReference._released, []
+
+    def one_more_pulled(self, u, face, surface, pulled_too=True):
+        rounds.append(pulled_too)
+        off = released(self, u, face, surface, pulled_too)
+        free = np.setdiff1d(self.sliding, np.concatenate([off, self.kept]))
+        return np.union1d(off, free[len(rounds) % len(free):][:1]) if pulled_too else off
+
+    monkeypatch.setattr(TetReference, "_released", one_more_pulled)
+    monkeypatch.setattr("biopsynav.evaluate.p2.HOLDING_ROUNDS", 0)  # as before: it fails
+    with pytest.raises(RuntimeError, match="contact rounds"):
+        cube.push(rest, [pushed], contact, np.zeros((1, 3)), footprint=face)
+    monkeypatch.undo()
+    monkeypatch.setattr(TetReference, "_released", one_more_pulled)
+    rounds.clear()
+    cube.push(rest, [pushed], contact, np.zeros((1, 3)), footprint=face)
+    assert rounds[:CONTACT_ROUNDS] == [True] * CONTACT_ROUNDS and not all(rounds)
+    skin = cube.skin_nodes
+    local = (cube.nodes[skin] + cube.last[skin] - pushed[:3, 3]) @ pushed[:3, :3]
+    under = face.inside(local[:, :2]) & (cube.skin.normals @ pushed[:3, 2] < 0.0)
+    assert local[under, 2].min() >= -PENETRATION_TOL_MM - 1e-9
+
+
 def test_a_slipping_face_holds_no_skin_at_rest_and_lets_it_slide(cube):
     """A ``slip`` face (ultrasound gel) holds no skin at rest; pushed 3 mm into the top it
     takes the skin it reaches onto its plane (all but a few nodes it would pull, which stay

@@ -80,6 +80,9 @@ P2_PROBE = ("rigid face: rest contact held, skin it reaches slides on it, let go
 LIFT_TOL_MM = 1e-9  # a held node's prescribed move below this is no move
 RELEASE_SHARE = 0.1  # a held node pulled by more than this share of the largest push is let go
 CONTACT_ROUNDS = 12  # solves of one load step while its contact set or planes change
+#: then up to this many more, in which held skin is let go only where it slid off the probe
+#: (not where the probe pulls it): the set that cycled settles
+HOLDING_ROUNDS = 12
 #: held skin nearer the probe's surface than this lies on it (half the penetration that
 #: free skin may have)
 SURFACE_TOL_MM = 0.05
@@ -558,7 +561,11 @@ class TetReference:
         skin are taken again where it now touches a curved surface, and the step is solved
         again from there (frictionless and elastic: the equilibrium does not depend on the
         path). A node is released at most once a step, and one that passes the probe again
-        once free stays held for the rest of the push (``self.kept``)."""
+        once free stays held for the rest of the push (``self.kept``). After
+        ``CONTACT_ROUNDS`` solves, skin that the probe pulls is no longer let go (only skin
+        that slid off it), for up to ``HOLDING_ROUNDS`` more: a set that cycled settles, with
+        the pulled nodes it holds logged; a step settled within ``CONTACT_ROUNDS`` is as
+        before."""
         if surface is None:
             return self._step(u, contact, values, tol, Sliding.none())
         was, face = poses
@@ -568,21 +575,33 @@ class TetReference:
         slide = self._sliding_at(predicted, face, surface,
                                  self._face_local(self.sliding, u, was))
         released = np.zeros(0, dtype=np.int64)
-        for _ in range(CONTACT_ROUNDS):
+        for round_ in range(CONTACT_ROUNDS + HOLDING_ROUNDS):
             before, u = u, self._step(u, contact, values, tol, slide, on=(face, surface))
             new = self._penetrating(u, face, surface, contact)
             self.kept = np.union1d(self.kept, np.intersect1d(new, released))
-            off = np.setdiff1d(self._released(u, face, surface), np.union1d(released, self.kept))
+            off = np.setdiff1d(self._released(u, face, surface, round_ < CONTACT_ROUNDS),
+                               np.union1d(released, self.kept))
             gap = self._gap(self.sliding, u, face, surface)
             log.info("  contact round: %d held, %d more pass the probe, %d let go, held skin "
                      "%.3f mm off the probe", len(self.sliding), len(new), len(off), gap)
             if not len(new) and not len(off) and gap <= SURFACE_TOL_MM:
+                self._say_pulled(u, face, surface, round_)
                 return u
             self.sliding = np.union1d(np.setdiff1d(self.sliding, off), new)
             released = np.union1d(released, off)
             slide = self._sliding_at(u, face, surface, self._came_from(new, before, face))
         raise RuntimeError(f"P2 reference: skin still passes the probe or leaves its surface "
-                           f"after {CONTACT_ROUNDS} contact rounds")
+                           f"after {CONTACT_ROUNDS + HOLDING_ROUNDS} contact rounds (the last "
+                           f"{HOLDING_ROUNDS} letting go no skin the probe pulls)")
+
+    def _say_pulled(self, u: np.ndarray, face: np.ndarray, surface: Any, round_: int) -> None:
+        """Log how many held skin nodes the probe pulls at the equilibrium ``u`` when the
+        contact set settled in a holding round (``round_`` >= ``CONTACT_ROUNDS``)."""
+        if round_ >= CONTACT_ROUNDS:
+            pulled = self._released(u, face, surface)
+            log.info("  contact settled after %d rounds with %d held skin nodes that the probe "
+                     "pulls (not let go after round %d)", round_ + 1, len(pulled),
+                     CONTACT_ROUNDS)
 
     def _came_from(self, new: np.ndarray, before: np.ndarray, face: np.ndarray) -> np.ndarray:
         """Where ``before`` (n, 3) mm had the ``new`` sliding nodes in the frame of ``face``
@@ -635,22 +654,26 @@ class TetReference:
         held = np.concatenate([contact, self.fixed_nodes])
         return self._predicted(u, self._lift(u, contact, values, slide), self._basis(held, slide))
 
-    def _released(self, u: np.ndarray, face: np.ndarray, surface: Any) -> np.ndarray:
+    def _released(self, u: np.ndarray, face: np.ndarray, surface: Any,
+                  pulled_too: bool = True) -> np.ndarray:
         """Sliding nodes the probe no longer holds at the equilibrium ``u``: those it pulls
         by more than ``RELEASE_SHARE`` of its largest push on one node (a node's push is its
         internal force along the surface's outward normal there, the gradient of the energy
         that the probe's force balances) and those that slid off ``surface``. Slight pulls
         stay: node-to-plane contact of quadratic elements pulls slightly at face corners,
         where a uniform pressure's consistent nodal load is zero, and releasing them only
-        makes them pass the face again."""
+        makes them pass the face again. Without ``pulled_too``, only those that slid off."""
         nodes = self.sliding
         if not len(nodes):
             return nodes
+        slid_off = surface.slid_off(self._face_local(nodes, u, face))
+        if not pulled_too:
+            return nodes[slid_off]
         normals = self._sliding_at(u, face, surface).normals
         forces = self.forces_and_tangent(u, tangent=False).reshape(-1, 3)[nodes]
         push = np.einsum("mi,mi->m", forces, normals)
         pulled = push < -RELEASE_SHARE * push.max(initial=0.0)
-        return nodes[pulled | surface.slid_off(self._face_local(nodes, u, face))]
+        return nodes[pulled | slid_off]
 
     def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
               slide: Sliding, depth: int = 0, on: tuple | None = None) -> np.ndarray:
