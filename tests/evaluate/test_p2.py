@@ -268,6 +268,18 @@ def _tilted_face_over_the_top(tilt_deg: float) -> np.ndarray:
     return pose
 
 
+def _tilted_push(ref: TetReference, depth_mm: float) -> tuple:
+    """A 60 x 60 mm face at :func:`_tilted_face_over_the_top` (10 degrees) and pushed
+    ``depth_mm`` along its beam: (footprint, rest pose, pushed pose, contact nodes at rest)."""
+    from biopsynav.footprint import make_footprint
+
+    face = make_footprint("rectangle", (60.0, 60.0))
+    rest = _tilted_face_over_the_top(10.0)
+    pushed = rest.copy()
+    pushed[:3, 3] += depth_mm * rest[:3, 2]
+    return face, rest, pushed, ref.contact(rest, face, 0.5)
+
+
 def test_the_rigid_face_takes_the_skin_it_reaches(cube):
     """A tilted face pushed 4 mm: at rest it touches a strip of the top; without contact the
     rest of the top passes through the face, with the face as a rigid body (footprint) every
@@ -311,14 +323,9 @@ def test_a_contact_set_that_keeps_changing_settles_once_pulled_skin_stays_held(m
     passes the face."""
     from biopsynav.evaluate.p2 import CONTACT_ROUNDS
     from biopsynav.evaluate.p2_contact import PENETRATION_TOL_MM
-    from biopsynav.footprint import make_footprint
 
     cube = cube_reference(10.0)
-    face = make_footprint("rectangle", (60.0, 60.0))
-    rest = _tilted_face_over_the_top(10.0)
-    pushed = rest.copy()
-    pushed[:3, 3] += 4.0 * rest[:3, 2]
-    contact = cube.contact(rest, face, 0.5)
+    face, rest, pushed, contact = _tilted_push(cube, 4.0)
     released, rounds = TetReference._released, []
 
     def one_more_pulled(self, u, face, surface, pulled_too=True):
@@ -587,14 +594,9 @@ def test_newton_reuses_a_factored_tangent_once_it_converges_fast(monkeypatch):
     takes updates (the late ones reuse the last factors) and lands where Newton factoring
     every tangent lands, to its tolerance."""
     from biopsynav.evaluate import p2
-    from biopsynav.footprint import make_footprint
 
     ref = cube_reference(5.0)
-    face = make_footprint("rectangle", (60.0, 60.0))
-    rest = _tilted_face_over_the_top(10.0)
-    pushed = rest.copy()
-    pushed[:3, 3] += 12.0 * rest[:3, 2]
-    contact = ref.contact(rest, face, 0.5)
+    face, rest, pushed, contact = _tilted_push(ref, 12.0)
     calls = {"factor": 0, "reuse": 0}
     factor, reuse = p2.solve_symmetric, p2.resolve_symmetric
 
