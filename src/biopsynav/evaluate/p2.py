@@ -510,12 +510,13 @@ class TetReference:
         a rigid body (:func:`~biopsynav.evaluate.p2_contact.probe_surface`: a flat face, or
         with ``edge_radius_mm`` > 0 a body whose edges are rounded by it): skin that a load
         step puts more than ``PENETRATION_TOL_MM`` inside it is held on its surface, free to
-        slide (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS``
-        times); ``self.sliding`` lists those nodes. Without it, skin may pass through the
-        face. With no ``contact`` nodes (a ``slip`` face, :meth:`contact`) only the face
-        pushes, so a ``footprint`` is needed; the load steps follow the face's corners. With
-        ``time_limit_s``, a call still solving after that many seconds raises
-        :class:`PushTimeout` (checked at each Newton iteration)."""
+        slide (frictionless), and the step is solved again (at most ``CONTACT_ROUNDS`` +
+        ``HOLDING_ROUNDS`` times: :meth:`_contact_step`); ``self.sliding`` lists those
+        nodes. Without it, skin may pass through the face. With no ``contact`` nodes (a
+        ``slip`` face, :meth:`contact`) only the face pushes, so a ``footprint`` is needed;
+        the load steps follow the face's corners. With ``time_limit_s``, a call still
+        solving after that many seconds raises :class:`PushTimeout` (checked at each Newton
+        iteration)."""
         if not len(contact) and footprint is None:
             raise ValueError("a push with no contact nodes needs the face's footprint")
         self.deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
