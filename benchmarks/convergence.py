@@ -83,11 +83,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.contact.constraints import contact_constraint_names  # noqa: E402
-from biopsynav.errors import BiopsynavError  # noqa: E402
+from biopsynav.errors import BiopsynavError, InputError  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
-from biopsynav.fileio import read_json, save_npz_atomic, write_json_atomic  # noqa: E402
+from biopsynav.fileio import load_npz, read_json, save_npz_atomic, write_json_atomic  # noqa: E402
 from biopsynav.grid.build import build_grid  # noqa: E402
 from biopsynav.grid.embedding import Embedding  # noqa: E402
 from biopsynav.layout import CasePaths  # noqa: E402
@@ -249,8 +249,7 @@ def reference_model(case: Case, e_mpa: float, nu: float, placement, args) -> tup
 
 def push_limit_s(args) -> float | None:
     """Seconds a reference push may run (``--push-minutes``; None: no limit)."""
-    minutes = getattr(args, "push_minutes", 0.0)
-    return 60.0 * minutes if minutes > 0 else None
+    return 60.0 * args.push_minutes if args.push_minutes > 0 else None
 
 
 def new_answers() -> dict:
@@ -293,6 +292,16 @@ def push_key(ref, e_mpa: float, nu: float, placement, at: np.ndarray, args,
                                      ).hexdigest()}
 
 
+#: what a lesion's P2 checkpoint holds: the answers so far, then TetReference.push_state
+PUSH_STATE_KEYS = ("answers", "last", "last_rel", "sliding", "kept")
+
+
+def p2_checkpoint(beside: Path, lesion: int) -> Path:
+    """Where the P2 pushes over lesion index ``lesion`` keep their answers and state between
+    depths: ``<beside's stem>.p2-lesion<lesion>.partial.npz`` beside ``beside``."""
+    return beside.with_name(f"{beside.stem}.p2-lesion{lesion}.partial.npz")
+
+
 @dataclasses.dataclass(frozen=True)
 class PushCheckpoint:
     """A lesion's P2 pushes kept after each depth (``path``, an ``.npz``): the answers so
@@ -307,12 +316,10 @@ class PushCheckpoint:
         if not self.path.is_file():
             return new_answers()
         try:
-            with np.load(self.path, allow_pickle=False) as data:
-                kept = json.loads(str(data["answers"]))
-                state = {k: data[k] for k in ("last", "last_rel", "sliding", "kept")}
-        except Exception as exc:  # noqa: BLE001 - zipfile, zlib, json and numpy raise many kinds
-            print(f"{self.path}: unreadable ({type(exc).__name__}); starting the lesion again",
-                  flush=True)
+            state = load_npz(self.path, PUSH_STATE_KEYS, "starting the lesion again")
+            kept = json.loads(str(state.pop("answers")))
+        except (InputError, ValueError) as exc:
+            print(f"{self.path}: unreadable ({exc}); starting the lesion again", flush=True)
             return new_answers()
         done = kept["depths_mm"]
         if kept["key"] != self.key or done != list(depths[:len(done)]):
@@ -511,8 +518,7 @@ def run(args) -> dict:
             continue
         disp, facts = tet_pushes(case, e_mpa, args.nu, placements[li], li, args.depths, args,
                                  points[li], probe_body=not args.no_probe_body,
-                                 checkpoint=args.out.with_name(
-                                     f"{args.out.stem}.p2-lesion{li}.partial.npz"))
+                                 checkpoint=p2_checkpoint(args.out, li))
         reference[li] = {"displacement": disp, **facts}
         save(args.out, {"grids": grids, "reference": reference})
         print(reference_line(case, li, facts, args.depths), flush=True)

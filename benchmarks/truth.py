@@ -34,7 +34,7 @@ in the table); a method that does not answer a push with a reference counts agai
 ``CASE/../<case>-p2.json``) after every lesion and reused when the case's anatomy, material,
 depths and reference mesh are the same: a stopped run resumes there, and a second model of the
 same case is compared without solving the reference again. Within a lesion, the depths solved
-so far and the model's state are kept beside it (``<reference>.lesion<index>.partial.npz``,
+so far and the model's state are kept beside it (``<reference>.p2-lesion<index>.partial.npz``,
 removed once the lesion is stored), so a run stopped at 30 mm continues from its 20 mm answer.
 ``--push-minutes`` bounds each reference push: one still solving after that long is recorded
 as given up at its depth (stored like a failure, the depths before it kept; remove the
@@ -72,6 +72,7 @@ from convergence import (  # noqa: E402
     add_reference_arguments,
     check_edge_radius,
     chosen_lesions,
+    p2_checkpoint,
     reference_line,
     show_progress,
     tet_pushes,
@@ -109,12 +110,6 @@ def load_reference(path: Path, key: dict) -> dict:
               "reference again", flush=True)
         return {}
     return stored.get("lesions", {})
-
-
-def lesion_checkpoint(ref_path: Path, lesion: int) -> Path:
-    """Where the reference's pushes over lesion index ``lesion`` keep their state between
-    depths, beside ``ref_path``."""
-    return ref_path.with_name(f"{ref_path.stem}.lesion{lesion}.partial.npz")
 
 
 def method_trackers(case: Case) -> dict[str, Tracker]:
@@ -163,7 +158,7 @@ def run(args) -> dict:
     for li in lesions:
         if str(li) not in stored:
             disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args,
-                                     checkpoint=lesion_checkpoint(ref_path, li))
+                                     checkpoint=p2_checkpoint(ref_path, li))
             stored[str(li)] = {"displacement": disp, **facts}
             write_text_atomic(ref_path, json.dumps({"key": key, "lesions": stored}, indent=1))
             print(reference_line(case, li, facts, args.depths), flush=True)

@@ -642,7 +642,7 @@ def test_a_lesion_stopped_between_depths_continues_from_the_last_one(coarse_phan
     case, e_mpa = convergence.homogeneous(coarse_phantom, 0.45)
     placement = place_probe(case.anatomy, 0)
     args = SimpleNamespace(tet_size=25.0, tet_fine=15.0, tet_rim=0.0, friction="stick",
-                           edge_radius=0.0)
+                           edge_radius=0.0, push_minutes=0.0)
     kept = tmp_path / "lesion0.partial.npz"
 
     def pushes(e: float, stop_at: int = 0) -> tuple[list, list[bool]]:
@@ -673,6 +673,9 @@ def test_a_lesion_stopped_between_depths_continues_from_the_last_one(coarse_phan
     assert not kept.exists()
     assert pushes(e_mpa, stop_at=2)[0] is None and kept.is_file()
     assert pushes(0.5 * e_mpa)[1] == [False, True]  # another material: both depths again
+    assert not kept.exists()
+    kept.write_bytes(b"PK\x03\x04 truncated")  # a damaged file: said so, both depths again
+    assert pushes(e_mpa)[1] == [False, True]
     assert not kept.exists()
 
 
