@@ -471,6 +471,23 @@ def test_the_benchmarks_refuse_a_bad_rim_size_before_any_work(rim, tmp_path, cap
     assert not (tmp_path / "ref.json").exists()
 
 
+@pytest.mark.parametrize("minutes", ["-1", "inf", "soon"])
+def test_the_benchmarks_refuse_a_bad_push_time_limit_before_any_work(minutes, tmp_path, capsys,
+                                                                    monkeypatch):
+    """``truth.py --push-minutes`` (and convergence.py's) takes a time of 0 minutes or more;
+    anything else stops the parser (exit 2, the option and its unit named) before a case is
+    read or any reference file is written."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth
+
+    with pytest.raises(SystemExit) as stop:
+        truth.main([str(tmp_path / "missing"), "--push-minutes", minutes,
+                    "--reference", str(tmp_path / "ref.json")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--push-minutes" in err and "a time in minutes" in err
+    assert not (tmp_path / "ref.json").exists()
+
+
 def test_the_benchmarks_refuse_an_edge_radius_the_face_cannot_have(coarse_phantom, tmp_path,
                                                                    capsys, monkeypatch):
     """``truth.py --edge-radius`` must fit the case's probe face (below half its 10 mm
