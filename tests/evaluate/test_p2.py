@@ -720,3 +720,32 @@ def test_a_push_past_its_time_limit_is_given_up_and_said_so(coarse_phantom, monk
     assert limits == [60.0, 60.0]
     assert disp[0] is not None and disp[1] is None
     assert facts["failure"] == "8 mm: gave up after 1 min (--push-minutes)"
+
+
+def test_a_halved_load_step_shortens_the_next_and_lands_where_equal_steps_do(monkeypatch):
+    """A load step that fails and is halved makes the next step half as long (it would
+    fail too), then the steps grow back; the equilibrium is the one equal steps reach.
+    Here a Newton solve "fails" when it has to move the face more than 1.6 mm: a 6 mm push
+    in 3 mm steps is halved once (3 mm, then 1.5 + 1.5), not in both steps."""
+    from biopsynav.footprint import make_footprint
+
+    ref = cube_reference(10.0)
+    rest = np.diag([1.0, -1.0, -1.0, 1.0])
+    rest[2, 3] = 15.0
+    pushed = rest.copy()
+    pushed[2, 3] -= 6.0
+    contact = ref.contact(rest, make_footprint("rectangle", (60.0, 60.0)), 0.5)
+    (equal,) = ref.push(rest, [pushed], contact, np.zeros((1, 3)), step_mm=1.5)
+    newton, moves = TetReference._newton, []
+
+    def fails_past_1_6_mm(self, u, contact, values, *a, **k):
+        move = float(np.abs(values - u[contact]).max())
+        moves.append(round(move, 6))
+        if move > 1.6:
+            raise RuntimeError("Newton did not converge (forced)")
+        return newton(self, u, contact, values, *a, **k)
+
+    monkeypatch.setattr(TetReference, "_newton", fails_past_1_6_mm)
+    (adaptive,) = ref.push(rest, [pushed], contact, np.zeros((1, 3)), step_mm=3.0)
+    assert moves == [3.0, 1.5, 1.5, 1.5, 1.5], "the second step is 1.5 mm, not a failing 3 mm"
+    assert np.abs(adaptive - equal).max() < 1e-6

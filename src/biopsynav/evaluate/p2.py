@@ -86,6 +86,9 @@ HOLDING_ROUNDS = 12
 #: held skin nearer the probe's surface than this lies on it (half the penetration that
 #: free skin may have)
 SURFACE_TOL_MM = 0.05
+#: a load step that had to be halved makes the next half as long, at most this many times
+#: in a row (:meth:`TetReference._load_steps`)
+SHORTER_STEPS = 3
 
 
 def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
@@ -466,6 +469,8 @@ class TetReference:
     kept: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     #: time.monotonic() after which the push in progress gives up (PushTimeout); None: never
     deadline: float | None = None
+    #: load steps halved (:meth:`_step`) in the load step in progress
+    halvings: int = 0
 
     def mesh_fingerprint(self) -> str:
         """A hash of the mesh (node coordinates and elements): equal for the same mesh."""
@@ -535,18 +540,38 @@ class TetReference:
             target = x0 @ rel[:3, :3].T + rel[:3, 3] - x0
             travel = max(np.abs(target - done).max(initial=0.0),
                          _face_travel(rest, done_rel, rel, footprint))
-            steps = max(1, int(np.ceil(travel / step_mm)))
-            for s in range(1, steps + 1):
-                frac = s / steps
-                log.info("load step %d of %d", s, steps)
-                was = (done_rel + (rel - done_rel) * (s - 1) / steps) @ np.asarray(rest)
-                face = (done_rel + (rel - done_rel) * frac) @ np.asarray(rest)
-                u = self._contact_step(u, contact, done + (target - done) * frac, tol,
-                                       (was, face), surface)
+            share = 1.0 / max(1, int(np.ceil(travel / step_mm)))
+            u = self._load_steps(u, contact, (done, target), (done_rel @ np.asarray(rest),
+                                                             rel @ np.asarray(rest)),
+                                 share, tol, surface)
             done, done_rel = target, rel
             self.last, self.last_rel = u, rel
             out.append(interp @ u)
         return out
+
+    def _load_steps(self, u: np.ndarray, contact: np.ndarray,
+                    values: tuple[np.ndarray, np.ndarray], faces: tuple[np.ndarray, np.ndarray],
+                    share: float, tol: float, surface: Any) -> np.ndarray:
+        """The equilibrium (n, 3) mm after the probe moved from the pose ``faces[0]`` (4, 4),
+        where ``u`` is the equilibrium with the ``contact`` nodes at ``values[0]`` (n_c, 3)
+        mm, to ``faces[1]``, with them at ``values[1]``: load steps of ``share`` of the move
+        (:meth:`_contact_step`, poses and values interpolated linearly). A step that had to
+        be halved (:meth:`_step`) makes the next one half as long, down to ``share /
+        2**SHORTER_STEPS``; one solved whole makes the next twice as long, up to
+        ``share``. Where no step is halved, the steps are the equal ones of before."""
+        (start, end), (was, to) = values, faces
+        frac, step, k = 0.0, share, 0
+        while frac < 1.0:
+            nxt = 1.0 if frac + step > 1.0 - 1e-9 else frac + step
+            k += 1
+            log.info("load step %d: %.1f to %.1f %% of the move", k, 100 * frac, 100 * nxt)
+            self.halvings = 0
+            u = self._contact_step(u, contact, start + (end - start) * nxt, tol,
+                                   (was + (to - was) * frac, was + (to - was) * nxt), surface)
+            frac = nxt
+            step = (max(step / 2, share / 2**SHORTER_STEPS) if self.halvings
+                    else min(2 * step, share))
+        return u
 
     def _contact_step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
                       tol: float, poses: tuple[np.ndarray, np.ndarray],
@@ -686,6 +711,7 @@ class TetReference:
             if depth >= 5:
                 raise
             log.info("  load step failed (%s): halved", exc)
+            self.halvings += 1
             half = 0.5 * (u[contact] + values)
             mid = slide.halfway(u)
             u = self._step(u, contact, half, tol, mid, depth + 1)
