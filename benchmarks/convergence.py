@@ -199,7 +199,9 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
     at rest is held (other skin may pass through the face). With ``checkpoint`` (an ``.npz``
     path) the answers and the model's state are kept there after each depth, a run stopped
     between depths continues after the last one kept (the same mesh and settings; else it
-    starts again), and the file is removed once every depth is answered or one failed."""
+    starts again), and the file is removed once every depth is answered; after a failure
+    (or a push given up) it stays, so that a later run continues after the last depth
+    answered (``truth.py --retry-failed``)."""
     from biopsynav.evaluate.p2 import PushTimeout
 
     t0 = time.perf_counter()
@@ -227,7 +229,7 @@ def tet_pushes(case: Case, e_mpa: float, nu: float, placement, lesion: int,
         record_depth(got, ref, u, centre[0])
         if kept is not None:
             kept.save(ref, got, depths, time.perf_counter() - t0)
-    if kept is not None:
+    if kept is not None and not failure:
         kept.clear()
     return pushes_facts(ref, contact, got, depths, points, failure,
                         got["seconds"] + time.perf_counter() - t0)
@@ -340,7 +342,7 @@ class PushCheckpoint:
         save_npz_atomic(self.path, answers=np.array(text), **ref.push_state())
 
     def clear(self) -> None:
-        """Remove the file (the lesion is finished)."""
+        """Remove the file (every depth of the lesion is answered)."""
         self.path.unlink(missing_ok=True)
 
 

@@ -5,7 +5,7 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
                                     [--depths 10 20 30] [--tet-size 10]
                                     [--tet-fine 4] [--tet-rim 1.5] [--friction slip]
                                     [--edge-radius 2.5] [--progress]
-                                    [--push-minutes 20]
+                                    [--push-minutes 20] [--retry-failed]
                                     [--reference CASE-p2.json]
                                     [--out FILE]
 
@@ -35,10 +35,11 @@ in the table); a method that does not answer a push with a reference counts agai
 depths and reference mesh are the same: a stopped run resumes there, and a second model of the
 same case is compared without solving the reference again. Within a lesion, the depths solved
 so far and the model's state are kept beside it (``<reference>.p2-lesion<index>.partial.npz``,
-removed once the lesion is stored), so a run stopped at 30 mm continues from its 20 mm answer.
-``--push-minutes`` bounds each reference push: one still solving after that long is recorded
-as given up at its depth (stored like a failure, the depths before it kept; remove the
-lesion's entry from the reference file to try it again).
+removed once every depth of the lesion is answered), so a run stopped at 30 mm continues from
+its 20 mm answer. ``--push-minutes`` bounds each reference push: one still solving after that
+long is recorded as given up at its depth (stored like a failure, the depths before it kept).
+``--retry-failed`` solves such lesions again, and those whose reference failed, continuing
+from the last depth answered (its state stays beside the reference after a failure).
 
 The last line reads ``RESULT tre_d10_mm=... tre_d30_mm=... answered=N/M`` for the network
 (D10: pushes under 12.5 mm, D30: over 27.5 mm, the paper's Table 2 bins), then the same
@@ -156,7 +157,7 @@ def run(args) -> dict:
     lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
     placements = {li: place_probe(case.anatomy, li) for li in lesions}
     for li in lesions:
-        if str(li) not in stored:
+        if str(li) not in stored or (args.retry_failed and stored[str(li)]["failure"]):
             disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args,
                                      checkpoint=p2_checkpoint(ref_path, li))
             stored[str(li)] = {"displacement": disp, **facts}
@@ -215,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     add_reference_arguments(p, fine_mm=4.0)
     p.add_argument("--reference", type=Path, default=None,
                    help="JSON of the reference's figures, read and extended (resumable)")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="solve again the stored lesions whose reference failed or gave up, "
+                        "from the last depth answered where its state was kept")
     p.add_argument("--reference-only", action="store_true",
                    help="solve and store the reference only (no trained model needed yet)")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON")

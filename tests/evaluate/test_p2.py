@@ -749,3 +749,38 @@ def test_a_halved_load_step_shortens_the_next_and_lands_where_equal_steps_do(mon
     (adaptive,) = ref.push(rest, [pushed], contact, np.zeros((1, 3)), step_mm=3.0)
     assert moves == [3.0, 1.5, 1.5, 1.5, 1.5], "the second step is 1.5 mm, not a failing 3 mm"
     assert np.abs(adaptive - equal).max() < 1e-6
+
+
+def test_a_failed_lesion_is_solved_again_on_request_from_its_last_answer(coarse_phantom,
+                                                                         tmp_path, monkeypatch):
+    """``truth.py --retry-failed``: a lesion whose deeper push failed is stored with its
+    failure and its last answered state kept beside the reference; a plain run reuses the
+    stored failure, a run with ``--retry-failed`` solves only the failed depth, from that
+    state, and stores the lesion whole, the state removed."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth
+
+    ref_file = tmp_path / "ref.json"
+    kept = truth.p2_checkpoint(ref_file, 0)
+    argv = [str(coarse_phantom.dir), "--lesions", "1", "--depths", "4", "8", "--tet-size",
+            "25", "--tet-fine", "15", "--reference-only", "--reference", str(ref_file)]
+    push, starts = TetReference.push, []
+
+    def second_fails(self, *a, **k):
+        starts.append(k["start"] is not None)
+        if len(starts) == 2:
+            raise RuntimeError("P2 reference: Newton did not converge (forced)")
+        return push(self, *a, **k)
+
+    monkeypatch.setattr(TetReference, "push", second_fails)
+    truth.main(argv)
+    stored = json.loads(ref_file.read_text())["lesions"]["0"]
+    assert stored["failure"].startswith("8 mm: P2 reference: Newton did not converge")
+    assert stored["displacement"][1] is None and kept.is_file()
+    truth.main(argv)
+    assert len(starts) == 2, "a stored failure is reused without --retry-failed"
+    truth.main([*argv, "--retry-failed"])
+    assert starts[2:] == [True], "only the 8 mm push, from the kept 4 mm state"
+    stored = json.loads(ref_file.read_text())["lesions"]["0"]
+    assert stored["failure"] == "" and stored["displacement"][1] is not None
+    assert not kept.exists()
