@@ -242,16 +242,22 @@ def test_quadratic_fields_are_interpolated_exactly(cube):
     assert np.allclose(shape_values(np.eye(4)), np.eye(4, 10))
 
 
-def test_a_push_moves_the_contact_with_the_probe_and_pulls_the_centre(cube):
-    """The top face pushed down 3 mm by a face larger than it: the top follows, the centre
-    moves down by less, the chest wall not at all."""
+def _top_push(ref: TetReference, depth_mm: float) -> tuple:
+    """A 60 x 60 mm face on the cube's top (z = 15), beam down, and pushed ``depth_mm``
+    down: (rest pose, pushed pose, contact nodes at rest)."""
     from biopsynav.footprint import make_footprint
 
     rest = np.diag([1.0, -1.0, -1.0, 1.0])
-    rest[2, 3] = 15.0  # face on the top, beam down
+    rest[2, 3] = 15.0
     pushed = rest.copy()
-    pushed[2, 3] -= 3.0
-    contact = cube.contact(rest, make_footprint("rectangle", (60.0, 60.0)), 0.5)
+    pushed[2, 3] -= depth_mm
+    return rest, pushed, ref.contact(rest, make_footprint("rectangle", (60.0, 60.0)), 0.5)
+
+
+def test_a_push_moves_the_contact_with_the_probe_and_pulls_the_centre(cube):
+    """The top face pushed down 3 mm by a face larger than it: the top follows, the centre
+    moves down by less, the chest wall not at all."""
+    rest, pushed, contact = _top_push(cube, 3.0)
     assert np.allclose(cube.nodes[contact, 2], 15.0) and len(contact) >= 9
     (centre,) = cube.push(rest, [pushed], contact, np.zeros((1, 3)))
     assert -3.0 < centre[0, 2] < -0.5 and np.abs(centre[0, :2]).max() < 0.05  # mesh asymmetry
@@ -727,14 +733,8 @@ def test_a_halved_load_step_shortens_the_next_and_lands_where_equal_steps_do(mon
     fail too), then the steps grow back; the equilibrium is the one equal steps reach.
     Here a Newton solve "fails" when it has to move the face more than 1.6 mm: a 6 mm push
     in 3 mm steps is halved once (3 mm, then 1.5 + 1.5), not in both steps."""
-    from biopsynav.footprint import make_footprint
-
     ref = cube_reference(10.0)
-    rest = np.diag([1.0, -1.0, -1.0, 1.0])
-    rest[2, 3] = 15.0
-    pushed = rest.copy()
-    pushed[2, 3] -= 6.0
-    contact = ref.contact(rest, make_footprint("rectangle", (60.0, 60.0)), 0.5)
+    rest, pushed, contact = _top_push(ref, 6.0)
     (equal,) = ref.push(rest, [pushed], contact, np.zeros((1, 3)), step_mm=1.5)
     newton, moves = TetReference._newton, []
 
