@@ -22,6 +22,9 @@ def test_the_refine_configuration_derives_from_the_case():
     cfg.refine.samples, cfg.refine.held_out, cfg.refine.max_push_mm = 30, 5, 28.0
     out = refined_config(cfg)
     assert out.probe.rigid_share == 1.0 and out.probe.max_push_mm == 28.0
+    assert out.probe.lesion_share == cfg.refine.lesion_share
+    cfg.refine.lesion_share = 0.5
+    assert refined_config(cfg).probe.lesion_share == 0.5
     assert not out.probe.calibrate_force
     assert (out.dataset.n_train, out.dataset.n_test) == (25, 5)
     assert out.dataset.teacher_refine == cfg.refine.teacher_refine == 1.0  # the case grid

@@ -291,6 +291,16 @@ class ProbeSection:
                                   "by [tracker] fem_contact constraints (docs/dataset.md). 0: "
                                   "the paper's force patches only; 1: rigid pushes only.",
                              lo=0.0, hi=1.0)
+    lesion_share: float = opt(0.0, "Share of the training samples centred near a lesion "
+                                   "instead of anywhere on the skin: a lesion drawn uniformly, "
+                                   "then a centre among the eligible skin vertices within "
+                                   "lesion_reach_mm of the skin vertex nearest it; angle, tilt "
+                                   "and load drawn as for any push (docs/dataset.md, "
+                                   "'Pushes near the lesions'). 0: the whole skin alike.",
+                              lo=0.0, hi=1.0)
+    lesion_reach_mm: float = opt(20.0, "With lesion_share > 0: how far from the skin vertex "
+                                       "nearest a lesion a lesion-centred push may be centred.",
+                                 lo=0.0, hi=1000.0)
     rigid_max_tilt_deg: float = opt(15.0, "Largest angle between a rigid push and the inward "
                                           "normal. The skin sticks to the face, so a steeper "
                                           "push drags it across the face by the push's "
@@ -482,6 +492,9 @@ class RefineSection:
                                     "teacher_refine but not this key was written before it "
                                     "existed, and reads as 0 (its fine data stay valid).",
                                lo=0.0, hi=8.0)
+    lesion_share: float = opt(0.0, "Share of the fine pushes centred near a lesion ([probe] "
+                                   "lesion_share of the refine case; lesion_reach_mm from "
+                                   "[probe]).", lo=0.0, hi=1.0)
     max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
                                    "uniform up to it, tilts within [probe] "
                                    "rigid_max_tilt_deg.", lo=1.0, hi=200.0)

@@ -34,6 +34,11 @@ tracker's rest contact), avoiding skin in cells anchored to the chest wall; the 
 tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
 ``[0, max_push_mm]`` along it (prescribed, no force).
 
+With ``[probe] lesion_share`` > 0 that share of the samples is centred near a lesion instead
+of anywhere (:func:`lesion_for_sample`, :func:`centres_near_lesion`): the biopsy probe sits
+over the lesion, and pushes there move the lesions most, which uniform centres on the whole
+skin rarely do.
+
 Random numbers: one ``numpy.random.Generator`` per draw, seeded by
 ``SeedSequence([seed, sample_index, attempt])``, so a sample never depends on which worker
 made it, in which order, or how many draws other samples needed.
@@ -252,6 +257,38 @@ def is_rigid_sample(probe: ProbeSection, seed: int, index: int) -> bool:
     return bool(rng.uniform() < probe.rigid_share)
 
 
+#: The stream that decides whether a sample is centred near a lesion, and which
+#: (``SeedSequence([seed, index, 0, LESION_STREAM])``): apart from the draws themselves, so the
+#: pushes of ``lesion_share = 0`` are unchanged.
+LESION_STREAM = 13
+
+
+def lesion_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int
+                      ) -> int | None:
+    """The lesion (index into ``anatomy.lesions``) near which sample ``index`` is centred
+    (``[probe] lesion_share``, each lesion alike), None when it is centred anywhere; decided
+    once per sample, whatever its attempt."""
+    if probe.lesion_share <= 0.0 or not anatomy.lesions:
+        return None
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0,
+                                                        LESION_STREAM]))
+    near = rng.uniform() < probe.lesion_share
+    lesion = int(rng.integers(len(anatomy.lesions)))
+    return lesion if near else None
+
+
+def centres_near_lesion(anatomy: Anatomy, centers: np.ndarray, lesion: int,
+                        reach_mm: float) -> np.ndarray:
+    """The eligible centre vertices ``centers`` within ``reach_mm`` (mm) of the pushable skin
+    vertex nearest lesion ``lesion``'s centre; the nearest one alone when none is."""
+    skin = np.flatnonzero(anatomy.pushable)
+    to_lesion = np.linalg.norm(anatomy.vertices[skin] - anatomy.lesions[lesion].center, axis=1)
+    nearest = anatomy.vertices[skin[np.argmin(to_lesion)]]
+    dist = np.linalg.norm(anatomy.vertices[centers] - nearest, axis=1)
+    near = centers[dist <= reach_mm]
+    return near if near.size else centers[[int(np.argmin(dist))]]
+
+
 def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int,
                     attempt: int, centers: np.ndarray | None = None,
                     rigid: bool | None = None, pinned: np.ndarray | None = None,
@@ -259,11 +296,22 @@ def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int
     """The push of sample ``index``, draw ``attempt`` (deterministic); ``rigid``: its kind
     (None: :func:`is_rigid_sample`); ``pinned``: see :func:`draw_push`; ``training``: a
     training sample, whose force follows ``[probe] train_force_exponent`` and
-    ``train_force_scale``."""
+    ``train_force_scale``. A sample :func:`lesion_for_sample` puts near a lesion is centred
+    among :func:`centres_near_lesion`, or anywhere when no patch there can be drawn."""
     if rigid is None:
         rigid = is_rigid_sample(probe, seed, index)
+    if centers is None:
+        centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
     exponent, scale = ((probe.train_force_exponent, probe.train_force_scale) if training
                        else (1.0, 1.0))
+    lesion = lesion_for_sample(anatomy, probe, seed, index)
+    if lesion is not None:
+        near = centres_near_lesion(anatomy, centers, lesion, probe.lesion_reach_mm)
+        try:
+            return draw_push(anatomy, probe, sample_rng(seed, index, attempt), near, attempt,
+                             rigid, pinned, exponent, scale)
+        except InputError:  # every patch near it holds pinned skin or too few points
+            pass
     return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt, rigid,
                      pinned, exponent, scale)
 
@@ -420,6 +468,7 @@ def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: st
 
 __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",
            "MIN_NORMAL_COSINE", "ProbePush", "contact_input", "contact_input_operator",
-           "draw_push", "eligible_centers", "is_rigid_sample", "pinned_skin",
+           "centres_near_lesion", "draw_push", "eligible_centers", "is_rigid_sample",
+           "lesion_for_sample", "pinned_skin",
            "nodal_forces", "probe_frame", "probe_patch", "push_for_sample", "sample_rng",
            "skin_under_face", "tangent_basis", "tilted_direction"]

@@ -30,7 +30,8 @@ REFINE_VAL_INTERVAL = 250
 
 def refined_config(cfg: CaseConfig) -> CaseConfig:
     """The refine case's configuration: ``cfg`` with every push a rigid-probe push (depth
-    uniform up to ``[refine] max_push_mm``, no force calibration), ``[refine] samples``
+    uniform up to ``[refine] max_push_mm``, no force calibration, ``[refine] lesion_share``
+    of them centred near a lesion), ``[refine] samples``
     samples of which ``held_out`` held out, solved on the finer teacher, and the training
     starting from the case's model (``../model``) with the ``[refine]`` schedule."""
     r, out = cfg.refine, copy.deepcopy(cfg)
@@ -41,6 +42,7 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     out.probe.rigid_share = 1.0
     out.probe.max_push_mm = r.max_push_mm
     out.probe.calibrate_force = False
+    out.probe.lesion_share = r.lesion_share
     out.dataset.n_train = r.samples - r.held_out
     out.dataset.n_test = r.held_out
     out.dataset.teacher_refine = r.teacher_refine

@@ -189,3 +189,16 @@ def test_a_data_sets_elastic_push_gives_its_springs_a_short_budget_and_no_points
         assert all(np.isfinite(settings.spring_fallback))
         assert settings.elastic_single_precision is single
     assert SolverSettings().elastic_single_precision is False  # the tracker's: double
+
+
+def test_pushes_near_lesions_enter_the_protocol_only_when_drawn(base_case):
+    """``lesion_share`` 0 leaves both lesion keys out (every data set of before keeps its
+    protocol); a share above 0 records it and the reach."""
+    cfg = Case.load(base_case).cfg
+    before = protocol_dict(cfg, N_TRAIN, N_TEST)
+    assert not {"lesion_share", "lesion_reach_mm"} & set(before["probe"])
+    cfg.probe.lesion_reach_mm = 30.0
+    assert protocol_dict(cfg, N_TRAIN, N_TEST) == before
+    cfg.probe.lesion_share = 0.5
+    probe = protocol_dict(cfg, N_TRAIN, N_TEST)["probe"]
+    assert (probe["lesion_share"], probe["lesion_reach_mm"]) == (0.5, 30.0)

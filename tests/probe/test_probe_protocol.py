@@ -10,9 +10,11 @@ from biopsynav.config import ProbeSection
 from biopsynav.errors import InputError
 from biopsynav.grid.embedding import Embedding
 from biopsynav.probe import (
+    centres_near_lesion,
     contact_input,
     contact_input_operator,
     eligible_centers,
+    lesion_for_sample,
     nodal_forces,
     probe_frame,
     probe_patch,
@@ -209,3 +211,42 @@ def test_training_force_exponent_and_scale_shape_only_training_forces(case, push
     uniform = dataclasses.replace(probe, train_force_exponent=1.0, train_force_scale=1.0)
     assert push_for_sample(case.anatomy, uniform, 7, 4, 0, centers,
                            training=True).force_n == pushes[8].force_n
+
+
+def test_lesion_centred_pushes_start_near_the_drawn_lesion(case, pushes):
+    """``lesion_share`` 1: every push is centred within ``lesion_reach_mm`` of the skin vertex
+    nearest its lesion, each lesion drawn; 0.5: about half are; 0: the pushes of before."""
+    import dataclasses
+
+    anatomy = case.anatomy
+    probe = dataclasses.replace(case.cfg.probe, lesion_share=1.0, lesion_reach_mm=15.0)
+    centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
+    skin = np.flatnonzero(anatomy.pushable)
+    lesions = [lesion_for_sample(anatomy, probe, 7, i) for i in range(60)]
+    assert None not in lesions and len(set(lesions)) == len(anatomy.lesions)
+    for i, lesion in enumerate(lesions[:20]):
+        centre = anatomy.lesions[lesion].center
+        nearest = anatomy.vertices[skin[np.argmin(np.linalg.norm(anatomy.vertices[skin]
+                                                                 - centre, axis=1))]]
+        push = push_for_sample(anatomy, probe, 7, i, 0, centers)
+        assert np.linalg.norm(push.center - nearest) <= 15.0 + 1e-9
+        assert push.vertex in centers
+    half = dataclasses.replace(probe, lesion_share=0.5)
+    near = [lesion_for_sample(anatomy, half, 7, i) is not None for i in range(400)]
+    assert 150 < sum(near) < 250
+    assert all(lesion_for_sample(anatomy, case.cfg.probe, 7, i) is None for i in range(50))
+    again = [push_for_sample(anatomy, case.cfg.probe, 7, i, a, centers)
+             for i in range(25) for a in range(2)]
+    assert [p.vertex for p in again] == [p.vertex for p in pushes]
+
+
+def test_a_lesion_with_no_eligible_centre_in_reach_gets_the_nearest_one(case):
+    anatomy = case.anatomy
+    centers = eligible_centers(anatomy, case.cfg.probe.min_chest_distance_mm)
+    near = centres_near_lesion(anatomy, centers, 0, 0.0)
+    skin = np.flatnonzero(anatomy.pushable)
+    nearest = skin[np.argmin(np.linalg.norm(anatomy.vertices[skin]
+                                            - anatomy.lesions[0].center, axis=1))]
+    dist = np.linalg.norm(anatomy.vertices[centers] - anatomy.vertices[nearest], axis=1)
+    assert near.tolist() == [centers[np.argmin(dist)]]
+    assert len(centres_near_lesion(anatomy, centers, 0, 1000.0)) == len(centers)

@@ -80,7 +80,7 @@ FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "too
 #: [probe] values that a protocol leaves out, being what every data set had before the key
 #: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
 FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "shape": "rectangle",
-                       "rigid_share": 0.0, "too_deep_redraw": "elsewhere"}
+                       "rigid_share": 0.0, "too_deep_redraw": "elsewhere", "lesion_share": 0.0}
 
 
 def recorded_probe_value(protocol: dict, key: str) -> Any:
@@ -98,7 +98,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
     (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
-    push is rigid; never ``calibration_pushes``: the calibration it found is recorded in the
+    push is rigid; without ``lesion_reach_mm`` when no push is centred near a lesion; never
+    ``calibration_pushes``: the calibration it found is recorded in the
     data set), and the seed, sizes, Newton budget and contact input of [dataset].
     """
     solver = cfg.section_dict("solver")
@@ -113,6 +114,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     else:  # force patches only: the protocol of before rigid pushes (rigid_share 0: below)
         probe.pop("contact_tolerance_mm", None)
     probe.pop("calibration_pushes", None)  # its calibration is recorded in the data set
+    if probe.get("lesion_share", 0.0) == 0.0:  # no push is centred near a lesion
+        probe.pop("lesion_reach_mm", None)
     for key, former in FORMER_PROBE_VALUES.items():  # e.g. uniform forces: the former protocol
         if probe.get(key) == former:
             probe.pop(key)
