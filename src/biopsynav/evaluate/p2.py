@@ -469,8 +469,6 @@ class TetReference:
     kept: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     #: time.monotonic() after which the push in progress gives up (PushTimeout); None: never
     deadline: float | None = None
-    #: load steps halved (:meth:`_step`) in the load step in progress
-    halvings: int = 0
 
     def mesh_fingerprint(self) -> str:
         """A hash of the mesh (node coordinates and elements): equal for the same mesh."""
@@ -565,19 +563,20 @@ class TetReference:
             nxt = 1.0 if frac + step > 1.0 - 1e-9 else frac + step
             k += 1
             log.info("load step %d: %.1f to %.1f %% of the move", k, 100 * frac, 100 * nxt)
-            self.halvings = 0
-            u = self._contact_step(u, contact, start + (end - start) * nxt, tol,
-                                   (was + (to - was) * frac, was + (to - was) * nxt), surface)
+            u, halved = self._contact_step(u, contact, start + (end - start) * nxt, tol,
+                                           (was + (to - was) * frac, was + (to - was) * nxt),
+                                           surface)
             frac = nxt
-            step = (max(step / 2, share / 2**SHORTER_STEPS) if self.halvings
+            step = (max(step / 2, share / 2**SHORTER_STEPS) if halved
                     else min(2 * step, share))
         return u
 
     def _contact_step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
                       tol: float, poses: tuple[np.ndarray, np.ndarray],
-                      surface: Any) -> np.ndarray:
+                      surface: Any) -> tuple[np.ndarray, int]:
         """One load step of the probe from the pose ``poses[0]`` (4, 4), where ``u`` is the
-        equilibrium, to ``poses[1]``. With its contact ``surface``
+        equilibrium, to ``poses[1]``: the equilibrium (n, 3) mm there and how many times a
+        solve of it was halved (:meth:`_step`). With its contact ``surface``
         (:mod:`~biopsynav.evaluate.p2_contact`), an active set: the held skin keeps its
         place on the moving surface, and the skin that the probe's move passes (inside the
         probe where the step's linear response puts it) is put where it met the surface
@@ -601,8 +600,11 @@ class TetReference:
         slide = self._sliding_at(predicted, face, surface,
                                  self._face_local(self.sliding, u, was))
         released = np.zeros(0, dtype=np.int64)
+        halved = 0
         for round_ in range(CONTACT_ROUNDS + HOLDING_ROUNDS):
-            before, u = u, self._step(u, contact, values, tol, slide, on=(face, surface))
+            before = u
+            u, more = self._step(u, contact, values, tol, slide, on=(face, surface))
+            halved += more
             new = self._penetrating(u, face, surface, contact)
             self.kept = np.union1d(self.kept, np.intersect1d(new, released))
             off = np.setdiff1d(self._released(u, face, surface, round_ < CONTACT_ROUNDS),
@@ -612,7 +614,7 @@ class TetReference:
                      "%.3f mm off the probe", len(self.sliding), len(new), len(off), gap)
             if not len(new) and not len(off) and gap <= SURFACE_TOL_MM:
                 self._say_pulled(u, face, surface, round_)
-                return u
+                return u, halved
             self.sliding = np.union1d(np.setdiff1d(self.sliding, off), new)
             released = np.union1d(released, off)
             slide = self._sliding_at(u, face, surface, self._came_from(new, before, face))
@@ -702,20 +704,22 @@ class TetReference:
         return nodes[pulled | slid_off]
 
     def _step(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray, tol: float,
-              slide: Sliding, depth: int = 0, on: tuple | None = None) -> np.ndarray:
-        """One load step to ``values`` at the contact nodes; split in two when it fails (the
-        first half on planes halfway, so without ``on``: :meth:`_newton`)."""
+              slide: Sliding, depth: int = 0, on: tuple | None = None
+              ) -> tuple[np.ndarray, int]:
+        """One load step to ``values`` at the contact nodes: the equilibrium (n, 3) mm and how
+        many times the step was split in two because a solve failed (the first half on
+        planes halfway, so without ``on``: :meth:`_newton`)."""
         try:
-            return self._newton(u, contact, values, tol, slide, on)
+            return self._newton(u, contact, values, tol, slide, on), 0
         except (FloatingPointError, RuntimeError) as exc:
             if depth >= 5:
                 raise
             log.info("  load step failed (%s): halved", exc)
-            self.halvings += 1
             half = 0.5 * (u[contact] + values)
             mid = slide.halfway(u)
-            u = self._step(u, contact, half, tol, mid, depth + 1)
-            return self._step(u, contact, values, tol, slide, depth + 1, on)
+            u, first = self._step(u, contact, half, tol, mid, depth + 1)
+            u, second = self._step(u, contact, values, tol, slide, depth + 1, on)
+            return u, 1 + first + second
 
     def _newton(self, u: np.ndarray, contact: np.ndarray, values: np.ndarray,
                 tol: float, slide: Sliding, on: tuple | None = None) -> np.ndarray:
