@@ -173,10 +173,10 @@ def test_a_case_toml_from_before_refine_keeps_its_own_model(tmp_path):
     save_config(tmp_path, CaseConfig())
     path = tmp_path / "case.toml"
     text = path.read_text()
-    assert load_config(tmp_path).refine.samples == CaseConfig().refine.samples == 300
+    assert load_config(tmp_path).refine.samples == CaseConfig().refine.samples == 1000
     path.write_text(re.sub(r"\[refine\]\n(?:[^\[]*\n)", "", text))
     assert "[refine]" not in path.read_text()
     assert load_config(tmp_path).refine.samples == 0
     assert load_config(tmp_path).network == CaseConfig().network  # the rest as written
     path.write_text("[case]\nname = \"by hand\"\n")
-    assert load_config(tmp_path).refine.samples == 300
+    assert load_config(tmp_path).refine.samples == 1000

@@ -28,8 +28,8 @@ def test_info_names_the_refine_teacher_and_its_contact():
     from biopsynav.info import contact_words, refine_words, teacher_words
 
     cfg = config_from_dict({})
-    assert refine_words(cfg) == ("300 rigid pushes (20 held out) of the case grid, to 35 mm, "
-                                 "4000 iterations")
+    assert refine_words(cfg) == ("1000 rigid pushes (20 held out) of the case grid, to 35 mm, "
+                                 "16000 iterations")
     assert contact_words(config_from_dict({"tracker": {"fem_contact": "points"}})) == (
         "points: the contact points met")
     words = teacher_words({"teacher_refine": 1, "rigid_share": 1.0, "material_model":
