@@ -467,10 +467,11 @@ class RefineSection:
                            "further on them; the tracker then uses that model "
                            "(CASE_DIR/refine/model). They live in their own case folder, "
                            "CASE_DIR/refine, with the same anatomy and grid. 1,000 (default, "
-                           "with iterations = 16,000) bring the lesions nearer the independent "
-                           "truth at 30 mm pushes than 300 pushes and 4,000 iterations did "
-                           "(docs/dataset.md, '1,000 pushes and 16,000 iterations': accuracy "
-                           "and time). 0: off; the case-grid network is the model.",
+                           "with iterations = 16,000): at 30 mm pushes the phantom's lesions "
+                           "nearer the independent truth, and UC Davis's worst lesion, than "
+                           "with 300 pushes and 4,000 iterations (docs/dataset.md, '1,000 "
+                           "pushes and 16,000 iterations': accuracy and time). 0: off; the "
+                           "case-grid network is the model.",
                        lo=0, hi=10**6)
     held_out: int = opt(20, "Of those samples, held out to choose the best weights (mean e "
                             "against the refine teacher).", lo=1, hi=10**6)
