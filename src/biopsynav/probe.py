@@ -263,6 +263,14 @@ def is_rigid_sample(probe: ProbeSection, seed: int, index: int) -> bool:
 LESION_STREAM = 13
 
 
+def check_lesion_share(anatomy: Anatomy, probe: ProbeSection) -> None:
+    """InputError when ``[probe] lesion_share`` asks for pushes near lesions of a case that has
+    none (they would silently be centred anywhere)."""
+    if probe.lesion_share > 0.0 and not anatomy.lesions:
+        raise InputError(f"lesion_share = {probe.lesion_share:g} centres pushes near lesions, "
+                         "but the case has no lesions; set it to 0", "[probe] lesion_share")
+
+
 def lesion_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int
                       ) -> int | None:
     """The lesion (index into ``anatomy.lesions``) near which sample ``index`` is centred
@@ -281,9 +289,7 @@ def centres_near_lesion(anatomy: Anatomy, centers: np.ndarray, lesion: int,
                         reach_mm: float) -> np.ndarray:
     """The eligible centre vertices ``centers`` within ``reach_mm`` (mm) of the pushable skin
     vertex nearest lesion ``lesion``'s centre; the nearest one alone when none is."""
-    skin = np.flatnonzero(anatomy.pushable)
-    to_lesion = np.linalg.norm(anatomy.vertices[skin] - anatomy.lesions[lesion].center, axis=1)
-    nearest = anatomy.vertices[skin[np.argmin(to_lesion)]]
+    nearest = anatomy.vertices[anatomy.nearest_pushable_vertex(anatomy.lesions[lesion].center)]
     dist = np.linalg.norm(anatomy.vertices[centers] - nearest, axis=1)
     near = centers[dist <= reach_mm]
     return near if near.size else centers[[int(np.argmin(dist))]]
@@ -467,8 +473,8 @@ def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: st
 
 
 __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",
-           "MIN_NORMAL_COSINE", "ProbePush", "contact_input", "contact_input_operator",
-           "centres_near_lesion", "draw_push", "eligible_centers", "is_rigid_sample",
-           "lesion_for_sample", "pinned_skin",
-           "nodal_forces", "probe_frame", "probe_patch", "push_for_sample", "sample_rng",
-           "skin_under_face", "tangent_basis", "tilted_direction"]
+           "MIN_NORMAL_COSINE", "ProbePush", "centres_near_lesion", "check_lesion_share",
+           "contact_input", "contact_input_operator", "draw_push", "eligible_centers",
+           "is_rigid_sample", "lesion_for_sample", "nodal_forces", "pinned_skin",
+           "probe_frame", "probe_patch", "push_for_sample", "sample_rng", "skin_under_face",
+           "tangent_basis", "tilted_direction"]

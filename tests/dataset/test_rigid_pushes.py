@@ -202,3 +202,20 @@ def test_pushes_near_lesions_enter_the_protocol_only_when_drawn(base_case):
     cfg.probe.lesion_share = 0.5
     probe = protocol_dict(cfg, N_TRAIN, N_TEST)["probe"]
     assert (probe["lesion_share"], probe["lesion_reach_mm"]) == (0.5, 30.0)
+
+
+def test_pushes_near_lesions_of_a_case_without_lesions_are_refused_before_a_store(base_case,
+                                                                                  tmp_path):
+    """``lesion_share`` > 0 on a case with no lesions stops ``generate`` at its preflight with
+    one line naming the key, before a data set exists (else every push would be centred
+    anywhere without a word)."""
+    import dataclasses
+
+    case = Case.load(base_case)
+    bare = Case(tmp_path, dataclasses.replace(case.cfg), dataclasses.replace(case.anatomy,
+                                                                            lesions=[]),
+                case.grid)
+    bare.cfg.probe = dataclasses.replace(case.cfg.probe, lesion_share=0.5)
+    with pytest.raises(InputError, match=r"\[probe\] lesion_share.*no lesions"):
+        generate_case(bare, workers=1, progress=False)
+    assert not (tmp_path / "dataset.zarr").exists()

@@ -70,6 +70,13 @@ class Anatomy:
         """(nv,) skin vertices a probe may touch: off the chest wall and off crop faces."""
         return ~np.asarray(self.fixed_vertices, bool) & ~np.asarray(self.crop_vertices, bool)
 
+    def nearest_pushable_vertex(self, point: np.ndarray) -> int:
+        """Index of the skin vertex a probe may touch (:attr:`pushable`) nearest ``point``
+        (3,) mm."""
+        dist = np.linalg.norm(self.vertices - np.asarray(point, dtype=np.float64), axis=1)
+        dist[~self.pushable] = np.inf
+        return int(np.argmin(dist))
+
     def chest_depth(self, points: np.ndarray) -> np.ndarray:
         """Distance (n,) in mm of ``points`` (n, 3) in front of the chest wall: along the
         plane's normal, and no more than the distance to the nearest chest-wall vertex."""

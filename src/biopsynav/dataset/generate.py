@@ -141,14 +141,16 @@ def working_case(case: Case, store: DatasetStore, workers: int = 1) -> Case:
 
 def preflight(case: Any) -> None:
     """Raise here, in the main process, what every worker would raise while setting up (a skin
-    vertex outside the active cells, no push centre), instead of a pool that keeps crashing."""
+    vertex outside the active cells, no push centre, pushes near lesions of a case without
+    any), instead of a pool that keeps crashing."""
     from ..fem.tissues import label_tissues
     from ..grid.embedding import surface_embedding
-    from ..probe import eligible_centers
+    from ..probe import check_lesion_share, eligible_centers
 
     label_tissues(case.grid.label_values, case.cfg, case.anatomy)
     surface_embedding(case.grid, case.anatomy)
     eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
+    check_lesion_share(case.anatomy, case.cfg.probe)
 
 
 def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool) -> DatasetStore:

@@ -75,11 +75,9 @@ def place_probe(anatomy: Anatomy, lesion_index: int) -> Placement:
     """Rest pose of the probe above lesion ``lesion_index`` (see module doc)."""
     les = anatomy.lesions[lesion_index]
     c = np.asarray(les.center, dtype=np.float64)
-    dist = np.linalg.norm(anatomy.vertices - c, axis=1)
-    dist[~anatomy.pushable] = np.inf
-    v = int(np.argmin(dist))
+    v = anatomy.nearest_pushable_vertex(c)
     p = anatomy.vertices[v]
-    z = (c - p) / max(dist[v], 1e-12)
+    z = (c - p) / max(float(np.linalg.norm(c - p)), 1e-12)
     inward = -anatomy.normals[v]
     if np.degrees(np.arccos(np.clip(z @ inward, -1.0, 1.0))) > MAX_AXIS_TILT_DEG:
         z = inward / np.linalg.norm(inward)
