@@ -234,3 +234,30 @@ def test_refine_by_default_learns_the_case_grid_with_elastic_contact(trained_cas
     res = tracker.update(placement.pushed(6.0))
     assert res.status == "ok", res.reason
     assert np.linalg.norm(res.lesions[0].displacement) > 0.1
+
+
+def test_more_refine_samples_grow_the_fine_data_set_in_place(refined, tmp_path, capsys):
+    """Raising [refine] samples keeps the solved fine pushes (rigid: the same as training
+    and as held-out samples), solves only the new ones and trains again on all."""
+    import zarr
+
+    from biopsynav.cli import main
+
+    case = tmp_path / "case"
+    shutil.copytree(refined, case)
+    fine = case / "refine"
+    before = zarr.open_group(str(fine / "dataset.zarr"), mode="r")["targets"][:4]
+    meta = fine / "model" / "meta.json"
+    trained_at = meta.stat().st_mtime_ns
+    cfg = load_config(case)
+    cfg.refine.samples = 6
+    cfg.dataset.max_failure_share = 1.0  # this coarse grid's fine pushes are often redrawn
+    save_config(case, cfg)
+    assert main(["refine", str(case), "--workers", "1"]) == 0
+    assert "4 solved samples kept" in capsys.readouterr().err
+    summary = json.loads((fine / "dataset_summary.json").read_text())
+    assert summary["count"] == 6 and summary["computed_this_run"] == 2
+    after = zarr.open_group(str(fine / "dataset.zarr"), mode="r")
+    assert (after.attrs["n_train"], after.attrs["n_test"]) == (5, 1)
+    assert (after["targets"][:4] == before).all()
+    assert meta.stat().st_mtime_ns > trained_at

@@ -315,7 +315,9 @@ class ProbeSection:
 
 @dataclass
 class DatasetSection:
-    n_train: int = opt(800, "Training samples.", lo=1, hi=10**7)
+    n_train: int = opt(800, "Training samples. Raising it (or n_test) later grows a stored "
+                            "data set in place; lowering either is refused (docs/dataset.md, "
+                            "'Growing a data set').", lo=1, hi=10**7)
     n_test: int = opt(200, "Held-out test samples.", lo=1, hi=10**7)
     seed: int = opt(0, "Seed: the same seed gives the same samples whatever the worker count.",
                     lo=0, hi=2**63 - 1)
@@ -470,8 +472,9 @@ class RefineSection:
                            "with iterations = 16,000): at 30 mm pushes the phantom's lesions "
                            "nearer the independent truth, and UC Davis's worst lesion, than "
                            "with 300 pushes and 4,000 iterations (docs/dataset.md, '1,000 "
-                           "pushes and 16,000 iterations': accuracy and time). 0: off; the "
-                           "case-grid network is the model.",
+                           "pushes and 16,000 iterations': accuracy and time). Raising it on a "
+                           "refined case keeps the fine pushes already solved and adds the "
+                           "rest. 0: off; the case-grid network is the model.",
                        lo=0, hi=10**6)
     held_out: int = opt(20, "Of those samples, held out to choose the best weights (mean e "
                             "against the refine teacher).", lo=1, hi=10**6)

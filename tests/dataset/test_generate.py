@@ -373,8 +373,8 @@ def test_guard_against_mixing(reference, tmp_path):
     with pytest.raises(FingerprintError, match=r"another protocol.*f_max_n \(data set [\d.]+, "
                        r"case 2\.0\).*--overwrite.*in case\.toml to keep it"):
         generate_case(case_dir, workers=1, progress=False)
-    with pytest.raises(FingerprintError, match="n_train"):
-        generate_case(case_dir, workers=1, progress=False, n_train=N_TRAIN + 1)
+    with pytest.raises(FingerprintError, match="n_train"):  # growing is tests/dataset/test_grow.py
+        generate_case(case_dir, workers=1, progress=False, n_train=N_TRAIN - 1)
     summary = generate_case(case_dir, workers=1, progress=False, overwrite=True, n_train=2,
                             n_test=1)
     assert summary["count"] == 3 and open_data(case_dir).attrs["n_train"] == 2

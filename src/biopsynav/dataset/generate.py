@@ -13,6 +13,7 @@ whatever the worker count, order or interruptions.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections import Counter, deque
 from concurrent.futures import Future
@@ -26,6 +27,7 @@ from ..case import Case, as_case
 from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
+from .grow import grow_store, growth_summary, sizes_alone_differ
 from .pool import WorkerProcesses
 from .store import (
     DatasetStore,
@@ -37,6 +39,7 @@ from .store import (
     protocol_fingerprint,
     recorded_probe_value,
     remove_store,
+    same_protocol,
 )
 from .worker import (
     IMPLAUSIBLE,
@@ -94,7 +97,7 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
     if workers < 0:
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
     preflight(case)  # input errors here, before a store or a worker exists
-    store = prepare_store(case, n_train, n_test, overwrite)
+    store, grown = prepare_store(case, n_train, n_test, overwrite)
     work = working_case(case, store, workers)
     spec = WorkerSpec(work, case.fingerprint() + store.group.attrs["protocol_fingerprint"])
     done = store.done_mask()
@@ -107,6 +110,7 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
         finally:
             runner.close()
     summary = run_summary(store, stats, time.perf_counter() - start)
+    summary["grown"] = grown
     write_json_atomic(case.dir / SUMMARY_FILE, summary)
     plot_distributions(store, case.dir / PLOT_FILE)
     return summary
@@ -153,8 +157,11 @@ def preflight(case: Any) -> None:
     check_lesion_share(case.anatomy, case.cfg.probe)
 
 
-def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool) -> DatasetStore:
-    """Open the case's store if it matches, else create it (after removal with overwrite)."""
+def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool
+                  ) -> tuple[DatasetStore, str | None]:
+    """Open the case's store if it matches, grown in place when only its sizes differ
+    (:mod:`.grow`), else create it (after removal with overwrite); the store and, when it
+    grew, one line saying how (also printed on stderr)."""
     path = dataset_path(case.dir)
     protocol = protocol_dict(case.cfg, n_train, n_test)
     fingerprint = case.fingerprint()
@@ -165,10 +172,25 @@ def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool) -> Data
                 (case.dir / name).unlink(missing_ok=True)
         else:
             store = open_store(path)
+            grown = grow_if_sizes_alone_differ(store, case.cfg, fingerprint, protocol)
             check_compatible(store, fingerprint, protocol)
-            return store
+            return store, grown
     return create_store(path, case.cfg, fingerprint, protocol, n_train, n_test,
-                        case.grid.node_shape, case.grid.active_nodes)
+                        case.grid.node_shape, case.grid.active_nodes), None
+
+
+def grow_if_sizes_alone_differ(store: DatasetStore, cfg: Any, fingerprint: str,
+                               protocol: dict) -> str | None:
+    """Grow ``store`` to ``protocol``'s sizes when they are all that differ from the stored
+    protocol (same anatomy and grid); the line saying how (printed on stderr), else None."""
+    attrs = store.group.attrs
+    if attrs["fingerprint"] != fingerprint or same_protocol(attrs, protocol) \
+            or not sizes_alone_differ(attrs.get("protocol"), protocol):
+        return None
+    data = protocol["dataset"]
+    line = growth_summary(grow_store(store, cfg, protocol, data["n_train"], data["n_test"]))
+    print(f"biopsynav: {line} ({store.path})", file=sys.stderr, flush=True)
+    return line
 
 
 # ----- runners: local processes or Dask -----------------------------------------------------
@@ -470,6 +492,7 @@ def format_run_summary(s: dict) -> str:
              f"{s['mean_probe_disp_mm']:.1f}), largest nodal displacement "
              f"{s['max_disp_mm']:.1f} mm, {s['rigid_pushes']} by the rigid probe face"]
     lines += _calibration_line(s.get("force_calibration"), s["train_force_scale"])
+    lines += [f"  {s['grown']}"] if s.get("grown") else []
     lines.append(f"  figures: {folder / SUMMARY_FILE}, histograms: {folder / PLOT_FILE}")
     return "\n".join(lines)
 

@@ -283,6 +283,10 @@ def open_store(path: Path, mode: str = "r+") -> DatasetStore:
         raise InputError(f"incomplete dataset: {type(exc).__name__}: {exc}{hint}",
                          str(path)) from None
     store = DatasetStore(path, group, arrays)
+    if mode == "r":
+        check_no_pending_growth(attrs, str(path))
+    else:
+        finish_growth(store)
     _check_layout(store, hint)
     return store
 
@@ -307,6 +311,46 @@ def _check_layout(store: DatasetStore, hint: str) -> None:
                              str(store.path))
 
 
+#: The store attribute holding a growth plan (:mod:`.grow`) until it is carried out.
+RESIZE_ATTR = "resizing"
+#: The per-sample arrays, resized along their first axis when a store grows.
+SAMPLE_ARRAYS = ("inputs", "targets", "done", *META_FIELDS)
+
+
+def finish_growth(store: DatasetStore) -> None:
+    """Carry out the store's growth plan (:func:`biopsynav.dataset.grow.grow_store`), if it
+    holds one: the samples to solve again marked not done, every per-sample array resized,
+    then the attributes (sizes, protocol, failure records without those samples, no plan)
+    written in one document. Idempotent, so a run killed half-way is completed by the next."""
+    plan = store.group.attrs.get(RESIZE_ATTR)
+    if plan is None:
+        return
+    again = [int(i) for i in plan["solve_again"]]
+    for i in again:
+        store.arrays["done"][i] = False
+    n = int(plan["n_train"]) + int(plan["n_test"])
+    for name in SAMPLE_ARRAYS:
+        array = store.arrays[name]
+        if array.shape[0] != n:
+            array.resize((n, *array.shape[1:]))
+    attrs = dict(store.group.attrs)
+    attrs.pop(RESIZE_ATTR)
+    dropped = set(again)
+    attrs["failures"] = [f for f in attrs.get("failures", []) if failure_key(f)[0] not in dropped]
+    attrs.update({key: plan[key] for key in ("n_train", "n_test", "protocol",
+                                            "protocol_fingerprint")})
+    store.group.attrs.put(attrs)
+
+
+def check_no_pending_growth(attrs: dict, path: str) -> None:
+    """InputError for a read-only reader of a store whose growth was interrupted."""
+    plan = attrs.get(RESIZE_ATTR)
+    if plan is not None:
+        raise InputError(f"growing the data set to {plan.get('n_train')} + "
+                         f"{plan.get('n_test')} samples was interrupted; run `biopsynav "
+                         "generate` (or `refine`) on the case to finish it", path)
+
+
 def check_compatible(store: DatasetStore, fingerprint: str, protocol: dict) -> None:
     """Refuse (FingerprintError) a store made for another anatomy/grid or protocol."""
     attrs = store.group.attrs
@@ -316,7 +360,7 @@ def check_compatible(store: DatasetStore, fingerprint: str, protocol: dict) -> N
                                f"(fingerprint {str(attrs['fingerprint'])[:12]}..., case "
                                f"{fingerprint[:12]}...){hint}", str(store.path))
     if not same_protocol(attrs, protocol):
-        changed = _changed_sections(_comparable(attrs.get("protocol")), protocol)
+        changed = _changed_sections(comparable_protocol(attrs.get("protocol")), protocol)
         raise FingerprintError("the data set was generated with another protocol (changed: "
                                f"{'; '.join(changed) or 'unknown'}){hint}, or set those "
                                "values in case.toml to keep it", str(store.path))
@@ -328,11 +372,11 @@ def same_protocol(attrs: Any, protocol: dict) -> bool:
     (:data:`FORCE_PATCH_KEYS`), which is the same protocol once they are left out."""
     if attrs["protocol_fingerprint"] == protocol_fingerprint(protocol):
         return True
-    return protocol_fingerprint(_comparable(attrs.get("protocol"))) == \
+    return protocol_fingerprint(comparable_protocol(attrs.get("protocol"))) == \
         protocol_fingerprint(protocol)
 
 
-def _comparable(stored: Any) -> dict:
+def comparable_protocol(stored: Any) -> dict:
     """A store's recorded protocol as today's :func:`protocol_dict` writes it (the force
     patches' keys left out of a protocol of rigid pushes alone)."""
     out = dict(stored) if isinstance(stored, dict) else {}  # a damaged record: compares unequal
