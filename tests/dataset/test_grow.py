@@ -109,3 +109,21 @@ def test_a_data_set_of_another_protocol_is_not_grown(reference, tmp_path):
         generate_case(case, workers=1, progress=False)
     assert zarr.open_group(str(case / "dataset.zarr"), mode="r")["done"].shape == \
         (N_TRAIN + N_TEST,)
+
+
+@pytest.mark.parametrize("plan", [{"n_train": "many", "n_test": 2, "solve_again": []},
+                                  {"n_train": N_TRAIN + 1, "n_test": N_TEST},
+                                  "garbage",
+                                  {"n_train": N_TRAIN + 1, "n_test": N_TEST, "solve_again": [999],
+                                   "protocol": {}, "protocol_fingerprint": "0"},
+                                  {"n_train": 1, "n_test": 1, "solve_again": [],
+                                   "protocol": {}, "protocol_fingerprint": "0"}])
+def test_a_damaged_growth_plan_is_one_clear_error_and_loses_nothing(reference, tmp_path, plan):
+    case = tmp_path / "case"
+    shutil.copytree(reference, case)
+    zarr.open_group(str(case / "dataset.zarr"), mode="r+").attrs[RESIZE_ATTR] = plan
+    with pytest.raises(InputError, match=r"growth plan \('resizing'\).*--overwrite"):
+        generate_case(case, workers=1, progress=False)
+    g = zarr.open_group(str(case / "dataset.zarr"), mode="r")
+    assert g["done"].shape == (N_TRAIN + N_TEST,) and bool(g["done"][...].all())
+    assert g.attrs["n_train"] == N_TRAIN

@@ -39,7 +39,6 @@ from .store import (
     protocol_fingerprint,
     recorded_probe_value,
     remove_store,
-    same_protocol,
 )
 from .worker import (
     IMPLAUSIBLE,
@@ -184,7 +183,7 @@ def grow_if_sizes_alone_differ(store: DatasetStore, cfg: Any, fingerprint: str,
     """Grow ``store`` to ``protocol``'s sizes when they are all that differ from the stored
     protocol (same anatomy and grid); the line saying how (printed on stderr), else None."""
     attrs = store.group.attrs
-    if attrs["fingerprint"] != fingerprint or same_protocol(attrs, protocol) \
+    if attrs["fingerprint"] != fingerprint \
             or not sizes_alone_differ(attrs.get("protocol"), protocol):
         return None
     data = protocol["dataset"]

@@ -45,8 +45,14 @@ def sizes_alone_differ(stored: object, protocol: dict) -> bool:
     """Whether a stored protocol and ``protocol`` differ, and only in the data set's sizes."""
     if not isinstance(stored, dict):
         return False
-    return protocol_fingerprint(without_sizes(stored)) == \
-        protocol_fingerprint(without_sizes(protocol))
+    return sizes_of(stored) != sizes_of(protocol) and \
+        protocol_fingerprint(without_sizes(stored)) == protocol_fingerprint(without_sizes(protocol))
+
+
+def sizes_of(protocol: dict) -> tuple:
+    """``[dataset] n_train`` and ``n_test`` of a protocol (None where missing)."""
+    data = protocol.get("dataset") or {}
+    return data.get("n_train"), data.get("n_test")
 
 
 def growth_refusal(attrs: dict, n_train: int, n_test: int) -> str | None:

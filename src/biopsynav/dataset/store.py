@@ -325,10 +325,9 @@ def finish_growth(store: DatasetStore) -> None:
     plan = store.group.attrs.get(RESIZE_ATTR)
     if plan is None:
         return
-    again = [int(i) for i in plan["solve_again"]]
+    again, n = checked_growth_plan(plan, store)
     for i in again:
         store.arrays["done"][i] = False
-    n = int(plan["n_train"]) + int(plan["n_test"])
     for name in SAMPLE_ARRAYS:
         array = store.arrays[name]
         if array.shape[0] != n:
@@ -340,6 +339,26 @@ def finish_growth(store: DatasetStore) -> None:
     attrs.update({key: plan[key] for key in ("n_train", "n_test", "protocol",
                                             "protocol_fingerprint")})
     store.group.attrs.put(attrs)
+
+
+def checked_growth_plan(plan: Any, store: DatasetStore) -> tuple[list[int], int]:
+    """The samples to solve again and the new sample count of a stored growth ``plan``;
+    InputError, before anything is changed, when the plan is damaged (a missing or malformed
+    field, a sample the store does not hold, fewer samples than stored)."""
+    hint = "; run with --overwrite to discard the data set"
+    try:
+        again = [int(i) for i in plan["solve_again"]]
+        n = int(plan["n_train"]) + int(plan["n_test"])
+        for key in ("protocol", "protocol_fingerprint"):
+            plan[key]  # noqa: B018  (present, or KeyError)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"the data set's growth plan ({RESIZE_ATTR!r}) is damaged "
+                         f"({type(exc).__name__}: {exc}){hint}", str(store.path)) from None
+    stored = int(store.arrays["done"].shape[0])
+    if n < stored or any(not 0 <= i < stored for i in again):
+        raise InputError(f"the data set's growth plan ({RESIZE_ATTR!r}) does not fit its "
+                         f"{stored} samples{hint}", str(store.path))
+    return again, n
 
 
 def check_no_pending_growth(attrs: dict, path: str) -> None:
