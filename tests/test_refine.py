@@ -224,7 +224,7 @@ def test_refine_by_default_learns_the_case_grid_with_elastic_contact(trained_cas
     meta = json.loads((case_dir / "refine" / "model" / "meta.json").read_text())
     teacher = meta["teacher"]
     assert (teacher["teacher_refine"], teacher["teacher_extrapolation"]) == (1, 0.0)
-    assert (teacher["fem_contact"], teacher["contact_stiffness"]) == ("elastic", 10.0)
+    assert (teacher["fem_contact"], teacher["contact_stiffness"]) == ("elastic", 14.0)
     assert meta["baseline"]["elastic_contact"] is True and "projection" not in meta["baseline"]
     case = Case.load(case_dir)
     tracker = Tracker.load(case)

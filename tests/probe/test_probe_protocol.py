@@ -163,17 +163,21 @@ def test_elastic_input_on_springs_is_the_linear_field_of_that_contact(case, push
     model = FEModel.from_case(case)
     w = Embedding.build(case.grid, case.anatomy.vertices).matrix[pushes[0].contact]
     springs = np.linspace(0.01, 0.03, w.shape[0])  # N/mm
-    g = np.tile([0.0, 0.0, -1e-3], (w.shape[0], 1))  # a tiny push: the linear regime
-    u, _ = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=g,
-                              prescribed_stiffness=springs),
-                 SolverSettings(tol_residual=1e-10, tol_displacement=1e-10,
-                                single_precision=False))
+    # a 0.01 mm push: the linear regime (its nonlinearity about 1e-4), and a residual well
+    # above the round-off floor of the decoupled law's forces (about 1e-10 of |R0| here: at
+    # 1e-3 mm and tol 1e-10 the springs as asked stopped on it and 4x stiffer ones answered)
+    g = np.tile([0.0, 0.0, -1e-2], (w.shape[0], 1))
+    u, report = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=g,
+                                   prescribed_stiffness=springs),
+                      SolverSettings(tol_residual=1e-9, tol_displacement=1e-9,
+                                     single_precision=False))
+    assert report.spring_factor == 1.0  # the springs as asked, not a fallback's
     op = contact_input_operator(w, "elastic", compliance, springs)
     fe = u.T.ravel()[op.positions]  # channel-major, as the operator writes
     got = op.matrix @ g.ravel()
     assert np.abs(got - fe).max() < 1e-3 * np.abs(fe).max()
     lag = np.abs(w @ op.field(g)[:, :3] - g).max()
-    assert lag > 0.05 * 1e-3
+    assert lag > 0.05 * 1e-2
 
 
 def test_unknown_or_incomplete_contact_input_is_an_input_error(case, pushes):
