@@ -8,7 +8,6 @@ import shutil
 
 import numpy as np
 
-from biopsynav.config import load_config
 from biopsynav.evaluate.placement import place_probe
 from biopsynav.inference.model_files import meta_checksum
 from biopsynav.info import case_summary, format_summary
@@ -17,8 +16,8 @@ from biopsynav.tracker import Tracker
 
 def test_info_names_the_teacher(trained_case):
     s = case_summary(trained_case)
-    law = load_config(trained_case).material.model  # the default law, recorded as trained
-    assert s["model_teacher"].startswith(f"case grid (15 mm cells), {law}, force patches")
+    assert s["model_teacher"].startswith("case grid (15 mm cells), neo-hookean-split-sri-inner, "
+                                         "force patches")
     assert "teacher   case grid" in format_summary(s)
     text = format_summary(s)  # the FE engine's contact and the [refine] stage (off here)
     assert "contact   elastic: each contact point on a spring of beta E A / h, beta 14" in text

@@ -127,3 +127,15 @@ def test_a_damaged_growth_plan_is_one_clear_error_and_loses_nothing(reference, t
     g = zarr.open_group(str(case / "dataset.zarr"), mode="r")
     assert g["done"].shape == (N_TRAIN + N_TEST,) and bool(g["done"][...].all())
     assert g.attrs["n_train"] == N_TRAIN
+
+
+def test_a_read_only_reader_of_a_damaged_growth_plan_is_told_to_run_generate(reference,
+                                                                            tmp_path):
+    case = tmp_path / "case"
+    shutil.copytree(reference, case)
+    zarr.open_group(str(case / "dataset.zarr"), mode="r+").attrs[RESIZE_ATTR] = "garbage"
+    with pytest.raises(InputError, match=r"growing the data set \(its plan, 'resizing', is "
+                                         r"damaged\) was interrupted; run `biopsynav generate`"):
+        open_store(case / "dataset.zarr", mode="r")
+    assert zarr.open_group(str(case / "dataset.zarr"), mode="r")["done"].shape == \
+        (N_TRAIN + N_TEST,)

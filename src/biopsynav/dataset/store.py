@@ -364,10 +364,12 @@ def checked_growth_plan(plan: Any, store: DatasetStore) -> tuple[list[int], int]
 def check_no_pending_growth(attrs: dict, path: str) -> None:
     """InputError for a read-only reader of a store whose growth was interrupted."""
     plan = attrs.get(RESIZE_ATTR)
-    if plan is not None:
-        raise InputError(f"growing the data set to {plan.get('n_train')} + "
-                         f"{plan.get('n_test')} samples was interrupted; run `biopsynav "
-                         "generate` (or `refine`) on the case to finish it", path)
+    if plan is None:
+        return
+    to = (f"to {plan.get('n_train')} + {plan.get('n_test')} samples"
+          if isinstance(plan, dict) else f"(its plan, {RESIZE_ATTR!r}, is damaged)")
+    raise InputError(f"growing the data set {to} was interrupted; run `biopsynav generate` "
+                     "(or `refine`) on the case to finish it", path)
 
 
 def check_compatible(store: DatasetStore, fingerprint: str, protocol: dict) -> None:
