@@ -147,7 +147,7 @@ def run(case_dir: Path, train_samples: int) -> dict:
     case = Case.load(case_dir)
     teacher_case = tracking_teacher_case(case)
     data = load_dataset(teacher_case.dir)
-    sur = Surrogate.load(case.tracking_model, data.fingerprint, case=case)
+    sur = Surrogate.load(case.tracking_model, data.fingerprint, case=teacher_case)
     nodes = case.grid.node_coords()[data.active.numpy().reshape(-1)]
     inside = np.abs(winding_number(nodes, case.anatomy.vertices, case.anatomy.faces)) > 0.5
     train = data.train_idx.numpy()[:train_samples]

@@ -185,3 +185,32 @@ def test_a_case_toml_from_before_refine_keeps_its_own_model(tmp_path):
     assert load_config(tmp_path).network == CaseConfig().network  # the rest as written
     path.write_text("[case]\nname = \"by hand\"\n")
     assert load_config(tmp_path).refine.samples == 1000
+
+
+def test_a_case_toml_from_before_the_refine_law_reads_as_one_law(tmp_path):
+    """A case.toml biopsynav wrote before [refine] material_model existed was made with one
+    law: it reads its [material] model for the refine teacher too, so its data sets and
+    models stay what they were. Files by hand and overrides take the default."""
+    cfg = CaseConfig()
+    assert (cfg.material.model, cfg.refine.material_model) == (
+        "neo-hookean", "neo-hookean-split-sri-inner")
+    path = tmp_path / "case.toml"
+    for law in ("neo-hookean-split-sri-inner", "neo-hookean", "svk"):
+        cfg.material.model = law
+        save_config(tmp_path, cfg)
+        text = path.read_text()
+        assert "material_model = " in text
+        path.write_text("\n".join(line for line in text.splitlines()
+                                  if not line.startswith("material_model")) + "\n")
+        assert load_config(tmp_path).refine.material_model == law
+    path.write_text('[material]\nmodel = "svk"\n[refine]\nsamples = 5\nheld_out = 1\n')
+    assert load_config(tmp_path).refine.material_model == "neo-hookean-split-sri-inner"
+    assert config_from_dict({"refine": {"samples": 5, "held_out": 1}}).refine.material_model == (
+        "neo-hookean-split-sri-inner")
+
+
+def test_the_refine_law_is_checked_against_the_tissues():
+    with pytest.raises(InputError, match="material_model"):
+        config_from_dict({"refine": {"material_model": "hookean"}})
+    data = {"material": {"model": "neo-hookean"}, "refine": {"material_model": "svk"}}
+    assert config_from_dict(data).refine.material_model == "svk"

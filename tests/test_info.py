@@ -16,7 +16,7 @@ from biopsynav.tracker import Tracker
 
 def test_info_names_the_teacher(trained_case):
     s = case_summary(trained_case)
-    assert s["model_teacher"].startswith("case grid (15 mm cells), neo-hookean-split-sri-inner, "
+    assert s["model_teacher"].startswith("case grid (15 mm cells), neo-hookean, "
                                          "force patches")
     assert "teacher   case grid" in format_summary(s)
     text = format_summary(s)  # the FE engine's contact and the [refine] stage (off here)
@@ -29,8 +29,8 @@ def test_info_names_the_refine_teacher_and_its_contact():
     from biopsynav.info import contact_words, refine_words, teacher_words
 
     cfg = config_from_dict({})
-    assert refine_words(cfg) == ("1000 rigid pushes (20 held out) of the case grid, to 35 mm, "
-                                 "16000 iterations")
+    assert refine_words(cfg) == ("1000 rigid pushes (20 held out) of the case grid, "
+                                 "neo-hookean-split-sri-inner, to 35 mm, 16000 iterations")
     assert contact_words(config_from_dict({"tracker": {"fem_contact": "points"}})) == (
         "points: the contact points met")
     words = teacher_words({"teacher_refine": 1, "rigid_share": 1.0, "material_model":

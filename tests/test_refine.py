@@ -38,7 +38,12 @@ def test_the_refine_configuration_derives_from_the_case():
     assert out.network.init_from == "../model"
     assert out.network.iterations == cfg.refine.iterations
     assert out.refine.samples == 0  # the refine case does not refine again
-    assert out.material == cfg.material and out.grid == cfg.grid and out.solver == cfg.solver
+    assert out.grid == cfg.grid and out.solver == cfg.solver
+    assert out.material.tissues == cfg.material.tissues
+    # the mixed recipe: force patches with one law, the refine teacher with its own
+    assert (cfg.material.model, cfg.refine.material_model) == (
+        "neo-hookean", "neo-hookean-split-sri-inner")
+    assert out.material.model == out.refine.material_model == "neo-hookean-split-sri-inner"
     assert cfg.probe.rigid_share == 0.0 and cfg.network.init_from == ""  # the case's untouched
 
 
@@ -161,6 +166,29 @@ def test_the_fe_engine_and_the_truth_follow_the_fine_teacher(refined):
     case.cfg.evaluate.reference, case.cfg.evaluate.reference_refinement = "fine_grid", 2.0
     with pytest.raises(InputError, match="no finer than the network.s teacher"):
         reference_registry.check_reference(case)
+
+
+def test_the_tracking_teacher_law_is_the_refine_law_and_the_case_network_keeps_its_own(
+        refined):
+    """The mixed recipe: force patches (and Table 1) with [material] model, the refine
+    teacher with [refine] material_model; the FE engine, and the contact compliance behind
+    the tracker's elastic input and linear baseline, use the latter."""
+    from biopsynav.contact.greens import ContactCompliance
+    from biopsynav.refine import fine_case
+    from biopsynav.tracker.core import Tracker, fem_engine
+
+    case = Case.load(refined)
+    assert (case.cfg.material.model, case.cfg.refine.material_model) == (
+        "neo-hookean", "neo-hookean-split-sri-inner")
+    assert Case.load(refined / "refine").cfg.material.model == "neo-hookean-split-sri-inner"
+    assert fem_engine(case, None)._fem_model.material == "neo-hookean-split-sri-inner"
+    compliance = Tracker.load(case, "net")._contact_compliance()
+    refine_law = ContactCompliance.from_case(fine_case(case))
+    patch_law = ContactCompliance.from_case(case)
+    assert not np.allclose(refine_law.zt, patch_law.zt, rtol=1e-3)  # the laws differ at rest
+    np.testing.assert_allclose(compliance.zt, refine_law.zt, rtol=1e-6)
+    case.cfg.refine.samples = 0  # the case network alone: its own teacher's law throughout
+    assert fem_engine(case, None)._fem_model.material == "neo-hookean"
 
 
 def test_run_refuses_a_truth_no_finer_than_the_refine_teacher_before_any_work(base_case,

@@ -132,21 +132,23 @@ class GridSection:
 
 @dataclass
 class MaterialSection:
-    model: str = opt("neo-hookean-split-sri-inner",
-                     "Hyperelastic law (biopsynav.materials registry): "
-                     "'neo-hookean-split-sri-inner' (the default: the decoupled neo-Hookean "
+    model: str = opt("neo-hookean",
+                     "Hyperelastic law (biopsynav.materials registry) of the case grid's force "
+                     "patches (the case network's teacher, Table 1, the force calibration, "
+                     "`simulate`); the tracking model's teacher has its own, [refine] "
+                     "material_model, which the FE engine, Table 2's FE method and the tracker's "
+                     "contact compliance follow. 'neo-hookean' (the default: compressible, full "
+                     "2x2x2 integration; it answers more of the deep force patches, so the "
+                     "case network sees deeper pushes, docs/fem.md 'Two laws: the mixed "
+                     "recipe'), 'neo-hookean-split-sri-inner' (the decoupled neo-Hookean "
                      "energy, isochoric part at 2x2x2 points and volumetric part at the "
                      "centre, in the cells wholly inside the tissue, 'neo-hookean' in the "
-                     "cells the surface cuts; on average over every lesion of both "
-                     "built-in cases nearer the independent P2 truth than 'neo-hookean' at "
-                     "10, 20 and 30 mm pushes, docs/fem.md 'The locking-free teacher as "
-                     "the default'), 'neo-hookean' "
-                     "(compressible, full 2x2x2 integration: the default of cases made "
-                     "before 2026-11-30), 'neo-hookean-sri' (that energy, its "
-                     "volumetric term integrated at the cell centre), "
-                     "'neo-hookean-split-sri' (the decoupled law in every cell) or 'svk' "
-                     "(Saint Venant-Kirchhoff, the paper's; collapses under large pushes "
-                     "on soft tissue).",
+                     "cells the surface cuts: nearer the independent P2 truth; the default of "
+                     "cases made on 2026-11-30 by the fifty-seventh session), "
+                     "'neo-hookean-sri' (that energy, its volumetric term integrated at the "
+                     "cell centre), 'neo-hookean-split-sri' (the decoupled law in every cell) "
+                     "or 'svk' (Saint Venant-Kirchhoff, the paper's; collapses under large "
+                     "pushes on soft tissue).",
                      choices=material_law_names)
     default_tissue: str = opt("phantom", "Tissue of cells without a label.")
     tissues: dict = opt(None, "Per-tissue Young's modulus E_mpa (MPa) and Poisson ratio nu. "
@@ -504,6 +506,18 @@ class RefineSection:
     max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
                                    "uniform up to it, tilts within [probe] "
                                    "rigid_max_tilt_deg.", lo=1.0, hi=200.0)
+    material_model: str = opt("neo-hookean-split-sri-inner",
+                              "Hyperelastic law of the refine teacher's rigid pushes ([material] "
+                              "model of the refine case), and so of every solve that stands for "
+                              "the tracking model's teacher: the FE engine, Table 2's FE method, "
+                              "the contact compliance of the tracker's elastic input and its "
+                              "linear baseline (with samples = 0 they follow [material] model). "
+                              "'neo-hookean-split-sri-inner' (default): nearer the independent "
+                              "P2 truth than 'neo-hookean' at 10, 20 and 30 mm pushes on both "
+                              "built-in cases (docs/fem.md, 'Two laws: the mixed recipe'). A "
+                              "case.toml written before this key existed reads it as its "
+                              "[material] model (one law, as it was made).",
+                              choices=material_law_names)
     iterations: int = opt(16000, "Training iterations on the fine pushes, from the case-grid "
                                  "network's best weights.", lo=1, hi=10**8)
     learning_rate: float = opt(3e-4, "Peak learning rate of that training (100 warm-up "
@@ -778,11 +792,15 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)
-    law = MATERIAL_LAWS[cfg.material.model]
-    for name, tissue in cfg.material.tissues.items():
-        problem = law.tissue_problem(tissue)
-        if problem:
-            raise InputError(f"[material.tissues.{name}] {problem}", where)
+    for key, law_name in (("[material] model", cfg.material.model),
+                          ("[refine] material_model", cfg.refine.material_model)):
+        law = MATERIAL_LAWS[law_name]
+        for name, tissue in cfg.material.tissues.items():
+            problem = law.tissue_problem(tissue)
+            if problem:
+                raise InputError(f"[material.tissues.{name}] {problem}, of {key}; both laws "
+                                 "read these tissues (give them laws with the same "
+                                 "parameters)", where)
     if cfg.material.default_tissue not in cfg.material.tissues:
         raise InputError(f"[material] default_tissue {cfg.material.default_tissue!r} is not in "
                          "[material.tissues]", where)
@@ -890,7 +908,8 @@ def load_config(case_dir: str | Path) -> CaseConfig:
     :data:`END_LINE`: a truncated case.toml is refused rather than read with defaults for
     what it lost. Other files (written by hand, or before the end line) are read as they
     are. A file biopsynav wrote before ``[refine]`` existed (no such table) reads as
-    ``[refine] samples = 0``: its case's model stays the tracker's."""
+    ``[refine] samples = 0``: its case's model stays the tracker's; one written before
+    ``[refine] material_model`` existed reads it as its ``[material] model``."""
     path = Path(case_dir) / CASE_FILE
     if not Path(case_dir).is_dir():
         raise InputError("case folder does not exist", str(case_dir))
@@ -906,7 +925,18 @@ def load_config(case_dir: str | Path) -> CaseConfig:
         # biopsynav writes every section: a case.toml of its own without [refine] is from
         # before the stage existed, and its model is the one its tracker used then
         data["refine"] = {"samples": 0}
+    if _written_whole(text):
+        _one_law_before_refine_law(data)
     return config_from_dict(data, str(path))
+
+
+def _one_law_before_refine_law(data: dict) -> None:
+    """A case.toml biopsynav wrote before ``[refine] material_model`` existed (its
+    ``[refine]`` table, which biopsynav writes whole, lacks the key) was made with one law:
+    its ``[material] model`` is then the refine teacher's too (in place)."""
+    refine, material = data.get("refine"), data.get("material")
+    if isinstance(refine, dict) and "material_model" not in refine and isinstance(material, dict):
+        refine["material_model"] = material.get("model", "neo-hookean")
 
 
 def _written_whole(text: str) -> bool:

@@ -74,8 +74,8 @@ def refine_words(cfg) -> str:
     grid = ("the case grid" if r.teacher_refine == 1 else
             f"cells {r.teacher_refine:g} times smaller"
             + (f", extrapolated (order {r.extrapolation:g})" if r.extrapolation else ""))
-    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {grid}, to "
-            f"{r.max_push_mm:g} mm, {r.iterations} iterations")
+    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {grid}, {r.material_model}, "
+            f"to {r.max_push_mm:g} mm, {r.iterations} iterations")
 
 
 def model_teacher(case: Case) -> str:

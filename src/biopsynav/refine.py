@@ -29,13 +29,16 @@ REFINE_VAL_INTERVAL = 250
 
 
 def refined_config(cfg: CaseConfig) -> CaseConfig:
-    """The refine case's configuration: ``cfg`` with every push a rigid-probe push (depth
+    """The refine case's configuration: ``cfg`` with the law ``[refine] material_model``,
+    every push a rigid-probe push (depth
     uniform up to ``[refine] max_push_mm``, no force calibration, ``[refine] lesion_share``
     of them centred near a lesion), ``[refine] samples``
     samples of which ``held_out`` held out, solved on the finer teacher, and the training
     starting from the case's model (``../model``) with the ``[refine]`` schedule."""
     r, out = cfg.refine, copy.deepcopy(cfg)
-    out.refine = RefineSection(samples=0)  # the refine case does not refine again
+    # the refine case does not refine again; its pushes are solved with the refine law
+    out.refine = RefineSection(samples=0, material_model=r.material_model)
+    out.material.model = r.material_model
     out.case.name = f"{cfg.case.name}-refine"
     out.case.description = (f"the fine teacher's rigid pushes of case {cfg.case.name!r} "
                             "([refine], docs/dataset.md)")
@@ -86,7 +89,9 @@ def tracking_teacher_config(cfg: CaseConfig) -> CaseConfig:
 def tracking_teacher_case(case: Case) -> Case:
     """The case whose data taught the model the tracker uses: the refine case with
     ``[refine] samples > 0``, else ``case`` (its ``[dataset] teacher_refine`` is that
-    teacher's grid: the FE engine solves there, and a fine-grid truth must be finer)."""
+    teacher's grid: the FE engine solves there, and a fine-grid truth must be finer; its
+    ``[material] model`` is the law of the FE engine and of the tracker's contact
+    compliance). Same anatomy and grid as ``case``."""
     return fine_case(case) if case.cfg.refine.samples else case
 
 

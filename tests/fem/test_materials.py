@@ -27,8 +27,12 @@ def test_a_registered_law_takes_its_own_tissue_parameters(monkeypatch, phantom_c
                                 {"mu_mpa": (0.0, 1e3), "K_mpa": (0.0, 1e5)}, lame, small_strain)
     monkeypatch.setitem(materials.MATERIAL_LAWS, law.name, law)
     tissues = {"phantom": {"mu_mpa": 1.0e-3, "K_mpa": 30e-3}}
+    with pytest.raises(InputError, match="of .refine. material_model; both laws read"):
+        config_from_dict({"material": {"model": law.name, "tissues": tissues,
+                                       "default_tissue": "phantom"}}, "t")
     cfg = config_from_dict({"material": {"model": law.name, "tissues": tissues,
-                                         "default_tissue": "phantom"}}, "t")
+                                         "default_tissue": "phantom"},
+                            "refine": {"material_model": law.name}}, "t")
     monkeypatch.setattr(phantom_case, "cfg", cfg)  # a session fixture: restored after
     model = FEModel.from_case(phantom_case)
     assert model.material_id == materials.KERNEL_NEO_HOOKEAN

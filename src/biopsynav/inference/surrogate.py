@@ -244,10 +244,12 @@ def load_for_case(case: Case | str | Path, *, runtime: str | None = None,
     """Load the model of ``case`` (loaded, or its folder) checked against the case's
     anatomy+grid fingerprint, with its [network] runtime and threads unless given."""
     from ..case import as_case
+    from ..refine import tracking_teacher_case
 
     case = as_case(case)
     net = case.cfg.network
-    return Surrogate.load(case.tracking_model, case.fingerprint(), case=case,
+    return Surrogate.load(case.tracking_model, case.fingerprint(),
+                          case=tracking_teacher_case(case),
                           runtime=runtime or net.runtime,
                           threads=net.threads if threads is None else threads)
 

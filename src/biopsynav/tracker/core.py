@@ -184,8 +184,10 @@ class Tracker:
         engine = engine or case.cfg.tracker.engine
         if engine == "net":
             from ..inference.surrogate import Surrogate
+            from ..refine import tracking_teacher_case
 
-            sur = Surrogate.load(case.tracking_model, case.fingerprint(), case=case,
+            sur = Surrogate.load(case.tracking_model, case.fingerprint(),
+                                 case=tracking_teacher_case(case),
                                  threads=case.cfg.network.threads if threads is None
                                  else threads)
             return cls(case, engine, surrogate=sur)
@@ -364,8 +366,9 @@ class Tracker:
             return baseline.compliance
         if self._compliance is None:
             from ..contact.greens import ContactCompliance
+            from ..refine import tracking_teacher_case
 
-            self._compliance = ContactCompliance.from_case(self.case)
+            self._compliance = ContactCompliance.from_case(tracking_teacher_case(self.case))
         return self._compliance
 
     def contact_displacement(self, pose: np.ndarray) -> np.ndarray:
@@ -737,7 +740,8 @@ def finer_grid_spring_budget(settings: SolverSettings | None, refinement: float
 def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
     """A tracker backed by the FE model with solver ``settings``: on the teacher's grid when
     ``on_teacher`` and the tracking model's teacher is refined (``[dataset] teacher_refine``
-    > 1, or ``[refine]``: the FE that taught the network), else on ``case``'s own grid."""
+    > 1, or ``[refine]``: the FE that taught the network), else on ``case``'s own grid;
+    with that teacher's law either way (``[refine] material_model`` with ``[refine]``)."""
     from ..fem import FEModel
     from ..fem.teacher import build_teacher, teacher_refinement
     from ..refine import tracking_teacher_case
@@ -749,4 +753,4 @@ def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
         return Tracker(case, "fem", fem_model=teacher.model,
                        fem_settings=finer_grid_spring_budget(settings, refinement),
                        teacher=teacher)
-    return Tracker(case, "fem", fem_model=FEModel.from_case(case), fem_settings=settings)
+    return Tracker(case, "fem", fem_model=FEModel.from_case(taught_by), fem_settings=settings)
