@@ -92,6 +92,7 @@ from biopsynav.grid.build import build_grid  # noqa: E402
 from biopsynav.grid.embedding import Embedding  # noqa: E402
 from biopsynav.layout import CasePaths  # noqa: E402
 from biopsynav.reference_registry import P2_FRICTIONS  # noqa: E402
+from biopsynav.refine import tracking_teacher_config  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 from biopsynav.tracker.core import fem_engine  # noqa: E402
 
@@ -537,9 +538,11 @@ def run(args) -> dict:
 
 
 def case_series(case: Case) -> str:
-    """The key (:func:`series_key`) of the series that is the case's own FE: its material
-    law, ``[tracker] fem_contact`` and cell size."""
-    variant = f"{case.cfg.material.model}/{case.cfg.tracker.fem_contact}"
+    """The key (:func:`series_key`) of the series that is the case's own FE: the tracking
+    model's teacher's material law (``[refine] material_model`` with ``[refine]``),
+    ``[tracker] fem_contact`` and cell size."""
+    law = tracking_teacher_config(case.cfg).material.model
+    variant = f"{law}/{case.cfg.tracker.fem_contact}"
     return series_key(variant, case.cfg.grid.cell_size_mm)
 
 

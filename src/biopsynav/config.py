@@ -515,8 +515,8 @@ class RefineSection:
                               "'neo-hookean-split-sri-inner' (default): nearer the independent "
                               "P2 truth than 'neo-hookean' at 10, 20 and 30 mm pushes on both "
                               "built-in cases (docs/fem.md, 'Two laws: the mixed recipe'). A "
-                              "case.toml written before this key existed reads it as its "
-                              "[material] model (one law, as it was made).",
+                              "case.toml biopsynav wrote before this key existed reads it "
+                              "as its [material] model (one law, as it was made).",
                               choices=material_law_names)
     iterations: int = opt(16000, "Training iterations on the fine pushes, from the case-grid "
                                  "network's best weights.", lo=1, hi=10**8)
@@ -552,8 +552,10 @@ class TrackerSection:
                                          "skin area it stands for, mm^2; h the cell size, mm), "
                                          "the penalty int beta E / h |u - g|^2 dA over the "
                                          "contact (docs/fem.md, 'Elastic contact'). 14 is "
-                                         "measured with the default [material] model; 10 "
-                                         "was the default with 'neo-hookean'.",
+                                         "measured with the default [refine] "
+                                         "material_model, the law of the solves these "
+                                         "springs serve; 10 was the default with "
+                                         "'neo-hookean' throughout.",
                                    lo=0.1, hi=1e6)
     spring_budget: int = opt(80, "Elastic contact in the FE engine and in Table 2's FE method, "
                                  "on the case grid (a grid r times finer, such as Table 2's "
