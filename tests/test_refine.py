@@ -135,7 +135,10 @@ def test_the_report_names_the_refined_model(refined):
 
     assert main(["evaluate", str(refined), "--table1-only"]) == 0
     assert main(["report", str(refined)]) == 0
-    assert "trained further on" in (refined / "report.md").read_text()
+    text = " ".join((refined / "report.md").read_text().split())
+    assert "trained further on" in text
+    assert "([refine], law neo-hookean-split-sri-inner, refine/eval)" in text  # its teacher
+    assert "the case grid's force patches, law neo-hookean." in text  # Table 1's teacher
 
 
 def test_the_refine_folder_is_a_case_of_its_own(refined, capsys):

@@ -187,11 +187,25 @@ def refined_table1_blocks(case_dir: Path) -> list:
     t1 = read_stage_json(CasePaths(CasePaths(case_dir).refine).table1)
     if t1 is None:
         return []
+    patch_law, refine_law = teacher_laws(case_dir)
     return [Note(f"The tracker uses the model trained further on {_num(t1.get('n_samples'))} "
-                 "held-out and the other rigid pushes of a finer teacher ([refine], "
-                 f"refine/eval): mean / max e against that teacher {_num(t1.get('mean_e_mm'))}"
-                 f" / {_num(t1.get('max_e_mm'))} mm. The table above is the case-grid "
-                 "network it started from, against the case grid's FE.")]
+                 f"held-out and the other rigid pushes of its refine teacher ([refine]"
+                 f"{refine_law}, refine/eval): mean / max e against that teacher "
+                 f"{_num(t1.get('mean_e_mm'))} / {_num(t1.get('max_e_mm'))} mm. The table "
+                 "above is the case-grid network it started from, against its own teacher, "
+                 f"the case grid's force patches{patch_law}.")]
+
+
+def teacher_laws(case_dir: Path) -> tuple[str, str]:
+    """The laws of the force patches and of the refine pushes as report text (", law X"),
+    from the case's ``case.toml``; empty strings when it cannot be read."""
+    from ..config import load_config
+
+    try:
+        cfg = load_config(case_dir)
+    except (BiopsynavError, OSError):
+        return "", ""
+    return f", law {cfg.material.model}", f", law {cfg.refine.material_model}"
 
 
 def table2_section(case_dir: Path, fig_dir: Path) -> Section:
