@@ -138,8 +138,9 @@ def training_section(case_dir: Path) -> Section:
     return s
 
 
-def table1_section(case_dir: Path) -> Section:
-    """Table 1 beside the paper's, error histogram, Figure 4 (worst, largest deformation)."""
+def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
+    """Table 1 beside the paper's, error histogram, Figure 4 (worst, largest deformation);
+    ``cfg``: the case's configuration (the teachers' laws)."""
     s = Section("Table 1: network against FE on the held-out samples")
     t1 = read_stage_json(CasePaths(case_dir).table1)
     if t1 is None:
@@ -167,7 +168,7 @@ def table1_section(case_dir: Path) -> Section:
                      f"{t1['inverted_cells_max']} cells ({t1['inverted_samples_fe']})",
                      "not reported"])
     s.blocks.append(GridTable(["", "this case", "the paper"], rows))
-    s.blocks += refined_table1_blocks(case_dir)
+    s.blocks += refined_table1_blocks(case_dir, cfg)
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
                                        "samples."),
                ("largest_deformation.png", "Figure 4(a): prediction (network) against FE on "
@@ -181,31 +182,19 @@ def table1_section(case_dir: Path) -> Section:
     return s
 
 
-def refined_table1_blocks(case_dir: Path) -> list:
-    """A note with Table 1 of the model trained further on the fine teacher's pushes
-    (``refine/eval/table1.json``, ``[refine]``), the tracker's model; none without one."""
+def refined_table1_blocks(case_dir: Path, cfg: CaseConfig) -> list:
+    """A note with Table 1 of the model trained further on the refine teacher's pushes
+    (``refine/eval/table1.json``, ``[refine]``), the tracker's model, naming both teachers'
+    laws from ``cfg``; none without one."""
     t1 = read_stage_json(CasePaths(CasePaths(case_dir).refine).table1)
     if t1 is None:
         return []
-    patch_law, refine_law = teacher_laws(case_dir)
     return [Note(f"The tracker uses the model trained further on {_num(t1.get('n_samples'))} "
-                 f"held-out and the other rigid pushes of its refine teacher ([refine]"
-                 f"{refine_law}, refine/eval): mean / max e against that teacher "
-                 f"{_num(t1.get('mean_e_mm'))} / {_num(t1.get('max_e_mm'))} mm. The table "
-                 "above is the case-grid network it started from, against its own teacher, "
-                 f"the case grid's force patches{patch_law}.")]
-
-
-def teacher_laws(case_dir: Path) -> tuple[str, str]:
-    """The laws of the force patches and of the refine pushes as report text (", law X"),
-    from the case's ``case.toml``; empty strings when it cannot be read."""
-    from ..config import load_config
-
-    try:
-        cfg = load_config(case_dir)
-    except (BiopsynavError, OSError):
-        return "", ""
-    return f", law {cfg.material.model}", f", law {cfg.refine.material_model}"
+                 "held-out and the other rigid pushes of its refine teacher ([refine], law "
+                 f"{cfg.refine.material_model}, refine/eval): mean / max e against that "
+                 f"teacher {_num(t1.get('mean_e_mm'))} / {_num(t1.get('max_e_mm'))} mm. The "
+                 "table above is the case-grid network it started from, against its own "
+                 f"teacher, the case grid's force patches, law {cfg.material.model}.")]
 
 
 def table2_section(case_dir: Path, fig_dir: Path) -> Section:
