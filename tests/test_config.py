@@ -209,6 +209,30 @@ def test_a_case_toml_from_before_the_refine_law_reads_as_one_law(tmp_path):
         "neo-hookean-split-sri-inner")
 
 
+def test_a_case_toml_from_before_the_fictitious_stiffness_keeps_its_teacher(tmp_path):
+    """A case.toml biopsynav wrote before [refine] fictitious_stiffness existed reads its
+    [material] value for the refine teacher (one law, as it was made); files by hand and
+    overrides take the default."""
+    cfg = CaseConfig()
+    assert (cfg.material.fictitious_stiffness, cfg.refine.fictitious_stiffness) == (0.0, 0.0)
+    cfg.material.fictitious_stiffness, cfg.refine.fictitious_stiffness = 0.1, 0.2
+    path = tmp_path / "case.toml"
+    save_config(tmp_path, cfg)
+    assert load_config(tmp_path).refine.fictitious_stiffness == 0.2
+    lines = path.read_text().splitlines()
+    refine_at = lines.index("[refine]")
+    path.write_text("\n".join(line for i, line in enumerate(lines)
+                              if i < refine_at or not line.startswith("fictitious_stiffness"))
+                    + "\n")
+    assert load_config(tmp_path).material.fictitious_stiffness == 0.1
+    assert load_config(tmp_path).refine.fictitious_stiffness == 0.1
+    path.write_text("[material]\nfictitious_stiffness = 0.1\n[refine]\nsamples = 5\n"
+                    "held_out = 1\n")
+    assert load_config(tmp_path).refine.fictitious_stiffness == 0.0
+    with pytest.raises(InputError, match="fictitious_stiffness"):
+        config_from_dict({"refine": {"fictitious_stiffness": 1.5}})
+
+
 def test_the_refine_law_is_checked_against_the_tissues():
     with pytest.raises(InputError, match="material_model"):
         config_from_dict({"refine": {"material_model": "hookean"}})

@@ -31,6 +31,8 @@ def test_info_names_the_refine_teacher_and_its_contact():
     cfg = config_from_dict({})
     assert refine_words(cfg) == ("1000 rigid pushes (20 held out) of the case grid, "
                                  "neo-hookean-split-sri-inner, to 35 mm, 16000 iterations")
+    cfg.refine.fictitious_stiffness = 0.05
+    assert "neo-hookean-split-sri-inner (fictitious stiffness 0.05), to 35 mm" in refine_words(cfg)
     assert contact_words(config_from_dict({"tracker": {"fem_contact": "points"}})) == (
         "points: the contact points met")
     words = teacher_words({"teacher_refine": 1, "rigid_share": 1.0, "material_model":

@@ -44,6 +44,10 @@ def test_the_refine_configuration_derives_from_the_case():
     assert (cfg.material.model, cfg.refine.material_model) == (
         "neo-hookean", "neo-hookean-split-sri-inner")
     assert out.material.model == out.refine.material_model == "neo-hookean-split-sri-inner"
+    cfg.refine.fictitious_stiffness = 0.05  # the refine teacher's, the force patches' kept
+    out = refined_config(cfg)
+    assert (cfg.material.fictitious_stiffness, out.material.fictitious_stiffness) == (0.0, 0.05)
+    assert out.refine.fictitious_stiffness == 0.05
     assert cfg.probe.rigid_share == 0.0 and cfg.network.init_from == ""  # the case's untouched
 
 
@@ -185,6 +189,9 @@ def test_the_tracking_teacher_law_is_the_refine_law_and_the_case_network_keeps_i
         "neo-hookean", "neo-hookean-split-sri-inner")
     assert Case.load(refined / "refine").cfg.material.model == "neo-hookean-split-sri-inner"
     assert fem_engine(case, None)._fem_model.material == "neo-hookean-split-sri-inner"
+    case.cfg.refine.fictitious_stiffness = 0.05
+    assert fem_engine(case, None)._fem_model.fictitious == 0.05
+    case.cfg.refine.fictitious_stiffness = 0.0
     compliance = Tracker.load(case, "net")._contact_compliance()
     refine_law = ContactCompliance.from_case(fine_case(case))
     patch_law = ContactCompliance.from_case(case)
@@ -192,6 +199,7 @@ def test_the_tracking_teacher_law_is_the_refine_law_and_the_case_network_keeps_i
     np.testing.assert_allclose(compliance.zt, refine_law.zt, rtol=1e-6)
     case.cfg.refine.samples = 0  # the case network alone: its own teacher's law throughout
     assert fem_engine(case, None)._fem_model.material == "neo-hookean"
+    assert fem_engine(case, None)._fem_model.fictitious == 0.0
 
 
 def test_run_refuses_a_truth_no_finer_than_the_refine_teacher_before_any_work(base_case,

@@ -150,6 +150,15 @@ class MaterialSection:
                      "or 'svk' (Saint Venant-Kirchhoff, the paper's; collapses under large "
                      "pushes on soft tissue).",
                      choices=material_law_names)
+    fictitious_stiffness: float = opt(0.0, "Share of its small-strain stiffness that the "
+                                           "empty part of each cut cell keeps, linear in the "
+                                           "displacement (the finite cell method's fictitious "
+                                           "domain, docs/fem.md 'The fictitious domain'): a "
+                                           "nearly empty cell holding contact points then "
+                                           "cannot turn over under a deep push. 0 "
+                                           "(default): none, every cell as before; the "
+                                           "tracking model's teacher has its own, [refine] "
+                                           "fictitious_stiffness.", lo=0.0, hi=1.0)
     default_tissue: str = opt("phantom", "Tissue of cells without a label.")
     tissues: dict = opt(None, "Per-tissue Young's modulus E_mpa (MPa) and Poisson ratio nu. "
                               "Defaults: fat 4.46 kPa, gland 15.1 kPa, skin 20 kPa (UC Davis / "
@@ -518,6 +527,19 @@ class RefineSection:
                               "case.toml biopsynav wrote before this key existed reads it "
                               "as its [material] model (one law, as it was made).",
                               choices=material_law_names)
+    fictitious_stiffness: float = opt(0.0, "[material] fictitious_stiffness of the refine "
+                                           "teacher, and so of every solve that material_model "
+                                           "governs (the FE engine, Table 2's FE method, the "
+                                           "tracker's contact compliance). 0 (default): none. "
+                                           "0.05 brings the FE engine's lesions nearer the "
+                                           "independent P2 truth at 30 mm pushes on both "
+                                           "built-in cases (every push answered by the springs "
+                                           "as asked, the 1,000 pushes solved in half the "
+                                           "time), but the network it teaches is no nearer "
+                                           "(docs/fem.md, 'The fictitious domain'). A case.toml "
+                                           "biopsynav wrote before this key existed reads it "
+                                           "as its [material] fictitious_stiffness.",
+                                      lo=0.0, hi=1.0)
     iterations: int = opt(16000, "Training iterations on the fine pushes, from the case-grid "
                                  "network's best weights.", lo=1, hi=10**8)
     learning_rate: float = opt(3e-4, "Peak learning rate of that training (100 warm-up "
@@ -911,7 +933,8 @@ def load_config(case_dir: str | Path) -> CaseConfig:
     what it lost. Other files (written by hand, or before the end line) are read as they
     are. A file biopsynav wrote before ``[refine]`` existed (no such table) reads as
     ``[refine] samples = 0``: its case's model stays the tracker's; one written before
-    ``[refine] material_model`` existed reads it as its ``[material] model``."""
+    ``[refine] material_model`` (``fictitious_stiffness``) existed reads it as its
+    ``[material]`` value."""
     path = Path(case_dir) / CASE_FILE
     if not Path(case_dir).is_dir():
         raise InputError("case folder does not exist", str(case_dir))
@@ -933,12 +956,15 @@ def load_config(case_dir: str | Path) -> CaseConfig:
 
 
 def _one_law_before_refine_law(data: dict) -> None:
-    """A case.toml biopsynav wrote before ``[refine] material_model`` existed (its
-    ``[refine]`` table, which biopsynav writes whole, lacks the key) was made with one law:
-    its ``[material] model`` is then the refine teacher's too (in place)."""
+    """A case.toml biopsynav wrote before ``[refine] material_model`` (or ``[refine]
+    fictitious_stiffness``) existed (its ``[refine]`` table, which biopsynav writes whole,
+    lacks the key) was made with one law: its ``[material]`` value is then the refine
+    teacher's too (in place)."""
     refine, material = data.get("refine"), data.get("material")
-    if isinstance(refine, dict) and "material_model" not in refine and isinstance(material, dict):
-        refine["material_model"] = material.get("model", "neo-hookean")
+    if not (isinstance(refine, dict) and isinstance(material, dict)):
+        return
+    refine.setdefault("material_model", material.get("model", "neo-hookean"))
+    refine.setdefault("fictitious_stiffness", material.get("fictitious_stiffness", 0.0))
 
 
 def _written_whole(text: str) -> bool:

@@ -29,7 +29,8 @@ REFINE_VAL_INTERVAL = 250
 
 
 def refined_config(cfg: CaseConfig) -> CaseConfig:
-    """The refine case's configuration: ``cfg`` with the law ``[refine] material_model``,
+    """The refine case's configuration: ``cfg`` with the law ``[refine] material_model``
+    and ``[refine] fictitious_stiffness``,
     every push a rigid-probe push (depth
     uniform up to ``[refine] max_push_mm``, no force calibration, ``[refine] lesion_share``
     of them centred near a lesion), ``[refine] samples``
@@ -37,8 +38,10 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     starting from the case's model (``../model``) with the ``[refine]`` schedule."""
     r, out = cfg.refine, copy.deepcopy(cfg)
     # the refine case does not refine again; its pushes are solved with the refine law
-    out.refine = RefineSection(samples=0, material_model=r.material_model)
+    out.refine = RefineSection(samples=0, material_model=r.material_model,
+                               fictitious_stiffness=r.fictitious_stiffness)
     out.material.model = r.material_model
+    out.material.fictitious_stiffness = r.fictitious_stiffness
     out.case.name = f"{cfg.case.name}-refine"
     out.case.description = (f"the fine teacher's rigid pushes of case {cfg.case.name!r} "
                             "([refine], docs/dataset.md)")

@@ -92,8 +92,9 @@ def recorded_probe_value(protocol: dict, key: str) -> Any:
 def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     """Everything besides anatomy and grid that decides the samples' content.
 
-    [material], the FE-model inputs of other sections ([anatomy] tissue_labels, [grid]
-    min_fraction, and with rigid pushes [tracker] fem_contact, with its contact_stiffness
+    [material] (without ``fictitious_stiffness`` when 0), the FE-model inputs of other
+    sections ([anatomy] tissue_labels, [grid] min_fraction, and with rigid pushes [tracker]
+    fem_contact, with its contact_stiffness
     when elastic), [solver] without ``backend``
     and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
     (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
@@ -121,7 +122,10 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
             probe.pop(key)
     stretch = cfg.dataset.max_edge_stretch
     checks = {} if stretch == DEFAULT_MAX_EDGE_STRETCH else {"max_edge_stretch": stretch}
-    return {"version": PROTOCOL_VERSION, "material": cfg.section_dict("material"),
+    material = cfg.section_dict("material")
+    if material.get("fictitious_stiffness") == 0.0:  # none: the protocol of before the key
+        material.pop("fictitious_stiffness")
+    return {"version": PROTOCOL_VERSION, "material": material,
             "fe_model": fe_model,
             "solver": solver, "probe": without_unused_force_keys(probe),
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),

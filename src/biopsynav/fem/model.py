@@ -38,13 +38,16 @@ class FEModel:
         fixed: (n_nodes,) bool, Dirichlet nodes (u = 0 on all three components), or
             (n_nodes, 3) bool per component (rollers).
         material: a registered law (:mod:`biopsynav.materials`: 'neo-hookean', 'svk').
+        fictitious: share in [0, 1] of its small-strain stiffness that the empty part of each
+            cell keeps, linear in the displacement (:mod:`biopsynav.fem.fictitious`); 0: none.
 
     Nodes used by no element carry no equation; solves return zero displacement there.
     """
 
     def __init__(self, nodes: np.ndarray, hexes: np.ndarray, weight: np.ndarray,
                  E_mpa: np.ndarray, nu: np.ndarray, fixed: np.ndarray,
-                 material: str = "neo-hookean", lame: tuple | None = None) -> None:
+                 material: str = "neo-hookean", lame: tuple | None = None,
+                 fictitious: float = 0.0) -> None:
         self.nodes = np.ascontiguousarray(nodes, dtype=np.float64)
         self.hexes = np.ascontiguousarray(hexes, dtype=np.int64)
         n_el = self.hexes.shape[0]
@@ -53,6 +56,7 @@ class FEModel:
         self.nu = _per_element(nu, n_el, "nu")
         self.fixed = _fixed_components(fixed, len(self.nodes))
         self.material = material
+        self.fictitious = float(fictitious)
         _validate(self)
         law = MATERIAL_LAWS[material]
         self.material_id = law.kernel
@@ -113,8 +117,9 @@ class FEModel:
     def from_grid(cls, grid: Grid, cfg: CaseConfig, anatomy: Anatomy,
                   min_fraction: float | None = None) -> FEModel:
         """The model of ``anatomy`` on ``grid`` (the case's grid, or a finer teacher grid)
-        with the materials, law and chest wall of ``cfg``; the cells' integration weights are
-        their tissue fractions, at least ``min_fraction`` (default ``[grid] min_fraction``)."""
+        with the materials, law, fictitious stiffness and chest wall of ``cfg``; the cells'
+        integration weights are their tissue fractions, at least ``min_fraction`` (default
+        ``[grid] min_fraction``)."""
         from .tissues import grid_lame, small_strain
 
         mu, lam = grid_lame(grid, cfg, anatomy)
@@ -122,7 +127,8 @@ class FEModel:
         floor = cfg.grid.min_fraction if min_fraction is None else min_fraction
         weight = np.clip(grid.active_fraction(), floor, 1.0)
         return cls(grid.node_coords(), grid.active_hexes(), weight, e_mpa, nu,
-                   np.asarray(grid.fixed_nodes).ravel(), cfg.material.model, (mu, lam))
+                   np.asarray(grid.fixed_nodes).ravel(), cfg.material.model, (mu, lam),
+                   cfg.material.fictitious_stiffness)
 
 
 def _per_element(values: np.ndarray, n_el: int, name: str) -> np.ndarray:
@@ -161,6 +167,8 @@ def _validate(m: FEModel) -> None:
         raise InputError("nodes contain NaN or infinity", where)
     if not np.all((m.weight > 0) & (m.weight <= 1)):
         raise InputError("weight (volume fraction) must be in (0, 1]", where)
+    if not 0.0 <= m.fictitious <= 1.0:
+        raise InputError(f"fictitious must be in [0, 1], got {m.fictitious}", where)
     if not np.all(m.E_mpa > 0):
         raise InputError("E_mpa must be positive", where)
     if not np.all((m.nu > -1) & (m.nu < 0.5)):

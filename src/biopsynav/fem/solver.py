@@ -22,6 +22,7 @@ import numpy as np
 from ..errors import SolverError
 from ..grid.index import HEX_CORNERS
 from . import kernels
+from .fictitious import fictitious_stiffness
 from .linsolve import FactorizationError, LinearSolver, make_solver
 from .loads import Loads, PreparedLoads, prepare_loads
 from .model import FEModel
@@ -129,21 +130,29 @@ class _System:
         n_pts = loads.w.shape[0] if loads.has_constraints else 0
         self.lam = np.zeros((n_pts, 3))
         self.k0_cacheable = not loads.has_constraints
+        self.fictitious = fictitious_stiffness(model)
 
     def evaluate(self, u: np.ndarray, t: float, tangent: bool):
         """Residual (n_eq,), tangent upper-CSR data (or None), min det F, potential energy."""
         m = self.model
-        kernels.element_kernel(m.to_nodes(u), m.hexes, m.elem_set, m.grads, m.jw, m.weight,
+        u_nodes = m.to_nodes(u)
+        kernels.element_kernel(u_nodes, m.hexes, m.elem_set, m.grads, m.jw, m.weight,
                                m.mu, m.lam, m.material_id, tangent, self.fe, self.ke,
                                self.min_det, self.energy)
         min_det = float(self.min_det.min())
+        energy = float(self.energy.sum()) - t * float(self.loads.f @ u)
+        if self.fictitious is not None:
+            fe_f, energy_f = self.fictitious.forces(m, u_nodes)
+            self.fe[self.fictitious.elements] += fe_f
+            energy += energy_f
         kernels.scatter_vector(self.fe, m.elem_eq, self.fint)
         residual = self.fint - t * self.loads.f
-        energy = float(self.energy.sum()) - t * float(self.loads.f @ u)
         data = None
         if tangent:
             data = np.empty(m.nnz)
             kernels.scatter_matrix(self.ke, m.scatter, data)
+            if self.fictitious is not None:
+                data += self.fictitious.data
         if self.loads.has_constraints:
             gap = self.loads.gap(m.to_nodes(u), t)  # (n_pts, 3)
             traction = self.alpha * gap + self.lam
@@ -191,6 +200,9 @@ def rest_tangent_data(model: FEModel) -> np.ndarray:
                                model.material_id, True, fe, ke, np.empty(n_el), np.empty(n_el))
         data = np.empty(model.nnz)
         kernels.scatter_matrix(ke, model.scatter, data)
+        fictitious = fictitious_stiffness(model)
+        if fictitious is not None:
+            data += fictitious.data
         model.cache["k0_data"] = data
     return model.cache["k0_data"]
 
@@ -572,6 +584,9 @@ def internal_forces(model: FEModel, u: np.ndarray) -> np.ndarray:
                            model.elem_set, model.grads, model.jw, model.weight, model.mu,
                            model.lam, model.material_id, False, fe, np.empty((1, 24, 24)),
                            np.empty(n_el), np.empty(n_el))
+    fictitious = fictitious_stiffness(model)
+    if fictitious is not None:
+        fe[fictitious.elements] += fictitious.forces(model, np.asarray(u, np.float64))[0]
     out = np.zeros((model.n_nodes, 3))
     np.add.at(out, model.hexes, fe.reshape(n_el, 8, 3))
     return out

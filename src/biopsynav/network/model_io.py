@@ -65,7 +65,8 @@ def write_model(out: Path, net: SurrogateNet, spec: UNetSpec, data: Dataset,
 
 
 def teacher(data: Dataset) -> dict:
-    """What taught the model: the data set's protocol fingerprint, its material law, its
+    """What taught the model: the data set's protocol fingerprint, its material law and
+    fictitious stiffness, its
     share of rigid-probe pushes (0: the paper's force patches only) with their contact
     constraints (and the springs' beta of elastic contact, else None), the teacher grid's
     refinement (1: the case grid) and the order of its extrapolation from the case grid
@@ -76,6 +77,8 @@ def teacher(data: Dataset) -> dict:
     probe, dataset = protocol.get("probe", {}), protocol.get("dataset", {})
     return {"protocol_fingerprint": data.attrs.get("protocol_fingerprint"),
             "material_model": protocol.get("material", {}).get("model"),
+            "fictitious_stiffness": float(protocol.get("material", {})
+                                          .get("fictitious_stiffness", 0.0)),
             "rigid_share": float(probe.get("rigid_share", 0.0)),
             "fem_contact": protocol.get("fe_model", {}).get("fem_contact"),
             "contact_stiffness": protocol.get("fe_model", {}).get("contact_stiffness"),
