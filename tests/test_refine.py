@@ -143,6 +143,13 @@ def test_the_report_names_the_refined_model(refined):
     assert "trained further on" in text
     assert "([refine], law neo-hookean-split-sri-inner, refine/eval)" in text  # its teacher
     assert "the case grid's force patches, law neo-hookean." in text  # Table 1's teacher
+    from biopsynav.report.sections import refined_table1_blocks
+
+    cfg = load_config(refined)
+    cfg.refine.fictitious_stiffness = 0.05
+    note = refined_table1_blocks(refined, cfg)[0].text
+    assert "law neo-hookean-split-sri-inner (fictitious stiffness 0.05), refine/eval" in note
+    assert note.endswith("law neo-hookean.")
 
 
 def test_the_refine_folder_is_a_case_of_its_own(refined, capsys):
