@@ -74,14 +74,14 @@ def refine_words(cfg) -> str:
     grid = ("the case grid" if r.teacher_refine == 1 else
             f"cells {r.teacher_refine:g} times smaller"
             + (f", extrapolated (order {r.extrapolation:g})" if r.extrapolation else ""))
-    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {grid}, {r.material_model}"
-            f"{fictitious_words(r.fictitious_stiffness)}, to {r.max_push_mm:g} mm, "
+    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {grid}, "
+            f"{law_words(r.material_model, r.fictitious_stiffness)}, to {r.max_push_mm:g} mm, "
             f"{r.iterations} iterations")
 
 
-def fictitious_words(share: float) -> str:
-    """``[material] fictitious_stiffness`` as a suffix of the law's name ('' when 0)."""
-    return f" (fictitious stiffness {share:g})" if share else ""
+def law_words(law: str | None, fictitious: float) -> str:
+    """A material law's name with its ``fictitious_stiffness`` when not 0."""
+    return f"{law} (fictitious stiffness {fictitious:g})" if fictitious else f"{law}"
 
 
 def model_teacher(case: Case) -> str:
@@ -124,7 +124,7 @@ def teacher_words(t: dict, spacing: float) -> str:
     if rigid and t.get("fem_contact"):
         beta = t.get("contact_stiffness")
         pushes += f" ({t['fem_contact']} contact" + (f", beta {beta:g})" if beta else ")")
-    law = f"{t.get('material_model')}{fictitious_words(float(t.get('fictitious_stiffness', 0)))}"
+    law = law_words(t.get("material_model"), float(t.get("fictitious_stiffness", 0.0)))
     return f"{grid}, {law}, {pushes}"
 
 

@@ -154,7 +154,7 @@ class _System:
             if self.fictitious is not None:
                 data += self.fictitious.data
         if self.loads.has_constraints:
-            gap = self.loads.gap(m.to_nodes(u), t)  # (n_pts, 3)
+            gap = self.loads.gap(u_nodes, t)  # (n_pts, 3)
             traction = self.alpha * gap + self.lam
             residual += m.to_free(self.loads.w.T @ traction)
             energy += 0.5 * self.alpha * float(np.sum(gap * gap)) + float(np.sum(self.lam * gap))
@@ -580,13 +580,13 @@ def internal_forces(model: FEModel, u: np.ndarray) -> np.ndarray:
     node (on fixed nodes they are the support reactions)."""
     n_el = model.n_elements
     fe = np.empty((n_el, 24))
-    kernels.element_kernel(np.ascontiguousarray(u, dtype=np.float64), model.hexes,
-                           model.elem_set, model.grads, model.jw, model.weight, model.mu,
-                           model.lam, model.material_id, False, fe, np.empty((1, 24, 24)),
-                           np.empty(n_el), np.empty(n_el))
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    kernels.element_kernel(u, model.hexes, model.elem_set, model.grads, model.jw, model.weight,
+                           model.mu, model.lam, model.material_id, False, fe,
+                           np.empty((1, 24, 24)), np.empty(n_el), np.empty(n_el))
     fictitious = fictitious_stiffness(model)
     if fictitious is not None:
-        fe[fictitious.elements] += fictitious.forces(model, np.asarray(u, np.float64))[0]
+        fe[fictitious.elements] += fictitious.forces(model, u)[0]
     out = np.zeros((model.n_nodes, 3))
     np.add.at(out, model.hexes, fe.reshape(n_el, 8, 3))
     return out

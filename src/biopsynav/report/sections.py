@@ -12,7 +12,7 @@ from ..errors import BiopsynavError, InputError
 from ..evaluate.paper import PAPER_TABLE1
 from ..evaluate.run import TABLE2, TABLE2_MEASURED, shown_tables, table2_text
 from ..evaluate.table import METHOD_TITLES, format_text, table_from_dict
-from ..info import fictitious_words
+from ..info import law_words
 from ..layout import (
     ANATOMY_PICTURE,
     CONVERGENCE_FILE,
@@ -192,12 +192,12 @@ def refined_table1_blocks(case_dir: Path, cfg: CaseConfig) -> list:
         return []
     return [Note(f"The tracker uses the model trained further on {_num(t1.get('n_samples'))} "
                  "held-out and the other rigid pushes of its refine teacher ([refine], law "
-                 f"{cfg.refine.material_model}{fictitious_words(cfg.refine.fictitious_stiffness)}"
-                 ", refine/eval): mean / max e against that "
+                 f"{law_words(cfg.refine.material_model, cfg.refine.fictitious_stiffness)}, "
+                 "refine/eval): mean / max e against that "
                  f"teacher {_num(t1.get('mean_e_mm'))} / {_num(t1.get('max_e_mm'))} mm. The "
                  "table above is the case-grid network it started from, against its own "
                  "teacher, the case grid's force patches, law "
-                 f"{cfg.material.model}{fictitious_words(cfg.material.fictitious_stiffness)}.")]
+                 f"{law_words(cfg.material.model, cfg.material.fictitious_stiffness)}.")]
 
 
 def table2_section(case_dir: Path, fig_dir: Path) -> Section:
