@@ -231,6 +231,8 @@ def test_a_case_toml_from_before_the_fictitious_stiffness_keeps_its_teacher(tmp_
     assert load_config(tmp_path).refine.fictitious_stiffness == 0.0
     with pytest.raises(InputError, match="fictitious_stiffness"):
         config_from_dict({"refine": {"fictitious_stiffness": 1.5}})
+    with pytest.raises(InputError, match="fictitious_stiffness"):
+        config_from_dict({"material": {"fictitious_stiffness": -0.1}})
 
 
 def test_the_refine_law_is_checked_against_the_tissues():
