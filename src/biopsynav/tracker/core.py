@@ -176,21 +176,17 @@ class Tracker:
     @classmethod
     def load(cls, case: Case | str | Path, engine: str | None = None,
              threads: int | None = None) -> Tracker:
-        """The tracker of ``case`` (loaded, or its folder) with its engine: ``"net"`` (trained
-        model, fingerprint-checked) or ``"fem"`` (finite elements with prescribed contact
-        displacements). ``threads``: CPU threads of the network (None: ``[network] threads``;
-        0: the idle cores)."""
+        """The tracker of ``case`` (loaded, or its folder) with its engine: ``"net"`` (the
+        tracking model, fingerprint-checked, on the case's ``[network] runtime``:
+        :func:`~biopsynav.inference.surrogate.load_for_case`) or ``"fem"`` (finite elements
+        with prescribed contact displacements). ``threads``: CPU threads of the network
+        (None: ``[network] threads``; 0: the idle cores)."""
         case = as_case(case)
         engine = engine or case.cfg.tracker.engine
         if engine == "net":
-            from ..inference.surrogate import Surrogate
-            from ..refine import tracking_teacher_case
+            from ..inference.surrogate import load_for_case
 
-            sur = Surrogate.load(case.tracking_model, case.fingerprint(),
-                                 case=tracking_teacher_case(case),
-                                 threads=case.cfg.network.threads if threads is None
-                                 else threads)
-            return cls(case, engine, surrogate=sur)
+            return cls(case, engine, surrogate=load_for_case(case, threads=threads))
         if engine == "fem":
             return fem_engine(case, fem_solver_settings(case))
         raise InputError(f"unknown engine {engine!r}; use net or fem", "tracker")
