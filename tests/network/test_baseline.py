@@ -308,6 +308,21 @@ def test_tracker_load_takes_the_network_thread_count(phantom, trained_le):
     assert served.name == "openvino" and served.threads == min(2, os.cpu_count())
 
 
+def test_tracker_load_takes_the_case_runtime(phantom, trained_le):
+    """``Tracker.load`` runs the tracking model on the case's ``[network] runtime``, as
+    ``load_for_case`` does, whatever runtime the model was exported for."""
+    import copy
+
+    from biopsynav.case import Case
+    from biopsynav.tracker import Tracker
+
+    _, case, _ = phantom
+    cfg = copy.deepcopy(case.cfg)
+    cfg.network.runtime = "torchscript"
+    chosen = Case(case.dir, cfg, case.anatomy, case.grid)
+    assert Tracker.load(chosen, engine="net")._surrogate._run.name == "torchscript"
+
+
 def test_surrogate_predict_with_the_contact_projection(phantom, trained_le):
     """``Surrogate.predict(x, projection, g)`` is the projected residual net (TorchScript and
     OpenVINO's asynchronous path alike) and moves three contact points by ``g``."""
