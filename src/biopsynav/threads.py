@@ -14,16 +14,19 @@ from contextlib import contextmanager
 import torch
 
 
-def auto_threads(sample_s: float = 0.2) -> int:
+def auto_threads(sample_s: float = 0.2, tries: int = 3) -> int:
     """Cores not busy with other processes, at least 1.
 
     Two PyTorch (OpenMP) threads collapse when another process holds a core: measured here, a
     training step took 380 ms with 2 threads against 99 ms with 1 thread on a loaded 2-core
     machine (64 ms with 2 threads when idle), so ``threads = 0`` takes only the idle cores.
     Busy cores are measured from the CPU time the system spent outside idle and I/O wait over
-    ``sample_s`` seconds (``/proc/stat``), not from the load average: on the development VM a
-    kernel thread keeps the load average at 1 while both cores are idle. Elsewhere the
-    1-minute load average is used.
+    ``sample_s`` seconds (``/proc/stat``), less this process's own (``/proc/self/stat``), not
+    from the load average: on the development VM a kernel thread keeps the load average at 1
+    while both cores are idle. A window that finds a busy core is followed by up to
+    ``tries - 1`` more and the least busy counts, so that a process ending at that moment
+    (the workers of a data generation that has just finished) does not halve the threads of
+    a training that follows it. Elsewhere the 1-minute load average is used.
     """
     cores = os.cpu_count() or 1
     busy = _busy_cores(sample_s)
@@ -32,29 +35,55 @@ def auto_threads(sample_s: float = 0.2) -> int:
             busy = os.getloadavg()[0]
         except OSError:
             return cores
+    for _ in range(tries - 1):
+        again = _busy_cores(sample_s) if busy >= 0.5 else None
+        if again is None:
+            break
+        busy = min(busy, again)
     return max(1, min(cores, int(cores - busy + 0.5)))
 
 
 def _busy_cores(sample_s: float) -> float | None:
-    """Cores' worth of non-idle CPU time over ``sample_s`` seconds (Linux), else None."""
-    def snapshot() -> tuple[int, int] | None:
-        try:
-            with open("/proc/stat") as f:
-                fields = [int(v) for v in f.readline().split()[1:]]
-        except (OSError, ValueError):
-            return None
-        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
-        return sum(fields[:8]), idle
+    """Cores' worth of CPU time that other processes spent over ``sample_s`` seconds (Linux:
+    the system's non-idle time less this process's), else None."""
+    split = _cpu_split(sample_s)
+    return None if split is None else max(0.0, split[0] - split[1])
 
-    first = snapshot()
+
+def _cpu_split(sample_s: float) -> tuple[float, float] | None:
+    """(all, own): cores' worth of the system's non-idle CPU time and of this process's over
+    one window of ``sample_s`` seconds (Linux ``/proc``), else None."""
+    first, own_first = _system_ticks(), _own_ticks()
     if first is None:
         return None
     time.sleep(sample_s)
-    second = snapshot()
+    second, own_second = _system_ticks(), _own_ticks()
     if second is None or second[0] <= first[0]:
         return None
     total, idle = second[0] - first[0], second[1] - first[1]
-    return (os.cpu_count() or 1) * (total - idle) / total
+    cores = os.cpu_count() or 1
+    own = 0 if own_first is None or own_second is None else own_second - own_first
+    return cores * (total - idle) / total, cores * min(own, total) / total
+
+
+def _system_ticks() -> tuple[int, int] | None:
+    """(all, idle + I/O wait) clock ticks of every core since boot (``/proc/stat``)."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    return sum(fields[:8]), fields[3] + (fields[4] if len(fields) > 4 else 0)
+
+
+def _own_ticks() -> int | None:
+    """User + system clock ticks of this process, every thread (``/proc/self/stat``)."""
+    try:
+        with open("/proc/self/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def set_threads(threads: int) -> int:

@@ -160,6 +160,33 @@ def test_auto_threads_sees_a_busy_core():
     assert 1 <= threads <= max(1, cores - 1 + (cores == 1))
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
+def test_auto_threads_does_not_count_its_own_process():
+    """A thread of this process spinning while the cores are sampled is this process's
+    CPU time, not another process's: it is not counted as a busy core."""
+    import threading
+
+    from biopsynav.threads import _cpu_split
+
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            pass
+
+    spinner = threading.Thread(target=spin)
+    spinner.start()
+    try:
+        time.sleep(0.1)
+        split = _cpu_split(0.5)
+    finally:
+        stop.set()
+        spinner.join()
+    assert split is not None
+    everything, own = split
+    assert own >= 0.3 and own <= everything + 0.05
+
+
 def test_validation_is_the_same_in_either_memory_layout():
     from biopsynav.network.export import SurrogateNet
     from biopsynav.network.train import validate
