@@ -443,8 +443,8 @@ class NetworkSection:
                                  "oneDNN's bf16 kernels turned the loss NaN at random "
                                  "(docs/network.md). Inference is always fp32.",
                          choices=("auto", "fp32", "bf16"))
-    threads: int = opt(0, "CPU threads for training and inference (0: all cores).",
-                       lo=0, hi=1024)
+    threads: int = opt(0, "CPU threads for training and inference (0: the idle cores, "
+                          "measured when it starts).", lo=0, hi=1024)
     baseline: str = opt("linear-elastic", "Physics baseline: 'linear-elastic' (the network "
                                           "learns only the residual of the case's linearised FE "
                                           "model moved at the contact nodes; see "
