@@ -36,7 +36,9 @@ def auto_threads(sample_s: float = 0.2, tries: int = 3) -> int:
         except OSError:
             return cores
     for _ in range(tries - 1):
-        again = _busy_cores(sample_s) if busy >= 0.5 else None
+        if busy < 0.5:
+            break
+        again = _busy_cores(sample_s)
         if again is None:
             break
         busy = min(busy, again)

@@ -27,17 +27,18 @@ from .model import FEModel
 
 @dataclass(frozen=True)
 class FictitiousStiffness:
-    """``K_e`` (n, 24, 24) N/mm of the ``elements`` (n,) with an empty part, and their sum in
-    the model's upper CSR pattern, ``data`` (nnz,)."""
+    """``K_e`` (n, 24, 24) N/mm of the ``elements`` (n,) with an empty part, their nodes
+    ``hexes`` (n, 8), and their sum in the model's upper CSR pattern, ``data`` (nnz,)."""
 
     elements: np.ndarray
+    hexes: np.ndarray
     matrices: np.ndarray
     data: np.ndarray
 
-    def forces(self, model: FEModel, u_nodes: np.ndarray) -> tuple[np.ndarray, float]:
+    def forces(self, u_nodes: np.ndarray) -> tuple[np.ndarray, float]:
         """Element forces (n, 24) N at displacement ``u_nodes`` (n_nodes, 3) mm and their
         energy, mJ."""
-        ue = u_nodes[model.hexes[self.elements]].reshape(len(self.elements), 24)
+        ue = u_nodes[self.hexes].reshape(len(self.elements), 24)
         fe = np.einsum("eij,ej->ei", self.matrices, ue)
         return fe, 0.5 * float(np.einsum("ei,ei->", fe, ue))
 
@@ -55,13 +56,13 @@ def _build(model: FEModel) -> FictitiousStiffness | None:
     elements = np.flatnonzero(share > 0.0)
     if len(elements) == 0:
         return None
-    n = len(elements)
+    n, hexes = len(elements), model.hexes[elements]
     ke = np.empty((n, 24, 24))
-    kernels.element_kernel(np.zeros((model.n_nodes, 3)), model.hexes[elements],
+    kernels.element_kernel(np.zeros((model.n_nodes, 3)), hexes,
                            model.elem_set[elements], model.grads, model.jw,
                            np.ascontiguousarray(share[elements]), model.mu[elements],
                            model.lam[elements], kernels.NEO_HOOKEAN, True, np.empty((n, 24)),
                            ke, np.empty(n), np.empty(n))
     data = np.zeros(model.nnz)
     kernels.scatter_matrix(ke, np.ascontiguousarray(model.scatter[elements]), data)
-    return FictitiousStiffness(elements, ke, data)
+    return FictitiousStiffness(elements, hexes, ke, data)

@@ -142,7 +142,7 @@ class _System:
         min_det = float(self.min_det.min())
         energy = float(self.energy.sum()) - t * float(self.loads.f @ u)
         if self.fictitious is not None:
-            fe_f, energy_f = self.fictitious.forces(m, u_nodes)
+            fe_f, energy_f = self.fictitious.forces(u_nodes)
             self.fe[self.fictitious.elements] += fe_f
             energy += energy_f
         kernels.scatter_vector(self.fe, m.elem_eq, self.fint)
@@ -586,7 +586,7 @@ def internal_forces(model: FEModel, u: np.ndarray) -> np.ndarray:
                            np.empty((1, 24, 24)), np.empty(n_el), np.empty(n_el))
     fictitious = fictitious_stiffness(model)
     if fictitious is not None:
-        fe[fictitious.elements] += fictitious.forces(model, u)[0]
+        fe[fictitious.elements] += fictitious.forces(u)[0]
     out = np.zeros((model.n_nodes, 3))
     np.add.at(out, model.hexes, fe.reshape(n_el, 8, 3))
     return out
