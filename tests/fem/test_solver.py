@@ -600,3 +600,45 @@ def test_solve_leaves_the_callers_matrix_as_it_was():
             [0.0, 0.0, -1.0], (2, 1)), prescribed_stiffness=stiffness))
         for a, b in zip((w.data, w.indices, w.indptr), before, strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+def _tiny_spring_push(law: str, folder) -> tuple[FEModel, Loads]:
+    """A 1e-3 mm push of the 15 mm phantom through springs, with the material law ``law``:
+    the decoupled laws' forces level off near 1e-10 of |R0| there (their round-off)."""
+    from biopsynav.case import make_phantom_case
+    from biopsynav.grid.embedding import Embedding
+    from biopsynav.probe import eligible_centers, push_for_sample
+
+    case = make_phantom_case(folder / "case", cell_size_mm=15.0)
+    case.cfg.material.model = law
+    probe = case.cfg.probe
+    push = push_for_sample(case.anatomy, probe, 7, 0, 0,
+                           eligible_centers(case.anatomy, probe.min_chest_distance_mm))
+    w = Embedding.build(case.grid, case.anatomy.vertices).matrix[push.contact]
+    springs = np.linspace(0.01, 0.03, w.shape[0])  # N/mm
+    g = np.tile([0.0, 0.0, -1e-3], (w.shape[0], 1))
+    return FEModel.from_case(case), Loads(prescribed_matrix=w, prescribed_displacement=g,
+                                          prescribed_stiffness=springs)
+
+
+@pytest.mark.parametrize("law", ["neo-hookean", "neo-hookean-split-sri-inner"])
+def test_a_residual_at_its_round_off_floor_is_converged_not_a_failure(law, tmp_path):
+    """Where the energy cannot be lowered along a Newton correction already within the
+    displacement tolerance, the state is accepted (mode 'floor'). Before, the increment was
+    halved down to min_load_step and 4x stiffer springs answered, 30 % off this push's
+    linear field."""
+    model, loads = _tiny_spring_push(law, tmp_path)
+    u, report = solve(model, loads, SolverSettings(tol_residual=1e-10, tol_displacement=1e-10,
+                                                   single_precision=False))
+    assert report.spring_factor == 1.0 and report.increments == 1
+    ref, _ = solve(model, loads, SolverSettings(tol_residual=1e-8, tol_displacement=1e-8,
+                                                single_precision=False))
+    assert np.abs(u - ref).max() < 1e-6 * np.abs(ref).max()
+    assert report.log[-1]["residual_rel"] < 1e-5
+
+
+def test_a_tolerance_below_the_round_off_floor_fails_saying_so(tmp_path):
+    model, loads = _tiny_spring_push("neo-hookean-split-sri-inner", tmp_path)
+    with pytest.raises(SolverError, match="round-off floor"):
+        solve(model, loads, SolverSettings(tol_residual=1e-13, tol_displacement=1e-13,
+                                           single_precision=False))

@@ -164,8 +164,8 @@ def test_elastic_input_on_springs_is_the_linear_field_of_that_contact(case, push
     w = Embedding.build(case.grid, case.anatomy.vertices).matrix[pushes[0].contact]
     springs = np.linspace(0.01, 0.03, w.shape[0])  # N/mm
     # a 0.01 mm push: the linear regime (its nonlinearity about 1e-4), and a residual well
-    # above the round-off floor of the decoupled law's forces (about 1e-10 of |R0| here: at
-    # 1e-3 mm and tol 1e-10 the springs as asked stopped on it and 4x stiffer ones answered)
+    # above the round-off floor of the decoupled law's forces (about 1e-10 of |R0| here;
+    # tests/fem/test_solver.py checks a push that reaches it)
     g = np.tile([0.0, 0.0, -1e-2], (w.shape[0], 1))
     u, report = solve(model, Loads(prescribed_matrix=w, prescribed_displacement=g,
                                    prescribed_stiffness=springs),

@@ -243,6 +243,10 @@ class _IncrementFailed(Exception):
         self.reason = reason
 
 
+class _NoDecrease(_IncrementFailed):
+    """The line search found no step along a descent direction that lowers the energy."""
+
+
 def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
           ) -> tuple[np.ndarray, SolveReport]:
     """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails
@@ -373,7 +377,7 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
     if (det <= 0.0 or not np.isfinite(energy)) and base is not None:
         u = base.copy()
         r, data, det, energy = system.evaluate(u, t, tangent=True)
-    active, reuse = solver, False
+    active, reuse, min_det = solver, False, det
     for it in range(1, settings.max_iterations + 1):
         r_before = float(np.linalg.norm(r))
         state = _reuse_step(system, active, u, r, t) if reuse else None
@@ -392,8 +396,16 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
             du = _solve(active, r)
             if report.reference_residual == 0.0:
                 report.reference_residual = system.reference_residual(du / (t - t_prev))
-            u, r, data, energy, step, min_det = _line_search(system, settings, u, du, r,
-                                                             energy, t)
+            try:
+                u, r, data, energy, step, min_det = _line_search(system, settings, u, du, r,
+                                                                 energy, t)
+            except _NoDecrease as exc:
+                rel = r_before / report.reference_residual
+                if not _at_round_off_floor(rel, du, u, tol_r, tol_d):
+                    raise _stalled(exc, rel, tol_r) from None
+                _log_floor(report, (t, t_prev, it), r_before, float(np.linalg.norm(du)),
+                           min_det)
+                return u, it
             du_norm = step * float(np.linalg.norm(du))
         r_norm = float(np.linalg.norm(r))
         reuse = settings.reuse_factorization and r_norm <= (
@@ -410,6 +422,41 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
             raise _BudgetExhausted
     raise _IncrementFailed(f"{settings.max_iterations} Newton iterations without convergence "
                            f"(|R|/|R0| = {report.log[-1]['residual_rel']:.3g})")
+
+
+def _at_round_off_floor(residual_rel: float, du: np.ndarray, u: np.ndarray, tol_r: float,
+                        tol_d: float) -> bool:
+    """Whether ``u``, where no step along the Newton correction ``du`` lowers the energy,
+    is converged as far as floating point allows: ``du`` itself is within the displacement
+    tolerance and the relative residual below ``sqrt(tol_r)``. There the residual has
+    reached the round-off of the internal forces, above a tolerance set tighter than that
+    (docs/fem.md, "Newton strategy")."""
+    small_step = float(np.linalg.norm(du)) <= tol_d * max(float(np.linalg.norm(u)), 1e-300)
+    return small_step and residual_rel <= math.sqrt(tol_r)
+
+
+def _stalled(exc: _NoDecrease, residual_rel: float, tol_r: float) -> _IncrementFailed:
+    """The failure to report when the line search found no decrease: ``exc`` itself, or,
+    with the residual already below ``sqrt(tol_r)``, that it stalled near its round-off."""
+    if residual_rel > math.sqrt(tol_r):
+        return exc
+    return _IncrementFailed(
+        f"the residual stalled at {residual_rel:.3g} of |R0|, near its round-off floor and "
+        f"above the tolerance {tol_r:g} (looser [solver] tol_residual / tol_displacement "
+        "converge)")
+
+
+def _log_floor(report: SolveReport, where: tuple[float, float, int], r_norm: float,
+               du_norm: float, min_det: float) -> None:
+    """Record an increment accepted at the residual's round-off floor (mode ``floor``;
+    ``where``: load factor, previous load factor, iteration)."""
+    t, t_prev, it = where
+    report.iterations += 1
+    r0 = report.reference_residual
+    report.log.append({"increment": report.increments + 1, "load": t, "step": t - t_prev,
+                       "iteration": it, "residual": r_norm, "residual_rel": r_norm / r0,
+                       "du": du_norm, "line_step": 0.0, "min_det_F": min_det,
+                       "mode": "floor"})
 
 
 def _factor(solver: LinearSolver, data: np.ndarray) -> None:
@@ -485,7 +532,7 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
         if worst_det <= 0.0:
             raise _IncrementFailed(f"inverted elements (min det F = {worst_det:.3g}) along "
                                    "the Newton direction")
-        raise _IncrementFailed("the line search found no decrease of the energy")
+        raise _NoDecrease("the line search found no decrease of the energy")
     _, step, trial, r_t, data_t, energy_t, det_t = best
     if data_t is None:
         r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=True)
