@@ -604,7 +604,8 @@ def test_solve_leaves_the_callers_matrix_as_it_was():
 
 def _tiny_spring_push(law: str, folder) -> tuple[FEModel, Loads]:
     """A 1e-3 mm push of the 15 mm phantom through springs, with the material law ``law``:
-    the decoupled laws' forces level off near 1e-10 of |R0| there (their round-off)."""
+    Newton stops near 1e-10 of |R0| there with both laws (the energy's round-off; the
+    decoupled law's forces level off there too)."""
     from biopsynav.case import make_phantom_case
     from biopsynav.grid.embedding import Embedding
     from biopsynav.probe import eligible_centers, push_for_sample
