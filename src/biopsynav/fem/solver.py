@@ -399,24 +399,22 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
             try:
                 u, r, data, energy, step, min_det = _line_search(system, settings, u, du, r,
                                                                  energy, t)
-            except _NoDecrease as exc:
+            except _NoDecrease:
+                # at the residual's round-off floor (docs/fem.md, "Newton strategy")?
                 rel = r_before / report.reference_residual
-                if not _at_round_off_floor(rel, du, u, tol_r, tol_d):
-                    raise _stalled(exc, rel, tol_r) from None
-                _log_floor(report, (t, t_prev, it), r_before, float(np.linalg.norm(du)),
-                           min_det)
+                if rel > math.sqrt(tol_r):
+                    raise
+                if not _small_step(float(np.linalg.norm(du)), u, tol_d):
+                    raise _stalled(rel, tol_r) from None
+                _log_iteration(report, (t, t_prev, it), r_before,
+                               (float(np.linalg.norm(du)), 0.0, min_det, "floor"))
                 return u, it
             du_norm = step * float(np.linalg.norm(du))
         r_norm = float(np.linalg.norm(r))
         reuse = settings.reuse_factorization and r_norm <= (
             REUSE_CONTRACTION if mode == "reuse" else REUSE_AFTER) * r_before
-        r0 = report.reference_residual
-        report.iterations += 1
-        report.log.append({"increment": report.increments + 1, "load": t, "step": t - t_prev,
-                           "iteration": it, "residual": r_norm, "residual_rel": r_norm / r0,
-                           "du": du_norm, "line_step": step, "min_det_F": min_det,
-                           "mode": mode})
-        if r_norm <= tol_r * r0 and du_norm <= tol_d * max(float(np.linalg.norm(u)), 1e-300):
+        _log_iteration(report, (t, t_prev, it), r_norm, (du_norm, step, min_det, mode))
+        if r_norm <= tol_r * report.reference_residual and _small_step(du_norm, u, tol_d):
             return u, it
         if 0 < settings.max_total_iterations <= report.iterations:
             raise _BudgetExhausted
@@ -424,39 +422,30 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
                            f"(|R|/|R0| = {report.log[-1]['residual_rel']:.3g})")
 
 
-def _at_round_off_floor(residual_rel: float, du: np.ndarray, u: np.ndarray, tol_r: float,
-                        tol_d: float) -> bool:
-    """Whether ``u``, where no step along the Newton correction ``du`` lowers the energy,
-    is converged as far as floating point allows: ``du`` itself is within the displacement
-    tolerance and the relative residual below ``sqrt(tol_r)``. There the residual has
-    reached the round-off of the internal forces, above a tolerance set tighter than that
-    (docs/fem.md, "Newton strategy")."""
-    small_step = float(np.linalg.norm(du)) <= tol_d * max(float(np.linalg.norm(u)), 1e-300)
-    return small_step and residual_rel <= math.sqrt(tol_r)
+def _small_step(du_norm: float, u: np.ndarray, tol_d: float) -> bool:
+    """Whether a correction of norm ``du_norm`` (mm) is within ``tol_d`` of ``|u|``."""
+    return du_norm <= tol_d * max(float(np.linalg.norm(u)), 1e-300)
 
 
-def _stalled(exc: _NoDecrease, residual_rel: float, tol_r: float) -> _IncrementFailed:
-    """The failure to report when the line search found no decrease: ``exc`` itself, or,
-    with the residual already below ``sqrt(tol_r)``, that it stalled near its round-off."""
-    if residual_rel > math.sqrt(tol_r):
-        return exc
+def _stalled(residual_rel: float, tol_r: float) -> _IncrementFailed:
+    """An increment whose line search found no lower energy with the residual already near
+    its round-off floor, above the tolerance ``tol_r``."""
     return _IncrementFailed(
         f"the residual stalled at {residual_rel:.3g} of |R0|, near its round-off floor and "
         f"above the tolerance {tol_r:g} (looser [solver] tol_residual / tol_displacement "
         "converge)")
 
 
-def _log_floor(report: SolveReport, where: tuple[float, float, int], r_norm: float,
-               du_norm: float, min_det: float) -> None:
-    """Record an increment accepted at the residual's round-off floor (mode ``floor``;
-    ``where``: load factor, previous load factor, iteration)."""
-    t, t_prev, it = where
+def _log_iteration(report: SolveReport, where: tuple[float, float, int], r_norm: float,
+                   step: tuple[float, float, float, str]) -> None:
+    """Count one Newton iteration and log it (``where``: load factor, previous load factor,
+    iteration; ``step``: |du| mm, line step, min det F, linear-solver mode or ``floor``)."""
+    (t, t_prev, it), (du_norm, line_step, min_det, mode) = where, step
     report.iterations += 1
-    r0 = report.reference_residual
     report.log.append({"increment": report.increments + 1, "load": t, "step": t - t_prev,
-                       "iteration": it, "residual": r_norm, "residual_rel": r_norm / r0,
-                       "du": du_norm, "line_step": 0.0, "min_det_F": min_det,
-                       "mode": "floor"})
+                       "iteration": it, "residual": r_norm,
+                       "residual_rel": r_norm / report.reference_residual, "du": du_norm,
+                       "line_step": line_step, "min_det_F": min_det, "mode": mode})
 
 
 def _factor(solver: LinearSolver, data: np.ndarray) -> None:
