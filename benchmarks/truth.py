@@ -7,9 +7,12 @@ network's teacher) and the rigid assumption against a P2 tetrahedral FE of the s
                                     [--edge-radius 2.5] [--progress]
                                     [--push-minutes 20] [--retry-failed]
                                     [--reference CASE-p2.json]
+                                    [--methods net fem rigid]
                                     [--out FILE]
 
-The case must hold a trained model (``biopsynav train``). For each evaluated lesion (spread
+The case must hold a trained model (``biopsynav train``) unless ``--methods`` leaves ``net``
+out: ``--methods fem rigid`` judges the FE engine (the network's teacher) alone, on a case that
+has no model yet. For each evaluated lesion (spread
 over the list as Table 2 picks them, or named by ``--lesion-ids``) the probe is placed over it
 as in Table 2 (:func:`biopsynav.evaluate.placement.place_probe`) and pushed along its beam by
 each depth. The truth is ``biopsynav.evaluate.p2``: quadratic tetrahedra of a gmsh mesh of the
@@ -28,7 +31,9 @@ it was used to train or choose the model. The methods:
   law, Table 2's solver tolerances;
 * ``rigid``: the lesion stays where it was at rest.
 
-TRE = |predicted - true lesion centre| mm. A failed reference push leaves that push out (said
+TRE = |predicted - true lesion centre| mm; where the FE engine answered with stiffer springs
+than asked (elastic contact's fallback), the table marks it ``*`` and ``--out`` keeps the
+factor (``fem_spring_factor``) and the reason. A failed reference push leaves that push out (said
 in the table); a method that does not answer a push with a reference counts against
 ``answered``. The reference's figures are kept in ``--reference`` (default
 ``CASE/../<case>-p2.json``) after every lesion and reused when the case's anatomy, material,
@@ -43,7 +48,8 @@ from the last depth answered (its state stays beside the reference after a failu
 
 The last line reads ``RESULT tre_d10_mm=... tre_d30_mm=... answered=N/M`` for the network
 (D10: pushes under 12.5 mm, D30: over 27.5 mm, the paper's Table 2 bins), then the same
-figures of the FE tracker and the rigid assumption.
+figures of the FE tracker and the rigid assumption, each prefixed ``fem_`` / ``rigid_`` (without
+``net``, only the prefixed figures).
 """
 
 from __future__ import annotations
@@ -59,6 +65,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
+from biopsynav.errors import BiopsynavError  # noqa: E402
 from biopsynav.evaluate.p2 import probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material, other_materials  # noqa: E402
@@ -113,16 +120,23 @@ def load_reference(path: Path, key: dict) -> dict:
     return stored.get("lesions", {})
 
 
-def method_trackers(case: Case) -> dict[str, Tracker]:
-    """The network tracker and the FE tracker of ``case`` (Table 2's solver settings)."""
-    return {"net": Tracker.load(case, engine="net"),
-            "fem": fem_engine(case, evaluation_solver_settings(case))}
+def method_trackers(case: Case, methods: tuple[str, ...] = METHODS) -> dict[str, Tracker]:
+    """The trackers of ``methods`` that predict: the network tracker (``net``) and the FE
+    tracker (``fem``, Table 2's solver settings) of ``case``."""
+    trackers: dict[str, Tracker] = {}
+    if "net" in methods:
+        trackers["net"] = Tracker.load(case, engine="net")
+    if "fem" in methods:
+        trackers["fem"] = fem_engine(case, evaluation_solver_settings(case))
+    return trackers
 
 
 def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
                 depths: list[float], truth: list) -> list[dict]:
-    """One row per depth: the reference displacement and each method's TRE (None: no
-    answer, with its status) for lesion index ``li``."""
+    """One row per depth: the reference displacement, the rigid assumption's and each
+    tracker's TRE (None: no answer, with its status), where one was given its reason
+    (``reason``) and the FE answer's ``fem_spring_factor`` (1: the springs as asked; 4, inf:
+    elastic contact's fallbacks) for lesion index ``li``."""
     rows = []
     for tr in trackers.values():
         tr.set_rest_pose(placement.pose)
@@ -140,6 +154,10 @@ def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
             row["tre_mm"][name] = (float(np.linalg.norm(res.lesions[li].displacement
                                                         - np.asarray(true_disp)))
                                    if res.reliable else None)
+            if res.reason:
+                row.setdefault("reason", {})[name] = res.reason
+            if name == "fem" and tr.last_solve is not None:
+                row["fem_spring_factor"] = tr.last_solve.spring_factor
         rows.append(row)
     return rows
 
@@ -165,7 +183,7 @@ def run(args) -> dict:
             print(reference_line(case, li, facts, args.depths), flush=True)
     rows = []
     if not args.reference_only:
-        trackers = method_trackers(case)
+        trackers = method_trackers(case, args.methods)
         for li in lesions:
             rows += lesion_rows(case, trackers, li, placements[li], args.depths,
                                 stored[str(li)]["displacement"])
@@ -176,17 +194,27 @@ def run(args) -> dict:
             "rows": rows}
 
 
-def print_table(rows: list[dict]) -> None:
-    head = "lesion  push  |u| P2   " + "  ".join(f"TRE {m:>5}" for m in METHODS)
+def print_table(rows: list[dict], methods: tuple[str, ...] = METHODS) -> None:
+    """The TRE of each of ``methods`` per push; ``*``: the FE engine answered with stiffer
+    springs than asked."""
+    head = "lesion  push  |u| P2   " + "  ".join(f"TRE {m:>5}" for m in methods)
     print("\n" + head + "\n" + "-" * len(head))
     for row in rows:
         if row["reference_mm"] is None:
             print(f"{row['lesion']:>6}  {row['depth_mm']:4g}  no reference (P2 failed)")
             continue
-        cells = [f"{row['tre_mm'][m]:9.2f}" if row["tre_mm"][m] is not None else
-                 f"{row['status'][m].split(':')[0]:>9}" for m in METHODS]
+        cells = [(f"{row['tre_mm'][m]:8.2f}{fallback_mark(row, m)}"
+                  if row["tre_mm"][m] is not None else f"{row['status'][m].split(':')[0]:>9}")
+                 for m in methods]
         print(f"{row['lesion']:>6}  {row['depth_mm']:4g}  {row['reference_mm']:7.2f}  "
               + "  ".join(cells))
+
+
+def fallback_mark(row: dict, method: str) -> str:
+    """'*' where ``method`` is the FE engine and elastic contact's fallback (stiffer springs,
+    or the points met) answered, else ' '."""
+    factor = row.get("fem_spring_factor") if method == "fem" else None
+    return "*" if factor not in (None, 1.0) else " "
 
 
 def summary(rows: list[dict], method: str) -> dict:
@@ -221,27 +249,46 @@ def main(argv: list[str] | None = None) -> int:
                         "from the last depth answered where its state was kept")
     p.add_argument("--reference-only", action="store_true",
                    help="solve and store the reference only (no trained model needed yet)")
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),
+                   help="what is judged against the reference (without net, no trained model "
+                        "is needed: the FE engine alone)")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON")
     args = p.parse_args(argv)
+    args.methods = tuple(m for m in METHODS if m in args.methods)
     show_progress(args)
     start = time.perf_counter()
-    result = run(args)
+    try:
+        result = run(args)
+    except BiopsynavError as exc:
+        print(f"truth.py: error: {exc}", file=sys.stderr)
+        return 2
     if args.reference_only:
         return 0
-    print(f"\nnet: the trained model, taught by: {result['teacher']}\nfem: the FE engine on "
-          "the teacher's grid ([dataset] teacher_refine)")
-    print_table(result["rows"])
-    result["summary"] = {m: summary(result["rows"], m) for m in METHODS}
+    if "net" in args.methods:
+        print(f"\nnet: the trained model, taught by: {result['teacher']}")
+    if "fem" in args.methods:
+        print("fem: the FE engine on the teacher's grid ([dataset] teacher_refine); *: answered "
+              "by elastic contact's stiffer springs")
+    print_table(result["rows"], args.methods)
+    result["summary"] = {m: summary(result["rows"], m) for m in args.methods}
     result["seconds"] = time.perf_counter() - start
     if args.out:
         write_text_atomic(args.out, json.dumps(result, indent=1))
     print(f"\ntotal {result['seconds'] / 60:.1f} min")
-    s = result["summary"]
-    print("RESULT " + " ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
-                               for k, v in s["net"].items() if k != "tre_mean_mm")
-          + " " + " ".join(f"{m}_{k}={v:.3f}" if isinstance(v, float) else f"{m}_{k}={v}"
-                           for m in ("fem", "rigid") for k, v in s[m].items()))
+    print(result_line(result["summary"]))
     return 0
+
+
+def result_line(summaries: dict[str, dict]) -> str:
+    """``RESULT`` with the network's figures unprefixed (when judged), then each other
+    method's prefixed by its name."""
+    def fmt(k: str, v) -> str:
+        return f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
+
+    parts = [fmt(k, v) for k, v in summaries.get("net", {}).items() if k != "tre_mean_mm"]
+    parts += [fmt(f"{m}_{k}", v) for m, s in summaries.items() if m != "net"
+              for k, v in s.items()]
+    return "RESULT " + " ".join(parts)
 
 
 if __name__ == "__main__":
