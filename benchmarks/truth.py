@@ -26,9 +26,10 @@ said so; ``--tet-rim`` refines the mesh there, ``--progress`` logs the load step
 it was used to train or choose the model. The methods:
 
 * ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
-* ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the teacher's
-  grid (``[dataset] teacher_refine``) with the case's ``[tracker] fem_contact`` and material
-  law, Table 2's solver tolerances;
+* ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the grid and
+  with the law of the tracking model's teacher (``[refine] teacher_refine`` and
+  ``material_model`` when ``[refine] samples`` > 0, else ``[dataset] teacher_refine`` and
+  ``[material] model``), the case's ``[tracker] fem_contact``, Table 2's solver tolerances;
 * ``rigid``: the lesion stays where it was at rest.
 
 TRE = |predicted - true lesion centre| mm; where the FE engine answered with stiffer springs
@@ -267,8 +268,8 @@ def main(argv: list[str] | None = None) -> int:
     if "net" in args.methods:
         print(f"\nnet: the trained model, taught by: {result['teacher']}")
     if "fem" in args.methods:
-        print("fem: the FE engine on the teacher's grid ([dataset] teacher_refine); *: answered "
-              "by elastic contact's stiffer springs")
+        print("fem: the FE engine on the tracking model's teacher grid ([refine] or [dataset] "
+              "teacher_refine); *: answered by elastic contact's stiffer springs")
     print_table(result["rows"], args.methods)
     result["summary"] = {m: summary(result["rows"], m) for m in args.methods}
     result["seconds"] = time.perf_counter() - start

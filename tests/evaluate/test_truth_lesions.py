@@ -76,3 +76,11 @@ def test_a_case_without_its_model_is_one_line_when_the_network_is_judged(
     assert truth.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("truth.py: error: ") and "\n" not in err and "model" in err
+
+
+def test_an_unknown_method_is_refused_naming_the_choices(coarse_phantom, truth, capsys):
+    with pytest.raises(SystemExit) as exc:
+        truth.main([str(coarse_phantom.dir), "--methods", "fem", "nett"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--methods" in err and "'nett'" in err and "net" in err
