@@ -83,4 +83,6 @@ def test_an_unknown_method_is_refused_naming_the_choices(coarse_phantom, truth, 
         truth.main([str(coarse_phantom.dir), "--methods", "fem", "nett"])
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert "--methods" in err and "'nett'" in err and "net" in err
+    # the choices named, not only the wrong value ("net" alone is inside "nett")
+    assert "--methods" in err and "'nett'" in err
+    assert all(f"'{m}'" in err for m in ("net", "fem", "rigid"))
