@@ -4,15 +4,25 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test interop browser-check lint bench clean venv
+.PHONY: demo test interop browser-check lint bench clean venv lock
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml constraints.txt
+# every dependency at the exact version and hash of requirements.lock (`make lock` refreshes
+# it from pyproject.toml's ranges and constraints.txt's torch pin), then the package itself
+$(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --upgrade pip >/dev/null
-	$(PY) -m pip install -c constraints.txt -e '.[dev,fast]'
+	$(PY) -m pip install --require-hashes -r requirements.lock
+	$(PY) -m pip install --no-deps -e .
 	touch $(STAMP)
+
+LOCK_FLAGS := --quiet --generate-hashes --allow-unsafe --no-emit-index-url --no-emit-find-links \
+	--strip-extras --extra dev --extra fast -c constraints.txt
+
+lock:
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install pip-tools
+	$(VENV)/bin/pip-compile $(LOCK_FLAGS) --upgrade -o requirements.lock pyproject.toml
 
 demo: $(STAMP)
 	$(VENV)/bin/biopsynav demo
