@@ -31,13 +31,48 @@ def _label_list(text: str) -> list[int | str]:
 
 
 def _tissue_map(text: str) -> dict[str, str]:
-    """``LABEL=TISSUE,...`` (a label value, negative included, or a segment name)."""
+    """``LABEL=TISSUE,...`` (a label value, negative included, or a segment name), or a table
+    file of ``LABEL,TISSUE`` rows (``#`` starts a comment) such as a graded segmentation's."""
     from .config import label_item
 
+    if "=" not in text and Path(text).is_file():
+        return _tissue_table(Path(text))
     pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
     if not pairs or any(len(p) != 2 or not p[0].strip() or not p[1].strip() for p in pairs):
-        raise argparse.ArgumentTypeError(f"expected LABEL=TISSUE,..., got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected LABEL=TISSUE,... or a table file, got "
+                                         f"{text!r}")
     return {str(label_item(k)): v.strip() for k, v in pairs}
+
+
+def _tissue_table(path: Path) -> dict[str, str]:
+    """``LABEL,TISSUE`` rows of a table file (commas, tabs or spaces between)."""
+    import re
+
+    from .config import label_item
+
+    table = {}
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        row = [c for c in re.split(r"[,\t ]+", line.split("#", 1)[0].strip()) if c]
+        if not row:
+            continue
+        if len(row) != 2:
+            raise argparse.ArgumentTypeError(f"{path}: line {number}: expected LABEL,TISSUE, "
+                                             f"got {line.strip()!r}")
+        table[str(label_item(row[0]))] = row[1]
+    if not table:
+        raise argparse.ArgumentTypeError(f"{path}: no LABEL,TISSUE rows")
+    return table
+
+
+def breast_labels_of(args: argparse.Namespace) -> list:
+    """``--breast-labels``, or else the labels ``--tissue-labels`` maps that are neither
+    lesion nor chest labels (a graded segmentation's table names its breast tissue)."""
+    from .config import label_item
+
+    if args.breast_labels or not args.tissue_labels:
+        return args.breast_labels or []
+    other = {str(v) for v in (args.lesion_labels or []) + (args.chest_labels or [])}
+    return [label_item(k) for k in args.tissue_labels if k not in other]
 
 
 def join_label_values(argv: list[str]) -> list[str]:
@@ -54,8 +89,10 @@ def join_label_values(argv: list[str]) -> list[str]:
 
 
 def cmd_init(args: argparse.Namespace) -> int:
+    from .anatomy.modelled import modelled_lines
     from .case import init_case
     from .config import CaseConfig, config_from_dict
+    from .fileio import read_json
 
     cfg = CaseConfig()
     overrides: dict = {"anatomy": {}}
@@ -69,7 +106,7 @@ def cmd_init(args: argparse.Namespace) -> int:
     elif args.surface:
         overrides["anatomy"]["source"] = "surface"
     elif args.labelmap:
-        overrides["anatomy"].update(source="labelmap", breast_labels=args.breast_labels or [],
+        overrides["anatomy"].update(source="labelmap", breast_labels=breast_labels_of(args),
                                     lesion_labels=args.lesion_labels or [],
                                     chest_labels=args.chest_labels or [], side=args.side or "")
     else:
@@ -97,6 +134,7 @@ def cmd_init(args: argparse.Namespace) -> int:
                      overwrite=args.overwrite)
     print(f"case written to {case.dir} ({case.grid.active_cells.sum()} active cells, "
           f"{len(case.anatomy.lesions)} lesions)")
+    print("\n".join(modelled_lines(read_json(case.paths.facts, "", missing_ok=True) or {})))
     kept = CasePaths(case.dir).outputs()
     if kept:
         print(f"kept from before: {', '.join(p.name for p in kept)}; each is checked against "
@@ -251,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lesions", type=Path, help="lesion CSV (id,x,y,z,radius_mm), Slicer "
                    "markups (.mrk.json) or a folder of lesion surface meshes")
     p.add_argument("--breast-labels", type=_label_list, help="label values (negative "
-                   "included) or segment names of breast tissue, e.g. fat,gland,skin or -2,1")
+                   "included) or segment names of breast tissue, e.g. fat,gland,skin or -2,1 "
+                   "(default: the labels --tissue-labels maps, lesion and chest labels aside)")
     p.add_argument("--lesion-labels", type=_label_list, help="label values or segment names "
                    "of lesions")
     p.add_argument("--chest-labels", type=_label_list, help="label values or segment names "
@@ -259,8 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--side", choices=("left", "right"), help="the patient's breast to take "
                    "from a bilateral label map")
     p.add_argument("--tissue-labels", type=_tissue_map, help="map labels to tissues, e.g. "
-                   "1=fat,2=gland,-3=skin (segments named fat, gland, skin, tumour map "
-                   "themselves)")
+                   "1=fat,2=gland,-3=skin, or a table file of LABEL,TISSUE rows for a graded "
+                   "segmentation (segments named fat, gland, skin, tumour map themselves)")
     p.add_argument("--frame", choices=("ras", "lps"), default="ras", help="frame of a surface "
                    "mesh and a lesion CSV (default ras, Slicer's); label maps and markups "
                    "carry their own")
@@ -371,7 +410,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(join_label_values(sys.argv[1:] if argv is None else list(argv)))
     try:
-        return _run_command(args)
+        status = _run_command(args)
+        sys.stdout.flush()  # a reader that closed the pipe is met here, not at exit
+        return status
+    except BrokenPipeError:  # `biopsynav info CASE | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except BiopsynavError as exc:
         print(f"biopsynav: error: {exc}", file=sys.stderr)
         return 2

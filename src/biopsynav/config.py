@@ -73,6 +73,16 @@ class AnatomySection:
     side: str = opt("", "Which breast of a bilateral label map: 'left' or 'right' (the "
                         "patient's; RAS -x is left). Empty: the only breast, or the one "
                         "holding the lesions.", choices=("", "left", "right"))
+    breast_protrusion_mm: float = opt(20.0, "A label map of the whole anterior torso is cut "
+                                            "to its breasts: the columns (along the anterior "
+                                            "axis) whose tissue stands more than this off the "
+                                            "torso layer (docs/anatomy.md, 'The breast of a "
+                                            "torso'). 0: no cut. A map of one breast alone "
+                                            "(its tissue ends inside the image) is never cut.",
+                                      lo=0.0, hi=100.0)
+    torso_disc_mm: float = opt(200.0, "Diameter of the disc that rolls under the tissue "
+                                      "thickness map to find the torso layer: wider than a "
+                                      "breast, narrower than the torso.", lo=50.0, hi=500.0)
     labelmap_spacing_mm: float = opt(0.0, "Isotropic voxel size a label map is resampled to "
                                           "before its surface is made; 0 takes the image's "
                                           "finest spacing.", lo=0.0, hi=10.0)

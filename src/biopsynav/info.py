@@ -6,10 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .anatomy.modelled import modelled_lines
 from .case import Case, as_case
 from .errors import InputError
 from .fileio import read_json
 from .layout import META
+
+MODELLED_KEYS = ("breast_volume_ml", "extent_mm", "back_held_share", "lesion_crop_gap_mm",
+                 "torso_cut_ml", "torso_cut_where")
 
 
 def case_summary(case: Case | str | Path) -> dict:
@@ -45,8 +49,11 @@ def case_summary(case: Case | str | Path) -> dict:
         "tissues": tissue_table(case),
         "crop_vertices": int(np.asarray(a.crop_vertices).sum()),
         "label_map": {k: facts[k] for k in ("breast", "label_volume_ml", "surface_volume_ml",
-                                            "voxel_mm", "unlabelled_holes_voxels")
+                                            "voxel_mm", "unlabelled_holes_voxels",
+                                            "lesion_specks_left_out")
                       if k in facts},
+        "modelled": {k: facts[k] for k in MODELLED_KEYS if k in facts},
+        "warnings": list(facts.get("warnings", [])),
         "stages": case.stages_done(),
         "model_teacher": model_teacher(case),
         "fe_contact": contact_words(case.cfg),
@@ -179,6 +186,7 @@ def format_summary(s: dict) -> str:
         f"{s['inside_cells']} inside), {s['active_nodes']} active nodes, "
         f"{s['n_fixed_nodes']} fixed nodes, immersed volume {s['grid_volume_ml']:.1f} mL",
         *_label_map_lines(s),
+        *modelled_lines({**s["modelled"], "warnings": s["warnings"]}),
         "  tissues   label   segment         tissue    E (kPa)    nu  cells  volume (mL)",
         *[f"            {t['label']:>5}   {t['segment'][:14]:<14}  {t['tissue']:<8} "
           f"{t['E_kpa']:>8.3g} {t['nu']:>5}  {t['cells']:>5}  {t['volume_ml']:>8.1f}"
@@ -202,4 +210,6 @@ def _label_map_lines(s: dict) -> list[str]:
             f"{m.get('label_volume_ml')} mL, surface {m.get('surface_volume_ml')} mL; "
             f"{s['crop_vertices']} surface vertices on crop faces (never pushed)"
             + (f"; {m['unlabelled_holes_voxels']} unlabelled voxels inside the breast take "
-               "the nearest labelled tissue" if m.get("unlabelled_holes_voxels") else "")]
+               "the nearest labelled tissue" if m.get("unlabelled_holes_voxels") else "")
+            + (f"; {m['lesion_specks_left_out']} lesion-label specks under 0.05 mL left out"
+               if m.get("lesion_specks_left_out") else "")]

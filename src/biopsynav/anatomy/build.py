@@ -10,8 +10,9 @@ from ..config import CaseConfig
 from ..errors import InputError
 from .chestwall import chest_wall_plane, chest_wall_vertices
 from .io import RawAnatomy, read_anatomy, read_lesion_csv, read_lesion_meshes, read_markups
-from .labelmap import LPS_TO_RAS
+from .labelmap import LPS_TO_RAS, BreastFinding
 from .model import Anatomy, Lesion, vertex_normals, winding_number
+from .modelled import modelled_facts, modelled_warnings
 from .phantom import phantom_surface
 from .surface import check_units, close_surface, split_pinch_vertices
 
@@ -23,7 +24,8 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
                             a.lesion_radius_mm) if a.lesions else [])
     raw, where = read_raw(cfg, case_dir, np.array([les.center for les in lesions]))
     check_units(raw.vertices, where)
-    vertices, faces = close_surface(raw.vertices, raw.faces, where)
+    repairs: list[str] = []
+    vertices, faces = close_surface(raw.vertices, raw.faces, where, repairs)
     vertices, faces, n_pinch = split_pinch_vertices(vertices, faces)
     lesion_source = str(case_dir / a.lesions) if a.lesions else where
     lesions = lesions or raw.lesions
@@ -37,7 +39,8 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
                       lesions, np.asarray(raw.label_points, np.float64),
                       np.asarray(raw.label_values, np.int32), crop, curved, dict(raw.segments))
     facts = {"pinch_vertices_split": n_pinch, "crop_vertices": int(crop.sum()),
-             "chest_wall_kind": _chest_kind(a, raw), **raw.facts}
+             "chest_wall_kind": _chest_kind(a, raw), **raw.facts, **modelled_facts(anatomy)}
+    facts["warnings"] = repairs + modelled_warnings(facts, [les.id for les in lesions])
     return anatomy, facts
 
 
@@ -62,7 +65,8 @@ def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None 
     raw = read_anatomy(Path(source), a.breast_labels, a.lesion_labels, a.label_field,
                        chest_labels=a.chest_labels, side=a.side,
                        spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm,
-                       lesion_centres=lesion_centres)
+                       lesion_centres=lesion_centres,
+                       finding=BreastFinding(a.side, a.breast_protrusion_mm, a.torso_disc_mm))
     if a.source != "labelmap" and a.input_frame == "lps":
         raw.vertices = raw.vertices * LPS_TO_RAS
         raw.label_points = raw.label_points * LPS_TO_RAS

@@ -171,16 +171,17 @@ def tet_boundary_faces(tets: np.ndarray) -> np.ndarray:
 
 def read_labelmap(path: Path, breast_labels: list, lesion_labels: list,
                   chest_labels: list | None = None, side: str = "", spacing_mm: float = 0.0,
-                  smoothing_mm: float = 1.0, lesion_centres: np.ndarray | None = None
-                  ) -> RawAnatomy:
+                  smoothing_mm: float = 1.0, lesion_centres: np.ndarray | None = None,
+                  finding=None) -> RawAnatomy:
     """A segmented label map (:mod:`biopsynav.anatomy.labelmap`): one breast's smoothed
     surface, tissue-label samples, lesions (one per connected component of a lesion label),
     crop-face and chest-wall points, all in mm, RAS. ``lesion_centres`` (n, 3) mm RAS, from a
-    lesion file, pick the breast that holds them as lesion labels do."""
+    lesion file, pick the breast that holds them as lesion labels do; ``finding``
+    (:class:`.labelmap.BreastFinding`) says how the breast of a torso is found."""
     from .labelmap import read_label_anatomy
 
     got = read_label_anatomy(path, breast_labels, lesion_labels, chest_labels or [], side,
-                             spacing_mm, smoothing_mm, lesion_centres)
+                             spacing_mm, smoothing_mm, lesion_centres, finding)
     lesions = [_mask_lesion(i + 1, m, got.image) for i, m in enumerate(got.lesion_masks)]
     return RawAnatomy(got.vertices, got.faces, got.label_points, got.label_values, lesions,
                       got.crop_points, got.chest_points, got.facts, got.image.segments)

@@ -5,9 +5,15 @@
 * Labels: any integer value, negative included, or a segment name of a Slicer ``.seg.nrrd``
   (``Segment<i>_Name`` / ``Segment<i>_LabelValue``; several layers are merged when the
   segments do not overlap).
+* The breast of a torso: a segmentation of the whole anterior torso (both breasts, the tissue
+  between, above and below them) is cut to the tissue that stands off the chest
+  (:mod:`.torso`); a map of one breast alone is kept whole.
 * One breast: several separate breasts (a bilateral image) are told apart by ``side`` (the
   patient's left is RAS -x) or by the lesions they hold; one breast joined to the other across
   the sternum is cut at the narrowest sagittal slab between them.
+* Chest labels (the pectoral muscle) are never breast tissue: the chest wall is their
+  interface with the breast and the breast's back where the segmentation leaves the chest
+  unlabelled.
 * Surface: the breast mask (with what it encloses: a lesion not listed as breast tissue) is
   resampled to isotropic voxels, lightly smoothed, and triangulated by marching cubes; its
   volume is compared with the labelled volume.
@@ -26,11 +32,13 @@ from scipy import ndimage
 from ..config import label_item
 from ..errors import InputError
 from ..grid.index import image_array_to_xyz
+from .torso import anterior_axis, back_voxels, cut_torso
 
 LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
 MIN_COMPONENT_SHARE = 0.05  # components under this share of the largest are specks
 MAX_VOLUME_MISMATCH = 0.10  # surface volume against labelled volume
 MAX_SAMPLES = 400_000
+MIN_LESION_ML = 0.05  # a lesion label's component under this (a 4.6 mm sphere) is a speck
 
 
 @dataclass
@@ -184,12 +192,25 @@ def _label_value(item, segments: dict[str, int], option: str, path: Path) -> int
                      f"(segments: {known})", str(path))
 
 
+@dataclass
+class BreastFinding:
+    """How the breast is found in a label map: the torso cut (:mod:`.torso`; ``protrusion_mm``
+    0 turns it off) and the side of a bilateral map."""
+
+    side: str = ""
+    protrusion_mm: float = 20.0
+    torso_disc_mm: float = 200.0
+
+
 def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side: str,
                        spacing_mm: float, smoothing_mm: float,
-                       lesion_centres: np.ndarray | None = None) -> LabelAnatomy:
+                       lesion_centres: np.ndarray | None = None,
+                       finding: BreastFinding | None = None) -> LabelAnatomy:
     """The breast of a label map: surface, label samples, lesion masks, crop and chest-wall
     points (mm, RAS), and facts for ``info``. The lesion labels' voxels and the voxels at
-    ``lesion_centres`` (n, 3) mm RAS tell which breast holds the lesions."""
+    ``lesion_centres`` (n, 3) mm RAS tell which breast holds the lesions. Voxels of the chest
+    labels are never breast, even where the breast's tissue encloses them."""
+    finding = finding or BreastFinding(side=side)
     image = read_label_image(path)
     if not breast:
         raise InputError("a label map needs --breast-labels (label values or segment names of "
@@ -197,21 +218,50 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     breast_v = resolve_labels(breast, image, "--breast-labels", path)
     lesion_v = resolve_labels(lesion, image, "--lesion-labels", path)
     chest_v = resolve_labels(chest, image, "--chest-labels", path)
-    mask = np.isin(image.labels, breast_v + lesion_v)
+    chest_mask = np.isin(image.labels, chest_v)
+    mask = np.isin(image.labels, breast_v + lesion_v) & ~chest_mask
     held = np.isin(image.labels, lesion_v) | image.voxels_at(lesion_centres)
-    mask, cut, facts = select_breast(mask, held, side, image, path)
+    mask, torso_cut, facts = cut_torso_tissue(mask, image, finding)
+    mask, cut, picked = select_breast(mask, held, side, image, path)
+    facts.update(picked)
+    cut = cut | (torso_cut & mask)
     labelled = mask
-    mask = ndimage.binary_fill_holes(mask)  # tissue of other labels enclosed by the breast
+    mask = ndimage.binary_fill_holes(mask) & ~chest_mask  # other labels the breast encloses
     vertices, faces = smooth_surface(mask, image, spacing_mm, smoothing_mm)
     facts.update(volume_facts(mask, vertices, faces, image, path))
     sampled = mask & ~unlabelled_holes(labelled, mask, image.labels, breast_v + lesion_v)
     facts["unlabelled_holes_voxels"] = int(mask.sum() - sampled.sum())
     ijk = np.argwhere(sampled)[:: max(1, int(sampled.sum()) // MAX_SAMPLES)]
-    lesions = _lesion_masks(image.labels, lesion_v, mask)
+    lesions, facts["lesion_specks_left_out"] = lesion_masks(image.labels, lesion_v, mask,
+                                                            image.voxel_mm3)
     return LabelAnatomy(vertices, faces, image.to_ras(ijk),
                         image.labels[tuple(ijk.T)].astype(np.int32), lesions,
                         image.to_ras(crop_voxels(mask, cut)), chest_interface(
-                            mask, image, chest_v, path), image, facts)
+                            mask, image, chest_v, path, cut), image, facts)
+
+
+def cut_torso_tissue(mask: np.ndarray, image: LabelImage, finding: BreastFinding
+                     ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The breasts of a torso segmentation's tissue ``mask`` (xyz bool), the faces where the
+    torso was cut from them, and the volume cut away (:func:`.torso.cut_torso`)."""
+    if finding.protrusion_mm <= 0:
+        return mask, np.zeros_like(mask), {}
+    got = cut_torso(mask, image.spacing, image.direction, finding.protrusion_mm,
+                    finding.torso_disc_mm)
+    if got.facts:
+        got.facts["torso_cut_where"] = cut_directions(mask & ~got.keep, got.keep, image)
+    return got.keep, got.cut_face, got.facts
+
+
+def cut_directions(away: np.ndarray, kept: np.ndarray, image: LabelImage) -> dict[str, float]:
+    """Shares (summing to 1) of the tissue ``away`` (xyz bool) that lay above, below and beside
+    the kept tissue ``kept`` (RAS superior-inferior extent)."""
+    z_away = image.to_ras(np.argwhere(away)[::50])[:, 2]
+    z_kept = image.to_ras(np.argwhere(kept)[::50])[:, 2]
+    lo, hi = z_kept.min(), z_kept.max()
+    shares = {"superior": float(np.mean(z_away > hi)), "inferior": float(np.mean(z_away < lo))}
+    shares["beside"] = 1.0 - shares["superior"] - shares["inferior"]
+    return {k: round(v, 3) for k, v in shares.items()}
 
 
 def unlabelled_holes(labelled: np.ndarray, filled: np.ndarray, labels: np.ndarray,
@@ -304,15 +354,20 @@ def crop_voxels(mask: np.ndarray, cut: np.ndarray) -> np.ndarray:
 
 
 def chest_interface(mask: np.ndarray, image: LabelImage, chest: list[int],
-                    path: Path) -> np.ndarray:
-    """RAS points (n, 3) of breast voxels touching a chest label (muscle): the fixed wall."""
+                    path: Path, cut: np.ndarray | None = None) -> np.ndarray:
+    """RAS points (n, 3) of the fixed wall: breast voxels touching a chest label (muscle), and
+    the breast's back (the most posterior voxel of each column, :func:`.torso.back_voxels`)
+    off the cut faces ``cut`` (xyz bool), where a segmentation leaves the chest behind the
+    breast unlabelled; none without chest labels."""
     if not chest:
         return np.zeros((0, 3))
     touching = mask & ndimage.binary_dilation(np.isin(image.labels, chest))
     if not touching.any():
         raise InputError(f"the chest labels {chest} do not touch the breast tissue; check "
                          "--chest-labels", str(path))
-    return image.to_ras(np.argwhere(touching))
+    axis, sign = anterior_axis(image.direction, image.spacing)
+    back = back_voxels(mask, axis, sign) & ~(cut if cut is not None else False)
+    return image.to_ras(np.argwhere(touching | back))
 
 
 def smooth_surface(mask: np.ndarray, image: LabelImage, spacing_mm: float,
@@ -353,10 +408,14 @@ def volume_facts(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, imag
             "voxel_mm": np.round(image.spacing, 4).tolist()}
 
 
-def _lesion_masks(labels: np.ndarray, lesion: list[int], breast: np.ndarray) -> list[np.ndarray]:
-    """One mask per connected component of the lesion labels inside the chosen breast."""
-    masks = []
+def lesion_masks(labels: np.ndarray, lesion: list[int], breast: np.ndarray,
+                 voxel_mm3: float) -> tuple[list[np.ndarray], int]:
+    """One mask per connected component of the lesion labels inside the chosen breast, and
+    the number of components under :data:`MIN_LESION_ML` left out (segmentation specks)."""
+    masks, specks = [], 0
     for value in lesion:
         comps, n = ndimage.label((labels == value) & breast)
-        masks += [comps == c for c in range(1, n + 1)]
-    return masks
+        sizes = np.bincount(comps.ravel(), minlength=n + 1)[1:] * voxel_mm3 / 1000.0
+        masks += [comps == c + 1 for c in np.flatnonzero(sizes >= MIN_LESION_ML)]
+        specks += int((sizes < MIN_LESION_ML).sum())
+    return masks, specks

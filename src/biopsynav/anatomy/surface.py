@@ -24,19 +24,24 @@ def boundary_loop_count(faces: np.ndarray) -> int:
     return int(connected_components(graph, directed=False)[0])
 
 
-def close_surface(vertices: np.ndarray, faces: np.ndarray, where: str) -> tuple[np.ndarray,
-                                                                               np.ndarray]:
-    """Merge duplicate vertices, drop degenerate faces, fill small holes; error if still open."""
+def close_surface(vertices: np.ndarray, faces: np.ndarray, where: str,
+                  repairs: list[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Merge duplicate vertices, drop degenerate faces, fill small holes; error if still open.
+    Each repair that changed the surface is said in one line appended to ``repairs``."""
     import trimesh
 
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
+    holes_before = boundary_loop_count(np.asarray(mesh.faces))
     if not mesh.is_watertight:
         trimesh.repair.fill_holes(mesh)
     holes = boundary_loop_count(np.asarray(mesh.faces))
     if holes:
         raise InputError(f"surface is not closed: {holes} hole(s) remain after repair", where)
+    if holes_before and repairs is not None:
+        repairs.append(f"the surface was open ({holes_before} hole(s)) and was closed by "
+                       "filling them: check that the filled faces belong to the breast")
     if not mesh.is_winding_consistent:
         trimesh.repair.fix_winding(mesh)
     v = np.asarray(mesh.vertices, dtype=np.float64)
