@@ -83,6 +83,11 @@ class AnatomySection:
     torso_disc_mm: float = opt(200.0, "Diameter of the disc that rolls under the tissue "
                                       "thickness map to find the torso layer: wider than a "
                                       "breast, narrower than the torso.", lo=50.0, hi=500.0)
+    crop_faces: str = opt("free", "Where a label map's image or the torso cut ends the breast "
+                                  "(crop faces; never pushed): 'free' (traction-free) or "
+                                  "'held' (fixed like the chest wall); with --chest-labels. "
+                                  "docs/anatomy.md, 'Crop faces: held or free'.",
+                          choices=("free", "held"))
     labelmap_spacing_mm: float = opt(0.0, "Isotropic voxel size a label map is resampled to "
                                           "before its surface is made; 0 takes the image's "
                                           "finest spacing.", lo=0.0, hi=10.0)

@@ -35,6 +35,8 @@ def build_anatomy(cfg: CaseConfig, case_dir: Path) -> tuple[Anatomy, dict]:
     check_lesions_free(lesions, vertices[fixed], point, normal, a.chest_wall_tolerance_mm,
                        curved, lesion_source)
     crop = near_points(vertices, raw.crop_points, _voxel_reach(raw)) & ~fixed
+    if a.crop_faces == "held" and curved:
+        fixed = fixed | crop  # never pushed either way; held, they are fixed like the wall
     anatomy = Anatomy(vertices, faces, vertex_normals(vertices, faces), fixed, point, normal,
                       lesions, np.asarray(raw.label_points, np.float64),
                       np.asarray(raw.label_values, np.int32), crop, curved, dict(raw.segments))

@@ -11,7 +11,9 @@ the abdomen. The breast is the tissue that protrudes from that layer:
   breast) is removed, the broad layer and its slow changes stay.
 * The breast's footprint is where ``T - B`` exceeds ``protrusion_mm``: the inframammary fold
   below, the sternum medially, and where the upper pole and the axillary tail fade into the
-  chest wall. Every breast voxel in a footprint column is kept, down to the chest.
+  chest wall; strips of it narrower than :data:`RIDGE_MM` (folds of the torso running from
+  the breast to the axilla or the shoulder) are opened away. Every breast voxel in a
+  footprint column is kept, down to the chest.
 * The tissue outside the footprints is cut away; the breast's faces where it was cut are crop
   faces (never pushed). A map of one breast alone has no layer: the disc always meets empty
   columns, ``B`` stays under :data:`MIN_LAYER_MM` everywhere, and nothing is cut.
@@ -31,6 +33,7 @@ from scipy import ndimage
 COARSE_MM = 4.0  # in-plane pixel of the opening (the disc is 50 of them across at 200 mm)
 MAX_HOLE_MM2 = 2500.0  # holes in a footprint up to 50 x 50 mm are the breast's own
 MIN_LAYER_MM = 5.0  # a torso layer thinner than this is no torso (a breast's own rim)
+RIDGE_MM = 40.0  # strips of the footprint narrower than this are folds of the torso
 
 
 @dataclass
@@ -59,13 +62,13 @@ def protrusion(mask: np.ndarray, spacing: np.ndarray, axis: int,
     step = [max(1, int(round(COARSE_MM / spacing[a]))) for a in plane]
     coarse = thickness[::step[0], ::step[1]]
     radii = [0.5 * disc_mm / (spacing[a] * s) for a, s in zip(plane, step, strict=True)]
-    layer = ndimage.grey_opening(coarse, footprint=_ellipse(radii), mode="nearest")
+    layer = ndimage.grey_opening(coarse, footprint=_disc_footprint(radii), mode="nearest")
     fine = np.meshgrid(*(np.arange(n) / s for n, s in zip(thickness.shape, step, strict=True)),
                        indexing="ij")
     return thickness, ndimage.map_coordinates(layer, fine, order=1, mode="nearest")
 
 
-def _ellipse(radii: list[float]) -> np.ndarray:
+def _disc_footprint(radii: list[float]) -> np.ndarray:
     """Boolean footprint of an ellipse with semi-axes ``radii`` (pixels)."""
     r = [max(1, int(np.ceil(x))) for x in radii]
     a, b = np.mgrid[-r[0]:r[0] + 1, -r[1]:r[1] + 1]
@@ -82,7 +85,8 @@ def cut_torso(mask: np.ndarray, spacing: np.ndarray, direction: np.ndarray,
     if layer.max() < MIN_LAYER_MM:
         return TorsoCut(mask, np.zeros_like(mask), {})
     torso = thickness - layer <= protrusion_mm
-    footprint = fill_small_holes(~torso, spacing[[a for a in range(3) if a != axis]])
+    pixel_mm = spacing[[a for a in range(3) if a != axis]]
+    footprint = without_ridges(fill_small_holes(~torso, pixel_mm), pixel_mm)
     columns = np.expand_dims(footprint, axis)
     keep = mask & columns
     away = mask & ~columns
@@ -103,6 +107,13 @@ def fill_small_holes(footprint: np.ndarray, pixel_mm: np.ndarray) -> np.ndarray:
     area = np.bincount(holes.ravel())[1:] * float(np.prod(pixel_mm))
     small = np.flatnonzero(area < MAX_HOLE_MM2) + 1
     return footprint | np.isin(holes, small)
+
+
+def without_ridges(footprint: np.ndarray, pixel_mm: np.ndarray) -> np.ndarray:
+    """``footprint`` (2D bool) opened by a disc of :data:`RIDGE_MM` diameter: strips narrower
+    than that (the axillary and pectoral folds, ridges of the torso) leave it."""
+    radii = [0.5 * RIDGE_MM / p for p in pixel_mm]
+    return ndimage.binary_opening(footprint, structure=_disc_footprint(radii))
 
 
 def back_voxels(mask: np.ndarray, axis: int, sign: float) -> np.ndarray:
