@@ -59,7 +59,9 @@ def draw_anatomy_3d(ax, case: Case) -> None:
 
 
 def draw_slice(ax, case: Case, axis: int) -> None:
-    """Tissue fraction of the cells in the middle slice across ``axis``, with lesions."""
+    """Tissue fraction of the cells in the middle slice across ``axis``, with lesions, fixed
+    nodes (red) and the crop faces where the image or the torso cut ends the breast
+    (purple)."""
     g, a = case.grid, case.anatomy
     mid = g.cell_shape[axis] // 2
     if axis == 2:
@@ -74,6 +76,10 @@ def draw_slice(ax, case: Case, axis: int) -> None:
     nodes = np.argwhere(fixed) * g.spacing + lo
     ax.scatter(nodes[:, 0], nodes[:, 1], s=6, c="red", label="fixed nodes")
     plane = g.origin[axis] + (mid + 0.5) * g.spacing
+    crop = a.vertices[np.asarray(a.crop_vertices, bool)]
+    crop = crop[np.abs(crop[:, axis] - plane) <= 0.5 * g.spacing][:, dims]
+    if len(crop):
+        ax.scatter(crop[:, 0], crop[:, 1], s=2, c="tab:purple", label="crop faces (cut)")
     for les in a.lesions:
         cut = abs(les.center[axis] - plane) <= les.radius_mm
         ax.add_patch(plt.Circle(les.center[dims], les.radius_mm, color="tab:orange", fill=cut,
