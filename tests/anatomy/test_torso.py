@@ -112,7 +112,7 @@ def test_one_breast_of_the_expected_volume_with_the_abdomen_cut(torso_case, caps
                                               rel=0.05)
     assert sum(m["torso_cut_where"].values()) == pytest.approx(1.0, abs=1e-3)
     _, text, _ = run(capsys, "info", torso_case)
-    assert "of torso tissue cut away" in text and "holds 100 % of its back" in text
+    assert "of the map's torso tissue cut away" in text and "holds 100 % of its back" in text
 
 
 def test_chest_labels_need_no_tissue(torso_case):

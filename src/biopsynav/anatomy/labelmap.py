@@ -221,9 +221,12 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     chest_mask = np.isin(image.labels, chest_v)
     mask = np.isin(image.labels, breast_v + lesion_v) & ~chest_mask
     held = np.isin(image.labels, lesion_v) | image.voxels_at(lesion_centres)
-    mask, torso_cut, facts = cut_torso_tissue(mask, image, finding)
-    mask, cut, picked = select_breast(mask, held, side, image, path)
+    kept, torso_cut, facts = cut_torso_tissue(mask, image, finding)
+    away = mask & ~kept
+    mask, cut, picked = select_breast(kept, held, side, image, path)
     facts.update(picked)
+    if away.any():
+        facts["torso_cut_where"] = cut_directions(away, mask, image)
     cut = cut | (torso_cut & mask)
     labelled = mask
     mask = ndimage.binary_fill_holes(mask) & ~chest_mask  # other labels the breast encloses
@@ -248,20 +251,22 @@ def cut_torso_tissue(mask: np.ndarray, image: LabelImage, finding: BreastFinding
         return mask, np.zeros_like(mask), {}
     got = cut_torso(mask, image.spacing, image.direction, finding.protrusion_mm,
                     finding.torso_disc_mm)
-    if got.facts:
-        got.facts["torso_cut_where"] = cut_directions(mask & ~got.keep, got.keep, image)
     return got.keep, got.cut_face, got.facts
 
 
 def cut_directions(away: np.ndarray, kept: np.ndarray, image: LabelImage) -> dict[str, float]:
-    """Shares (summing to 1) of the tissue ``away`` (xyz bool) that lay above, below and beside
-    the kept tissue ``kept`` (RAS superior-inferior extent)."""
-    z_away = image.to_ras(np.argwhere(away)[::50])[:, 2]
-    z_kept = image.to_ras(np.argwhere(kept)[::50])[:, 2]
-    lo, hi = z_kept.min(), z_kept.max()
-    shares = {"superior": float(np.mean(z_away > hi)), "inferior": float(np.mean(z_away < lo))}
-    shares["beside"] = 1.0 - shares["superior"] - shares["inferior"]
-    return {k: round(v, 3) for k, v in shares.items()}
+    """Shares (summing to 1) of the tissue ``away`` (xyz bool) that lay above, below, to the
+    patient's left or right of the breast ``kept`` (RAS bounding box), or around it."""
+    ras_away = image.to_ras(np.argwhere(away)[::20])
+    ras_kept = image.to_ras(np.argwhere(kept)[::20])
+    lo, hi = ras_kept.min(axis=0), ras_kept.max(axis=0)
+    x, z = ras_away[:, 0], ras_away[:, 2]
+    above, below = z > hi[2], z < lo[2]
+    level = ~above & ~below
+    left, right = level & (x < lo[0]), level & (x > hi[0])  # the patient's left is RAS -x
+    shares = {"superior": above, "inferior": below, "patient's left": left,
+              "patient's right": right, "around": level & ~left & ~right}
+    return {k: round(float(np.mean(v)), 3) for k, v in shares.items() if len(v)}
 
 
 def unlabelled_holes(labelled: np.ndarray, filled: np.ndarray, labels: np.ndarray,

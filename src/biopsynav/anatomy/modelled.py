@@ -91,6 +91,6 @@ def modelled_lines(facts: dict) -> list[str]:
             "its back")
     if facts.get("torso_cut_ml"):
         where = facts.get("torso_cut_where", {})
-        line += (f"; {facts['torso_cut_ml']:.0f} mL of torso tissue cut away ("
+        line += (f"; {facts['torso_cut_ml']:.0f} mL of the map's torso tissue cut away ("
                  + ", ".join(f"{k} {100 * v:.0f} %" for k, v in where.items()) + ")")
     return [line, *(f"  warning   {w}" for w in facts.get("warnings", []))]
