@@ -30,6 +30,10 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     case, out, minutes = quick_demo
     print(f"demo --quick took {minutes:.2f} min")
     assert f"Report: {case / 'report.html'}" in out
+    # one view of the run: the expected total first, each stage at the run's clock, the
+    # table of stage times last
+    assert "expected on this machine today: about" in out
+    assert out.count("(run at ") == 6 and "whole run" in out
     html = (case / "report.html").read_text(encoding="utf-8")
     md = (case / "report.md").read_text(encoding="utf-8")
     for text in (html, md):

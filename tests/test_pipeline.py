@@ -6,6 +6,9 @@ import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 from biopsynav.layout import CASE_FILE
 
 _reads: list[str] | None = None
@@ -60,3 +63,36 @@ def test_run_reads_case_toml_once_and_runs_every_stage(base_case, tmp_path):
         assert len(_reads) == 1, _reads
     finally:
         _reads = None
+
+
+def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
+    """The expected minutes follow the stages' work (iterations, samples) and the speed
+    probe; the probe itself measures a finite step."""
+    import dataclasses
+
+    from biopsynav.case import Case
+    from biopsynav.runtime import REFERENCE, estimate_run, probe_seconds
+
+    case = Case.load(base_case)
+    ref_probe = REFERENCE["probe_s"] * float(np.prod(case.grid.node_shape)) / REFERENCE[
+        "grid_nodes"]  # this grid on the reference machine
+    same = estimate_run(case, ref_probe)
+    assert same.slowness == pytest.approx(1.0)
+    slow = estimate_run(case, 2.0 * ref_probe)
+    assert slow.slowness == pytest.approx(2.0)
+    assert slow.total == pytest.approx(2.0 * same.total)
+    longer = dataclasses.replace(case.cfg.network, iterations=2 * case.cfg.network.iterations)
+    case.cfg.network = longer
+    assert estimate_run(case, ref_probe).minutes["train"] == pytest.approx(
+        2.0 * same.minutes["train"])
+    assert "expected on this machine today: about" in same.line()
+    assert 0.0 < probe_seconds(case) < 60.0
+
+
+def test_the_stage_table_ends_with_the_whole_run():
+    from biopsynav.runtime import stage_table
+
+    table = stage_table({"training data": 120.0, "network training": 600.0})
+    lines = table.splitlines()
+    assert lines[0].startswith("stage") and lines[-1].split() == ["whole", "run", "12.0"]
+    assert lines[1].split()[-1] == "2.0" and lines[2].split()[-1] == "10.0"

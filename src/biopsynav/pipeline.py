@@ -19,6 +19,7 @@ from .config import load_config
 from .fileio import read_json
 from .layout import CasePaths
 from .reference_registry import check_reference
+from .runtime import estimate_run, stage_table
 
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
@@ -44,8 +45,13 @@ def _stale(output: Path, *inputs: Path) -> bool:
     return not output.exists() or any(_mtime(output) < _mtime(p) for p in inputs)
 
 
-def _banner(step: int, total: int, text: str) -> None:
-    print(f"\n[{step}/{total}] {text}", flush=True)
+def _banner(step: int, total: int, text: str, elapsed_s: float,
+            expected_min: float | None = None) -> None:
+    """The stage's heading with the whole run's elapsed time (and the expected total)."""
+    clock = f"run at {elapsed_s / 60:.1f} min"
+    if expected_min:
+        clock += f" of about {expected_min:.0f}"
+    print(f"\n[{step}/{total}] {text}  ({clock})", flush=True)
 
 
 def dataset_complete(case: Case) -> bool:
@@ -147,24 +153,32 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     from .report import write_report
 
     timings: dict[str, float] = {}
+    start = time.perf_counter()
+    expected: list[float] = []
 
     def timed(step: int, text: str, key: str, stage: Callable, *args):
-        _banner(step, 6, text)
+        _banner(step, 6, text, time.perf_counter() - start, expected[0] if expected else None)
         t = time.perf_counter()
         out = stage(*args)
         timings[key] = time.perf_counter() - t
         return out
 
-    case = timed(1, "anatomy and grid", "grid_s", anatomy_stage, Path(case_dir))
+    case = timed(1, "anatomy and grid", "anatomy and grid", anatomy_stage, Path(case_dir))
     check_reference(case)  # a truth that cannot serve this case: said now, not after training
-    data_summary = timed(2, "training data (FE simulations)", "generate_s", data_stage, case,
-                         workers)
-    timed(3, "network training", "train_s", training_stage, case)
-    timed(4, "training further on a finer teacher ([refine])", "refine_s", refine_stage, case,
+    if not dataset_complete(case):  # a new case: say what the whole will take first
+        estimate = estimate_run(case)
+        expected.append(estimate.total)
+        print(f"  {estimate.line()}", flush=True)
+    data_summary = timed(2, "training data (FE simulations)", "training data", data_stage,
+                         case, workers)
+    timed(3, "network training", "network training", training_stage, case)
+    timed(4, "training further on rigid pushes ([refine])", "refine", refine_stage, case,
           workers)
-    timed(5, "evaluation (Table 1 and Table 2)", "evaluate_s", evaluation_stage, case, quick)
-    paths = timed(6, "report", "report_s", write_report, case)
-    return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary}
+    timed(5, "evaluation (Table 1 and Table 2)", "evaluation", evaluation_stage, case, quick)
+    paths = timed(6, "report", "report", write_report, case)
+    print(f"\n{stage_table(timings)}", flush=True)
+    return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary,
+            "expected_min": expected[0] if expected else None}
 
 
 def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: int = 0) -> dict:

@@ -48,8 +48,16 @@ def test_unknown_features_refused():
 @pytest.mark.parametrize("norm", ["batch", "instance", "group"])
 @pytest.mark.parametrize("act", ["leaky_relu", "gelu", "silu"])
 def test_custom_norm_and_activation(norm, act):
+    """The network holds the norm and the activation asked for, and only those."""
     net = UNet3d(preset_spec("custom", levels=2, base_channels=4, norm=norm, activation=act))
     assert net(torch.zeros(2, 4, 8, 8, 4)).shape == (2, 3, 8, 8, 4)
+    norms = {"batch": torch.nn.BatchNorm3d, "instance": torch.nn.InstanceNorm3d,
+             "group": torch.nn.GroupNorm}
+    acts = {"leaky_relu": torch.nn.LeakyReLU, "gelu": torch.nn.GELU, "silu": torch.nn.SiLU}
+    kinds = {type(m) for m in net.modules()}
+    assert norms[norm] in kinds and not (set(norms.values()) - {norms[norm]}) & kinds
+    assert acts[act] in kinds and not (set(acts.values()) | {torch.nn.ReLU}) - {acts[act]} \
+        & kinds
 
 
 def test_bad_preset():
