@@ -66,15 +66,15 @@ def _alarm(signum, frame):
     raise RanTooLong("a command of the damage suite ran for more than a minute")
 
 
-def _run(argv: list[str], limit_s: int = 60) -> tuple[int, str]:
-    """Run the CLI in process; (exit status, stderr). A command that runs away (a damaged
-    file read as a different, bigger job) fails instead of hanging the suite."""
-    err = io.StringIO()
+def _run(argv: list[str], limit_s: int = 60) -> tuple[int, str, str]:
+    """Run the CLI in process; (exit status, stderr, stdout). A command that runs away (a
+    damaged file read as a different, bigger job) fails instead of hanging the suite."""
+    err, out = io.StringIO(), io.StringIO()
     previous = signal.signal(signal.SIGALRM, _alarm)
     outer_left, _ = signal.setitimer(signal.ITIMER_REAL, limit_s)  # pytest-timeout's, if set
     started = time.monotonic()
     try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
             try:
                 rc = main(argv)
             except SystemExit as exc:  # argparse
@@ -85,7 +85,7 @@ def _run(argv: list[str], limit_s: int = 60) -> tuple[int, str]:
         if outer_left > 0:  # the suite's own per-test limit runs on
             signal.setitimer(signal.ITIMER_REAL,
                              max(outer_left - (time.monotonic() - started), 1e-3))
-    return rc, err.getvalue()
+    return rc, err.getvalue(), out.getvalue()
 
 
 def _argv(op: str, case: Path, poses: Path) -> list[str]:
@@ -108,7 +108,7 @@ def readers(trained_case: Path, poses_csv: Path, tmp_path_factory) -> dict[str, 
     for op in OPS:
         _opened = []
         try:
-            rc, err = _run(_argv(op, case, poses_csv))
+            rc, err, _ = _run(_argv(op, case, poses_csv))
         finally:
             opened, _opened = _opened, None
         assert rc == 0, (op, err)
@@ -150,9 +150,14 @@ def _names(message: str, rel: str) -> bool:
     return target in message or Path(target).name in message
 
 
-def _usable(op: str, case: Path) -> None:
-    """The result of a command that exited 0 can be read back."""
-    if op == "track":
+def _usable(op: str, case: Path, out: str) -> None:
+    """The result of a command that exited 0 can be read back (``out``: its stdout)."""
+    if op == "info":  # the whole summary, the stages that are done among it
+        first = out.splitlines()[0] if out else ""
+        assert first.startswith("case ") and first.endswith(f"({case})"), out
+        assert "  tissues   label" in out, out
+        assert "  stages    anatomy done, grid done" in out, out
+    elif op == "track":
         lines = (case.parent / "tracked.csv").read_text().splitlines()
         assert lines[0].endswith("status,reason") and len(lines) > 1
     elif op == "evaluate":
@@ -176,10 +181,10 @@ def test_damaged_file_is_named_or_harmless(rel, how, trained_case, poses_csv, re
     shutil.copytree(trained_case, case)
     _damage(case / rel, how)
     for op in ops:
-        rc, err = _run(_argv(op, case, poses_csv))
+        rc, err, out = _run(_argv(op, case, poses_csv))
         assert "Traceback" not in err, (op, err)
         if rc == 0:
-            _usable(op, case)
+            _usable(op, case, out)
             continue
         lines = [line for line in err.splitlines() if not line.startswith("biopsynav: warning")]
         lines = [line for line in lines if "it/s]" not in line and line.strip()]

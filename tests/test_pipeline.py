@@ -6,7 +6,6 @@ import shutil
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from biopsynav.layout import CASE_FILE
@@ -67,24 +66,27 @@ def test_run_reads_case_toml_once_and_runs_every_stage(base_case, tmp_path):
 
 def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     """The expected minutes follow the stages' work (iterations, samples) and the speed
-    probe; the probe itself measures a finite step."""
+    probes; the probe itself measures a finite step."""
     import dataclasses
 
     from biopsynav.case import Case
     from biopsynav.runtime import REFERENCE, estimate_run, probe_seconds
 
     case = Case.load(base_case)
-    ref_probe = REFERENCE["probe_s"] * float(np.prod(case.grid.node_shape)) / REFERENCE[
-        "grid_nodes"]  # this grid on the reference machine
-    same = estimate_run(case, ref_probe)
+    ref = REFERENCE["probe_s"]
+    same = estimate_run(case, (ref, ref))
     assert same.slowness == pytest.approx(1.0)
-    slow = estimate_run(case, 2.0 * ref_probe)
+    slow = estimate_run(case, (2.0 * ref, 2.0 * ref))
     assert slow.slowness == pytest.approx(2.0)
     assert slow.total == pytest.approx(2.0 * same.total)
-    longer = dataclasses.replace(case.cfg.network, iterations=2 * case.cfg.network.iterations)
-    case.cfg.network = longer
-    assert estimate_run(case, ref_probe).minutes["train"] == pytest.approx(
-        2.0 * same.minutes["train"])
+    case.cfg.network = dataclasses.replace(case.cfg.network,
+                                           iterations=2 * case.cfg.network.iterations)
+    case.cfg.dataset = dataclasses.replace(case.cfg.dataset, n_train=2 * case.cfg.dataset.n_train,
+                                           n_test=2 * case.cfg.dataset.n_test)
+    double = estimate_run(case, (ref, ref))
+    for stage in ("train", "generate"):
+        assert double.minutes[stage] == pytest.approx(2.0 * same.minutes[stage])
+    assert double.minutes["evaluate and report"] == same.minutes["evaluate and report"]
     assert "expected on this machine today: about" in same.line()
     assert 0.0 < probe_seconds(case) < 60.0
 

@@ -1,19 +1,19 @@
 """How long ``run`` will take on this machine, and the run's stage table.
 
-Each stage's expected time is a measured reference run's time scaled to the case and to this
-machine today:
+Each stage's expected time is a measured reference run's time (:data:`REFERENCE`) scaled to
+the case and to this machine today, from two probes of three U-Net training steps each
+(:func:`probe_seconds`, about half a second each):
 
-* **FE stages** (``generate``, the rigid pushes of ``[refine]``, Table 2's references) scale
-  with the number of samples and with the active cells (solves cost about ``cells^1.3``);
-* **training stages** scale with iterations and with the grid's nodes (the U-Net sees the whole
-  grid);
-* every stage scales with this machine's speed today: a 3-step probe of the case's U-Net
-  training step (about 2 s) against the same probe on the reference machine, so that a slow
-  day of a shared VM lengthens the estimate.
+* **the machine's speed today**: the probe on the reference case's grid against the reference
+  run's own probe, so that a slow day of a shared VM lengthens the estimate;
+* **FE stages** (``generate``, the rigid pushes of ``[refine]``) scale with their samples and
+  with the active cells (a solve costs about ``cells^1.3``), times the machine's speed;
+* **training stages** scale with their iterations and with the probe on the case's own grid
+  (its step against the reference case's);
+* evaluation and report scale with the machine's speed.
 
-The references (:data:`REFERENCE`) are the stage times of one ``biopsynav run`` with every
-default on the 2-core machine, alone, 2026-12-02 (docs/pipeline.md). An estimate is a
-forecast: the run's stage table says what each stage took.
+An estimate is a forecast: the run's stage table says what each stage took (docs/pipeline.md
+compares the two).
 """
 
 from __future__ import annotations
@@ -23,11 +23,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: The reference run: stage -> (minutes, work units); units are samples x cells^1.3 for FE
-#: stages and iterations x grid nodes for training stages (see :func:`stage_work`).
-REFERENCE = {"probe_s": 0.0, "active_cells": 0, "grid_nodes": 0, "minutes": {}}
 FE_EXPONENT = 1.3
-PROBE_STEPS = 3
+#: The reference run: ``biopsynav run`` with every default on the right breast of exam 01 of
+#: the prone MRI collection of docs/anatomy.md (582 mL, 2,041 active cells, 14 x 21 x 20
+#: nodes), alone on the 2-core machine, 2026-12-02: 45.5 min in all, stage minutes from the
+#: outputs' times. ``probe_s``: :func:`probe_seconds` on that case, the median of 12 probes
+#: in three processes just after (0.017-0.022 s; the VM's speed moves by that much).
+REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
+             "samples": 1000, "iterations": 50000, "refine_iterations": 16000,
+             "minutes": {"generate": 2.68, "train": 29.6, "refine pushes": 3.32,
+                         "refine training": 6.43, "evaluate and report": 3.47}}
+PROBE_STEPS = 10  # steps timed after one warm-up; their median
 
 
 @dataclass
@@ -48,22 +54,10 @@ class Estimate:
                 f"speed probe {self.slowness:.2f}x the reference machine's time)")
 
 
-def stage_work(case) -> dict[str, float]:
-    """Work units of each stage of ``case`` (see :data:`REFERENCE`)."""
-    cfg, grid = case.cfg, case.grid
-    cells = float(grid.active_cells.sum()) ** FE_EXPONENT
-    nodes = float(np.prod(grid.node_shape))
-    samples = cfg.dataset.n_train + cfg.dataset.n_test
-    work = {"generate": samples * cells, "train": cfg.network.iterations * nodes}
-    if cfg.refine.samples:
-        work["refine pushes"] = cfg.refine.samples * cells * cfg.refine.teacher_refine ** 3
-        work["refine training"] = cfg.refine.iterations * nodes
-    return work
-
-
-def probe_seconds(case) -> float:
+def probe_seconds(case, node_shape: tuple[int, int, int] | None = None) -> float:
     """Seconds per step of the case's U-Net training (forward, backward, Adam) at its batch
-    size on random inputs, the median of :data:`PROBE_STEPS` after one warm-up."""
+    size on random inputs on a grid of ``node_shape`` (the case's when None), the median of
+    :data:`PROBE_STEPS` after one warm-up."""
     import torch
 
     from .network.unet import UNet3d, preset_spec
@@ -73,7 +67,8 @@ def probe_seconds(case) -> float:
                        activation=s.activation, features=s.features)
     net = UNet3d(spec).to(memory_format=torch.channels_last_3d)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
-    x = torch.randn(s.batch_size, spec.feature_channels(), *case.grid.node_shape)
+    shape = node_shape or case.grid.node_shape
+    x = torch.randn(s.batch_size, spec.feature_channels(), *shape)
     x = x.contiguous(memory_format=torch.channels_last_3d)
     times = []
     for _ in range(PROBE_STEPS + 1):
@@ -86,20 +81,26 @@ def probe_seconds(case) -> float:
     return float(np.median(times[1:]))
 
 
-def estimate_run(case, probe_s: float | None = None) -> Estimate:
-    """Expected minutes of each stage of ``case`` on this machine (``probe_s``: the training
-    step probe's seconds, measured when None)."""
+def estimate_run(case, probes: tuple[float, float] | None = None) -> Estimate:
+    """Expected minutes of each stage of ``case`` on this machine. ``probes``: seconds of
+    :func:`probe_seconds` on the reference grid (the machine's speed) and on the case's grid
+    (its training step), measured when None."""
     ref = REFERENCE
-    probe_s = probe_seconds(case) if probe_s is None else probe_s
-    ref_nodes = float(ref["grid_nodes"])
-    slowness = probe_s / ref["probe_s"] * ref_nodes / float(np.prod(case.grid.node_shape))
-    ref_work = {"generate": ref["minutes"]["generate"][1],
-                "train": ref["minutes"]["train"][1],
-                "refine pushes": ref["minutes"]["refine pushes"][1],
-                "refine training": ref["minutes"]["refine training"][1]}
-    minutes = {stage: ref["minutes"][stage][0] * w / ref_work[stage] * slowness
-               for stage, w in stage_work(case).items()}
-    minutes["evaluate and report"] = ref["minutes"]["evaluate and report"][0] * slowness
+    if probes is None:
+        probes = (probe_seconds(case, ref["node_shape"]), probe_seconds(case))
+    slowness = probes[0] / ref["probe_s"]
+    step = probes[1] / ref["probe_s"]  # the case's step against the reference case's
+    cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
+    cfg, m = case.cfg, ref["minutes"]
+    minutes = {"generate": m["generate"] * (cfg.dataset.n_train + cfg.dataset.n_test)
+               / ref["samples"] * cells * slowness,
+               "train": m["train"] * cfg.network.iterations / ref["iterations"] * step}
+    if cfg.refine.samples:
+        minutes["refine pushes"] = (m["refine pushes"] * cfg.refine.samples / ref["samples"]
+                                    * cells * cfg.refine.teacher_refine ** 3 * slowness)
+        minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
+                                      / ref["refine_iterations"] * step)
+    minutes["evaluate and report"] = m["evaluate and report"] * slowness
     return Estimate(minutes, slowness)
 
 
