@@ -3,11 +3,11 @@ processes.
 
 Runs :func:`biopsynav.dataset.calibrate.calibrate_force` on CASE (default: the built-in
 phantom, built in a temporary folder) twice in one process: with its solves in one worker
-process (the speed of the serial calibration before the forty-ninth session, which solved in
+process (the speed of the serial calibration before 2026-11-29, which solved in
 the main process), then spread over two (``--workers``). Both must find the same force and the
 same rounds, to the bit; the script prints both times, the FE solves each made and the
 rounds (``--reverse`` times the two workers first, to see any effect of the order).
-``--every-push`` solves every push of every round (the rule before the forty-eighth session:
+``--every-push`` solves every push of every round (the rule before 2026-11-29:
 no early end of a failing round) in both runs.
 
 Last line: ``RESULT one_worker_s=<..> workers_s=<..> workers=<n> solves=<one>/<n>

@@ -238,7 +238,7 @@ def test_a_damaged_refine_case_toml_is_rewritten_and_the_fine_data_kept(refined,
 
 
 def test_a_refine_table_written_before_extrapolation_keeps_its_fitted_teacher():
-    """A case.toml of the thirty-first session names [refine] teacher_refine (every key was
+    """A case.toml of 2026-11-26 names [refine] teacher_refine (every key was
     written) but not extrapolation: it reads as 0, so its fine data keep their protocol; a
     table without teacher_refine takes today's default teacher (the case grid, elastic
     contact)."""

@@ -159,7 +159,7 @@ class MaterialSection:
                      "energy, isochoric part at 2x2x2 points and volumetric part at the "
                      "centre, in the cells wholly inside the tissue, 'neo-hookean' in the "
                      "cells the surface cuts: nearer the independent P2 truth; the default of "
-                     "cases made on 2026-11-30 by the fifty-seventh session), "
+                     "cases made on 2026-11-30), "
                      "'neo-hookean-sri' (that energy, its volumetric term integrated at the "
                      "cell centre), 'neo-hookean-split-sri' (the decoupled law in every cell) "
                      "or 'svk' (Saint Venant-Kirchhoff, the paper's; collapses under large "
@@ -512,8 +512,8 @@ class RefineSection:
                                      "case): 1 (default), the case grid itself, whose rigid "
                                      "pushes with elastic contact are 0.2 mm from the truth at "
                                      "10 mm pushes; 1.46 turns 7.3 mm cells into 5 mm (with "
-                                     "extrapolation = 2: the teacher of the thirty-second to "
-                                     "thirty-sixth sessions, about five times the cost).",
+                                     "extrapolation = 2: the teacher of cases made on "
+                                     "2026-11-27, about five times the cost).",
                                 lo=1.0, hi=4.0)
     extrapolation: float = opt(0.0, "Richardson extrapolation order of the refine pushes "
                                     "([dataset] teacher_extrapolation of the refine case), "
