@@ -78,7 +78,7 @@ class AnatomySection:
                                             "axis) whose tissue stands more than this off the "
                                             "torso layer (docs/anatomy.md, 'The breast of a "
                                             "torso'). 0: no cut. A map of one breast alone "
-                                            "(its tissue ends inside the image) is never cut.",
+                                            "(no torso layer around it) is never cut.",
                                       lo=0.0, hi=100.0)
     torso_disc_mm: float = opt(200.0, "Diameter of the disc that rolls under the tissue "
                                       "thickness map to find the torso layer: wider than a "
