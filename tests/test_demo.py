@@ -41,9 +41,11 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     assert "http://" not in html and "https://" not in html.replace("https://doi", "")
 
     t1 = json.loads((case / "eval" / "table1.json").read_text())
-    assert 0 < t1["mean_e_mm"] < t1["max_e_mm"] < 5.0
+    # the quick demo is deterministic: 0.1214 / 0.2471 mm in three runs, 2026-12-02; a
+    # prediction's median 0.7-1.1 ms alone (the bound leaves room for the suite's load)
+    assert 0 < t1["mean_e_mm"] < 0.25 and t1["mean_e_mm"] < t1["max_e_mm"] < 0.5
     assert t1["max_disp_mm"] > 10.0
-    assert 0 < t1["predict_p50_ms"] < 1000
+    assert 0 < t1["predict_p50_ms"] < 50
     # the deployed prediction honours the contact points (the tracker's contact projection);
     # the network's own figures are kept beside
     assert t1["contact_projection"] is True
@@ -81,15 +83,16 @@ def test_demo_table2_network_matches_fe(quick_demo):
     assert len(answered) >= 2 * len(refused) and answered
     # on the pushes it answers, the network (the quick demo's [refine]: 35 rigid pushes of the
     # 12 mm grid's elastic contact, 500 iterations) is far nearer the truth than the rigid
-    # model, and within a couple of millimetres of the FE model it learnt from: measured
-    # 2.10 against 0.81 mm (rigid 11.7 mm); the network without [refine] was 4.33 mm
+    # model, and within a couple of millimetres of the FE model it learnt from: 2.39 against
+    # 0.77 mm (rigid 11.7 mm), the same in three runs, 2026-12-02
     fem = {(r["lesion"], r["push"]): r["tre_mm"] for r in records
            if r["method"] == "fem" and r["tre_mm"] is not None}
     both = sorted(set(answered) & set(fem))
     assert len(both) >= len(answered) - 1, (answered, fem)
     net_mean = float(np.mean([answered[k] for k in both]))
     fem_mean = float(np.mean([fem[k] for k in both]))
-    assert net_mean <= fem_mean + 2.0 and net_mean < 0.3 * means["rigid"], (net_mean, fem_mean)
+    assert net_mean < 3.0 and net_mean <= fem_mean + 1.9, (net_mean, fem_mean)
+    assert net_mean < 0.3 * means["rigid"], (net_mean, means)
     agreement = t2["tables"]["net_vs_fem"]["overall_mean"]
     assert agreement is not None and 0 <= agreement < means["rigid"], agreement
     assert means["net"] < 0.5 * means["rigid"], means

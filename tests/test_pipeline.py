@@ -87,6 +87,10 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     for stage in ("train", "generate"):
         assert double.minutes[stage] == pytest.approx(2.0 * same.minutes[stage])
     assert double.minutes["evaluate and report"] == same.minutes["evaluate and report"]
+    case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, deformations_per_lesion=2
+                                            * case.cfg.evaluate.deformations_per_lesion)
+    assert estimate_run(case, (ref, ref)).minutes["evaluate and report"] == pytest.approx(
+        2.0 * same.minutes["evaluate and report"])
     assert "expected on this machine today: about" in same.line()
     assert 0.0 < probe_seconds(case) < 60.0
 

@@ -10,7 +10,8 @@ the case and to this machine today, from two probes of three U-Net training step
   with the active cells (a solve costs about ``cells^1.3``), times the machine's speed;
 * **training stages** scale with their iterations and with the probe on the case's own grid
   (its step against the reference case's);
-* evaluation and report scale with the machine's speed.
+* evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
+  grid's cells^1.3) and the machine's speed.
 
 An estimate is a forecast: the run's stage table says what each stage took (docs/pipeline.md
 compares the two).
@@ -31,6 +32,7 @@ FE_EXPONENT = 1.3
 #: in three processes just after (0.017-0.022 s; the VM's speed moves by that much).
 REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
              "samples": 1000, "iterations": 50000, "refine_iterations": 16000,
+             "table2_pushes": 8, "reference_refinement": 2.0,
              "minutes": {"generate": 2.68, "train": 29.6, "refine pushes": 3.32,
                          "refine training": 6.43, "evaluate and report": 3.47}}
 PROBE_STEPS = 10  # steps timed after one warm-up; their median
@@ -49,9 +51,14 @@ class Estimate:
         return float(sum(self.minutes.values()))
 
     def line(self) -> str:
-        parts = ", ".join(f"{k} {v:.0f}" for k, v in self.minutes.items() if v >= 0.5)
-        return (f"expected on this machine today: about {self.total:.0f} min ({parts} min; "
-                f"speed probe {self.slowness:.2f}x the reference machine's time)")
+        parts = ", ".join(f"{k} {_minutes(v)}" for k, v in self.minutes.items())
+        return (f"expected on this machine today: about {_minutes(self.total)} min ({parts} "
+                f"min; speed probe {self.slowness:.2f}x the reference machine's time)")
+
+
+def _minutes(value: float) -> str:
+    """Minutes to two significant figures at most: 0.3, 4.7, 28."""
+    return f"{value:.1f}" if value < 10 else f"{value:.0f}"
 
 
 def probe_seconds(case, node_shape: tuple[int, int, int] | None = None) -> float:
@@ -100,8 +107,20 @@ def estimate_run(case, probes: tuple[float, float] | None = None) -> Estimate:
                                     * cells * cfg.refine.teacher_refine ** 3 * slowness)
         minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
                                       / ref["refine_iterations"] * step)
-    minutes["evaluate and report"] = m["evaluate and report"] * slowness
+    minutes["evaluate and report"] = m["evaluate and report"] * table2_work(case) * slowness
     return Estimate(minutes, slowness)
+
+
+def table2_work(case) -> float:
+    """Table 2's reference solves of ``case`` against the reference run's: lesions evaluated
+    x pushes each x the fine grid's cells^1.3 (its cells: the case's times the refinement
+    cubed)."""
+    ref, e = REFERENCE, case.cfg.evaluate
+    n = len(case.anatomy.lesions)
+    lesions = min(e.max_lesions, n) if e.max_lesions else n
+    fine = (float(case.grid.active_cells.sum()) * e.reference_refinement ** 3
+            / (ref["active_cells"] * ref["reference_refinement"] ** 3)) ** FE_EXPONENT
+    return lesions * e.deformations_per_lesion / ref["table2_pushes"] * fine
 
 
 def stage_table(timings_s: dict[str, float]) -> str:
