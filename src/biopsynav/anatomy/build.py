@@ -68,7 +68,7 @@ def read_raw(cfg: CaseConfig, case_dir: Path, lesion_centres: np.ndarray | None 
                        chest_labels=a.chest_labels, side=a.side,
                        spacing_mm=a.labelmap_spacing_mm, smoothing_mm=a.labelmap_smoothing_mm,
                        lesion_centres=lesion_centres,
-                       finding=BreastFinding(a.side, a.breast_protrusion_mm, a.torso_disc_mm))
+                       finding=BreastFinding(a.breast_protrusion_mm, a.torso_disc_mm))
     if a.source != "labelmap" and a.input_frame == "lps":
         raw.vertices = raw.vertices * LPS_TO_RAS
         raw.label_points = raw.label_points * LPS_TO_RAS

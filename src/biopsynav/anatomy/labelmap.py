@@ -194,10 +194,9 @@ def _label_value(item, segments: dict[str, int], option: str, path: Path) -> int
 
 @dataclass
 class BreastFinding:
-    """How the breast is found in a label map: the torso cut (:mod:`.torso`; ``protrusion_mm``
-    0 turns it off) and the side of a bilateral map."""
+    """How the breast of a torso segmentation is found (:mod:`.torso`; ``protrusion_mm`` 0
+    turns the cut off), mm."""
 
-    side: str = ""
     protrusion_mm: float = 20.0
     torso_disc_mm: float = 200.0
 
@@ -210,7 +209,7 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     points (mm, RAS), and facts for ``info``. The lesion labels' voxels and the voxels at
     ``lesion_centres`` (n, 3) mm RAS tell which breast holds the lesions. Voxels of the chest
     labels are never breast, even where the breast's tissue encloses them."""
-    finding = finding or BreastFinding(side=side)
+    finding = finding or BreastFinding()
     image = read_label_image(path)
     if not breast:
         raise InputError("a label map needs --breast-labels (label values or segment names of "
