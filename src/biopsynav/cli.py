@@ -50,8 +50,13 @@ def _tissue_table(path: Path) -> dict[str, str]:
 
     from .config import label_item
 
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise argparse.ArgumentTypeError(f"{path}: not a readable LABEL,TISSUE table "
+                                         f"({type(exc).__name__})") from None
     table = {}
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for number, line in enumerate(text.splitlines(), start=1):
         row = [c for c in re.split(r"[,\t ]+", line.split("#", 1)[0].strip()) if c]
         if not row:
             continue

@@ -154,10 +154,10 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
 
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    expected: list[float] = []
+    expected_min: float | None = None  # set once the estimate is made; read by timed()
 
     def timed(step: int, text: str, key: str, stage: Callable, *args):
-        _banner(step, 6, text, time.perf_counter() - start, expected[0] if expected else None)
+        _banner(step, 6, text, time.perf_counter() - start, expected_min)
         t = time.perf_counter()
         out = stage(*args)
         timings[key] = time.perf_counter() - t
@@ -167,7 +167,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     check_reference(case)  # a truth that cannot serve this case: said now, not after training
     if not dataset_complete(case):  # a new case: say what the whole will take first
         estimate = estimate_run(case)
-        expected.append(estimate.total)
+        expected_min = estimate.total
         print(f"  {estimate.line()}", flush=True)
     data_summary = timed(2, "training data (FE simulations)", "training data", data_stage,
                          case, workers)
@@ -178,7 +178,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     paths = timed(6, "report", "report", write_report, case)
     print(f"\n{stage_table(timings)}", flush=True)
     return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary,
-            "expected_min": expected[0] if expected else None}
+            "expected_min": expected_min}
 
 
 def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: int = 0) -> dict:

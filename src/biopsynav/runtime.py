@@ -67,11 +67,10 @@ def probe_seconds(case, node_shape: tuple[int, int, int] | None = None) -> float
     :data:`PROBE_STEPS` after one warm-up."""
     import torch
 
-    from .network.unet import UNet3d, preset_spec
+    from .network.unet import UNet3d, section_spec
 
     s = case.cfg.network
-    spec = preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
-                       activation=s.activation, features=s.features)
+    spec = section_spec(s)
     net = UNet3d(spec).to(memory_format=torch.channels_last_3d)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
     shape = node_shape or case.grid.node_shape

@@ -229,3 +229,20 @@ def test_a_closed_pipe_ends_quietly(torso_case):
              "> /dev/null; echo ${PIPESTATUS[0]}")
     got = subprocess.run(["bash", "-c", shell], capture_output=True, text=True, timeout=120)
     assert got.stderr == "" and got.stdout.strip() in ("0", "141")
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"1,gland,extra\n", "line 1: expected LABEL,TISSUE"),
+    (b"# nothing but a comment\n", "no LABEL,TISSUE rows"),
+    (b"\xff\xfe\x00binary", "not a readable LABEL,TISSUE table"),
+])
+def test_a_bad_tissue_table_is_one_line_naming_it(tmp_path, capsys, content, message):
+    write(tmp_path / "t.nrrd", torso_labels())
+    table = tmp_path / "grades.csv"
+    table.write_bytes(content)
+    with pytest.raises(SystemExit) as exit_:
+        main(["init", str(tmp_path / "c"), "--labelmap", str(tmp_path / "t.nrrd"),
+              "--tissue-labels", str(table)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and message in err and str(table) in err
+    assert "Traceback" not in err and not (tmp_path / "c").exists()

@@ -11,7 +11,7 @@ from ..errors import InputError
 from .chestwall import chest_wall_plane, chest_wall_vertices
 from .io import RawAnatomy, read_anatomy, read_lesion_csv, read_lesion_meshes, read_markups
 from .labelmap import LPS_TO_RAS, BreastFinding
-from .model import Anatomy, Lesion, vertex_normals, winding_number
+from .model import Anatomy, Lesion, face_cross, vertex_normals, winding_number
 from .modelled import modelled_facts, modelled_warnings
 from .phantom import phantom_surface
 from .surface import check_units, close_surface, split_pinch_vertices
@@ -119,8 +119,9 @@ def patch_plane(vertices: np.ndarray, faces: np.ndarray,
                 fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Area-weighted centroid (3,) and mean outward unit normal (3,) of the faces whose three
     vertices are fixed."""
-    tri = vertices[faces[fixed[faces].all(axis=1)]]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    held = faces[fixed[faces].all(axis=1)]
+    tri = vertices[held]
+    cross = face_cross(vertices, held)
     area = 0.5 * np.linalg.norm(cross, axis=1)
     normal = cross.sum(axis=0)
     normal /= np.linalg.norm(normal)

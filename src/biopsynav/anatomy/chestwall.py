@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from .model import face_cross
 
 MIN_FLAT_SHARE = 0.05
 FLAT_COS = np.cos(np.deg2rad(5.0))
@@ -49,7 +50,7 @@ def chest_wall_vertices(vertices: np.ndarray, point: np.ndarray, normal: np.ndar
 def _largest_flat_face(vertices: np.ndarray, faces: np.ndarray,
                        tol: float) -> tuple[np.ndarray, np.ndarray]:
     tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    cross = face_cross(vertices, faces)
     area = 0.5 * np.linalg.norm(cross, axis=1)
     normal = cross / np.maximum(2.0 * area, 1e-300)[:, None]
     centroid = tri.mean(axis=1)

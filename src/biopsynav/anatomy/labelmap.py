@@ -369,7 +369,7 @@ def chest_interface(mask: np.ndarray, image: LabelImage, chest: list[int],
     if not touching.any():
         raise InputError(f"the chest labels {chest} do not touch the breast tissue; check "
                          "--chest-labels", str(path))
-    axis, sign = anterior_axis(image.direction, image.spacing)
+    axis, sign = anterior_axis(image.direction)
     back = back_voxels(mask, axis, sign) & ~(cut if cut is not None else False)
     return image.to_ras(np.argwhere(touching | back))
 

@@ -165,10 +165,16 @@ def surface_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
 
 
+def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Cross product of each triangle's edges (nf, 3): its outward normal times twice its
+    area, mm^2."""
+    tri = vertices[faces]
+    return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted outward unit vertex normals (nv, 3)."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn = face_cross(vertices, faces)
     vn = np.zeros_like(vertices, dtype=np.float64)
     for c in range(3):
         np.add.at(vn, faces[:, c], fn)

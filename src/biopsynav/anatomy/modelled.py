@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import Anatomy
+from .model import Anatomy, face_cross
 
 VOLUME_RANGE_ML = (100.0, 3000.0)
 MAX_EXTENT_MM = 250.0
@@ -32,8 +32,7 @@ def modelled_facts(anatomy: Anatomy) -> dict:
 def back_held_share(anatomy: Anatomy) -> float:
     """Area share of the back face (faces off crop faces whose outward normal is within 60
     degrees of the chest wall's outward normal) whose three vertices the chest wall holds."""
-    tri = anatomy.vertices[anatomy.faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    cross = face_cross(anatomy.vertices, anatomy.faces)
     area = 0.5 * np.linalg.norm(cross, axis=1)
     facing = (cross @ anatomy.chest_normal) > BACK_COS * 2.0 * area
     crop = np.asarray(anatomy.crop_vertices, bool)[anatomy.faces].all(axis=1)

@@ -45,7 +45,7 @@ class TorsoCut:
     facts: dict
 
 
-def anterior_axis(direction: np.ndarray, spacing: np.ndarray) -> tuple[int, float]:
+def anterior_axis(direction: np.ndarray) -> tuple[int, float]:
     """The index axis nearest RAS anterior (+y) of an ITK image (LPS ``direction`` (3, 3)),
     and +1.0 when a larger index is more anterior, else -1.0."""
     ras_y = -np.asarray(direction, np.float64)[1]  # LPS y is posterior
@@ -80,7 +80,7 @@ def cut_torso(mask: np.ndarray, spacing: np.ndarray, direction: np.ndarray,
     """The breasts of ``mask`` (xyz bool): the columns whose tissue stands more than
     ``protrusion_mm`` off the torso layer, when there is a torso layer (somewhere at least
     :data:`MIN_LAYER_MM` thick); a map of one breast alone has none and is kept whole."""
-    axis, _ = anterior_axis(direction, spacing)
+    axis, _ = anterior_axis(direction)
     thickness, layer = protrusion(mask, spacing, axis, disc_mm)
     if layer.max() < MIN_LAYER_MM:
         return TorsoCut(mask, np.zeros_like(mask), {})

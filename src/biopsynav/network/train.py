@@ -55,7 +55,7 @@ from .data import (
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import write_model
-from .unet import UNetSpec, count_parameters, preset_spec
+from .unet import UNetSpec, count_parameters, section_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
 if TYPE_CHECKING:
@@ -263,8 +263,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
         s.device = device
     case_dir = case.dir if isinstance(case, Case) else Path(case)
     out = Path(model_dir) if model_dir is not None else case_dir / MODEL_DIR
-    spec = preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
-                       activation=s.activation, features=s.features)
+    spec = section_spec(s)
     dev = resolve_device(s.device)
     check_precision(s.precision, dev)
     threads = set_threads(s.threads)

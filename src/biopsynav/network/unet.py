@@ -89,6 +89,13 @@ def preset_spec(name: str, *, levels: int = 3, base_channels: int = 16, norm: st
     return PRESETS[name]
 
 
+def section_spec(s) -> UNetSpec:
+    """Spec of a ``[network]`` section ``s`` (:class:`~biopsynav.config.NetworkSection`): its
+    preset, or with ``custom`` its width, depth, norm, activation and input features."""
+    return preset_spec(s.preset, levels=s.levels, base_channels=s.base_channels, norm=s.norm,
+                       activation=s.activation, features=s.features)
+
+
 def _norm(kind: str, channels: int) -> nn.Module:
     if kind == "none":
         return nn.Identity()
