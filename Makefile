@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test interop browser-check lint bench clean venv lock
+.PHONY: demo test interop browser-check lint bench bench-ucdavis bench-suite bench-truth clean venv lock
 
 venv: $(STAMP)
 
@@ -55,11 +55,27 @@ browser-check: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
 
+# the benchmarks of BENCHMARKS.md, each writing its result file under benchmarks/results/;
+# then `python benchmarks/figures.py --write` renders README's and BENCHMARKS.md's tables.
+# Run them alone: two jobs on 2 cores slow each other down several times.
+BENCH_DIR ?= /tmp/biopsynav-bench
 bench: $(STAMP)
 	$(PY) benchmarks/fem_solve.py
 	$(PY) benchmarks/generate.py
-	$(PY) benchmarks/train_and_predict.py
-	$(PY) benchmarks/tracking_latency.py
+	rm -rf $(BENCH_DIR)/phantom
+	$(PY) benchmarks/time_to_model.py --case phantom --workdir $(BENCH_DIR) --keep
+	$(PY) benchmarks/train_and_predict.py $(BENCH_DIR)/phantom --no-train
+	$(PY) benchmarks/tracking_latency.py $(BENCH_DIR)/phantom
+
+bench-ucdavis: $(STAMP)
+	rm -rf $(BENCH_DIR)/ucdavis
+	$(PY) benchmarks/time_to_model.py --case ucdavis --workdir $(BENCH_DIR) --keep
+
+bench-suite: $(STAMP)
+	$(PY) benchmarks/suite_time.py
+
+bench-truth: $(STAMP)
+	$(PY) benchmarks/truth.py $(CASE) --lesions 0
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info

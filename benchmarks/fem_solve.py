@@ -30,6 +30,8 @@ from biopsynav.simulate import patch_at
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: tests.peers
 from tests.peers.skfem_peer import SkfemModel  # noqa: E402
 
+from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
+
 PUSH_AT_MM = np.array([20.0, 10.0, 80.0])
 TILT_DEG = 30.0
 
@@ -118,6 +120,9 @@ def main() -> None:
                   f"displacement {fine_reports[-1].max_displacement_mm:.1f} mm")
     print(f"RESULT fem_ms={fem_ms:.1f} peer_ms={peer_ms:.0f} ratio={peer_ms / fem_ms:.1f} "
           f"max_disp_mm={max_disp:.1f} newton_iters={iters:g}")
+    write_result("fem-solve", {"fem_ms": fem_ms, "peer_ms": peer_ms,
+                               "ratio": peer_ms / fem_ms, "max_disp_mm": max_disp,
+                               "newton_iters": iters})
 
 
 if __name__ == "__main__":

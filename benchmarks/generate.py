@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
+
 
 def timed_run(case_dir: Path, workers: int, n_samples: int) -> dict:
     """Generate ``n_samples`` into ``case_dir``; returns rate, start-up and the summary."""
@@ -72,6 +74,9 @@ def main() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
     print(f"RESULT per_min_1w={runs[1]['per_min_steady']:.1f} "
           f"per_min_2w={runs[2]['per_min_steady']:.1f} minutes_1000={minutes_1000:.1f}")
+    write_result("generate", {"per_min_1w": runs[1]["per_min_steady"],
+                              "per_min_2w": runs[2]["per_min_steady"],
+                              "minutes_1000": minutes_1000})
 
 
 if __name__ == "__main__":

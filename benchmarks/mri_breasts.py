@@ -88,7 +88,8 @@ def main() -> None:
                       f"init {got['init_s']:.1f} s; warnings: {got['warnings'] or 'none'}")
     within = sum(abs(r["diff_pct"]) <= 15.0 for r in rows)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"rows": rows, "within15": within}, indent=1) + "\n")
+    args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d", time.gmtime()),
+                                     "rows": rows, "within15": within}, indent=1) + "\n")
     print(f"RESULT within15={within}/{len(rows)} "
           f"max_diff_pct={max(abs(r['diff_pct']) for r in rows):.1f} "
           f"warned={sum(bool(r['warnings']) for r in rows)}")

@@ -47,6 +47,7 @@ import numpy as np
 
 from biopsynav.igtl.protocol import MessageReader, encode_transform
 from biopsynav.igtl.replies import POINT_DEVICE
+from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
 
 HOST = "127.0.0.1"
 PROBE_DEVICE = "ProbeToReference"
@@ -359,6 +360,10 @@ def main(argv: list[str] | None = None) -> int:
              f"follow_held={follow[2]}")
     print(f"RESULT update_p50_ms={upd50:.3f} update_p99_ms={upd99:.3f} rtt_p50_ms={rtt50:.3f} "
           f"rtt_p99_ms={rtt99:.3f} lost={lost} fem_update_ms={fem:.1f}{extra}")
+    if args.case_dir and not args.quick:
+        write_result("tracking-latency", {
+            "update_p50_ms": upd50, "update_p99_ms": upd99, "rtt_p50_ms": rtt50,
+            "rtt_p99_ms": rtt99, "lost": lost, "fem_update_ms": fem}, case=str(args.case_dir))
     return 0
 
 

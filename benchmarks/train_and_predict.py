@@ -18,6 +18,8 @@ import argparse
 import time
 from pathlib import Path
 
+from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
+
 QUICK = {"grid": {"cell_size_mm": 12.0}, "dataset": {"n_train": 64, "n_test": 16},
          "network": {"iterations": 300, "val_interval": 100}}
 
@@ -73,6 +75,10 @@ def main(argv: list[str] | None = None) -> dict:
           f"max_e_mm={r['max_e_mm']:.4f} max_disp_mm={r['max_disp_mm']:.2f} "
           f"train_min={r['train_min']:.1f} predict_p50_ms={r['predict_p50_ms']:.2f} "
           f"predict_p99_ms={r['predict_p99_ms']:.2f}", flush=True)
+    if not args.quick:
+        write_result("train-and-predict", {k: r[k] for k in (
+            "mean_e_mm", "std_e_mm", "max_e_mm", "max_disp_mm", "train_min",
+            "predict_p50_ms", "predict_p99_ms")}, case=str(case_dir))
     return r
 
 

@@ -273,6 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     print_table(result["rows"], args.methods)
     result["summary"] = {m: summary(result["rows"], m) for m in args.methods}
     result["seconds"] = time.perf_counter() - start
+    result["date"] = time.strftime("%Y-%m-%d", time.gmtime())
+    result["command"] = "python " + " ".join(sys.argv)
     if args.out:
         write_text_atomic(args.out, json.dumps(result, indent=1))
     print(f"\ntotal {result['seconds'] / 60:.1f} min")

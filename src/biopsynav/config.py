@@ -223,7 +223,7 @@ class SolverSection:
                                        "(about a third faster; residuals and convergence "
                                        "stay double precision). Not used with prescribed "
                                        "displacements, except for a data set's rigid pushes "
-                                       "with elastic contact (docs/fem.md, 'Elastic "
+                                       "with elastic contact (docs/contact.md, 'Elastic "
                                        "contact').")
     threads: int = opt(0, "Pardiso threads (0: all cores).", lo=0, hi=1024)
     penalty: float = opt(1e6, "Penalty of prescribed displacements, relative to the mean "
@@ -259,14 +259,14 @@ class ProbeSection:
                                            "proportional to F^(1/e - 1)), where the network "
                                            "errs most. Held-out pushes keep the paper's "
                                            "uniform force, so Table 1 measures on its protocol "
-                                           "(docs/network.md, 'Strong pushes drawn more "
+                                           "(docs/experiments.md, 'Strong pushes drawn more "
                                            "often').", lo=0.05, hi=1.0)
     train_force_scale: float = opt(1.0, "Training pushes draw their force up to this multiple "
                                         "of f_max_n (s f_max_n u^e); draws deeper than "
                                         "max_push_mm are redrawn. Held-out pushes keep [0, "
                                         "f_max_n]. Above 1 it was measured worse on the UC "
                                         "Davis breast (1.5: Table 1 max e 0.46 against 0.25 mm "
-                                        "on the same held-out pushes; docs/network.md, "
+                                        "on the same held-out pushes; docs/experiments.md, "
                                         "'A steadier force calibration, and training "
                                         "forces beyond the held-out range').",
                                    lo=1.0, hi=4.0)
@@ -278,7 +278,7 @@ class ProbeSection:
                                             "keeps its share of the training pushes. Measured on "
                                             "the UC Davis breast, same-place was no better "
                                             "(Table 1 max e 0.362 against 0.355 mm on the same "
-                                            "held-out pushes; docs/network.md, 'Too-deep "
+                                            "held-out pushes; docs/experiments.md, 'Too-deep "
                                             "training pushes redrawn at the same place'), so "
                                             "the default keeps the former protocol "
                                             "(docs/dataset.md, protocol step 6).",
@@ -324,7 +324,7 @@ class ProbeSection:
                                    "instead of anywhere on the skin: a lesion drawn uniformly, "
                                    "then a centre among the eligible skin vertices within "
                                    "lesion_reach_mm of the skin vertex nearest it; angle, tilt "
-                                   "and load drawn as for any push (docs/dataset.md, "
+                                   "and load drawn as for any push (docs/experiments.md, "
                                    "'Pushes near the lesions'). 0: the whole skin alike.",
                               lo=0.0, hi=1.0)
     lesion_reach_mm: float = opt(20.0, "With lesion_share > 0: how far from the skin vertex "
@@ -389,7 +389,7 @@ class DatasetSection:
                                             "extrapolation of order p. Each sample is solved on "
                                             "the case grid too, and the stored field is "
                                             "u_fine + (u_fine - u_case) h_fine^p / (h_case^p - "
-                                            "h_fine^p), both on the case grid (docs/dataset.md, "
+                                            "h_fine^p), both on the case grid (docs/experiments.md, "
                                             "'An extrapolated teacher'). 0: off, the fine "
                                             "solution itself.", lo=0.0, hi=8.0)
     teacher_min_fraction: float = opt(0.2, "With teacher_refine > 1: the lower bound of the "
@@ -490,7 +490,7 @@ class NetworkSection:
 
 @dataclass
 class RefineSection:
-    samples: int = opt(1000, "Multi-fidelity training (docs/dataset.md, 'Trained further on a "
+    samples: int = opt(1000, "Multi-fidelity training (docs/experiments.md, 'Trained further on a "
                            "finer teacher'): after the case-grid network, this many rigid-probe "
                            "pushes are solved by the refine teacher (teacher_refine, "
                            "extrapolation; by default the case grid itself with the elastic "
@@ -500,7 +500,7 @@ class RefineSection:
                            "CASE_DIR/refine, with the same anatomy and grid. 1,000 (default, "
                            "with iterations = 16,000): at 30 mm pushes the phantom's lesions "
                            "nearer the independent truth, and UC Davis's worst lesion, than "
-                           "with 300 pushes and 4,000 iterations (docs/dataset.md, '1,000 "
+                           "with 300 pushes and 4,000 iterations (docs/experiments.md, '1,000 "
                            "pushes and 16,000 iterations': accuracy and time). Raising it on a "
                            "refined case keeps the fine pushes already solved and adds the "
                            "rest. 0: off; the case-grid network is the model.",
@@ -518,7 +518,7 @@ class RefineSection:
     extrapolation: float = opt(0.0, "Richardson extrapolation order of the refine pushes "
                                     "([dataset] teacher_extrapolation of the refine case), "
                                     "with teacher_refine > 1: each is solved on the case grid "
-                                    "too and extrapolated from the two (docs/dataset.md, 'An "
+                                    "too and extrapolated from the two (docs/experiments.md, 'An "
                                     "extrapolated teacher'). 0 (default): the teacher's "
                                     "solution alone. A [refine] table that names "
                                     "teacher_refine but not this key was written before it "
@@ -538,7 +538,7 @@ class RefineSection:
                               "linear baseline (with samples = 0 they follow [material] model). "
                               "'neo-hookean-split-sri-inner' (default): nearer the independent "
                               "P2 truth than 'neo-hookean' at 10, 20 and 30 mm pushes on both "
-                              "built-in cases (docs/fem.md, 'Two laws: the mixed recipe'). A "
+                              "built-in cases (docs/experiments.md, 'Two laws: the mixed recipe'). A "
                               "case.toml biopsynav wrote before this key existed reads it "
                               "as its [material] model (one law, as it was made).",
                               choices=material_law_names)
@@ -551,7 +551,7 @@ class RefineSection:
                                            "built-in cases (every push answered by the springs "
                                            "as asked, the 1,000 pushes solved in half the "
                                            "time), but the network it teaches is no nearer "
-                                           "(docs/fem.md, 'The fictitious domain'). A case.toml "
+                                           "(docs/experiments.md, 'The fictitious domain'). A case.toml "
                                            "biopsynav wrote before this key existed reads it "
                                            "as its [material] fictitious_stiffness.",
                                       lo=0.0, hi=1.0)
@@ -588,7 +588,7 @@ class TrackerSection:
                                          "N/mm (E the Young's modulus of its cell, MPa; A the "
                                          "skin area it stands for, mm^2; h the cell size, mm), "
                                          "the penalty int beta E / h |u - g|^2 dA over the "
-                                         "contact (docs/fem.md, 'Elastic contact'). 14 is "
+                                         "contact (docs/contact.md, 'Elastic contact'). 14 is "
                                          "measured with the default [refine] "
                                          "material_model, the law of the solves these "
                                          "springs serve; 10 was the default with "
@@ -602,7 +602,7 @@ class TrackerSection:
                                  "springs as asked give way to springs 4 times stiffer (then "
                                  "to the points met). Solves that converge take far fewer "
                                  "(at most 42 over 40 phantom pushes to 35 mm); those past a "
-                                 "limit point ran 94-319 before failing (docs/fem.md, 'Deep "
+                                 "limit point ran 94-319 before failing (docs/contact.md, 'Deep "
                                  "pushes and the fallback'). 0: no limit. Data generation "
                                  "uses [dataset] newton_budget instead.", lo=0, hi=100000)
     contact_follows_pose: bool = opt(False, "Skin that the probe face reaches during a push "
@@ -719,13 +719,13 @@ class EvaluateSection:
                                     "on ultrasound gel).", choices=P2_FRICTIONS)
     p2_rim_mm: float = opt(0.0, "P2 reference: tetrahedron size along the edge of the probe "
                                 "face at rest, where the skin bends round it (0: no finer rim; "
-                                "docs/fem.md, 'What stops the truth at 30 mm').",
+                                "docs/experiments.md, 'What stops the truth at 30 mm').",
                            lo=0.0, hi=100.0)
     p2_edge_radius_mm: float = opt(0.0, "P2 reference: the probe a rigid body whose face's "
                                         "edges are rounded by this radius, mm, with sides "
                                         "that no skin passes (below half the footprint's "
                                         "short side); 0: a flat face with sharp edges and no "
-                                        "sides (docs/fem.md, 'A probe with rounded edges').",
+                                        "sides (docs/experiments.md, 'A probe with rounded edges').",
                                    lo=0.0, hi=100.0)
 
 

@@ -5,7 +5,7 @@ The case-grid network learns from many cheap pushes solved on the case grid, who
 drag the tissue under a 10 mm probe face (docs/fem.md). A few pushes solved on cells
 ``[refine] teacher_refine`` times smaller, the rigid probe holding the skin it touches, and
 fitted to the case grid (:mod:`biopsynav.grid.transfer`), then teach it the finer answer
-(docs/dataset.md, "Trained further on a finer teacher"). They live in a case folder of their
+(docs/experiments.md, "Trained further on a finer teacher"). They live in a case folder of their
 own inside the case, ``CASE_DIR/refine``: the same anatomy and grid (so the same fingerprint),
 a configuration derived from the case's (:func:`refined_config`), its own ``dataset.zarr``
 and ``model``; generation and training there resume like any case's. The tracker then loads

@@ -21,7 +21,7 @@ Registered:
   grid's cell size in mm): the discrete form of the penalty ``int beta E / h |u - g|^2 dA``
   over the contact surface. A coarse trilinear cell is not forced to follow every point
   exactly, so it does not drag the tissue beside the face with it; as h shrinks the springs
-  stiffen and the points are met (docs/fem.md, "Elastic contact").
+  stiffen and the points are met (docs/contact.md, "Elastic contact").
 """
 
 from __future__ import annotations

@@ -158,7 +158,7 @@ def solve_draw(ctx: SampleContext, push: Any, index: int, redraw: int) -> dict:
     rejected = solved_rejection(ctx, push, probe_disp, u)
     if rejected is None:
         # a rigid push's contact points move by the push itself, which the case grid can hold
-        # (docs/dataset.md, "A finer teacher"); a force patch's differ point by point
+        # (docs/experiments.md, "A finer teacher"); a force patch's differ point by point
         u = ctx.teacher.case_field(u, (contact, contact_u) if push.rigid else None, u_case,
                                    ctx.case.cfg.dataset.max_edge_stretch)
         rejected = extrapolation_rejection(ctx, u, u_case)
@@ -331,7 +331,7 @@ def rigid_push_settings(ctx: SampleContext) -> Any:
     more is past their limit point, and the FE engine's fallbacks to stiffer springs
     (:data:`biopsynav.fem.solver.SPRING_FALLBACK`) get the whole budget; all are factored in
     single precision (with ``[solver] single_precision``). Never the points met: that teacher
-    drags the tissue (docs/dataset.md, "`[refine]` on the case grid with elastic contact"), so
+    drags the tissue (docs/experiments.md, "`[refine]` on the case grid with elastic contact"), so
     a draw that no springs answer is recorded as failed and redrawn."""
     from ..fem.solver import SPRING_FALLBACK
 

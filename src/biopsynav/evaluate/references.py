@@ -57,7 +57,7 @@ class GridReference:
         taught_by = tracking_teacher_config(case.cfg)
         refine = teacher_refinement(taught_by)
         # an order-p extrapolation from cells h and h / r is taken to be as near the converged
-        # answer as cells h / r^2 (docs/dataset.md, "An extrapolated teacher")
+        # answer as cells h / r^2 (docs/experiments.md, "An extrapolated teacher")
         extrapolating = taught_by.dataset.teacher_extrapolation > 0
         like = refine ** 2 if extrapolating else refine
         if refine > 1 and ev.reference_refinement <= like:

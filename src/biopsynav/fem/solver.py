@@ -308,7 +308,7 @@ def solve_once(model: FEModel, loads: Loads,
     system = _System(model, prepared, settings.penalty)
     # single precision without prescribed points (the penalty's stiff terms need double
     # precision), and for elastic contact only where asked: near a limit point its
-    # single-precision factors mislead Newton (docs/fem.md, "Elastic contact")
+    # single-precision factors mislead Newton (docs/contact.md, "Elastic contact")
     single = ((settings.single_precision and not prepared.has_constraints)
               or (prepared.elastic and settings.elastic_single_precision))
     solver = linear_solver(model, settings, single)

@@ -14,7 +14,7 @@ field moves them as the fine field does, so that the network input built from a 
 is the contact displacement the tracker measures. Without it the least-squares fit smooths
 the jump under a 10 mm face and moved the contact points up to 1.3 mm less than the probe.
 A rigid motion of the points is in the trilinear space; the point-by-point displacements of
-a force patch are not, and holding them distorts the field (docs/dataset.md, "A finer
+a force patch are not, and holding them distorts the field (docs/experiments.md, "A finer
 teacher").
 """
 

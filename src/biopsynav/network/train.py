@@ -97,7 +97,7 @@ def resolve_device(name: str) -> torch.device:
 def use_bf16(precision: str, dev: torch.device) -> bool:
     """Whether training autocasts its forward pass to bfloat16 on ``dev``: always for
     'bf16', never for 'fp32', on CUDA only for 'auto' (on the CPU it trades accuracy for
-    speed: docs/network.md, "Training arithmetic")."""
+    speed: docs/experiments.md, "Training arithmetic")."""
     if precision != "auto":
         return precision == "bf16"
     return dev.type == "cuda"
@@ -105,7 +105,7 @@ def use_bf16(precision: str, dev: torch.device) -> bool:
 
 def check_precision(precision: str, dev: torch.device) -> None:
     """Refuse bf16 training on the CPU (InputError naming ``[network] precision``): oneDNN's
-    bf16 kernels there turned losses NaN at random (docs/network.md, "Training arithmetic")."""
+    bf16 kernels there turned losses NaN at random (docs/experiments.md, "Training arithmetic")."""
     if precision == "bf16" and dev.type == "cpu":
         raise InputError("bf16 training on the CPU is refused: oneDNN's bf16 kernels turned "
                          "the loss NaN at random (in 2-5 of 8 short trainings on a CPU with "

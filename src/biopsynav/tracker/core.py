@@ -723,7 +723,7 @@ def finer_grid_spring_budget(settings: SolverSettings | None, refinement: float
     springs as asked scaled by ``refinement`` (None stays None: the solver's defaults have
     none; 0, no budget, stays 0). ``[tracker] spring_budget`` was measured on the case grid,
     and finer grids converge more slowly: on 3.65 mm cells (2 times finer) a first attempt
-    converged after 110 Newton iterations, under the 160 this gives (docs/fem.md, "The FE
+    converged after 110 Newton iterations, under the 160 this gives (docs/experiments.md, "The FE
     engine's budget")."""
     import dataclasses
 

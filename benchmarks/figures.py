@@ -1,0 +1,255 @@
+"""The figures of README.md and BENCHMARKS.md, rendered from the result files of
+``benchmarks/results/``.
+
+    python benchmarks/figures.py            # print the blocks
+    python benchmarks/figures.py --write    # rewrite them in README.md and BENCHMARKS.md
+
+Each block sits between ``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->``; nothing
+else in those files carries a measured figure. ``tests/test_figures.py`` fails when a block
+differs from its rendering, so a figure cannot outlive the file it came from: re-measure
+(the row's command), then ``--write``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+DOCS = {"readme": ROOT / "README.md", "benchmarks": ROOT / "BENCHMARKS.md"}
+
+
+def load(name: str) -> dict | None:
+    """The result file ``benchmarks/results/<name>.json`` (None when absent)."""
+    path = RESULTS / f"{name}.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def fmt(value: float, digits: int = 2) -> str:
+    """A figure to ``digits`` decimals; 'n/a' for a missing or non-finite one."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    return f"{value:.{digits}f}"
+
+
+def depth_means(data: dict, method: str) -> list[float]:
+    """A truth comparison's mean TRE (mm) at 10, 20 and 30 mm for ``method``."""
+    out = []
+    for depth in (10.0, 20.0, 30.0):
+        v = [r["tre_mm"][method] for r in data["rows"]
+             if r["depth_mm"] == depth and r["status"].get(method) == "ok"]
+        out.append(sum(v) / len(v) if v else math.nan)
+    return out
+
+
+def tre(method: str) -> Callable[[dict], str]:
+    """Renderer of a truth comparison's D10 / D20 / D30 for ``method``."""
+    def render(data: dict) -> str:
+        return " / ".join(fmt(v) for v in depth_means(data, method)) + " mm"
+    return render
+
+
+def ttm_tre(data: dict) -> str:
+    f = data["figures"]
+    if "tre_d10_mm" not in f:
+        return "not measured (no P2 truth of three tissues)"
+    return " / ".join(fmt(f[f"tre_d{d}_mm"]) for d in (10, 20, 30)) + " mm"
+
+
+def ttm_total(data: dict) -> str:
+    return f"{fmt(data['figures']['total_min'], 1)} min"
+
+
+def ttm_stages(data: dict) -> str:
+    st = data["figures"]["stages_min"]
+    return ", ".join(f"{k} {fmt(v, 1)}" for k, v in st.items()) + " min"
+
+
+def ttm_table1(data: dict) -> str:
+    f = data["figures"]
+    return f"{fmt(f['table1_mean_e_mm'], 4)} / {fmt(f['table1_max_e_mm'], 3)} mm"
+
+
+def figure(key: str, digits: int = 2, unit: str = "") -> Callable[[dict], str]:
+    """Renderer of one figure of a result file's ``figures``."""
+    return lambda data: fmt(data["figures"][key], digits) + unit
+
+
+def pair(a: str, b: str, digits: int = 2, unit: str = " ms") -> Callable[[dict], str]:
+    return lambda data: (f"{fmt(data['figures'][a], digits)} / "
+                         f"{fmt(data['figures'][b], digits)}{unit}")
+
+
+@dataclass
+class Cell:
+    """One figure: the result file it comes from and how it is shown."""
+
+    source: str
+    render: Callable[[dict], str]
+    command: str
+
+    def text(self) -> str:
+        data = load(self.source)
+        if data is None:
+            return f"not measured (`{self.command}`)"
+        return self.render(data)
+
+    def date(self) -> str:
+        data = load(self.source)
+        return (data or {}).get("date", "-")
+
+
+TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
+             "benchmarks/results/phantom-p2-d30.json")
+UCD_TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
+                 "benchmarks/results/ucdavis-homogeneous-p2-d30.json")
+TTM = "python benchmarks/time_to_model.py --case {}"
+
+#: BENCHMARKS.md: (what, cell, target, paper)
+BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
+    ("`make demo` from nothing, phantom: whole pipeline",
+     Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")), "<= 15 min", "278 min (GPU)"),
+    ("the same, each stage", Cell("time-to-model-phantom", ttm_stages, TTM.format("phantom")),
+     "-", "-"),
+    ("the same: Table 1, mean / max e against its own FE teacher (200 held-out force patches)",
+     Cell("time-to-model-phantom", ttm_table1, TTM.format("phantom")), "<= 0.05 / 0.27 mm",
+     "0.052 / 0.266 mm"),
+    ("the same: the tracking network's lesion TRE against the P2 truth, 10 / 20 / 30 mm",
+     Cell("time-to-model-phantom", ttm_tre, TTM.format("phantom")), "D10 <= 0.5, D30 <= 1.5 mm",
+     "-"),
+    ("`run` from nothing, UC Davis of three tissues: whole pipeline",
+     Cell("time-to-model-ucdavis", ttm_total, TTM.format("ucdavis")), "<= 15 min", "-"),
+    ("the same, each stage", Cell("time-to-model-ucdavis", ttm_stages, TTM.format("ucdavis")),
+     "-", "-"),
+    ("the same: Table 1", Cell("time-to-model-ucdavis", ttm_table1, TTM.format("ucdavis")),
+     "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
+    ("lesion TRE against the P2 truth, every phantom lesion, 10 / 20 / 30 mm: the network "
+     "(defaults of 2026-11-30: 50,000 + 16,000 iterations)",
+     Cell("phantom-default-mixed-d30-all-truth", tre("net"), TRUTH_CMD), "-", "-"),
+    ("the same: its FE teacher (7.3 mm hexahedra, elastic contact)",
+     Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),
+     "within 0.3 mm of converged at 30 mm", "-"),
+    ("the same: the rigid assumption",
+     Cell("phantom-default-mixed-d30-all-truth", tre("rigid"), TRUTH_CMD), "-", "-"),
+    ("UC Davis (one material), every lesion: the network (defaults of 2026-11-30)",
+     Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
+    ("the same: its FE teacher",
+     Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-", "-"),
+    ("one FE solve, phantom grid, 3.0 N push: biopsynav / scikit-fem",
+     Cell("fem-solve", pair("fem_ms", "peer_ms", 0), "python benchmarks/fem_solve.py"),
+     "<= 250 ms", "407.7 ms (SOFA)"),
+    ("force patches per minute, 2 workers",
+     Cell("generate", figure("per_min_2w", 0), "python benchmarks/generate.py"), "-", "-"),
+    ("one prediction (whole grid), median / p99",
+     Cell("train-and-predict", pair("predict_p50_ms", "predict_p99_ms"),
+          "python benchmarks/train_and_predict.py CASE --no-train"), "<= 3 / 6 ms",
+     "3.14 ms (GPU)"),
+    ("tracker update, median / p99",
+     Cell("tracking-latency", pair("update_p50_ms", "update_p99_ms"),
+          "python benchmarks/tracking_latency.py CASE"), "<= 3 / 6 ms", "-"),
+    ("pose to lesions in Slicer's connector at 100 Hz, median / p99",
+     Cell("tracking-latency", pair("rtt_p50_ms", "rtt_p99_ms"),
+          "python benchmarks/tracking_latency.py CASE"), "<= 5 / 10 ms", "-"),
+    ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
+                         "python benchmarks/suite_time.py"), "<= 10 min", "-"),
+    ("clinical MRI breasts found by label flags alone, within 15 % of a hand crop",
+     Cell("mri-breasts", lambda d: f"{d['within15']} of {len(d['rows'])}",
+          "python benchmarks/mri_breasts.py --exams DIR"),
+     "-", "-"),
+]
+
+
+def bench_block() -> str:
+    lines = ["| what | figures | target | paper | command | result file | date |",
+             "|---|---|---|---|---|---|---|"]
+    for what, cell, target, paper in BENCH_ROWS:
+        lines.append(f"| {what} | {cell.text()} | {target} | {paper} | `{cell.command}` | "
+                     f"`{cell.source}.json` | {cell.date()} |")
+    return "\n".join(lines)
+
+
+#: README.md's headline: (what, phantom cell, UC Davis cell, paper)
+README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
+    ("from nothing to a served model, 2 cores (`make demo`; `run`)",
+     Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")),
+     Cell("time-to-model-ucdavis", ttm_total, TTM.format("ucdavis")), "278 min with a GPU"),
+    ("Table 1: mean / max e against its own FE teacher",
+     Cell("time-to-model-phantom", ttm_table1, TTM.format("phantom")),
+     Cell("time-to-model-ucdavis", ttm_table1, TTM.format("ucdavis")), "0.052 / 0.266 mm"),
+    ("lesion TRE against an independent FE (P2 tetrahedra), every lesion, 10 / 20 / 30 mm "
+     "pushes: the tracking network",
+     Cell("time-to-model-phantom", ttm_tre, TTM.format("phantom")),
+     Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-"),
+    ("the same: its FE teacher",
+     Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),
+     Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-"),
+    ("the same: no deformation (rigid)",
+     Cell("phantom-default-mixed-d30-all-truth", tre("rigid"), TRUTH_CMD),
+     Cell("ucdavis-default-mixed-d30-all-truth", tre("rigid"), UCD_TRUTH_CMD), "-"),
+    ("tracker update, median / p99",
+     Cell("tracking-latency", pair("update_p50_ms", "update_p99_ms"),
+          "python benchmarks/tracking_latency.py CASE"), None, "3.14 ms per prediction (GPU)"),
+    ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
+                         "python benchmarks/suite_time.py"), None, "-"),
+]
+
+
+def readme_block() -> str:
+    lines = ["| | phantom | UC Davis breast | paper |", "|---|---|---|---|"]
+    for what, ph, ucd, paper in README_ROWS:
+        cells = [c.text() if c else "-" for c in (ph, ucd)]
+        lines.append(f"| {what} | {cells[0]} | {cells[1]} | {paper} |")
+    return "\n".join(lines)
+
+
+BLOCKS = {"readme": ("headline", readme_block), "benchmarks": ("today", bench_block)}
+
+
+def block_pattern(name: str) -> re.Pattern:
+    return re.compile(rf"(<!-- figures:{name} -->\n)(.*?)\n?(<!-- /figures:{name} -->)", re.S)
+
+
+def current_block(doc: str) -> str | None:
+    """The block of ``doc`` ('readme' or 'benchmarks') as the file holds it."""
+    name, _ = BLOCKS[doc]
+    m = block_pattern(name).search(DOCS[doc].read_text())
+    return m.group(2) if m else None
+
+
+def rendered_block(doc: str) -> str:
+    return BLOCKS[doc][1]()
+
+
+def write_blocks() -> None:
+    for doc, path in DOCS.items():
+        name, render = BLOCKS[doc]
+        block = render()
+        new, n = block_pattern(name).subn(lambda m, b=block: m.group(1) + b + "\n" + m.group(3),
+                                          path.read_text())
+        if n != 1:
+            sys.exit(f"figures: {path.name} has no block <!-- figures:{name} -->")
+        path.write_text(new)
+        print(f"wrote {path.name}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--write", action="store_true")
+    args = p.parse_args(argv)
+    if args.write:
+        write_blocks()
+    else:
+        for doc in DOCS:
+            print(rendered_block(doc), end="\n\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,172 @@
+"""From nothing to a served model: every stage's wall time, the machine, and the accuracy
+reached.
+
+    python benchmarks/time_to_model.py [--case phantom|ucdavis|ucdavis-homogeneous]
+                                       [--workdir DIR] [--keep] [--no-truth]
+
+* ``phantom``: what ``make demo`` does (``biopsynav demo``: the built-in phantom, every
+  default, Table 2 on 3 lesions);
+* ``ucdavis``: what ``biopsynav run`` does for a patient: ``init`` of the UC Davis breast of
+  three tissues (fat, gland, skin) with the example lesions, then ``run``;
+* ``ucdavis-homogeneous``: the same breast as one material
+  (``examples/ucdavis_breast3/homogeneous.toml``), the case the stored P2 truth is of.
+
+Run it alone on the machine: two jobs at once on 2 cores take far longer than twice as long.
+The machine is recorded with two short probes of the day's speed (a shared VM runs at
+different speeds on different days): one U-Net training step on the phantom's grid
+(``biopsynav.runtime.probe_seconds``) and a 1,024 x 1,024 float32 matmul.
+
+Accuracy: Table 1 (``CASE/eval/table1.json``: mean and max e of the case network against its
+own FE teacher on the held-out force patches), and, where a P2 truth of the case's anatomy and
+material is stored under ``benchmarks/results/`` (the phantom; UC Davis as one material), the
+tracking network's lesion TRE against it at 10 / 20 / 30 mm over every lesion
+(``benchmarks/truth.py CASE --lesions 0 --methods net``; a minute or two, the truth is not
+solved again). The three-tissue breast has no such truth (the P2 reference is homogeneous), so
+its TRE is not measured; its time and Table 1 are.
+
+Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
+``RESULT total_min=... train_min=... tre_d10_mm=... tre_d30_mm=...`` (nan where not measured).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from resultfile import write_result
+
+ROOT = Path(__file__).resolve().parents[1]
+UCDAVIS = ROOT.parent / "shared" / "data" / "ucdavis_breast3" / "volmesh3.vtk"
+RESULTS = ROOT / "benchmarks" / "results"
+TRUTHS = {"phantom": RESULTS / "phantom-p2-d30.json",
+          "ucdavis-homogeneous": RESULTS / "ucdavis-homogeneous-p2-d30.json"}
+
+
+def speed_probes() -> dict:
+    """The day's speed: a U-Net training step on the phantom's grid and a matmul (seconds)."""
+    import torch
+
+    from biopsynav.case import make_phantom_case
+    from biopsynav.runtime import probe_seconds
+
+    with tempfile.TemporaryDirectory() as tmp:
+        case = make_phantom_case(Path(tmp) / "ph")
+        step = float(np.median([probe_seconds(case) for _ in range(3)]))
+    a = torch.randn(1024, 1024)
+    times = []
+    for _ in range(6):
+        t = time.perf_counter()
+        a @ a
+        times.append(time.perf_counter() - t)
+    return {"unet_step_s": step, "matmul_1024_s": float(np.median(times[1:]))}
+
+
+def init_ucdavis(case_dir: Path, homogeneous: bool) -> None:
+    """``biopsynav init`` of the UC Davis breast, as the README says."""
+    if not UCDAVIS.is_file():
+        sys.exit(f"time_to_model: the UC Davis breast is not at {UCDAVIS}")
+    labels = "1=fat,2=fat,3=fat" if homogeneous else "1=fat,2=gland,3=skin"
+    cmd = [sys.executable, "-m", "biopsynav.cli", "init", str(case_dir), "--surface",
+           str(UCDAVIS), "--tissue-labels", labels, "--lesions",
+           str(ROOT / "examples" / "ucdavis_breast3" / "lesions.csv")]
+    if homogeneous:
+        cmd += ["--config", str(ROOT / "examples" / "ucdavis_breast3" / "homogeneous.toml")]
+    subprocess.run(cmd, check=True)
+
+
+def build_and_run(kind: str, case_dir: Path) -> tuple[dict, float]:
+    """The pipeline from nothing: its stage times (s) and the init's time (s)."""
+    from biopsynav.pipeline import run_case, run_demo
+
+    if kind == "phantom":
+        return run_demo(case_dir)["timings_s"], 0.0
+    t = time.perf_counter()
+    init_ucdavis(case_dir, homogeneous=kind == "ucdavis-homogeneous")
+    init_s = time.perf_counter() - t
+    return run_case(case_dir)["timings_s"], init_s
+
+
+def stage_minutes(case_dir: Path, timings: dict, init_s: float) -> dict:
+    """Stage minutes: the pipeline's timings, with ``[refine]`` split into its pushes and its
+    training (from the refine data set's summary and model)."""
+    minutes = {k: v / 60 for k, v in timings.items()}
+    if init_s:
+        minutes["init"] = init_s / 60
+    summary = case_dir / "refine" / "dataset_summary.json"
+    meta = case_dir / "refine" / "model" / "meta.json"
+    if summary.is_file() and meta.is_file():
+        minutes["refine pushes"] = json.loads(summary.read_text())["minutes"]
+        minutes["refine training"] = json.loads(meta.read_text())["training"]["train_time_s"] / 60
+    return minutes
+
+
+def truth_tre(kind: str, case_dir: Path) -> dict:
+    """The tracking network's TRE against the stored P2 truth, mean per depth (mm); {} where
+    none is stored for this case."""
+    if kind not in TRUTHS:
+        return {}
+    with tempfile.TemporaryDirectory() as tmp:
+        reference = Path(tmp) / "p2.json"
+        shutil.copy(TRUTHS[kind], reference)  # truth.py may rewrite it; the stored one stays
+        out = Path(tmp) / "truth.json"
+        subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
+                        "--lesions", "0", "--depths", "10", "20", "30", "--methods", "net",
+                        "--reference", str(reference), "--out", str(out)], check=True)
+        rows = json.loads(out.read_text())["rows"]
+    tre = {}
+    for depth in (10, 20, 30):
+        values = [r["tre_mm"]["net"] for r in rows
+                  if r["depth_mm"] == depth and r["status"].get("net") == "ok"]
+        tre[f"tre_d{depth}_mm"] = float(np.mean(values)) if values else math.nan
+    tre["answered"] = f"{sum(r['status'].get('net') == 'ok' for r in rows)}/{len(rows)}"
+    return tre
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--case", choices=("phantom", "ucdavis", "ucdavis-homogeneous"),
+                   default="phantom")
+    p.add_argument("--workdir", type=Path, default=None,
+                   help="where the case is built (default: a temporary folder)")
+    p.add_argument("--keep", action="store_true", help="keep the case folder")
+    p.add_argument("--no-truth", action="store_true", help="skip the TRE against the truth")
+    args = p.parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="ttm-"))
+    case_dir = work / args.case
+    if case_dir.exists():
+        sys.exit(f"time_to_model: {case_dir} exists; the benchmark starts from nothing")
+    probes = speed_probes()
+    start = time.perf_counter()
+    timings, init_s = build_and_run(args.case, case_dir)
+    total_min = (time.perf_counter() - start) / 60
+    minutes = stage_minutes(case_dir, timings, init_s)
+    table1 = json.loads((case_dir / "eval" / "table1.json").read_text())
+    tre = {} if args.no_truth else truth_tre(args.case, case_dir)
+    meta = json.loads((case_dir / "model" / "meta.json").read_text())["training"]
+    figures = {"total_min": total_min, "stages_min": minutes,
+               "train_min": minutes.get("network training", math.nan),
+               "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
+               "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
+               **tre}
+    write_result(f"time-to-model-{args.case}", figures, speed_probes=probes)
+    if not args.keep and args.workdir is None:
+        shutil.rmtree(work, ignore_errors=True)
+    print("\n".join(f"  {k:<22} {v:6.2f} min" for k, v in minutes.items()))
+    print(f"RESULT total_min={total_min:.2f} train_min={figures['train_min']:.2f} "
+          f"tre_d10_mm={tre.get('tre_d10_mm', math.nan):.3f} "
+          f"tre_d30_mm={tre.get('tre_d30_mm', math.nan):.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
