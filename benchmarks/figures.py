@@ -157,6 +157,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("pose to lesions in Slicer's connector at 100 Hz, median / p99",
      Cell("tracking-latency", pair("rtt_p50_ms", "rtt_p99_ms"),
           "python benchmarks/tracking_latency.py CASE"), "<= 5 / 10 ms", "-"),
+    ("each lesion's 95 % error bound, fitted on UC Davis: share of the phantom's TREs within "
+     "it; worst ratio of mean bound to mean TRE over 10 / 20 / 30 mm",
+     Cell("error-bound", lambda d: (f"{d['figures']['coverage']:.0%}; "
+                                    f"{d['figures']['worst_ratio']:.1f}x"),
+          "python benchmarks/error_bound.py"), "90-97 %; <= 3x", "-"),
     ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
                          "python benchmarks/suite_time.py"), "<= 10 min", "-"),
     ("clinical MRI breasts found by label flags alone, within 15 % of a hand crop",

@@ -389,7 +389,8 @@ class DatasetSection:
                                             "extrapolation of order p. Each sample is solved on "
                                             "the case grid too, and the stored field is "
                                             "u_fine + (u_fine - u_case) h_fine^p / (h_case^p - "
-                                            "h_fine^p), both on the case grid (docs/experiments.md, "
+                                            "h_fine^p), both on the case grid "
+                                            "(docs/experiments.md, "
                                             "'An extrapolated teacher'). 0: off, the fine "
                                             "solution itself.", lo=0.0, hi=8.0)
     teacher_min_fraction: float = opt(0.2, "With teacher_refine > 1: the lower bound of the "
@@ -538,7 +539,8 @@ class RefineSection:
                               "linear baseline (with samples = 0 they follow [material] model). "
                               "'neo-hookean-split-sri-inner' (default): nearer the independent "
                               "P2 truth than 'neo-hookean' at 10, 20 and 30 mm pushes on both "
-                              "built-in cases (docs/experiments.md, 'Two laws: the mixed recipe'). A "
+                              "built-in cases (docs/experiments.md, 'Two laws: the mixed recipe'). "
+                              "A "
                               "case.toml biopsynav wrote before this key existed reads it "
                               "as its [material] model (one law, as it was made).",
                               choices=material_law_names)
@@ -551,7 +553,8 @@ class RefineSection:
                                            "built-in cases (every push answered by the springs "
                                            "as asked, the 1,000 pushes solved in half the "
                                            "time), but the network it teaches is no nearer "
-                                           "(docs/experiments.md, 'The fictitious domain'). A case.toml "
+                                           "(docs/experiments.md, 'The fictitious domain'). A "
+                                           "case.toml "
                                            "biopsynav wrote before this key existed reads it "
                                            "as its [material] fictitious_stiffness.",
                                       lo=0.0, hi=1.0)
@@ -725,7 +728,8 @@ class EvaluateSection:
                                         "edges are rounded by this radius, mm, with sides "
                                         "that no skin passes (below half the footprint's "
                                         "short side); 0: a flat face with sharp edges and no "
-                                        "sides (docs/experiments.md, 'A probe with rounded edges').",
+                                        "sides (docs/experiments.md, 'A probe with rounded "
+                                        "edges').",
                                    lo=0.0, hi=100.0)
 
 

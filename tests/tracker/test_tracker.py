@@ -235,9 +235,12 @@ def test_track_csv_fem(coarse_case, tmp_path):
     out = tmp_path / "lesions.csv"
     assert track_csv(coarse_case.dir, poses, out, engine="fem") == {"ok": 4}
     rows = out.read_text().splitlines()
-    assert rows[0] == "frame,lesion_id,x,y,z,status,reason"
+    assert rows[0] == "frame,lesion_id,x,y,z,bound_mm,status,reason"
     assert len(rows) == 1 + 4 * len(coarse_case.anatomy.lesions)
     assert all(r.endswith(",ok,") for r in rows[1:])
+    bound = {(r.split(",")[0], r.split(",")[1]): float(r.split(",")[5]) for r in rows[1:]}
+    assert all(b == 0.0 for (frame, _), b in bound.items() if frame in ("0", "2"))  # at rest
+    assert all(0.0 < b < 5.0 for (frame, _), b in bound.items() if frame in ("1", "3"))
 
 
 def test_bad_poses_csv(tmp_path):

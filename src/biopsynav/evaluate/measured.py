@@ -150,6 +150,7 @@ def _record(base: dict, method: str, result, lesion_index: int, anchor: np.ndarr
     if not result.reliable:
         return Record(**base, method=method, tre_mm=None, status=result.status,
                       reason=result.reason, time_ms=result.latency_ms)
-    predicted = anchor + result.lesions[lesion_index].displacement
+    lesion = result.lesions[lesion_index]
+    predicted = anchor + lesion.displacement
     return Record(**base, method=method, tre_mm=float(np.linalg.norm(predicted - truth)),
-                  time_ms=result.latency_ms)
+                  time_ms=result.latency_ms, bound_mm=float(lesion.bound_mm))

@@ -190,9 +190,10 @@ def method_record(base: dict, method: str, result: TrackingResult, lesion_index:
     if not result.reliable:
         return Record(**base, method=method, tre_mm=None, status=result.status,
                       reason=result.reason, time_ms=result.latency_ms)
-    tre = float(np.linalg.norm(result.lesions[lesion_index].center - true_centre))
+    lesion = result.lesions[lesion_index]
+    tre = float(np.linalg.norm(lesion.center - true_centre))
     return Record(**base, method=method, tre_mm=tre, reason=result.reason,
-                  time_ms=result.latency_ms)
+                  time_ms=result.latency_ms, bound_mm=float(lesion.bound_mm))
 
 
 def _timing(records: list[Record], ref_build_s: float, total_s: float) -> dict:

@@ -41,7 +41,8 @@ class Record:
     """One lesion, one push, one method.
 
     ``tre_mm`` is None when the method (or the ground truth) gave no trustworthy position;
-    ``reason`` then says why (solver failure, tracker status).
+    ``reason`` then says why (solver failure, tracker status). ``bound_mm``: the tracker's
+    95 % bound of that lesion (:mod:`biopsynav.tracker.bound`), where it gave one.
     """
 
     lesion: int
@@ -55,6 +56,7 @@ class Record:
     time_ms: float | None = None
     frame: int | None = None  # measured data: the poses CSV frame
     sequence: str = ""  # measured data: the poses CSV sequence
+    bound_mm: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -108,7 +108,11 @@ def point_message(rows: list[tuple[int, np.ndarray, str]], slots: LesionSlots,
                          diameters=[slots.diameters.get(i, DEFAULT_DIAMETER_MM)
                                     for i, _, _ in rows],
                          groups=[s[:32] for _, _, s in rows], timestamp=timestamp)
-    return Outgoing(msg, {"TrackingStatus": result.status, "Reason": result.reason[:200]})
+    meta = {"TrackingStatus": result.status, "Reason": result.reason[:200]}
+    bounds = bounds_text(result)
+    if bounds:
+        meta["Bound95"] = bounds[:200]
+    return Outgoing(msg, meta)
 
 
 def transform_messages(result: TrackingResult, timestamp: float | None = None
@@ -159,6 +163,29 @@ def status_text(result: TrackingResult) -> str:
     return f"{result.status}: {reason}" if reason else str(result.status)
 
 
+def bounds_text(result: TrackingResult) -> str:
+    """``"Lesion1 0.4 mm, Lesion2 1.1 mm"``: each lesion's 95 % bound (the distance from its
+    point within which the true position lies at 95 %) for a reliable result, '' otherwise."""
+    if result.status not in RELIABLE:
+        return ""
+    parts = [f"{lesion_point_name(les.id)} {les.bound_mm:.1f} mm" for les in result.lesions
+             if math.isfinite(getattr(les, "bound_mm", math.nan))]
+    return ", ".join(parts)
+
+
+def bounds_messages(result: TrackingResult, timestamp: float | None = None) -> list[Outgoing]:
+    """[the ``LesionBounds`` STRING] of a reliable result with bounds ([] otherwise): a text
+    node in Slicer beside ``TrackingStatus``, updated with every answer."""
+    text = bounds_text(result)
+    if not text:
+        return []
+    return [Outgoing(string_message(BOUNDS_DEVICE, "95 % within: " + text, timestamp),
+                     {"TrackingStatus": result.status})]
+
+
+BOUNDS_DEVICE = "LesionBounds"
+
+
 def status_message(result: TrackingResult, timestamp: float | None = None) -> Outgoing:
     """The ``TrackingStatus`` STRING."""
     return Outgoing(string_message(STATUS_DEVICE, status_text(result), timestamp),
@@ -184,4 +211,5 @@ def rest_slots(tracker) -> LesionSlots:
 
 
 __all__ = ["LesionSlots", "error_result", "lesion_model_messages", "mesh_message",
-           "point_message", "rest_slots", "status_message", "status_text", "transform_messages"]
+           "point_message", "rest_slots", "status_message", "status_text", "transform_messages",
+           "bounds_messages", "bounds_text", "BOUNDS_DEVICE"]

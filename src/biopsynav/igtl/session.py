@@ -46,6 +46,7 @@ from . import commands
 from .protocol import Message, Outgoing
 from .replies import (
     SKIN_DEVICE,
+    bounds_messages,
     error_result,
     lesion_model_messages,
     mesh_message,
@@ -287,7 +288,8 @@ class IgtlSession:
             self.stats.replies_sent += len(self.clients)
             yield None, head
             if result.status in RELIABLE:
-                yield None, transform_messages(result, timestamp)
+                yield None, transform_messages(result, timestamp) + bounds_messages(result,
+                                                                                    timestamp)
                 yield from self._models(result, models, timestamp)
         except Exception as exc:
             self.stats.tracker_failures += 1

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+
+import numpy as np
 
 from .. import fileio
 from ..case import Case
@@ -224,6 +227,9 @@ def table2_blocks(result: dict, title: str, png: Path) -> list:
         header, *rows = _grid_rows(t)
         blocks += [Para(f"{METHOD_TITLES.get(m, m)}: average {what} "
                         f"{_num(t['overall_mean'], '.3f')} mm."), GridTable(header, rows)]
+    coverage = bound_coverage(result.get("records", []))
+    if coverage:
+        blocks.append(Para(coverage))
     blocks.append(Para("The paper, on the CIRS phantom with positions from ultrasound "
                        "images: average TRE below 6.194 mm (U-Net) and 6.080 mm (FE) per "
                        "lesion; column means D10 ... D30 of 2.75, 3.39, 4.22, 5.12, 5.76 mm "
@@ -237,6 +243,21 @@ def table2_blocks(result: dict, title: str, png: Path) -> list:
                                     f"({f['displacement_mm']:.1f} mm) {f['method']}: "
                                     f"{f['status']}: {f['reason']}" for f in fails)))
     return blocks
+
+
+def bound_coverage(records: list[dict], method: str = "net") -> str:
+    """How often the tracker's 95 % bound held the network's TRE in these records ('' when
+    none carries a bound)."""
+    rows = [(r["tre_mm"], r["bound_mm"]) for r in records
+            if r.get("method") == method and r.get("tre_mm") is not None
+            and r.get("bound_mm") is not None and math.isfinite(r["bound_mm"])]
+    if not rows:
+        return ""
+    tre, bound = np.array(rows).T
+    return (f"Each lesion's 95 % bound (what the tracker sends with every position; "
+            f"docs/tracker.md, \"Error bound\"): the network's TRE lies within it in "
+            f"{int((tre <= bound).sum())} of {len(rows)} pushes here (mean bound "
+            f"{bound.mean():.2f} mm, mean TRE {tre.mean():.2f} mm).")
 
 
 def _grid_rows(t: dict) -> list[list[str]]:

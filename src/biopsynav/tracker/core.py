@@ -35,6 +35,7 @@ from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
 from ..probe import ContactInputOperator, contact_input_operator, skin_under_face
 from . import result as st
+from .bound import error_bound_mm
 from .contactset import (
     MAX_GROWN_SETS,
     NetContactSet,
@@ -421,7 +422,7 @@ class Tracker:
         except Exception as exc:  # never a confident number from a failed prediction
             return self._unreliable(st.TRACKER_ERROR, f"{type(exc).__name__}: {exc}", start)
         note = "" if self.last_solve is None else self.last_solve.fallback_note()
-        res = TrackingResult(self._lesion_results(disp, st.OK), st.OK, note, 0.0)
+        res = TrackingResult(self._lesion_results(disp, st.OK, depth), st.OK, note, 0.0)
         if with_surface:
             res.surface = self.case.anatomy.vertices + self._surface_embedding().interpolate(field)
         if with_field:
@@ -674,17 +675,20 @@ class Tracker:
             self._surface_emb = surface_embedding(self.case.grid, self.case.anatomy)
         return self._surface_emb
 
-    def _lesion_results(self, disp: np.ndarray, status: str) -> list[LesionResult]:
-        """Lesions moved by ``disp`` (n_points, 3) mm at ``_lesion_points``: centres and, when
-        ``disp`` covers them, the mesh vertices."""
+    def _lesion_results(self, disp: np.ndarray, status: str,
+                        depth_mm: float = 0.0) -> list[LesionResult]:
+        """Lesions moved by ``disp`` (n_points, 3) mm at ``_lesion_points`` by a push of
+        ``depth_mm``: centres, their 95 % bounds and, when ``disp`` covers them, the mesh
+        vertices."""
         n = len(self._lesion_ids)
+        bounds = error_bound_mm(disp[:n], depth_mm)
         if len(disp) == n:
-            return [LesionResult(i, c + d, d, status) for i, c, d in
-                    zip(self._lesion_ids, self._lesion_centres, disp, strict=True)]
+            return [LesionResult(i, c + d, d, status, bound_mm=float(b)) for i, c, d, b in
+                    zip(self._lesion_ids, self._lesion_centres, disp, bounds, strict=True)]
         moved = self._lesion_points + disp
         out, at = [], n
         for k, i in enumerate(self._lesion_ids):
-            res = LesionResult(i, moved[k], disp[k], status)
+            res = LesionResult(i, moved[k], disp[k], status, bound_mm=float(bounds[k]))
             if i in self.lesion_meshes:
                 size = len(self.lesion_meshes[i][0])
                 res.surface, at = moved[at:at + size], at + size

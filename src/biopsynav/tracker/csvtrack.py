@@ -2,8 +2,9 @@
 
 Input columns ``frame, sequence, m00 ... m23`` (top 3 x 4 of the probe-to-anatomy transform,
 mm); the first frame of each sequence is its rest pose. Output columns
-``frame, lesion_id, x, y, z, status, reason`` (NaN coordinates when the status is not
-reliable; ``reason`` says why, empty when reliable).
+``frame, lesion_id, x, y, z, bound_mm, status, reason`` (``bound_mm``: the distance within
+which the true position lies at 95 %, :mod:`biopsynav.tracker.bound`; NaN coordinates and
+bound when the status is not reliable; ``reason`` says why, empty when reliable).
 """
 
 from __future__ import annotations
@@ -76,12 +77,12 @@ def lesions_csv(tracked: list[tuple]) -> str:
     """The output CSV text of :func:`track_rows`' results, one row per lesion and pose."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["frame", "lesion_id", "x", "y", "z", "status", "reason"])
+    writer.writerow(["frame", "lesion_id", "x", "y", "z", "bound_mm", "status", "reason"])
     for frame, result in tracked:
         for les in result.lesions:
             x, y, z = les.center
-            writer.writerow([frame, les.id, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", les.status,
-                             result.reason])
+            writer.writerow([frame, les.id, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}",
+                             f"{les.bound_mm:.3f}", les.status, result.reason])
     return buf.getvalue()
 
 

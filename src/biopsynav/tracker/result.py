@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +22,8 @@ RELIABLE = (OK, REST)
 @dataclass
 class LesionResult:
     """One lesion: ``center`` (3,) predicted position, ``displacement`` (3,) from rest, mm;
+    ``bound_mm`` the distance from ``center`` within which the true position lies at 95 %
+    (:mod:`biopsynav.tracker.bound`; NaN when the status is not reliable, 0 at rest);
     ``surface`` (k, 3) its surface mesh's vertices where they moved to (the tracker's
     ``lesion_meshes`` give the faces), None when not computed."""
 
@@ -29,6 +32,7 @@ class LesionResult:
     displacement: np.ndarray
     status: str = OK
     surface: np.ndarray | None = field(default=None, repr=False)
+    bound_mm: float = math.nan
 
 
 @dataclass
