@@ -456,8 +456,10 @@ class NetworkSection:
                                  "'bf16' (autocast to bfloat16; the loss, the contact "
                                  "projection and the weights stay fp32) or 'auto' (bf16 on "
                                  "CUDA, fp32 on the CPU). 'bf16' on the CPU is refused: "
-                                 "oneDNN's bf16 kernels turned the loss NaN at random "
-                                 "(docs/network.md). Inference is always fp32.",
+                                 "in the channels-last layout oneDNN's bf16 kernels turned "
+                                 "the loss NaN at random, and the contiguous layout was no "
+                                 "faster than fp32 (benchmarks/bf16_cpu.py, "
+                                 "docs/network.md). Inference is always fp32.",
                          choices=("auto", "fp32", "bf16"))
     threads: int = opt(0, "CPU threads for training and inference (0: the idle cores, "
                           "measured when it starts).", lo=0, hi=1024)

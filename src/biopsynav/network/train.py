@@ -104,13 +104,16 @@ def use_bf16(precision: str, dev: torch.device) -> bool:
 
 
 def check_precision(precision: str, dev: torch.device) -> None:
-    """Refuse bf16 training on the CPU (InputError naming ``[network] precision``): oneDNN's
-    bf16 kernels there turned losses NaN at random (docs/experiments.md, "Training arithmetic")."""
+    """Refuse bf16 training on the CPU (InputError naming ``[network] precision``): in the
+    channels-last layout oneDNN's bf16 kernels turned losses NaN at random, and the contiguous
+    layout, which did not, was no faster than fp32 (``benchmarks/bf16_cpu.py``,
+    docs/network.md)."""
     if precision == "bf16" and dev.type == "cpu":
-        raise InputError("bf16 training on the CPU is refused: oneDNN's bf16 kernels turned "
-                         "the loss NaN at random (in 2-5 of 8 short trainings on a CPU with "
-                         "native bf16; none with oneDNN off, which is 28 times slower); use "
-                         "'fp32' or 'auto' on the CPU, 'bf16' on CUDA", "[network] precision")
+        raise InputError("bf16 training on the CPU is refused: oneDNN's channels-last bf16 "
+                         "kernels turned the loss NaN at random (3 of 4 short trainings on a "
+                         "CPU with native bf16), and the contiguous layout, stable, was no "
+                         "faster than fp32 (benchmarks/bf16_cpu.py); use 'fp32' or 'auto' on "
+                         "the CPU, 'bf16' on CUDA", "[network] precision")
 
 
 def lr_at(it: int, s: NetworkSection) -> float:
