@@ -208,13 +208,6 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
     ("tracker update, median / p99",
      Cell("tracking-latency", pair("update_p50_ms", "update_p99_ms"),
           "python benchmarks/tracking_latency.py CASE"), None, "3.14 ms per prediction (GPU)"),
-    ("one training step on the CPU, fp32 / bf16 channels-last / bf16 contiguous; bf16 "
-     "trainings whose loss turned NaN, channels-last / contiguous",
-     Cell("bf16-cpu", lambda d: (f"{fmt(d['figures']['fp32_cl_ms'], 1)} / "
-                                 f"{fmt(d['figures']['bf16_cl_ms'], 1)} / "
-                                 f"{fmt(d['figures']['bf16_contig_ms'], 1)} ms; "
-                                 f"{d['figures']['nan_cl']} / {d['figures']['nan_contig']}"),
-          "python benchmarks/bf16_cpu.py"), "-", "-"),
     ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
                          "python benchmarks/suite_time.py"), None, "-"),
 ]
