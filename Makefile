@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test interop browser-check lint bench bench-ucdavis bench-suite bench-truth clean venv lock
+.PHONY: demo test interop browser-check lint bench bench-demo bench-ucdavis bench-suite bench-truth clean venv lock
 
 venv: $(STAMP)
 
@@ -62,6 +62,10 @@ BENCH_DIR ?= /tmp/biopsynav-bench
 bench: $(STAMP)
 	$(PY) benchmarks/fem_solve.py
 	$(PY) benchmarks/generate.py
+	$(PY) benchmarks/bf16_cpu.py
+	$(PY) benchmarks/error_bound.py
+
+bench-demo: $(STAMP)
 	rm -rf $(BENCH_DIR)/phantom
 	$(PY) benchmarks/time_to_model.py --case phantom --workdir $(BENCH_DIR) --keep
 	$(PY) benchmarks/train_and_predict.py $(BENCH_DIR)/phantom --no-train
