@@ -429,9 +429,12 @@ class NetworkSection:
                                   "products of the displacement channels; the default preset "
                                   "uses them, docs/network.md).",
                         choices=("linear", "quadratic"))
-    iterations: int = opt(50000, "Training iterations (optimizer steps); the default trains "
-                                 "the phantom through the contact projection in about 25 min "
-                                 "on 2 CPU cores (BENCHMARKS.md).", lo=1, hi=10**8)
+    iterations: int = opt(50000, "Training iterations (optimizer steps). 12,000 kept Table 1 "
+                                 "on the phantom (0.0359 / 0.160 mm) but left the tracking "
+                                 "network trained further from it 16 % further from the "
+                                 "independent truth at 30 mm pushes (docs/pipeline.md); the "
+                                 "time on this machine: benchmarks/time_to_model.py.",
+                          lo=1, hi=10**8)
     batch_size: int = opt(4, "Batch size (the paper: 4).", lo=1, hi=1024)
     learning_rate: float = opt(1e-3, "Peak Adam learning rate (linear warm-up, then cosine "
                                      "decay to 1 % of it).", lo=1e-7, hi=1.0)
@@ -685,7 +688,8 @@ class IgtlSection:
                                     "development VM at 100 Hz, 2 threads gave a 3.6 ms median "
                                     "round trip against 5.8-6.0 ms with 1, and 0 picked 1 "
                                     "there while the benchmark's own processes started "
-                                    "(BENCHMARKS.md, 2026-11-24); set 1 where the cores are "
+                                    "(docs/experiments.md, 2026-11-24); set 1 where the cores "
+                                    "are "
                                     "busy with other work.", lo=0, hi=1024)
 
 

@@ -31,7 +31,7 @@ QUICK = {
 }
 
 #: The full demo evaluates Table 2 on 3 of the 10 lesions: each lesion costs 3-9 minutes of
-#: fine-grid FE reference solves on 2 cores (BENCHMARKS.md); set [evaluate] max_lesions = 0
+#: fine-grid FE reference solves on 2 cores (docs/experiments.md); set [evaluate] max_lesions = 0
 #: in demo-case/case.toml and run `biopsynav evaluate demo-case` for all of them.
 FULL_DEMO = {"evaluate": {"max_lesions": 3}}
 

@@ -101,7 +101,7 @@ def one_thread() -> Iterator[None]:
     the thread counts. For many small (hundreds of rows) dense products and solves in turn:
     there, extra threads only wait on each other, and PyTorch's spinning OpenMP workers
     starve BLAS's. Measured for the per-sample projections of the phantom, 2-core VM, beside a
-    running training: 0.15 s against 0.01 s per sample (BENCHMARKS.md)."""
+    running training: 0.15 s against 0.01 s per sample (docs/experiments.md)."""
     from threadpoolctl import threadpool_limits
 
     torch_threads = torch.get_num_threads()

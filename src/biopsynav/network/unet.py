@@ -66,7 +66,7 @@ class UNetSpec:
 #: Named presets. ``default`` was chosen by measurement (docs/network.md): a width that predicts
 #: in <= 3 ms on 2 CPU cores (wider networks trained no better in the 30-minute budget), SiLU and
 #: quadratic features (lower held-out error than ReLU and the 4 raw channels). It does not yet
-#: reach the issue's accuracy target (BENCHMARKS.md).
+#: reach every accuracy target (BENCHMARKS.md).
 PRESETS: dict[str, UNetSpec] = {
     "paper": UNetSpec(base_channels=128, levels=3),
     "default": UNetSpec(base_channels=8, levels=3, activation="silu", features="quadratic"),
