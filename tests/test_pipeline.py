@@ -95,6 +95,23 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     assert 0.0 < probe_seconds(case) < 60.0
 
 
+def test_what_remains_is_rescaled_by_what_the_stages_took():
+    """The data stage taking twice its estimate doubles the FE stages ahead; the training
+    taking half halves the training ahead; a stage that was up to date rescales nothing."""
+    from biopsynav.runtime import Estimate, remaining_minutes
+
+    est = Estimate({"generate": 2.0, "train": 10.0, "refine pushes": 3.0,
+                    "refine training": 2.0, "evaluate and report": 1.0}, 1.0)
+    assert remaining_minutes(est, {}) == pytest.approx(18.0)
+    assert remaining_minutes(est, {"anatomy and grid": 1.0, "training data": 240.0}) == \
+        pytest.approx(10.0 + 6.0 + 2.0 + 2.0)
+    assert remaining_minutes(est, {"training data": 240.0, "network training": 300.0}) == \
+        pytest.approx(6.0 + 1.0 + 2.0)
+    assert remaining_minutes(est, {"training data": 0.5}) == pytest.approx(16.0)
+    assert remaining_minutes(est, {"training data": 240.0, "network training": 300.0,
+                                   "refine": 600.0, "evaluation": 60.0}) == 0.0
+
+
 def test_the_stage_table_ends_with_the_whole_run():
     from biopsynav.runtime import stage_table
 

@@ -19,7 +19,7 @@ from .config import load_config
 from .fileio import read_json
 from .layout import CasePaths
 from .reference_registry import check_reference
-from .runtime import estimate_run, stage_table
+from .runtime import estimate_run, remaining_minutes, stage_table
 
 QUICK = {
     "grid": {"cell_size_mm": 12.0},
@@ -47,10 +47,12 @@ def _stale(output: Path, *inputs: Path) -> bool:
 
 def _banner(step: int, total: int, text: str, elapsed_s: float,
             expected_min: float | None = None) -> None:
-    """The stage's heading with the whole run's elapsed time (and the expected total)."""
+    """The stage's heading with the whole run's elapsed time (and the expected total and
+    what remains of it)."""
     clock = f"run at {elapsed_s / 60:.1f} min"
     if expected_min:
-        clock += f" of about {expected_min:.0f}"
+        left = max(expected_min - elapsed_s / 60, 0.0)
+        clock += f" of about {expected_min:.0f}, about {left:.0f} to go"
     print(f"\n[{step}/{total}] {text}  ({clock})", flush=True)
 
 
@@ -154,10 +156,13 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
 
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    expected_min: float | None = None  # set once the estimate is made; read by timed()
+    estimate = None  # made before the long stages of a new case; read by timed()
 
     def timed(step: int, text: str, key: str, stage: Callable, *args):
-        _banner(step, 6, text, time.perf_counter() - start, expected_min)
+        elapsed = time.perf_counter() - start
+        expected = (None if estimate is None
+                    else elapsed / 60 + remaining_minutes(estimate, timings))
+        _banner(step, 6, text, elapsed, expected)
         t = time.perf_counter()
         out = stage(*args)
         timings[key] = time.perf_counter() - t
@@ -167,7 +172,6 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     check_reference(case)  # a truth that cannot serve this case: said now, not after training
     if not dataset_complete(case):  # a new case: say what the whole will take first
         estimate = estimate_run(case)
-        expected_min = estimate.total
         print(f"  {estimate.line()}", flush=True)
     data_summary = timed(2, "training data (FE simulations)", "training data", data_stage,
                          case, workers)
@@ -178,7 +182,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     paths = timed(6, "report", "report", write_report, case)
     print(f"\n{stage_table(timings)}", flush=True)
     return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary,
-            "expected_min": expected_min}
+            "expected_min": None if estimate is None else estimate.total}
 
 
 def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: int = 0) -> dict:

@@ -122,6 +122,37 @@ def table2_work(case) -> float:
     return lesions * e.deformations_per_lesion / ref["table2_pushes"] * fine
 
 
+#: the estimate's stages of each of the run's stages (:func:`biopsynav.pipeline.run_case`)
+RUN_STAGES = {"training data": ("generate",), "network training": ("train",),
+              "refine": ("refine pushes", "refine training"),
+              "evaluation": ("evaluate and report",)}
+FE_STAGES = ("generate", "refine pushes", "evaluate and report")
+
+
+def remaining_minutes(estimate: Estimate, done_s: dict[str, float]) -> float:
+    """Expected minutes of the run's stages not in ``done_s`` (run stage -> seconds taken).
+    Once a stage has run, what it took against its estimate rescales the stages of its kind
+    still ahead (FE stages by the data stage, training by the network's): the estimate
+    learns this case and this day as the run goes."""
+    ratio = {"fe": _taken_ratio(estimate, done_s, "training data", "generate"),
+             "train": _taken_ratio(estimate, done_s, "network training", "train")}
+    total = 0.0
+    for stage, parts in RUN_STAGES.items():
+        if stage in done_s:
+            continue
+        for part in parts:
+            kind = "fe" if part in FE_STAGES else "train"
+            total += estimate.minutes.get(part, 0.0) * ratio[kind]
+    return total
+
+
+def _taken_ratio(estimate: Estimate, done_s: dict[str, float], stage: str, part: str) -> float:
+    """Minutes ``stage`` took over its estimate; 1 while it has not run, or when it did
+    (almost) nothing (its outputs were up to date)."""
+    expected, taken = estimate.minutes.get(part, 0.0), done_s.get(stage, 0.0) / 60.0
+    return taken / expected if expected > 0 and taken > 0.25 * expected else 1.0
+
+
 def stage_table(timings_s: dict[str, float]) -> str:
     """The run's stage times as a table (minutes), the whole run last."""
     width = max(len(k) for k in timings_s) + 2
