@@ -30,8 +30,8 @@ QUICK = {
     "refine": {"samples": 40, "held_out": 5, "iterations": 500},
 }
 
-#: The full demo evaluates Table 2 on 3 of the 10 lesions: each lesion costs 3-9 minutes of
-#: fine-grid FE reference solves on 2 cores (docs/experiments.md); set [evaluate] max_lesions = 0
+#: The full demo evaluates Table 2 on 3 of the 10 lesions: a lesion's four pushes on the 3.65 mm
+#: ground-truth grid took 26 minutes on 2 cores (docs/pipeline.md); set [evaluate] max_lesions = 0
 #: in demo-case/case.toml and run `biopsynav evaluate demo-case` for all of them.
 FULL_DEMO = {"evaluate": {"max_lesions": 3}}
 
