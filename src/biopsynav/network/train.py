@@ -110,8 +110,8 @@ def check_precision(precision: str, dev: torch.device) -> None:
     docs/network.md)."""
     if precision == "bf16" and dev.type == "cpu":
         raise InputError("bf16 training on the CPU is refused: oneDNN's channels-last bf16 "
-                         "kernels turned the loss NaN at random (3 of 4 short trainings on a "
-                         "CPU with native bf16), and the contiguous layout, stable, was no "
+                         "kernels turned the loss NaN at random (1 to 3 of 4 short trainings on "
+                         "a CPU with native bf16), and the contiguous layout, stable, was no "
                          "faster than fp32 (benchmarks/bf16_cpu.py); use 'fp32' or 'auto' on "
                          "the CPU, 'bf16' on CUDA", "[network] precision")
 
