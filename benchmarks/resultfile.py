@@ -16,17 +16,6 @@ from pathlib import Path
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def cpu_model() -> str:
-    """The CPU's model name as /proc/cpuinfo gives it ('' where there is none)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
-
-
 def cpu_flags() -> list[str]:
     """The CPU's bf16 and AMX flags (what the training arithmetic could use)."""
     try:
@@ -41,6 +30,8 @@ def cpu_flags() -> list[str]:
 def machine() -> dict:
     """The machine a figure was measured on."""
     import numpy
+
+    from biopsynav.report.machine import cpu_model
 
     info = {"cpu": cpu_model(), "cores": os.cpu_count(), "cpu_flags": cpu_flags(),
             "python": platform.python_version(), "numpy": numpy.__version__}

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from figures import depth_means
 from resultfile import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,12 +122,10 @@ def truth_tre(kind: str, case_dir: Path) -> dict:
         subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
                         "--lesions", "0", "--depths", "10", "20", "30", "--methods", "net",
                         "--reference", str(reference), "--out", str(out)], check=True)
-        rows = json.loads(out.read_text())["rows"]
-    tre = {}
-    for depth in (10, 20, 30):
-        values = [r["tre_mm"]["net"] for r in rows
-                  if r["depth_mm"] == depth and r["status"].get("net") == "ok"]
-        tre[f"tre_d{depth}_mm"] = float(np.mean(values)) if values else math.nan
+        data = json.loads(out.read_text())
+    tre = {f"tre_d{depth}_mm": mean
+           for depth, mean in zip((10, 20, 30), depth_means(data, "net"), strict=True)}
+    rows = data["rows"]
     tre["answered"] = f"{sum(r['status'].get('net') == 'ok' for r in rows)}/{len(rows)}"
     return tre
 

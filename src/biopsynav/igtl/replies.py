@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 POINT_DEVICE = "Lesions"
 STATUS_DEVICE = "TrackingStatus"
 SKIN_DEVICE = "BreastSkin"
+BOUNDS_DEVICE = "LesionBounds"
 RELIABLE_RGBA = [0, 200, 0, 255]
 UNRELIABLE_RGBA = [230, 0, 0, 255]
 DEFAULT_DIAMETER_MM = 5.0
@@ -100,8 +101,10 @@ class LesionSlots:
 
 
 def point_message(rows: list[tuple[int, np.ndarray, str]], slots: LesionSlots,
-                  result: TrackingResult, timestamp: float | None = None) -> Outgoing:
-    """The ``Lesions`` POINT of ``rows`` from :meth:`LesionSlots.rows`."""
+                  result: TrackingResult, timestamp: float | None = None,
+                  bounds: str | None = None) -> Outgoing:
+    """The ``Lesions`` POINT of ``rows`` from :meth:`LesionSlots.rows`; ``bounds``:
+    :func:`bounds_text` of ``result`` when the caller has it already."""
     rgba = [RELIABLE_RGBA if status in RELIABLE else UNRELIABLE_RGBA for _, _, status in rows]
     msg = points_message(POINT_DEVICE, np.array([c for _, c, _ in rows]),
                          [lesion_point_name(i) for i, _, _ in rows], rgba=rgba,
@@ -109,7 +112,7 @@ def point_message(rows: list[tuple[int, np.ndarray, str]], slots: LesionSlots,
                                     for i, _, _ in rows],
                          groups=[s[:32] for _, _, s in rows], timestamp=timestamp)
     meta = {"TrackingStatus": result.status, "Reason": result.reason[:200]}
-    bounds = bounds_text(result)
+    bounds = bounds_text(result) if bounds is None else bounds
     if bounds:
         meta["Bound95"] = bounds[:200]
     return Outgoing(msg, meta)
@@ -173,17 +176,17 @@ def bounds_text(result: TrackingResult) -> str:
     return ", ".join(parts)
 
 
-def bounds_messages(result: TrackingResult, timestamp: float | None = None) -> list[Outgoing]:
+def bounds_messages(result: TrackingResult, timestamp: float | None = None,
+                    text: str | None = None) -> list[Outgoing]:
     """[the ``LesionBounds`` STRING] of a reliable result with bounds ([] otherwise): a text
-    node in Slicer beside ``TrackingStatus``, updated with every answer."""
-    text = bounds_text(result)
+    node in Slicer beside ``TrackingStatus``, updated with every answer. ``text``:
+    :func:`bounds_text` of ``result`` when the caller has it already."""
+    text = bounds_text(result) if text is None else text
     if not text:
         return []
     return [Outgoing(string_message(BOUNDS_DEVICE, "95 % within: " + text, timestamp),
                      {"TrackingStatus": result.status})]
 
-
-BOUNDS_DEVICE = "LesionBounds"
 
 
 def status_message(result: TrackingResult, timestamp: float | None = None) -> Outgoing:

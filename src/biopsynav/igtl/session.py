@@ -47,6 +47,7 @@ from .protocol import Message, Outgoing
 from .replies import (
     SKIN_DEVICE,
     bounds_messages,
+    bounds_text,
     error_result,
     lesion_model_messages,
     mesh_message,
@@ -283,13 +284,14 @@ class IgtlSession:
         try:
             head = self._status_due(result, timestamp, now)
             rows = self.slots.rows(result)
+            bounds = bounds_text(result)  # the POINT's metadata and the LesionBounds STRING
             if rows:
-                head.append(point_message(rows, self.slots, result, timestamp))
+                head.append(point_message(rows, self.slots, result, timestamp, bounds))
             self.stats.replies_sent += len(self.clients)
             yield None, head
             if result.status in RELIABLE:
-                yield None, transform_messages(result, timestamp) + bounds_messages(result,
-                                                                                    timestamp)
+                yield None, (transform_messages(result, timestamp)
+                             + bounds_messages(result, timestamp, bounds))
                 yield from self._models(result, models, timestamp)
         except Exception as exc:
             self.stats.tracker_failures += 1
