@@ -107,9 +107,9 @@ class Cell:
 
 
 TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
-             "benchmarks/results/phantom-p2-d30.json")
+             "src/biopsynav/data/truths/phantom.json")
 UCD_TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
-                 "benchmarks/results/ucdavis-homogeneous-p2-d30.json")
+                 "src/biopsynav/data/truths/ucdavis-homogeneous.json")
 TTM = "python benchmarks/time_to_model.py --case {}"
 
 #: BENCHMARKS.md: (what, cell, target, paper)

@@ -18,7 +18,7 @@ different speeds on different days): one U-Net training step on the phantom's gr
 
 Accuracy: Table 1 (``CASE/eval/table1.json``: mean and max e of the case network against its
 own FE teacher on the held-out force patches), and, where a P2 truth of the case's anatomy and
-material is stored under ``benchmarks/results/`` (the phantom; UC Davis as one material), the
+material is stored in ``src/biopsynav/data/truths/`` (the phantom; UC Davis as one material), the
 tracking network's lesion TRE against it at 10 / 20 / 30 mm over every lesion
 (``benchmarks/truth.py CASE --lesions 0 --methods net``; a minute or two, the truth is not
 solved again). The three-tissue breast has no such truth (the P2 reference is homogeneous), so
@@ -47,9 +47,9 @@ from resultfile import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 UCDAVIS = ROOT.parent / "shared" / "data" / "ucdavis_breast3" / "volmesh3.vtk"
-RESULTS = ROOT / "benchmarks" / "results"
-TRUTHS = {"phantom": RESULTS / "phantom-p2-d30.json",
-          "ucdavis-homogeneous": RESULTS / "ucdavis-homogeneous-p2-d30.json"}
+TRUTHS_DIR = ROOT / "src" / "biopsynav" / "data" / "truths"  # the stored P2 truths
+TRUTHS = {"phantom": TRUTHS_DIR / "phantom.json",
+          "ucdavis-homogeneous": TRUTHS_DIR / "ucdavis-homogeneous.json"}
 
 
 def speed_probes() -> dict:

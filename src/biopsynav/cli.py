@@ -362,7 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(frame,lesion_id,x,y,z) for Table 2 from user data")
     p.add_argument("--reference", choices=reference_names(),
                    help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
-                        "reference): fine_grid, or p2, an independent tetrahedral FE")
+                        "reference): fine_grid; p2, an independent tetrahedral FE; or stored, "
+                        "that FE's answers computed once and kept")
 
     p = add("track", cmd_track, "Track lesions along a CSV of probe poses.")
     p.add_argument("case_dir", type=Path)

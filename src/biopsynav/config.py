@@ -715,8 +715,17 @@ class EvaluateSection:
                                       "(this FE on a grid reference_refinement times finer) or "
                                       "'p2' (an independent FE: quadratic tetrahedra of a gmsh "
                                       "mesh, one homogeneous material; minutes per push, kept "
-                                      "in eval/ and resumed; needs gmsh; docs/evaluation.md).",
+                                      "in eval/ and resumed; needs gmsh) or 'stored' (that "
+                                      "independent FE's answers computed once by "
+                                      "benchmarks/truth.py and kept: truth_file, or the one "
+                                      "shipped for the built-in phantom and the UC Davis "
+                                      "breast as one material; the lesions pushed to its "
+                                      "depths; seconds; docs/evaluation.md).",
                          choices=reference_names)
+    truth_file: str = opt("", "The stored truth of reference = 'stored', relative to the case "
+                              "folder (a --reference file of benchmarks/truth.py); empty: the "
+                              "truth shipped with biopsynav whose anatomy, material and probe "
+                              "are this case's.")
     p2_size_mm: float = opt(10.0, "P2 reference: tetrahedron size away from the probe.",
                             lo=1.0, hi=100.0)
     p2_fine_mm: float = opt(4.0, "P2 reference: tetrahedron size within 35 mm of the probe.",

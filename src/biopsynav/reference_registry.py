@@ -60,3 +60,4 @@ def check_reference(case: Any) -> None:
 
 register_reference("fine_grid", "biopsynav.evaluate.references:GridReference")
 register_reference("p2", "biopsynav.evaluate.references:P2Reference")
+register_reference("stored", "biopsynav.evaluate.stored:StoredTruth")

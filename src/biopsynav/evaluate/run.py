@@ -79,6 +79,9 @@ def _source_line(result: dict) -> str:
         return (f"Ground truth: lesion positions measured by the user "
                 f"({result['inputs']['measured']}; poses {result['inputs']['poses']}).")
     ref = result["reference"]
+    if ref.get("kind") == "stored":
+        return (f"Ground truth: {ref['description']}; the same rigid-probe pushes, each lesion "
+                "to the stored depths.")
     if ref.get("kind") == "p2":
         return (f"Ground truth: {ref['description']}; the same rigid-probe contact (training "
                 f"grid {ref['training_cell_size_mm']:g} mm, {ref['training_active_cells']} "

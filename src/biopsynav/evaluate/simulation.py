@@ -101,15 +101,17 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     setup = setup_for(case, quick)
     settings = evaluation_solver_settings(case)
     reference = build_reference(case, setup, settings)
-    log(f"Table 2: ground truth {reference.describe()}; {len(setup.lesions)} lesions x "
-        f"{setup.pushes} pushes up to {setup.max_push_mm:g} mm")
+    lesions = _reference_lesions(reference, setup.lesions)
+    pushes = (f"{setup.pushes} pushes up to {setup.max_push_mm:g} mm"
+              if getattr(reference, "push_depths", None) is None else "its pushes")
+    log(f"Table 2: ground truth {reference.describe()}; {len(lesions)} lesions x {pushes}")
     trackers = _method_trackers(case, methods, settings)
     records: list[Record] = []
     placements = []
-    for k, li in enumerate(setup.lesions):
+    for k, li in enumerate(lesions):
         t_les = time.perf_counter()
         placement = place_probe(case.anatomy, li)
-        depths = push_depths(k, setup.pushes, setup.max_push_mm)
+        depths = _depths(reference, li, push_depths(k, setup.pushes, setup.max_push_mm))
         n_contact = _set_rest(placement, reference, trackers)
         placements.append({**placement.to_dict(), "n_contact": n_contact,
                            "push_depths_mm": depths.tolist()})
@@ -117,7 +119,7 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
             records += push_records(placement, li, p, float(depth), reference, trackers, methods)
         log(f"  lesion {placement.lesion}: {n_contact} contact points, pushes "
             f"{', '.join(f'{d:.1f}' for d in depths)} mm, {time.perf_counter() - t_les:.1f} s")
-    lesion_ids = [int(case.anatomy.lesions[i].id) for i in setup.lesions]
+    lesion_ids = [int(case.anatomy.lesions[i].id) for i in lesions]
     return {
         "source": "simulation",
         "methods": list(methods),
@@ -132,6 +134,21 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
         "failures": [r.to_dict() for r in records if r.tre_mm is None],
         "timing": _timing(records, reference.build_s, time.perf_counter() - t_start),
     }
+
+
+def _reference_lesions(reference, lesions: list[int]) -> list[int]:
+    """The lesion indices of ``lesions`` that ``reference`` answers (all, unless it names
+    those it holds: a stored truth)."""
+    held = getattr(reference, "lesion_indices", None)
+    return lesions if held is None else [li for li in lesions if li in set(held())]
+
+
+def _depths(reference, lesion_index: int, default: np.ndarray) -> np.ndarray:
+    """The push depths (mm) of a lesion: the reference's own (a stored truth's) or
+    ``default``."""
+    own = getattr(reference, "push_depths", None)
+    depths = None if own is None else own(lesion_index)
+    return default if depths is None else depths
 
 
 def _method_trackers(case: Case, methods: Sequence[str],

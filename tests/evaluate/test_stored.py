@@ -1,0 +1,65 @@
+"""Table 2 against a stored truth (``[evaluate] reference = "stored"``)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from biopsynav.case import make_phantom_case
+from biopsynav.errors import InputError
+from biopsynav.evaluate.simulation import run_simulation
+from biopsynav.evaluate.stored import StoredTruth, find_truth, shipped_truths
+
+STORED = {"evaluate": {"reference": "stored"}}
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    return make_phantom_case(tmp_path_factory.mktemp("stored") / "ph", overrides=STORED)
+
+
+def test_the_phantom_finds_its_shipped_truth(phantom):
+    path, data = find_truth(phantom)
+    assert path.name == "phantom.json"
+    assert path in shipped_truths()
+    assert data["key"]["anatomy"] == phantom.anatomy.fingerprint()
+
+
+def test_rigid_tre_is_the_stored_motion_of_every_lesion_and_depth(phantom):
+    """The rigid assumption's TRE is the truth's displacement: every stored push was found
+    by its pose, at the stored depths, for every lesion."""
+    result = run_simulation(phantom, methods=("rigid",), log=lambda _: None)
+    stored = json.loads(find_truth(phantom)[0].read_text())["lesions"]
+    records = [r for r in result["records"] if r["method"] == "rigid"]
+    assert len(records) == 3 * len(phantom.anatomy.lesions)
+    for r in records:
+        li = next(i for i, les in enumerate(phantom.anatomy.lesions) if les.id == r["lesion"])
+        depth = round(r["displacement_mm"])
+        want = stored[str(li)]["displacement"][[10, 20, 30].index(depth)]
+        assert r["tre_mm"] == pytest.approx(float(np.linalg.norm(want)), abs=1e-9)
+    assert result["reference"]["kind"] == "stored"
+    assert result["timing"]["total_s"] < 60.0  # nothing is solved
+
+
+def test_another_material_is_refused_naming_it(tmp_path):
+    case = make_phantom_case(tmp_path / "soft", overrides={
+        **STORED, "material": {"tissues": {"phantom": {"E_mpa": 0.004, "nu": 0.45}}}})
+    with pytest.raises(InputError, match="E_mpa differ"):
+        StoredTruth.check(case)
+
+
+def test_a_broken_truth_file_is_refused_naming_it(tmp_path):
+    (tmp_path / "ph").mkdir()
+    (tmp_path / "ph" / "truth.json").write_text("{not json")
+    case = make_phantom_case(tmp_path / "ph", overwrite=True, overrides={
+        "evaluate": {"reference": "stored", "truth_file": "truth.json"}})
+    with pytest.raises(InputError, match="truth.json is not JSON"):
+        StoredTruth.check(case)
+
+
+def test_a_pose_it_does_not_hold_is_not_answered(phantom):
+    ref = StoredTruth(phantom, None, None)
+    ref.set_rest_pose(np.eye(4))
+    assert not ref.update(np.eye(4)).reliable
