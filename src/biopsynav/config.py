@@ -688,7 +688,7 @@ class IgtlSection:
                                     "development VM at 100 Hz, 2 threads gave a 3.6 ms median "
                                     "round trip against 5.8-6.0 ms with 1, and 0 picked 1 "
                                     "there while the benchmark's own processes started "
-                                    "(docs/experiments.md, 2026-11-24); set 1 where the cores "
+                                    "(docs/igtl.md); set 1 where the cores "
                                     "are "
                                     "busy with other work.", lo=0, hi=1024)
 
