@@ -106,6 +106,13 @@ class Cell:
         return (data or {}).get("date", "-")
 
 
+def per_depth(key: str) -> Callable[[dict], str]:
+    """Renderer of one distance per row (depth) of a truth-agreement result, mm."""
+    return lambda data: " / ".join(fmt(r[key], 3) for r in data["figures"]["rows"]) + " mm"
+
+
+AGREE_CMD = ("python benchmarks/truth_agreement.py --lesion-ids 0 --stored "
+             "src/biopsynav/data/truths/phantom.json")
 TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
              "src/biopsynav/data/truths/phantom.json")
 UCD_TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
@@ -144,6 +151,17 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "within 0.3 mm of converged at 30 mm", "-"),
     ("the same: the rigid assumption",
      Cell("phantom-default-mixed-d30-all-truth", tre("rigid"), TRUTH_CMD), "-", "-"),
+    ("the P2 truth against a second FE code (NGSolve, the same tetrahedra, the face glued), "
+     "phantom lesion 1 at 10 / 20 / 30 mm: distance between their lesion displacements",
+     Cell("truth-agreement-phantom", per_depth("codes_mm"), AGREE_CMD + " --orders 2"),
+     "<= 0.2 mm at 30 mm", "-"),
+    ("the same: what the probe body changes (the stored truth, reached skin sliding on the "
+     "face, against the glued face)",
+     Cell("truth-agreement-phantom", per_depth("contact_mm"), AGREE_CMD + " --orders 2"),
+     "-", "-"),
+    ("the same at 10 mm: NGSolve's P3 against its P2 on the same mesh",
+     Cell("truth-agreement-phantom-p3", per_depth("p3_mm"), AGREE_CMD + " --depths 10 "
+          "--orders 2 3 --result-name truth-agreement-phantom-p3"), "<= 0.1 mm", "-"),
     ("UC Davis (one material), every lesion: the network (defaults of 2026-11-30)",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
     ("the same: its FE teacher",

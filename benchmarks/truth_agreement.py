@@ -1,0 +1,247 @@
+"""Does the P2 truth agree with a second FE code? biopsynav's own P2 tetrahedral FE
+(``biopsynav.evaluate.p2``, the truth of ``truth.py`` and Table 2) against NGSolve
+(``benchmarks/ngsolve_peer.py``) on the same rigid-probe pushes and the same tetrahedra.
+
+    python benchmarks/truth_agreement.py [CASE] [--lesion-ids 1,5] [--depths 10 20 30]
+                                         [--tet-size 10] [--tet-fine 4] [--orders 2 3]
+                                         [--stored src/biopsynav/data/truths/phantom.json]
+                                         [--push-minutes 20] [--out FILE]
+                                         [--result-name NAME | --no-result-file]
+
+CASE: a case folder (default: the built-in phantom, made in a temporary folder). For each
+lesion (indices, as ``truth.py --lesion-ids``) the probe is placed as in Table 2 and pushed
+along its beam to each depth, with the face glued to the skin it touches at rest (no probe
+body: skin the face reaches later is free, ``convergence.py --no-probe-body``), the
+chest-wall plane fixed, homogeneous neo-Hookean with the E and nu of the case's default
+tissue. Answered by:
+
+* ``p2``: biopsynav's P2 reference on gmsh's tetrahedra (``--tet-size`` mm, ``--tet-fine`` mm
+  within 35 mm of the probe);
+* ``ngsolve pK``: NGSolve on the same tetrahedra with elements of each order K of
+  ``--orders`` (2: the same element; 3 and up: p refinement on the same mesh, which tells
+  how far the P2 answer is from converged on that mesh).
+
+Printed per lesion and depth: each answer's lesion displacement |u| (mm) and the distance
+between displacement vectors: p2 against NGSolve p2 (the two codes on one discretisation),
+NGSolve p2 against its higher orders (p convergence), and, with ``--stored`` (a truth file of
+``truth.py``: the probe a rigid body on which reached skin slides), the stored truth against
+p2 glued (what the probe body changes: the contact model). Writes
+``benchmarks/results/truth-agreement-<case>.json``; the last line reads ``RESULT
+codes_max_mm=... p_max_mm=... contact_max_mm=...`` (the largest of each distance).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from resultfile import write_result
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_case(case_dir: Path | None):
+    """The case at ``case_dir``, or the built-in phantom made in a temporary folder."""
+    from biopsynav.case import Case, make_phantom_case
+
+    if case_dir is None:
+        return make_phantom_case(Path(tempfile.mkdtemp(prefix="agree-")) / "phantom"), "phantom"
+    return Case.load(case_dir), case_dir.name
+
+
+def glued_model(case, e_mpa: float, nu: float, placement, args) -> SimpleNamespace:
+    """biopsynav's P2 model meshed for ``placement`` and the glued face's node sets, taken
+    alike by both codes: the skin vertices the face touches at rest (the tracker's rule) and
+    the edge midpoints between two of them (a rigid translation's quadratic trace); the chest
+    wall's vertices and the midpoints between two of them."""
+    from biopsynav.evaluate.p2 import EDGES, TetReference
+
+    probe = case.cfg.probe
+    ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
+                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine)
+    n_vertices = int(ref.corners.max()) + 1
+    touched = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
+    held = touched[touched < n_vertices]
+    fixed = ref.fixed_nodes[ref.fixed_nodes < n_vertices]
+    return SimpleNamespace(ref=ref, n_vertices=n_vertices, held=held, fixed=fixed,
+                           contact=with_midpoints(ref.elements, EDGES, held, len(ref.nodes)))
+
+
+def with_midpoints(elements: np.ndarray, edges: np.ndarray, vertices: np.ndarray,
+                   n_nodes: int) -> np.ndarray:
+    """``vertices`` and the midside nodes (of P2 ``elements`` (t, 10), edges ``edges``)
+    whose two ends are both among them."""
+    inside = np.zeros(n_nodes, dtype=bool)
+    inside[vertices] = True
+    both = inside[elements[:, edges]].all(axis=-1)  # (t, 6)
+    return np.union1d(vertices, elements[:, 4:][both])
+
+
+def p2_glued(model: SimpleNamespace, placement, lesion: np.ndarray, depths: list[float],
+             args) -> tuple[list, dict]:
+    """biopsynav's P2 answers of the glued face (no probe body): the lesion displacement per
+    depth (None past a failure) and the run's facts."""
+    ref, out, failure = model.ref, [], ""
+    t0 = time.perf_counter()
+    limit = 60.0 * args.push_minutes if args.push_minutes > 0 else None
+    for depth in depths:
+        try:
+            (u,) = ref.push(placement.pose, [placement.pushed(depth)], model.contact,
+                            lesion[None], start=ref.last if out else None, time_limit_s=limit)
+        except Exception as exc:  # noqa: BLE001 - a failure (or give-up) ends the lesion
+            failure = f"{depth:g} mm: {exc or type(exc).__name__}"
+            break
+        out.append(u[0].tolist())
+    facts = {"dofs": ref.n_dofs, "tets": len(ref.elements), "held_nodes": len(model.contact),
+             "seconds": time.perf_counter() - t0, "failure": failure}
+    return out + [None] * (len(depths) - len(out)), facts
+
+
+def ngsolve_glued(model: SimpleNamespace, e_mpa: float, nu: float, placement,
+                  lesion: np.ndarray, depths: list[float], order: int) -> dict:
+    """NGSolve's answers on the P2 model's own tetrahedra, elements of ``order``."""
+    from ngsolve_peer import NgsolvePush, push_depths
+
+    ref = model.ref
+    t0 = time.perf_counter()
+    problem = NgsolvePush(ref.nodes[:model.n_vertices], ref.corners, e_mpa, nu, model.fixed,
+                          model.held, order=order)
+    out = push_depths(problem, placement.pose[:3, 2], depths, lesion)
+    return {"displacement": out.displacement, "dofs": out.dofs, "failure": out.failure,
+            "seconds": time.perf_counter() - t0, "newton_per_step": out.newton}
+
+
+def distance(a, b) -> float | None:
+    """|a - b| (mm) of two displacement vectors, None where either is missing."""
+    if a is None or b is None:
+        return None
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)))
+
+
+def stored_truth(path: Path | None, case) -> dict:
+    """The stored truth's lesions (``truth.py``'s file) when it is of this anatomy, else {}."""
+    if path is None:
+        return {}
+    data = json.loads(path.read_text())
+    if data["key"]["anatomy"] != case.anatomy.fingerprint():
+        print(f"{path}: another anatomy; the contact model's column is left out", flush=True)
+        return {}
+    depths = data["key"]["depths_mm"]
+    return {li: {**entry, "depths_mm": depths} for li, entry in data["lesions"].items()}
+
+
+def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
+                stored: dict) -> list[dict]:
+    """One row per depth of lesion index ``li``: every answer's |u| and the distances."""
+    rows = []
+    body = stored.get(str(li), {}).get("displacement", [None] * len(depths))
+    body_depths = stored.get(str(li), {}).get("depths_mm", depths)
+    for k, depth in enumerate(depths):
+        row = {"lesion": li, "depth_mm": depth, "p2": p2[k],
+               **{f"ngsolve_p{o}": ans["displacement"][k] for o, ans in ng.items()}}
+        row["codes_mm"] = distance(p2[k], ng.get(2, {}).get("displacement", [None] * 9)[k])
+        for order in ng:
+            if order != 2 and 2 in ng:
+                row[f"p{order}_mm"] = distance(ng[2]["displacement"][k],
+                                               ng[order]["displacement"][k])
+        stored_k = body[body_depths.index(depth)] if depth in body_depths else None
+        row["probe_body"] = stored_k
+        row["contact_mm"] = distance(stored_k, p2[k])
+        rows.append(row)
+    return rows
+
+
+def norm_text(v) -> str:
+    return "-" if v is None else f"{np.linalg.norm(v):6.2f}"
+
+
+def num_text(v) -> str:
+    return "-" if v is None else f"{v:6.3f}"
+
+
+def print_rows(rows: list[dict], orders: list[int]) -> None:
+    """The table: |u| of each answer and the distances, mm."""
+    higher = [o for o in orders if o != 2]
+    head = (["lesion", "depth", "|u| p2", *[f"|u| ng p{o}" for o in orders], "p2-ng"]
+            + [f"ng p2-p{o}" for o in higher] + ["|u| body", "body-glued"])
+    print("  ".join(f"{h:>9}" for h in head))
+    for r in rows:
+        cells = ([str(r["lesion"]), f"{r['depth_mm']:g}", norm_text(r["p2"])]
+                 + [norm_text(r.get(f"ngsolve_p{o}")) for o in orders] + [num_text(r["codes_mm"])]
+                 + [num_text(r.get(f"p{o}_mm")) for o in higher]
+                 + [norm_text(r["probe_body"]), num_text(r["contact_mm"])])
+        print("  ".join(f"{c:>9}" for c in cells), flush=True)
+
+
+def largest(rows: list[dict], key: str) -> float:
+    values = [r[key] for r in rows if r.get(key) is not None]
+    return max(values) if values else float("nan")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from biopsynav.evaluate.placement import place_probe
+    from biopsynav.evaluate.references import default_tissue_material
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("case_dir", type=Path, nargs="?", default=None)
+    p.add_argument("--lesion-ids", default="0", help="lesion indices, comma-separated")
+    p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0])
+    p.add_argument("--tet-size", type=float, default=10.0)
+    p.add_argument("--tet-fine", type=float, default=4.0)
+    p.add_argument("--orders", type=int, nargs="+", default=[2, 3])
+    p.add_argument("--push-minutes", type=float, default=0.0,
+                   help="give a P2 push up that long (0: no limit)")
+    p.add_argument("--stored", type=Path, default=None,
+                   help="a truth.py file of the same case: the probe-body truth")
+    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--result-name", default=None,
+                   help="the result file's name (default truth-agreement-<case>)")
+    p.add_argument("--no-result-file", action="store_true",
+                   help="write no file under benchmarks/results (a check, not a benchmark)")
+    args = p.parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
+    case, name = load_case(args.case_dir)
+    e_mpa, nu = default_tissue_material(case)
+    stored = stored_truth(args.stored, case)
+    rows, facts = [], {}
+    for li in (int(s) for s in args.lesion_ids.split(",")):
+        placement = place_probe(case.anatomy, li)
+        lesion = np.asarray(case.anatomy.lesions[li].center)
+        model = glued_model(case, e_mpa, nu, placement, args)
+        p2, p2_facts = p2_glued(model, placement, lesion, args.depths, args)
+        ng = {o: ngsolve_glued(model, e_mpa, nu, placement, lesion, args.depths, o)
+              for o in args.orders}
+        facts[str(li)] = {"p2": p2_facts,
+                          **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
+                             for o, a in ng.items()}}
+        print(f"lesion {li}: P2 {p2_facts['dofs']} dofs {p2_facts['seconds']:.0f} s"
+              f"{' (' + p2_facts['failure'] + ')' if p2_facts['failure'] else ''}; "
+              + "; ".join(f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s"
+                          + (f" ({a['failure']})" if a["failure"] else "")
+                          for o, a in ng.items()), flush=True)
+        rows += lesion_rows(li, args.depths, p2, ng, stored)
+    print_rows(rows, args.orders)
+    higher = [o for o in args.orders if o != 2]
+    figures = {"codes_max_mm": largest(rows, "codes_mm"),
+               "p_max_mm": max((largest(rows, f"p{o}_mm") for o in higher), default=float("nan")),
+               "contact_max_mm": largest(rows, "contact_mm"),
+               "E_mpa": e_mpa, "nu": nu, "tet_size_mm": args.tet_size,
+               "tet_fine_mm": args.tet_fine, "rows": rows, "facts": facts}
+    if args.out:
+        args.out.write_text(json.dumps(figures, indent=1))
+    if not args.no_result_file:
+        write_result(args.result_name or f"truth-agreement-{name}", figures)
+    print(f"RESULT codes_max_mm={figures['codes_max_mm']:.4f} p_max_mm={figures['p_max_mm']:.4f}"
+          f" contact_max_mm={figures['contact_max_mm']:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
