@@ -10,8 +10,8 @@ codes can be compared on the same tetrahedra:
   ``W = mu / 2 (tr C - 3) - mu ln J + lam / 2 (ln J)^2`` (E MPa, nu), NGSolve's ``VectorH1``
   of any order (2: the P2 reference's element; 3 and up: p refinement on the same mesh),
   integrated by a rule of ``intorder``;
-* fixed: the boundary vertices within ``chest_tol_mm`` of the chest-wall plane (and every
-  edge, face and cell dof whose vertices are all fixed: the trace is zero there);
+* fixed: the chest wall's vertices handed in (``fixed``), and every edge and face dof whose
+  vertices are all fixed (the trace is zero there);
 * moved: the boundary vertices that the face holds at rest (``held``: the tracker's rule,
   :func:`biopsynav.tracker.contact_indices` on the mesh's boundary vertices) translate by the
   push, and the higher-order dofs of edges and faces between them stay zero (a rigid
@@ -26,7 +26,6 @@ Requires ``ngsolve`` (``pip install 'biopsynav[peer]'``).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -52,23 +51,13 @@ def netgen_mesh(points: np.ndarray, tets: np.ndarray) -> ngs.Mesh:
     return ngs.Mesh(m)
 
 
-def boundary_vertices(tets: np.ndarray) -> np.ndarray:
-    """The vertex indices on the boundary of the tetrahedra (t, 4): those of faces that one
-    tetrahedron alone holds."""
-    faces = np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]],
-                                    tets[:, [1, 2, 3]]]), axis=1)
-    uniq, counts = np.unique(faces, axis=0, return_counts=True)
-    return np.unique(uniq[counts == 1])
-
-
 @dataclass
 class NgPush:
     """One lesion's pushes by NGSolve: the lesion displacement (3,) mm per depth (None past a
-    failure), the number of dofs, seconds and the failure, if any."""
+    failure), the number of dofs, the failure, if any, and the Newton iterations per step."""
 
     displacement: list = field(default_factory=list)
     dofs: int = 0
-    seconds: float = 0.0
     failure: str = ""
     newton: list = field(default_factory=list)
 
@@ -92,10 +81,8 @@ class NgsolvePush:
         self.form = ngs.BilinearForm(self.fes, symmetric=True)
         self.form += ngs.Variation(energy.Compile() * ngs.dx(
             intrules={ngs.TET: ngs.IntegrationRule(ngs.TET, intorder)}))
-        self.held_dofs = self._dofs_of(held)
-        self.fixed_dofs = self._dofs_of(fixed)
         self.free = self.fes.FreeDofs()
-        for d in (*self.held_dofs, *self.fixed_dofs):
+        for d in (*self._dofs_of(held), *self._dofs_of(fixed)):
             self.free.Clear(int(d))
         self.u = ngs.GridFunction(self.fes)
         self._vertex_dofs = self._vertex_component_dofs(held)
@@ -177,8 +164,8 @@ class NgsolvePush:
             self.u.vec.data = saved
             raise RuntimeError("the step's predictor inverts an element")
         self.u.vec.data = trial
+        zero = self.boundary_values(np.zeros(3))
         for it in range(1, max_iter + 1):
-            zero = self.boundary_values(np.zeros(3))
             du = self._newton_step(zero)
             if not self._line_search(du, self.energy(self.u.vec)):
                 self.u.vec.data = saved
@@ -200,7 +187,6 @@ def push_depths(problem: NgsolvePush, direction: np.ndarray, depths: list[float]
     steps of at most ``step_mm`` (halved where one fails), the lesion ``lesion`` (3,) mm
     displacement recorded at each depth."""
     out = NgPush(dofs=problem.n_dofs)
-    t0 = time.perf_counter()
     done = 0.0
     for depth in depths:
         while done < depth - 1e-9:
@@ -214,9 +200,7 @@ def push_depths(problem: NgsolvePush, direction: np.ndarray, depths: list[float]
                     step /= 2.0
                     if step < min_step_mm:
                         out.failure = f"{depth:g} mm: {exc}"
-                        out.seconds = time.perf_counter() - t0
                         out.displacement += [None] * (len(depths) - len(out.displacement))
                         return out
         out.displacement.append(problem.displacement_at(lesion).tolist())
-    out.seconds = time.perf_counter() - t0
     return out

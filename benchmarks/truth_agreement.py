@@ -146,7 +146,7 @@ def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
     for k, depth in enumerate(depths):
         row = {"lesion": li, "depth_mm": depth, "p2": p2[k],
                **{f"ngsolve_p{o}": ans["displacement"][k] for o, ans in ng.items()}}
-        row["codes_mm"] = distance(p2[k], ng.get(2, {}).get("displacement", [None] * 9)[k])
+        row["codes_mm"] = distance(p2[k], ng[2]["displacement"][k] if 2 in ng else None)
         for order in ng:
             if order != 2 and 2 in ng:
                 row[f"p{order}_mm"] = distance(ng[2]["displacement"][k],

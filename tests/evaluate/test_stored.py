@@ -50,13 +50,21 @@ def test_another_material_is_refused_naming_it(tmp_path):
         StoredTruth.check(case)
 
 
-def test_a_broken_truth_file_is_refused_naming_it(tmp_path):
+@pytest.mark.parametrize("content, message", [
+    ("{not json", "truth.json is not JSON"),
+    ('{"lesions": {}}', "truth.json has no 'key' and 'lesions'"),
+    (None, "cannot read the stored truth .*truth.json"),
+])
+def test_a_broken_truth_file_is_refused_naming_it(tmp_path, content, message):
     (tmp_path / "ph").mkdir()
-    (tmp_path / "ph" / "truth.json").write_text("{not json")
+    if content is not None:
+        (tmp_path / "ph" / "truth.json").write_text(content)
     case = make_phantom_case(tmp_path / "ph", overwrite=True, overrides={
         "evaluate": {"reference": "stored", "truth_file": "truth.json"}})
-    with pytest.raises(InputError, match="truth.json is not JSON"):
+    with pytest.raises(InputError, match=message):
         StoredTruth.check(case)
+    if content is not None:  # nothing written over the user's file
+        assert (tmp_path / "ph" / "truth.json").read_text() == content
 
 
 def test_a_pose_it_does_not_hold_is_not_answered(phantom):

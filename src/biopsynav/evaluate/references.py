@@ -152,21 +152,21 @@ class P2Reference:
 
         start = time.perf_counter()
         pose = as_pose(pose)
-        name = _pose_key(self._rest, pose)
+        name = pose_key(self._rest, pose)
         if name not in self.answers:
             try:
                 disp = self._solve(pose)
             except (FloatingPointError, RuntimeError) as exc:
                 self._last = None  # the next push starts from rest
-                return _result(self.ids, self.centres, None, st.SOLVER_FAILED,
-                               f"P2 reference: {exc}", start)
+                return reference_result(self.ids, self.centres, None, st.SOLVER_FAILED,
+                                        f"P2 reference: {exc}", start)
             self.answers[name] = {"displacement_mm": disp,
                                   "solve_ms": (time.perf_counter() - start) * 1e3,
                                   "tangled_elements": len(self._model.tangled(self._last))}
             self._write_cache()
         answer = self.answers[name]
-        res = _result(self.ids, self.centres, np.asarray(answer["displacement_mm"]), st.OK, "",
-                      start)
+        res = reference_result(self.ids, self.centres, np.asarray(answer["displacement_mm"]),
+                               st.OK, "", start)
         res.latency_ms = float(answer["solve_ms"])  # the solve's, also when kept from before
         return res
 
@@ -273,14 +273,14 @@ def default_tissue_material(case: Any) -> tuple[float, float]:
     return float(tissue["E_mpa"]), float(tissue["nu"])
 
 
-def _pose_key(rest: np.ndarray, pose: np.ndarray) -> str:
+def pose_key(rest: np.ndarray, pose: np.ndarray) -> str:
     """A cache key of a push: rest pose and pose rounded to 1e-6 mm (and rotation entries)."""
     both = np.round(np.concatenate([rest[:3].ravel(), pose[:3].ravel()]), 6) + 0.0
     return hashlib.sha256(both.tobytes()).hexdigest()[:32]
 
 
-def _result(ids: list[int], centres: np.ndarray, disp: np.ndarray | None, status: str,
-            reason: str, start: float) -> Any:
+def reference_result(ids: list[int], centres: np.ndarray, disp: np.ndarray | None,
+                     status: str, reason: str, start: float) -> Any:
     """A TrackingResult of lesion ``ids`` at rest ``centres`` (n, 3) moved by ``disp`` (n, 3)
     mm (None: not answered, NaN)."""
     from ..tracker.result import LesionResult, TrackingResult

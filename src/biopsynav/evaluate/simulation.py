@@ -140,7 +140,10 @@ def _reference_lesions(reference, lesions: list[int]) -> list[int]:
     """The lesion indices of ``lesions`` that ``reference`` answers (all, unless it names
     those it holds: a stored truth)."""
     held = getattr(reference, "lesion_indices", None)
-    return lesions if held is None else [li for li in lesions if li in set(held())]
+    if held is None:
+        return lesions
+    answered = set(held())
+    return [li for li in lesions if li in answered]
 
 
 def _depths(reference, lesion_index: int, default: np.ndarray) -> np.ndarray:

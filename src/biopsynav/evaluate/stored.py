@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from .placement import place_probe
+from .references import default_tissue_material, other_materials, pose_key, reference_result
 
 #: the package folder of the shipped truths
 SHIPPED = "data/truths"
@@ -58,8 +59,6 @@ def read_truth(path: Path) -> dict:
 def case_key(case: Any) -> dict:
     """What a stored truth must share with ``case``: anatomy fingerprint, the default tissue's
     E (MPa) and nu, the probe footprint and contact tolerance (mm)."""
-    from .references import default_tissue_material
-
     e_mpa, nu = default_tissue_material(case)
     probe = case.cfg.probe
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
@@ -74,8 +73,6 @@ def key_differences(truth_key: dict, wanted: dict) -> list[str]:
 
 def find_truth(case: Any) -> tuple[Path, dict]:
     """The stored truth file serving ``case`` and its contents; InputError when none does."""
-    from .references import other_materials
-
     others = other_materials(case)
     if others:
         raise InputError("a stored truth is of one material, and this case's grid mixes "
@@ -98,12 +95,6 @@ def find_truth(case: Any) -> tuple[Path, dict]:
                      "reference = \"fine_grid\"", "[evaluate] reference")
 
 
-def pose_key(rest: np.ndarray, pose: np.ndarray) -> bytes:
-    """A lookup key of a push: rest pose and pose (4, 4) rounded to 1e-6."""
-    both = np.round(np.concatenate([rest[:3].ravel(), pose[:3].ravel()]), 6) + 0.0
-    return both.tobytes()
-
-
 class StoredTruth:
     """A Table 2 reference that answers the pushes of a stored truth file (module doc)."""
 
@@ -116,10 +107,10 @@ class StoredTruth:
         self.anatomy, self.probe = case.anatomy, case.cfg.probe
         self.ids = [les.id for les in case.anatomy.lesions]
         self.centres = np.array([les.center for les in case.anatomy.lesions]).reshape(-1, 3)
-        self.answers: dict[bytes, tuple[int, Any, str, float]] = {}
-        for li in map(int, self.stored):
-            if li < len(self.ids):
-                self._index_lesion(case, li)
+        self.answers: dict[str, tuple[int, Any, str, float]] = {}
+        self.lesions = sorted(li for li in map(int, self.stored) if li < len(self.ids))
+        for li in self.lesions:
+            self._index_lesion(case, li)
         self._rest: np.ndarray | None = None
         self.build_s = time.perf_counter() - t0
 
@@ -137,12 +128,12 @@ class StoredTruth:
 
     def lesion_indices(self) -> list[int]:
         """The lesion indices the truth answers."""
-        return sorted({li for li, *_ in self.answers.values()})
+        return self.lesions
 
     def push_depths(self, lesion_index: int) -> np.ndarray | None:
         """The depths (mm) Table 2 pushes lesion ``lesion_index`` to: the stored ones, or None
         when the truth holds nothing of that lesion."""
-        return np.array(self.depths_mm) if lesion_index in self.lesion_indices() else None
+        return np.array(self.depths_mm) if lesion_index in self.lesions else None
 
     def set_rest_pose(self, pose: np.ndarray) -> int:
         from ..tracker.core import as_pose, contact_indices
@@ -155,32 +146,31 @@ class StoredTruth:
     def update(self, pose: np.ndarray) -> Any:
         from ..tracker import result as st
         from ..tracker.core import as_pose
-        from .references import _result
 
         start = time.perf_counter()
         found = self.answers.get(pose_key(self._rest, as_pose(pose)))
         if found is None:
-            return _result(self.ids, self.centres, None, st.SOLVER_FAILED,
-                           "the stored truth holds no push at this pose", start)
+            return reference_result(self.ids, self.centres, None, st.SOLVER_FAILED,
+                                    "the stored truth holds no push at this pose", start)
         li, disp, why, solve_ms = found
         if disp is None:
-            return _result(self.ids, self.centres, None, st.SOLVER_FAILED, why, start)
+            return reference_result(self.ids, self.centres, None, st.SOLVER_FAILED, why, start)
         moved = np.full_like(self.centres, np.nan)  # only the lesion under the probe is stored
         moved[li] = disp
-        res = _result(self.ids, self.centres, moved, st.OK, "", start)
+        res = reference_result(self.ids, self.centres, moved, st.OK, "", start)
         res.latency_ms = solve_ms  # the solve's when the truth was computed
         return res
 
     def facts(self) -> dict:
         return {"kind": "stored", "file": self.path.name, "key": self.truth_key,
-                "lesions": len(self.lesion_indices()), "depths_mm": self.depths_mm,
+                "lesions": len(self.lesions), "depths_mm": self.depths_mm,
                 "computed_s": {k: v.get("seconds") for k, v in self.stored.items()}}
 
     def describe(self) -> str:
         k = self.truth_key
         hours = sum(float(v.get("seconds") or 0.0) for v in self.stored.values()) / 3600
         return (f"independent P2 tetrahedral FE computed once and stored ({self.path.name}: "
-                f"{len(self.lesion_indices())} lesions at "
+                f"{len(self.lesions)} lesions at "
                 f"{', '.join(f'{d:g}' for d in self.depths_mm)} mm, {k.get('tet_size_mm', '?')}"
                 f" mm tetrahedra, {k.get('tet_fine_mm', '?')} mm under the probe, homogeneous "
                 f"{float(k['E_mpa']) * 1e3:g} kPa, nu {float(k['nu']):g}; {hours:.1f} h of "
