@@ -4,11 +4,12 @@
 
 * step time: one training step (forward, backward, fused AdamW) of the default U-Net, batch 4,
   on the phantom's node grid (24 x 20 x 13), 2 threads, median of ``--steps`` after 5, in
-  fp32 and with ``torch.autocast("cpu", torch.bfloat16)``, channels-last and contiguous;
+  fp32 and with ``torch.autocast("cpu", torch.bfloat16)``, channels-last and contiguous; and
+  at batch 16 channels-last in both arithmetics;
 * stability: ``--runs`` 40-iteration trainings of the test suite's network on its synthetic
   data (``tests/network/synth.py``), each in a fresh process, bf16 in each layout, counting
-  the ones whose loss turned NaN (``train`` refuses bf16 on the CPU; the check is bypassed
-  here for the measurement).
+  the ones whose loss turned NaN (``train`` picks the layout by the CPU's AMX-BF16,
+  ``training_layout``; both are forced here for the measurement).
 
 Writes ``benchmarks/results/bf16-cpu.json``; the last line reads ``RESULT fp32_cl_ms=...
 bf16_cl_ms=... bf16_contig_ms=... nan_cl=k/n nan_contig=k/n``.
@@ -34,14 +35,8 @@ import sys, torch
 sys.path.insert(0, {root!r})
 import biopsynav.network.train as T
 from tests.network.synth import tiny_settings
-T.check_precision = lambda precision, device: None  # measured here, refused in `train`
-if {contiguous}:
-    init = T.TrainingLoop.__init__
-    def contiguous(self, *a, **k):
-        init(self, *a, **k)
-        self.memory_format = torch.contiguous_format
-        self.net.to(memory_format=torch.contiguous_format)
-    T.TrainingLoop.__init__ = contiguous
+layout = torch.contiguous_format if {contiguous} else torch.channels_last_3d
+T.training_layout = lambda amp, dev: layout  # measured here in both layouts, whatever the CPU
 s = tiny_settings(iterations=40, val_interval=20, precision="bf16", device="cpu")
 try:
     T.train({case!r}, settings=s, model_dir={out!r}, progress=False)
@@ -51,8 +46,9 @@ except T.TrainingError:
 """
 
 
-def step_ms(layout: str, bf16: bool, steps: int) -> float:
-    """Median training step (ms) of the default U-Net in ``layout`` ('cl' or 'contig')."""
+def step_ms(layout: str, bf16: bool, steps: int, batch: int = 4) -> float:
+    """Median training step (ms) of the default U-Net in ``layout`` ('cl' or 'contig') at
+    ``batch``."""
     import torch
 
     from biopsynav.config import NetworkSection
@@ -64,8 +60,8 @@ def step_ms(layout: str, bf16: bool, steps: int) -> float:
     spec = section_spec(NetworkSection())
     net = UNet3d(spec).to(memory_format=fmt)
     opt = torch.optim.AdamW(net.parameters(), lr=1e-3, fused=True)
-    x = torch.randn(4, spec.feature_channels(), 24, 20, 13).contiguous(memory_format=fmt)
-    y = torch.randn(4, 3, 24, 20, 13)
+    x = torch.randn(batch, spec.feature_channels(), 24, 20, 13).contiguous(memory_format=fmt)
+    y = torch.randn(batch, 3, 24, 20, 13)
     times = []
     for i in range(steps + 5):
         t = time.perf_counter()
@@ -109,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
             key = f"{'bf16' if bf16 else 'fp32'}_{layout}_ms"
             figures[key] = step_ms(layout, bf16, args.steps)
             print(f"{key}: {figures[key]:.1f}", flush=True)
+    for bf16 in (False, True):  # the default batch of 16, channels-last
+        key = f"{'bf16' if bf16 else 'fp32'}_cl_b16_ms"
+        figures[key] = step_ms("cl", bf16, args.steps, batch=16)
+        print(f"{key}: {figures[key]:.1f} ({figures[key] / 16:.2f} per sample)", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for layout in ("cl", "contig"):
             bad = nan_runs(layout, args.runs, Path(tmp))
@@ -117,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
     write_result("bf16-cpu", figures)
     print(f"RESULT fp32_cl_ms={figures['fp32_cl_ms']:.1f} bf16_cl_ms={figures['bf16_cl_ms']:.1f} "
+          f"fp32_cl_b16_ms={figures['fp32_cl_b16_ms']:.1f} "
+          f"bf16_cl_b16_ms={figures['bf16_cl_b16_ms']:.1f} "
           f"bf16_contig_ms={figures['bf16_contig_ms']:.1f} nan_cl={figures['nan_cl']} "
           f"nan_contig={figures['nan_contig']}")
     return 0

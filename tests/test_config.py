@@ -235,6 +235,28 @@ def test_a_case_toml_from_before_the_fictitious_stiffness_keeps_its_teacher(tmp_
         config_from_dict({"material": {"fictitious_stiffness": -0.1}})
 
 
+def test_a_case_toml_from_before_the_refine_batch_refines_at_the_network_batch(tmp_path):
+    """A case.toml biopsynav wrote before [refine] batch_size existed refined at its
+    [network] batch_size: it reads that value, so its refine model stays up to date; files
+    by hand take the default, and the refine case trains at [refine] batch_size."""
+    from biopsynav.refine import refined_config
+
+    cfg = CaseConfig()
+    assert (cfg.network.batch_size, cfg.refine.batch_size) == (16, 4)
+    assert refined_config(cfg).network.batch_size == 4
+    cfg.network.batch_size = 8
+    path = tmp_path / "case.toml"
+    save_config(tmp_path, cfg)
+    assert load_config(tmp_path).refine.batch_size == 4
+    lines = path.read_text().splitlines()
+    refine_at = lines.index("[refine]")
+    path.write_text("\n".join(line for i, line in enumerate(lines)
+                              if i < refine_at or not line.startswith("batch_size")) + "\n")
+    assert load_config(tmp_path).refine.batch_size == 8
+    path.write_text("[network]\nbatch_size = 8\n[refine]\nsamples = 5\nheld_out = 1\n")
+    assert load_config(tmp_path).refine.batch_size == 4
+
+
 def test_the_refine_law_is_checked_against_the_tissues():
     with pytest.raises(InputError, match="material_model"):
         config_from_dict({"refine": {"material_model": "hookean"}})

@@ -429,14 +429,19 @@ class NetworkSection:
                                   "products of the displacement channels; the default preset "
                                   "uses them, docs/network.md).",
                         choices=("linear", "quadratic"))
-    iterations: int = opt(50000, "Training iterations (optimizer steps). 12,000 kept Table 1 "
-                                 "on the phantom (0.0359 / 0.160 mm) but left the tracking "
-                                 "network trained further from it 16 % further from the "
-                                 "independent truth at 30 mm pushes (docs/pipeline.md); the "
-                                 "time on this machine: benchmarks/time_to_model.py.",
+    iterations: int = opt(12500, "Training iterations (optimizer steps). 12,500 at batch 16 "
+                                 "(the samples of the paper's 50,000 at batch 4) and "
+                                 "learning_rate 2e-3: Table 1 and the tracking network's "
+                                 "distance from the independent truth at 10-30 mm pushes as "
+                                 "the 50,000 at batch 4, in half the time; 12,000 at batch 4 "
+                                 "left the deep pushes 16 % further from it (docs/pipeline.md, "
+                                 "'The recipe'). The time on this machine: "
+                                 "benchmarks/time_to_model.py.",
                           lo=1, hi=10**8)
-    batch_size: int = opt(4, "Batch size (the paper: 4).", lo=1, hi=1024)
-    learning_rate: float = opt(1e-3, "Peak Adam learning rate (linear warm-up, then cosine "
+    batch_size: int = opt(16, "Batch size (the paper: 4). 16: a bf16 step on AMX costs 2.8 "
+                              "times a batch of 4, not 4 times (benchmarks/bf16_cpu.py).",
+                          lo=1, hi=1024)
+    learning_rate: float = opt(2e-3, "Peak Adam learning rate (linear warm-up, then cosine "
                                      "decay to 1 % of it).", lo=1e-7, hi=1.0)
     warmup_iterations: int = opt(300, "Linear learning-rate warm-up steps.", lo=0, hi=10**7)
     weight_decay: float = opt(0.2, "Decoupled weight decay (AdamW) per unit learning rate; "
@@ -458,11 +463,12 @@ class NetworkSection:
     precision: str = opt("auto", "Arithmetic of the training's forward pass: 'fp32', "
                                  "'bf16' (autocast to bfloat16; the loss, the contact "
                                  "projection and the weights stay fp32) or 'auto' (bf16 on "
-                                 "CUDA, fp32 on the CPU). 'bf16' on the CPU is refused: "
-                                 "in the channels-last layout oneDNN's bf16 kernels turned "
-                                 "the loss NaN at random, and the contiguous layout was no "
-                                 "faster than fp32 (benchmarks/bf16_cpu.py, "
-                                 "docs/network.md). Inference is always fp32.",
+                                 "CUDA and on a CPU with AMX-BF16, fp32 on other CPUs). On a "
+                                 "CPU without AMX-BF16, 'bf16' trains in the contiguous "
+                                 "layout: oneDNN's channels-last bf16 kernels turned the loss "
+                                 "NaN at random there, and it is no faster than fp32 "
+                                 "(benchmarks/bf16_cpu.py, docs/network.md). Inference is "
+                                 "always fp32.",
                          choices=("auto", "fp32", "bf16"))
     threads: int = opt(0, "CPU threads for training and inference (0: the idle cores, "
                           "measured when it starts).", lo=0, hi=1024)
@@ -567,6 +573,12 @@ class RefineSection:
                                  "network's best weights.", lo=1, hi=10**8)
     learning_rate: float = opt(3e-4, "Peak learning rate of that training (100 warm-up "
                                      "steps, then cosine decay).", lo=1e-7, hi=1.0)
+    batch_size: int = opt(4, "Batch size of that training. 4: on the phantom, 4,000 "
+                             "iterations at batch 16 (the same samples) left the tracking "
+                             "network 17 % further from the independent truth at 30 mm pushes "
+                             "than 16,000 at batch 4 (docs/pipeline.md, 'The recipe'). A "
+                             "[refine] table written before this key existed reads it as "
+                             "[network] batch_size (as it trained).", lo=1, hi=1024)
 
 
 @dataclass
@@ -967,8 +979,8 @@ def load_config(case_dir: str | Path) -> CaseConfig:
     what it lost. Other files (written by hand, or before the end line) are read as they
     are. A file biopsynav wrote before ``[refine]`` existed (no such table) reads as
     ``[refine] samples = 0``: its case's model stays the tracker's; one written before
-    ``[refine] material_model`` (``fictitious_stiffness``) existed reads it as its
-    ``[material]`` value."""
+    ``[refine] material_model`` (``fictitious_stiffness``, ``batch_size``) existed reads it as
+    its ``[material]`` value (``[network] batch_size``)."""
     path = Path(case_dir) / CASE_FILE
     if not Path(case_dir).is_dir():
         raise InputError("case folder does not exist", str(case_dir))
@@ -985,20 +997,24 @@ def load_config(case_dir: str | Path) -> CaseConfig:
         # before the stage existed, and its model is the one its tracker used then
         data["refine"] = {"samples": 0}
     if _written_whole(text):
-        _one_law_before_refine_law(data)
+        _refine_keys_before_they_existed(data)
     return config_from_dict(data, str(path))
 
 
-def _one_law_before_refine_law(data: dict) -> None:
+def _refine_keys_before_they_existed(data: dict) -> None:
     """A case.toml biopsynav wrote before ``[refine] material_model`` (or ``[refine]
-    fictitious_stiffness``) existed (its ``[refine]`` table, which biopsynav writes whole,
-    lacks the key) was made with one law: its ``[material]`` value is then the refine
-    teacher's too (in place)."""
+    fictitious_stiffness``, ``batch_size``) existed (its ``[refine]`` table, which biopsynav
+    writes whole, lacks the key) was made with one law and refined at the case network's
+    batch: its ``[material]`` value is then the refine teacher's too, and its ``[network]
+    batch_size`` the refine training's (in place)."""
     refine, material = data.get("refine"), data.get("material")
     if not (isinstance(refine, dict) and isinstance(material, dict)):
         return
     refine.setdefault("material_model", material.get("model", "neo-hookean"))
     refine.setdefault("fictitious_stiffness", material.get("fictitious_stiffness", 0.0))
+    network = data.get("network")
+    if isinstance(network, dict) and "batch_size" in network:
+        refine.setdefault("batch_size", network["batch_size"])  # as its refine trained
 
 
 def _written_whole(text: str) -> bool:

@@ -39,7 +39,8 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     r, out = cfg.refine, copy.deepcopy(cfg)
     # the refine case does not refine again; its pushes are solved with the refine law
     out.refine = RefineSection(samples=0, material_model=r.material_model,
-                               fictitious_stiffness=r.fictitious_stiffness)
+                               fictitious_stiffness=r.fictitious_stiffness,
+                               batch_size=r.batch_size)
     out.material.model = r.material_model
     out.material.fictitious_stiffness = r.fictitious_stiffness
     out.case.name = f"{cfg.case.name}-refine"
@@ -55,7 +56,7 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     out.dataset.teacher_extrapolation = r.extrapolation
     net = out.network
     net.init_from = f"../{MODEL_DIR}"
-    net.iterations, net.learning_rate = r.iterations, r.learning_rate
+    net.iterations, net.learning_rate, net.batch_size = r.iterations, r.learning_rate, r.batch_size
     net.warmup_iterations = min(REFINE_WARMUP, r.iterations)
     net.val_interval = min(REFINE_VAL_INTERVAL, r.iterations)
     return out

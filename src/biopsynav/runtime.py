@@ -1,7 +1,7 @@
 """How long ``run`` will take on this machine, and the run's stage table.
 
 Each stage's expected time is a measured reference run's time (:data:`REFERENCE`) scaled to
-the case and to this machine today, from two probes of three U-Net training steps each
+the case and to this machine today, from three probes of ten U-Net training steps each
 (:func:`probe_seconds`, about half a second each):
 
 * **the machine's speed today**: the probe on the reference case's grid against the reference
@@ -9,7 +9,7 @@ the case and to this machine today, from two probes of three U-Net training step
 * **FE stages** (``generate``, the rigid pushes of ``[refine]``) scale with their samples and
   with the active cells (a solve costs about ``cells^1.3``), times the machine's speed;
 * **training stages** scale with their iterations and with the probe on the case's own grid
-  (its step against the reference case's);
+  at the stage's batch and arithmetic (its step against the reference case's, batch 4 fp32);
 * evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
   grid's cells^1.3) and the machine's speed.
 
@@ -30,7 +30,7 @@ FE_EXPONENT = 1.3
 #: nodes), alone on the 2-core machine, 2026-12-02: 45.5 min in all, stage minutes from the
 #: outputs' times. ``probe_s``: :func:`probe_seconds` on that case, the median of 12 probes
 #: in three processes just after (0.017-0.022 s; the VM's speed moves by that much).
-REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
+REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041, "batch": 4,
              "samples": 1000, "iterations": 50000, "refine_iterations": 16000,
              "table2_pushes": 8, "reference_refinement": 2.0,
              "minutes": {"generate": 2.68, "train": 29.6, "refine pushes": 3.32,
@@ -61,25 +61,39 @@ def _minutes(value: float) -> str:
     return f"{value:.1f}" if value < 10 else f"{value:.0f}"
 
 
-def probe_seconds(case, node_shape: tuple[int, int, int] | None = None) -> float:
+def probe_seconds(case, node_shape: tuple[int, int, int] | None = None, *,
+                  as_reference: bool = False, batch: int | None = None) -> float:
     """Seconds per step of the case's U-Net training (forward, backward, Adam) at its batch
-    size on random inputs on a grid of ``node_shape`` (the case's when None), the median of
-    :data:`PROBE_STEPS` after one warm-up."""
+    size, arithmetic and layout (``[network] precision`` on the CPU) on random inputs on a
+    grid of ``node_shape`` (the case's when None), the median of :data:`PROBE_STEPS` after
+    one warm-up. ``as_reference``: at the reference run's batch (``REFERENCE["batch"]``) in
+    fp32, the machine's speed probe; ``batch``: at that batch instead of the case's."""
+    import dataclasses
+
     import torch
 
+    from .network.train import training_layout, use_bf16
     from .network.unet import UNet3d, section_spec
 
-    s = case.cfg.network
+    s, cpu = case.cfg.network, torch.device("cpu")
+    if as_reference:
+        s = dataclasses.replace(s, batch_size=REFERENCE["batch"], precision="fp32")
+    elif batch is not None:
+        s = dataclasses.replace(s, batch_size=batch)
     spec = section_spec(s)
-    net = UNet3d(spec).to(memory_format=torch.channels_last_3d)
+    amp = use_bf16(s.precision, cpu)
+    layout = training_layout(amp, cpu)
+    net = UNet3d(spec).to(memory_format=layout)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
     shape = node_shape or case.grid.node_shape
     x = torch.randn(s.batch_size, spec.feature_channels(), *shape)
-    x = x.contiguous(memory_format=torch.channels_last_3d)
+    x = x.contiguous(memory_format=layout)
     times = []
     for _ in range(PROBE_STEPS + 1):
         start = time.perf_counter()
-        loss = net(x).square().mean()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            out = net(x)
+        loss = out.float().square().mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -87,15 +101,18 @@ def probe_seconds(case, node_shape: tuple[int, int, int] | None = None) -> float
     return float(np.median(times[1:]))
 
 
-def estimate_run(case, probes: tuple[float, float] | None = None) -> Estimate:
+def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
     """Expected minutes of each stage of ``case`` on this machine. ``probes``: seconds of
-    :func:`probe_seconds` on the reference grid (the machine's speed) and on the case's grid
-    (its training step), measured when None."""
+    :func:`probe_seconds` on the reference grid (the machine's speed), on the case's grid
+    (its training step) and on the case's grid at ``[refine] batch_size`` (the refine
+    training's step; the case's step when left out), measured when None."""
     ref = REFERENCE
     if probes is None:
-        probes = (probe_seconds(case, ref["node_shape"]), probe_seconds(case))
+        probes = (probe_seconds(case, ref["node_shape"], as_reference=True),
+                  probe_seconds(case), probe_seconds(case, batch=case.cfg.refine.batch_size))
     slowness = probes[0] / ref["probe_s"]
-    step = probes[1] / ref["probe_s"]  # the case's step against the reference case's
+    # each training's step against the reference case's
+    step, refine_step = (p / ref["probe_s"] for p in (probes[1], probes[-1]))
     cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
     cfg, m = case.cfg, ref["minutes"]
     minutes = {"generate": m["generate"] * (cfg.dataset.n_train + cfg.dataset.n_test)
@@ -105,7 +122,7 @@ def estimate_run(case, probes: tuple[float, float] | None = None) -> Estimate:
         minutes["refine pushes"] = (m["refine pushes"] * cfg.refine.samples / ref["samples"]
                                     * cells * cfg.refine.teacher_refine ** 3 * slowness)
         minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
-                                      / ref["refine_iterations"] * step)
+                                      / ref["refine_iterations"] * refine_step)
     minutes["evaluate and report"] = m["evaluate and report"] * table2_work(case) * slowness
     return Estimate(minutes, slowness)
 

@@ -94,26 +94,47 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def cpu_has_amx_bf16() -> bool:
+    """Whether this CPU has AMX-BF16 tile instructions (``amx_bf16`` in ``/proc/cpuinfo``;
+    False where that file is absent): oneDNN's bf16 convolutions then run on the tiles."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return any(line.startswith("flags") and "amx_bf16" in line.split()
+               for line in text.splitlines())
+
+
 def use_bf16(precision: str, dev: torch.device) -> bool:
     """Whether training autocasts its forward pass to bfloat16 on ``dev``: always for
-    'bf16', never for 'fp32', on CUDA only for 'auto' (on the CPU it trades accuracy for
-    speed: docs/experiments.md, "Training arithmetic")."""
+    'bf16', never for 'fp32'; for 'auto' on CUDA and on a CPU with AMX-BF16
+    (:func:`cpu_has_amx_bf16`), fp32 on other CPUs (docs/network.md, "Arithmetic")."""
     if precision != "auto":
         return precision == "bf16"
-    return dev.type == "cuda"
+    return dev.type == "cuda" or (dev.type == "cpu" and cpu_has_amx_bf16())
 
 
-def check_precision(precision: str, dev: torch.device) -> None:
-    """Refuse bf16 training on the CPU (InputError naming ``[network] precision``): in the
-    channels-last layout oneDNN's bf16 kernels turned losses NaN at random, and the contiguous
-    layout, which did not, was no faster than fp32 (``benchmarks/bf16_cpu.py``,
-    docs/network.md)."""
-    if precision == "bf16" and dev.type == "cpu":
-        raise InputError("bf16 training on the CPU is refused: oneDNN's channels-last bf16 "
-                         "kernels turned the loss NaN at random (1 to 3 of 4 short trainings on "
-                         "a CPU with native bf16), and the contiguous layout, stable, was no "
-                         "faster than fp32 (benchmarks/bf16_cpu.py); use 'fp32' or 'auto' on "
-                         "the CPU, 'bf16' on CUDA", "[network] precision")
+def precision_line(amp: bool, dev: torch.device) -> str:
+    """The one line ``train`` prints of its arithmetic and why."""
+    amx = dev.type == "cpu" and cpu_has_amx_bf16()
+    if not amp:
+        why = " (this CPU has no AMX-BF16)" if dev.type == "cpu" and not amx else ""
+        return f"[network] precision: fp32 on {dev.type}{why}"
+    if dev.type == "cpu" and not amx:
+        return ("[network] precision: bf16 autocast on a CPU without AMX-BF16 (contiguous "
+                "layout: stable, no faster than fp32), fp32 weights and loss")
+    where = "AMX-BF16 tiles" if amx else dev.type
+    return f"[network] precision: bf16 autocast on {where}, fp32 weights and loss"
+
+
+def training_layout(amp: bool, dev: torch.device) -> torch.memory_format:
+    """Memory layout of the training's convolutions: channels-last on the CPU (oneDNN trains
+    it 1.4x faster on one thread, 2x on two), except bf16 on a CPU without AMX-BF16, where
+    oneDNN's channels-last bf16 kernels turned losses NaN at random and the contiguous layout
+    did not (``benchmarks/bf16_cpu.py``, docs/network.md); GPUs keep their default."""
+    if dev.type != "cpu" or (amp and not cpu_has_amx_bf16()):
+        return torch.contiguous_format
+    return torch.channels_last_3d
 
 
 def lr_at(it: int, s: NetworkSection) -> float:
@@ -268,8 +289,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     out = Path(model_dir) if model_dir is not None else case_dir / MODEL_DIR
     spec = section_spec(s)
     dev = resolve_device(s.device)
-    check_precision(s.precision, dev)
     threads = set_threads(s.threads)
+    if progress:
+        print(precision_line(use_bf16(s.precision, dev), dev), flush=True)
 
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
@@ -483,10 +505,7 @@ class TrainingLoop:
         self.amp = use_bf16(s.precision, dev)
         self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
         self.drawn_at = time.perf_counter()  # when loss_curve.png was last drawn
-        # channels-last convolutions train 1.4x faster on one CPU thread and 2x on two
-        # (oneDNN; measured on the 2-core machine, docs/network.md); GPUs keep their default
-        self.memory_format = (torch.channels_last_3d if dev.type == "cpu"
-                              else torch.contiguous_format)
+        self.memory_format = training_layout(self.amp, dev)
         net.to(memory_format=self.memory_format)
 
     def step(self, it: int) -> float:
@@ -609,4 +628,5 @@ def train_case(case: Case | str | Path, preset: str | None = None, iterations: i
 
 
 __all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",
-           "resolve_device", "set_threads", "build_optimizer", "use_bf16", "check_precision"]
+           "resolve_device", "set_threads", "build_optimizer", "use_bf16", "training_layout",
+           "cpu_has_amx_bf16", "precision_line"]
