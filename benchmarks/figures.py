@@ -182,12 +182,16 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("error-bound", lambda d: (f"{d['figures']['coverage']:.0%}; "
                                     f"{d['figures']['worst_ratio']:.1f}x"),
           "python benchmarks/error_bound.py"), "90-97 %; <= 3x", "-"),
-    ("one training step on the CPU, fp32 / bf16 channels-last / bf16 contiguous; bf16 "
-     "trainings whose loss turned NaN, channels-last / contiguous",
+    ("one training step on the CPU, batch 4: fp32 / bf16 channels-last / bf16 contiguous; "
+     "batch 16 channels-last: fp32 / bf16; bf16 trainings whose loss turned NaN, "
+     "channels-last / contiguous; the CPU's bf16 flags",
      Cell("bf16-cpu", lambda d: (f"{fmt(d['figures']['fp32_cl_ms'], 1)} / "
                                  f"{fmt(d['figures']['bf16_cl_ms'], 1)} / "
                                  f"{fmt(d['figures']['bf16_contig_ms'], 1)} ms; "
-                                 f"{d['figures']['nan_cl']} / {d['figures']['nan_contig']}"),
+                                 f"{fmt(d['figures']['fp32_cl_b16_ms'], 1)} / "
+                                 f"{fmt(d['figures']['bf16_cl_b16_ms'], 1)} ms; "
+                                 f"{d['figures']['nan_cl']} / {d['figures']['nan_contig']}; "
+                                 f"{' '.join(d['machine']['cpu_flags']) or 'none'}"),
           "python benchmarks/bf16_cpu.py"), "-", "-"),
     ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
                          "python benchmarks/suite_time.py"), "<= 10 min", "-"),
@@ -213,12 +217,11 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
      Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_total, TTM.format("ucdavis")), "278 min with a GPU"),
     ("Table 1: mean / max e against its own FE teacher",
-     Cell("train-and-predict", pair("mean_e_mm", "max_e_mm", 4, " mm"),
-          "python benchmarks/train_and_predict.py CASE --no-train"),
+     Cell("time-to-model-phantom", ttm_table1, TTM.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_table1, TTM.format("ucdavis")), "0.052 / 0.266 mm"),
     ("lesion TRE against an independent FE (P2 tetrahedra), every lesion, 10 / 20 / 30 mm "
-     "pushes: the tracking network",
-     Cell("phantom-default-truth", tre("net"), TRUTH_CMD),
+     "pushes: the tracking network (UC Davis: the recipe before bf16 and batch 16)",
+     Cell("time-to-model-phantom", ttm_tre, TTM.format("phantom")),
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-"),
     ("the same: its FE teacher",
      Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),
