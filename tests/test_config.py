@@ -209,6 +209,15 @@ def test_a_case_toml_from_before_the_refine_law_reads_as_one_law(tmp_path):
         "neo-hookean-split-sri-inner")
 
 
+def _drop_refine_key(path, key: str) -> None:
+    """Remove ``key`` from the [refine] table of the case.toml at ``path`` (as written before
+    the key existed)."""
+    lines = path.read_text().splitlines()
+    refine_at = lines.index("[refine]")
+    path.write_text("\n".join(line for i, line in enumerate(lines)
+                              if i < refine_at or not line.startswith(key)) + "\n")
+
+
 def test_a_case_toml_from_before_the_fictitious_stiffness_keeps_its_teacher(tmp_path):
     """A case.toml biopsynav wrote before [refine] fictitious_stiffness existed reads its
     [material] value for the refine teacher (one law, as it was made); files by hand and
@@ -219,11 +228,7 @@ def test_a_case_toml_from_before_the_fictitious_stiffness_keeps_its_teacher(tmp_
     path = tmp_path / "case.toml"
     save_config(tmp_path, cfg)
     assert load_config(tmp_path).refine.fictitious_stiffness == 0.2
-    lines = path.read_text().splitlines()
-    refine_at = lines.index("[refine]")
-    path.write_text("\n".join(line for i, line in enumerate(lines)
-                              if i < refine_at or not line.startswith("fictitious_stiffness"))
-                    + "\n")
+    _drop_refine_key(path, "fictitious_stiffness")
     assert load_config(tmp_path).material.fictitious_stiffness == 0.1
     assert load_config(tmp_path).refine.fictitious_stiffness == 0.1
     path.write_text("[material]\nfictitious_stiffness = 0.1\n[refine]\nsamples = 5\n"
@@ -248,10 +253,7 @@ def test_a_case_toml_from_before_the_refine_batch_refines_at_the_network_batch(t
     path = tmp_path / "case.toml"
     save_config(tmp_path, cfg)
     assert load_config(tmp_path).refine.batch_size == 4
-    lines = path.read_text().splitlines()
-    refine_at = lines.index("[refine]")
-    path.write_text("\n".join(line for i, line in enumerate(lines)
-                              if i < refine_at or not line.startswith("batch_size")) + "\n")
+    _drop_refine_key(path, "batch_size")
     assert load_config(tmp_path).refine.batch_size == 8
     path.write_text("[network]\nbatch_size = 8\n[refine]\nsamples = 5\nheld_out = 1\n")
     assert load_config(tmp_path).refine.batch_size == 4

@@ -291,6 +291,17 @@ def test_precision_setting_picks_the_forward_arithmetic(monkeypatch):
     assert "no AMX-BF16" in T.precision_line(False, cpu)
 
 
+def test_train_says_its_arithmetic_in_its_first_line(synth_case, tmp_path, capsys):
+    s = tiny_settings(iterations=2, val_interval=1, warmup_iterations=1)
+    summary = train(synth_case, settings=s, model_dir=tmp_path, progress=True)
+    first = capsys.readouterr().out.splitlines()[0]
+    amp = use_bf16(s.precision, torch.device("cpu"))
+    assert first == T.precision_line(amp, torch.device("cpu"))
+    assert first.startswith(f"[network] precision: {'bf16' if amp else 'fp32'}")
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert summary.finished and meta["training"]["precision"] == ("bf16" if amp else "fp32")
+
+
 def test_amx_is_read_from_the_cpu_flags():
     flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
     assert T.cpu_has_amx_bf16() == (" amx_bf16" in flags)
