@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import io
 import math
 import sys
@@ -94,6 +95,7 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+@functools.cache
 def cpu_has_amx_bf16() -> bool:
     """Whether this CPU has AMX-BF16 tile instructions (``amx_bf16`` in ``/proc/cpuinfo``;
     False where that file is absent): oneDNN's bf16 convolutions then run on the tiles."""
