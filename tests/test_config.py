@@ -104,6 +104,9 @@ def test_defaults_round_trip(tmp_path):
     ({"dataset": {"max_edge_stretch": -1.0}}, "below its minimum"),
     ({"dataset": {"max_edge_stretch": "loose"}}, "max_edge_stretch"),
     ({"dataset": {"max_edge_stretch": float("nan")}}, "must be a finite number"),
+    ({"refine": {"batch_size": 0}}, "below its minimum"),
+    ({"refine": {"batch_size": 2.5}}, "must be an integer"),
+    ({"refine": {"batch_size": "big"}}, "batch_size"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:

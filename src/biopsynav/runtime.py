@@ -105,11 +105,13 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
     """Expected minutes of each stage of ``case`` on this machine. ``probes``: seconds of
     :func:`probe_seconds` on the reference grid (the machine's speed), on the case's grid
     (its training step) and on the case's grid at ``[refine] batch_size`` (the refine
-    training's step; the case's step when left out), measured when None."""
+    training's step; the case's step when left out), measured when None (the third only when
+    ``[refine]`` runs at another batch)."""
     ref = REFERENCE
     if probes is None:
-        probes = (probe_seconds(case, ref["node_shape"], as_reference=True),
-                  probe_seconds(case), probe_seconds(case, batch=case.cfg.refine.batch_size))
+        probes = (probe_seconds(case, ref["node_shape"], as_reference=True), probe_seconds(case))
+        if case.cfg.refine.samples and case.cfg.refine.batch_size != case.cfg.network.batch_size:
+            probes += (probe_seconds(case, batch=case.cfg.refine.batch_size),)
     slowness = probes[0] / ref["probe_s"]
     # each training's step against the reference case's
     step, refine_step = (p / ref["probe_s"] for p in (probes[1], probes[-1]))

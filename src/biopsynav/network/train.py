@@ -292,8 +292,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     spec = section_spec(s)
     dev = resolve_device(s.device)
     threads = set_threads(s.threads)
+    amp = use_bf16(s.precision, dev)
     if progress:
-        print(precision_line(use_bf16(s.precision, dev), dev), flush=True)
+        print(precision_line(amp, dev), flush=True)
 
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
@@ -301,7 +302,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
                                                         s.contact_projection)
     in_scale, out_scale, quad_scale = network_scales(data, spec, baseline_meta["kind"], source)
-    signature = _signature(s, spec, data, use_bf16(s.precision, dev))
+    signature = _signature(s, spec, data, amp)
     signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
                                   if not k.endswith("_s")}  # not its timings
     if source is not None:
