@@ -84,7 +84,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.contact.constraints import contact_constraint_names  # noqa: E402
 from biopsynav.errors import BiopsynavError, InputError  # noqa: E402
-from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.placement import place_case_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
 from biopsynav.fileio import load_npz, read_json, save_npz_atomic, write_json_atomic  # noqa: E402
@@ -481,7 +481,7 @@ def run(args) -> dict:
     case, e_mpa = homogeneous(loaded, args.nu)
     check_edge_radius(case, args)
     lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
-    placements = {li: place_probe(case.anatomy, li) for li in lesions}
+    placements = {li: place_case_probe(case, li) for li in lesions}
     print(f"case {args.case_dir}: homogeneous neo-Hookean E = {e_mpa * 1e3:g} kPa, "
           f"nu = {args.nu:g}; lesions {', '.join(str(case.anatomy.lesions[i].id) for i in lesions)}"
           f"; pushes {', '.join(f'{d:g}' for d in args.depths)} mm", flush=True)

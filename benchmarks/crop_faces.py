@@ -31,7 +31,7 @@ import numpy as np
 
 from biopsynav.case import Case
 from biopsynav.cli import main as cli
-from biopsynav.evaluate.placement import place_probe
+from biopsynav.evaluate.placement import place_case_probe
 from biopsynav.evaluate.simulation import evaluation_solver_settings
 from biopsynav.tracker.core import fem_engine
 
@@ -64,7 +64,7 @@ def lesion_motion(cases: dict[str, Case], depths: list[float]) -> list[dict]:
     rows = []
     breast = cases["free"]
     for li, les in enumerate(breast.anatomy.lesions):
-        placement = place_probe(breast.anatomy, li)
+        placement = place_case_probe(breast, li)
         index = {n: matching_lesion(c, les.center) for n, c in cases.items()}
         for engine in engines.values():
             engine.set_rest_pose(placement.pose)

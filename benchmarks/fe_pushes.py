@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
-from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.placement import place_case_probe  # noqa: E402
 from biopsynav.tracker import Tracker  # noqa: E402
 
 CLINICAL_DEPTHS = (8.75, 17.5, 26.25, 35.0)
@@ -55,7 +55,7 @@ def run(case: Case, depths: list[float]) -> list[dict]:
     tracker = Tracker.load(case, engine="fem")
     rows = []
     for li, les in enumerate(case.anatomy.lesions):
-        placement = place_probe(case.anatomy, li)
+        placement = place_case_probe(case, li)
         n_contact = tracker.set_rest_pose(placement.pose)
         for depth in [0.0, *depths]:
             row = {"lesion": int(les.id), "depth_mm": depth, "lesion_depth_mm":

@@ -121,9 +121,9 @@ def rest_pose_of(tracker, lesion: int = 0) -> np.ndarray:
         return np.asarray(rest, dtype=np.float64)
     case = getattr(tracker, "case", None)
     if case is not None and len(case.anatomy.lesions):
-        from biopsynav.evaluate.placement import place_probe
+        from biopsynav.evaluate.placement import place_case_probe
 
-        return np.asarray(place_probe(case.anatomy, lesion).pose, dtype=np.float64)
+        return np.asarray(place_case_probe(case, lesion).pose, dtype=np.float64)
     return np.eye(4)
 
 

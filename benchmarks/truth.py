@@ -68,7 +68,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.errors import BiopsynavError  # noqa: E402
 from biopsynav.evaluate.p2 import probe_key  # noqa: E402
-from biopsynav.evaluate.placement import place_probe  # noqa: E402
+from biopsynav.evaluate.placement import place_case_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material, other_materials  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings  # noqa: E402
 from biopsynav.fileio import write_text_atomic  # noqa: E402
@@ -174,7 +174,7 @@ def run(args) -> dict:
     ref_path = args.reference or args.case_dir.resolve().parent / f"{args.case_dir.name}-p2.json"
     stored = load_reference(ref_path, key)
     lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
-    placements = {li: place_probe(case.anatomy, li) for li in lesions}
+    placements = {li: place_case_probe(case, li) for li in lesions}
     for li in lesions:
         if str(li) not in stored or (args.retry_failed and stored[str(li)]["failure"]):
             disp, facts = tet_pushes(case, e_mpa, nu, placements[li], li, args.depths, args,

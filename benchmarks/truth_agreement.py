@@ -186,7 +186,7 @@ def largest(rows: list[dict], key: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from biopsynav.evaluate.placement import place_probe
+    from biopsynav.evaluate.placement import place_case_probe
     from biopsynav.evaluate.references import default_tissue_material
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     stored = stored_truth(args.stored, case)
     rows, facts = [], {}
     for li in (int(s) for s in args.lesion_ids.split(",")):
-        placement = place_probe(case.anatomy, li)
+        placement = place_case_probe(case, li)
         lesion = np.asarray(case.anatomy.lesions[li].center)
         model = glued_model(case, e_mpa, nu, placement, args)
         p2, p2_facts = p2_glued(model, placement, lesion, args.depths, args)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from biopsynav.anatomy.model import Lesion
 from biopsynav.evaluate.placement import place_probe, push_depths
 from biopsynav.evaluate.simulation import (
     evaluation_solver_settings,
@@ -35,6 +38,30 @@ def test_placement_puts_each_lesion_in_the_image_plane_below_the_face(coarse_pha
         assert abs(r[:, 0] @ a.chest_normal) < 1e-9 or abs(r[:, 2] @ a.chest_normal) > 0.95
         assert len(contact_indices(a, pl.pose, tuple(probe.footprint_mm),
                                    probe.contact_tolerance_mm)) >= 3
+
+
+def test_a_lesion_against_the_chest_wall_is_pushed_from_skin_a_training_push_may_centre_on(
+        coarse_phantom):
+    """The nearest pushable skin vertex of a lesion at the back of the breast lies within
+    [probe] min_chest_distance_mm of the wall: the probe goes to the nearest one in front of
+    that instead, and pushes into the breast."""
+    a = coarse_phantom.anatomy
+    depth = a.chest_depth(a.vertices)
+    low = np.flatnonzero(a.pushable & (depth < 4.0))
+    assert low.size, "the phantom has pushable skin next to its chest wall"
+    v = int(low[np.argmax(np.linalg.norm(a.vertices[low] - a.vertices.mean(0), axis=1))])
+    along_wall = a.normals[v] - (a.normals[v] @ a.chest_normal) * a.chest_normal
+    centre = a.vertices[v] - 3.0 * along_wall / np.linalg.norm(along_wall)  # inside, at the wall
+    lesion = Lesion(99, centre, 2.0, centre + 2.0 * np.eye(3))
+    at_wall = dataclasses.replace(a, lesions=[lesion])
+    assert depth[at_wall.nearest_pushable_vertex(centre)] < 5.0  # the old rule's skin point
+    for floor in (5.0, 12.0):
+        pl = place_probe(at_wall, 0, floor)
+        assert depth[pl.vertex] >= floor
+        ok = at_wall.pushable & (depth >= floor)
+        nearest = np.linalg.norm(a.vertices[ok] - centre, axis=1).min()
+        assert np.linalg.norm(a.vertices[pl.vertex] - centre) == pytest.approx(nearest)
+        assert pl.pose[:3, 2] @ a.normals[pl.vertex] < 0  # into the breast
 
 
 def test_push_depths_increase_and_fill_every_bin_across_lesions():

@@ -13,7 +13,8 @@ from typing import Any
 
 _EXPORTS = {
     "evaluate_measured": "measured", "read_measured": "measured",
-    "Placement": "placement", "place_probe": "placement", "push_depths": "placement",
+    "Placement": "placement", "place_probe": "placement", "place_case_probe": "placement",
+    "push_depths": "placement",
     "evaluate_case": "run", "table2_markdown": "run", "table2_text": "run",
     "write_table2": "run", "run_simulation": "simulation",
     "BIN_EDGES_MM": "table", "BIN_NAMES": "table", "Record": "table", "Table": "table",

@@ -2,7 +2,12 @@
 
 Placement of the probe above lesion ``c`` (all mm, anatomy frame):
 
-1. the skin point ``p``: the surface vertex nearest to ``c`` that is not on the chest wall;
+1. the skin point ``p``: the surface vertex nearest to ``c`` of those a training push may
+   centre on (:func:`biopsynav.probe.eligible_centers`: off the chest wall and crop faces, at
+   least ``[probe] min_chest_distance_mm`` in front of the wall). A lesion lying against the
+   chest wall near the back of the breast (exam 02 left of the MRI collection, docs/anatomy.md)
+   has its nearest pushable skin vertex 1 mm from held ones: a probe there pushes along the
+   wall and barely loads the lesion, and no training push was ever centred there;
 2. the beam axis ``z``: the unit vector from ``p`` to ``c``, so the lesion centre lies on the
    probe axis, under the face centre, at the depth ``|c - p|`` (the nearest-point direction
    is the inward skin normal on a smooth surface; where it deviates from it by more than
@@ -26,14 +31,21 @@ deterministic per-lesion offset (within +-1.5 mm, kept inside its bin) so that r
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..anatomy.model import Anatomy
+from ..config import ProbeSection
+from ..probe import eligible_centers
+
+if TYPE_CHECKING:
+    from ..case import Case
 
 MAX_AXIS_TILT_DEG = 30.0
 LEVEL_JITTER_MM = 1.5
 MIN_CHEST_CROSS = 0.3  # |n_chest x z| below this: z is too close to the chest normal
+MIN_CHEST_DISTANCE_MM = ProbeSection().min_chest_distance_mm
 
 
 @dataclass
@@ -71,11 +83,23 @@ def beam_frame(z: np.ndarray, chest_normal: np.ndarray) -> np.ndarray:
     return np.column_stack([x, np.cross(z, x), z])
 
 
-def place_probe(anatomy: Anatomy, lesion_index: int) -> Placement:
-    """Rest pose of the probe above lesion ``lesion_index`` (see module doc)."""
+def skin_point(anatomy: Anatomy, point: np.ndarray, min_chest_distance_mm: float) -> int:
+    """Index of the skin vertex nearest ``point`` (3,) mm among those a training push may centre
+    on, at least ``min_chest_distance_mm`` in front of the chest wall (step 1 of the module
+    doc)."""
+    centres = eligible_centers(anatomy, min_chest_distance_mm)
+    dist = np.linalg.norm(anatomy.vertices[centres] - np.asarray(point, np.float64), axis=1)
+    return int(centres[np.argmin(dist)])
+
+
+def place_probe(anatomy: Anatomy, lesion_index: int,
+                min_chest_distance_mm: float = MIN_CHEST_DISTANCE_MM) -> Placement:
+    """Rest pose of the probe above lesion ``lesion_index`` (see module doc), its skin point at
+    least ``min_chest_distance_mm`` in front of the chest wall (a case's own is ``[probe]
+    min_chest_distance_mm``; :func:`place_case_probe` reads it)."""
     les = anatomy.lesions[lesion_index]
     c = np.asarray(les.center, dtype=np.float64)
-    v = anatomy.nearest_pushable_vertex(c)
+    v = skin_point(anatomy, c, min_chest_distance_mm)
     p = anatomy.vertices[v]
     z = (c - p) / max(float(np.linalg.norm(c - p)), 1e-12)
     inward = -anatomy.normals[v]
@@ -86,6 +110,12 @@ def place_probe(anatomy: Anatomy, lesion_index: int) -> Placement:
     pose[:3, 3] = p
     local = (c - p) @ pose[:3, :3]
     return Placement(int(les.id), v, pose, float(local[2]), float(local[0]))
+
+
+def place_case_probe(case: Case, lesion_index: int) -> Placement:
+    """:func:`place_probe` on a loaded case's anatomy with its ``[probe]
+    min_chest_distance_mm``."""
+    return place_probe(case.anatomy, lesion_index, case.cfg.probe.min_chest_distance_mm)
 
 
 def push_depths(k: int, n_pushes: int, max_push_mm: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from ..grid.build import build_grid
 from ..reference_registry import build_reference
 from ..tracker.core import Tracker, fem_engine, fem_solver_settings
 from ..tracker.result import TrackingResult
-from .placement import Placement, place_probe, push_depths
+from .placement import Placement, place_case_probe, push_depths
 from .table import AGREEMENT, BIN_NAMES, Record, aggregate, bin_name
 
 METHODS: tuple[str, ...] = ("net", "fem", "rigid")
@@ -110,7 +110,7 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     placements = []
     for k, li in enumerate(lesions):
         t_les = time.perf_counter()
-        placement = place_probe(case.anatomy, li)
+        placement = place_case_probe(case, li)
         depths = _depths(reference, li, push_depths(k, setup.pushes, setup.max_push_mm))
         n_contact = _set_rest(placement, reference, trackers)
         placements.append({**placement.to_dict(), "n_contact": n_contact,

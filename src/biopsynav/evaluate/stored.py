@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from .placement import place_probe
+from .placement import place_case_probe
 from .references import default_tissue_material, other_materials, pose_key, reference_result
 
 #: the package folder of the shipped truths
@@ -119,7 +119,7 @@ class StoredTruth:
     def _index_lesion(self, case: Any, li: int) -> None:
         """Every stored push of lesion index ``li`` by its pose key."""
         entry = self.stored[str(li)]
-        placement = place_probe(case.anatomy, li)
+        placement = place_case_probe(case, li)
         seconds = float(entry.get("seconds", np.nan)) / max(len(self.depths_mm), 1)
         for depth, disp in zip(self.depths_mm, entry["displacement"], strict=True):
             why = "" if disp is not None else f"no stored answer: {entry.get('failure') or '?'}"
