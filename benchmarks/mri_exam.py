@@ -1,0 +1,161 @@
+"""One breast of the public prone breast MRI collection, from its label map to a tracked tumour.
+
+    python benchmarks/mri_exam.py --collection CLONE --exam 06 --side left
+                                  [--workdir DIR] [--push-minutes 8] [--no-truth]
+
+``CLONE``: a local copy of the GitHub repository ``acpelicano/breast_models_repository``
+(Pelicano et al., 3 T prone breast MRI models; a git clone, or a folder of ``Exam_NN``
+folders). Its licence is unconfirmed: the label map is unpacked into ``DIR`` (default a
+temporary folder), never into this project, and nothing of it is kept here but figures.
+
+What it does, as a user would, with the label flags alone (no crop, no plane, no force by
+hand):
+
+1. unpacks ``Exam_NN``'s simple label map (labels -4 benign, -3 malignant, -2 skin, -1
+   muscle, 1 fat) to ``DIR/Exam_NN/Label_map_simple.mha``;
+2. ``biopsynav init DIR/eNN-SIDE --labelmap MAP --breast-labels 1,-2 --lesion-labels -3,-4
+   --chest-labels -1 --tissue-labels 1=fat,-2=skin --side SIDE`` (the tumour labels the map
+   holds), and what it modelled;
+3. ``biopsynav run`` with every default, each stage timed;
+4. the tumours' motion: ``benchmarks/truth.py`` with every lesion pushed by 10, 20 and 30 mm
+   from Table 2's placement, the network and the FE engine (the network's teacher) against
+   the P2 tetrahedral truth, each reference push bounded by ``--push-minutes``.
+
+Run it alone on the machine. Writes ``benchmarks/results/mri-exam-NN-SIDE.json``; the last
+line reads ``RESULT volume_ml=... total_min=... table1_mean_mm=... net_d30_mm=...
+fem_d30_mm=...`` (nan where not measured).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+from figures import depth_means
+from resultfile import write_result
+from time_to_model import stage_minutes
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAGS = ["--breast-labels", "1,-2", "--chest-labels", "-1", "--tissue-labels", "1=fat,-2=skin"]
+TUMOUR_LABELS = (-3, -4)  # malignant, benign
+LABEL_MAP = "Label_map_simple.mha"
+
+
+def archive_bytes(collection: Path, exam: str) -> bytes:
+    """The bytes of ``Exam_NN``'s simple label-map zip, from a folder of ``Exam_NN`` folders or
+    a git repository (a clone, or a bare one such as ``fetch`` leaves)."""
+    found = sorted((collection / f"Exam_{exam}").glob("*abel_map_simple.zip"))
+    if found:
+        return found[0].read_bytes()
+    bare = (collection / "objects").is_dir() and (collection / "HEAD").is_file()
+    git = ["git", f"--git-dir={collection}"] if bare else ["git", "-C", str(collection)]
+    names = subprocess.run([*git, "ls-tree", "-r", "--name-only", "HEAD", f"Exam_{exam}"],
+                           capture_output=True, text=True)
+    zips = [n for n in names.stdout.split() if n.lower().endswith("label_map_simple.zip")]
+    if names.returncode or not zips:
+        sys.exit(f"mri_exam: no simple label map of exam {exam} in {collection}")
+    return subprocess.run([*git, "show", f"HEAD:{zips[0]}"], capture_output=True,
+                          check=True).stdout
+
+
+def unpack(collection: Path, exam: str, work: Path) -> Path:
+    """``work/Exam_NN/Label_map_simple.mha`` (unpacked once)."""
+    out = work / f"Exam_{exam}" / LABEL_MAP
+    if out.is_file():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    archive = out.parent / "simple.zip"
+    archive.write_bytes(archive_bytes(collection, exam))
+    with zipfile.ZipFile(archive) as z:
+        member = next(n for n in z.namelist() if n.lower().endswith(".mha"))
+        tmp = out.with_suffix(".mha.tmp")
+        tmp.write_bytes(z.read(member))
+        tmp.replace(out)
+    return out
+
+
+def lesion_flag(label_map: Path) -> list[str]:
+    """``--lesion-labels`` with the tumour labels the map holds (none: no flag)."""
+    import numpy as np
+
+    from biopsynav.anatomy.labelmap import read_label_image
+
+    present = set(np.unique(read_label_image(label_map).labels).tolist())
+    held = [str(v) for v in TUMOUR_LABELS if v in present]
+    return ["--lesion-labels", ",".join(held)] if held else []
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "biopsynav.cli", *args], check=True,
+                          capture_output=True, text=True)
+
+
+def tumour_motion(case_dir: Path, push_minutes: float) -> dict:
+    """``truth.py`` over every lesion at 10, 20, 30 mm: its rows and per-method means."""
+    out = case_dir.parent / f"{case_dir.name}-truth.json"
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
+                    "--lesions", "0", "--depths", "10", "20", "30",
+                    "--push-minutes", str(push_minutes), "--out", str(out)], check=True)
+    data = json.loads(out.read_text())
+    means = {m: depth_means(data, m) for m in ("net", "fem", "rigid")}
+    return {"rows": data["rows"], "depth_means_mm": means}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--collection", type=Path, required=True)
+    p.add_argument("--exam", required=True, help="two digits, e.g. 06")
+    p.add_argument("--side", choices=("left", "right"), required=True)
+    p.add_argument("--workdir", type=Path, default=None)
+    p.add_argument("--push-minutes", type=float, default=8.0)
+    p.add_argument("--no-truth", action="store_true")
+    args = p.parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="mri-"))
+    label_map = unpack(args.collection, args.exam, work)
+    case_dir = work / f"e{args.exam}-{args.side}"
+    if case_dir.exists():
+        sys.exit(f"mri_exam: {case_dir} exists; the benchmark starts from the label map")
+    t = time.perf_counter()
+    print(cli("init", str(case_dir), "--labelmap", str(label_map), *FLAGS,
+              *lesion_flag(label_map), "--side", args.side).stdout.strip())
+    init_s = time.perf_counter() - t
+    info = json.loads(cli("info", str(case_dir), "--json").stdout)
+    from biopsynav.pipeline import run_case
+
+    start = time.perf_counter()
+    timings = run_case(case_dir)["timings_s"]
+    total_min = (time.perf_counter() - start) / 60
+    table1 = json.loads((case_dir / "eval" / "table1.json").read_text())
+    table2 = json.loads((case_dir / "eval" / "table2.json").read_text())
+    summary = json.loads((case_dir / "dataset_summary.json").read_text())
+    pushes = case_dir / "refine" / "dataset_summary.json"
+    pushes = json.loads(pushes.read_text()) if pushes.is_file() else {}
+    motion = {} if args.no_truth else tumour_motion(case_dir, args.push_minutes)
+    d30 = {m: motion.get("depth_means_mm", {}).get(m, [math.nan] * 3)[2]
+           for m in ("net", "fem")}
+    figures = {"modelled": info["modelled"], "warnings": info["warnings"],
+               "active_cells": info["active_cells"], "lesions": info["n_lesions"],
+               "init_s": init_s, "total_min": total_min,
+               "stages_min": stage_minutes(case_dir, timings, 0.0),
+               "generate": {k: summary.get(k) for k in ("failures", "too_deep", "minutes")},
+               "refine_pushes": {k: pushes.get(k) for k in ("failures", "too_deep", "minutes")},
+               "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
+               "table2_placements": table2["placements"],
+               "table2_tables": table2["tables"], "tumour_motion": motion}
+    write_result(f"mri-exam-{args.exam}-{args.side}", figures)
+    print(f"RESULT volume_ml={info['modelled']['breast_volume_ml']:.0f} "
+          f"total_min={total_min:.1f} table1_mean_mm={table1['mean_e_mm']:.4f} "
+          f"net_d30_mm={d30['net']:.2f} fem_d30_mm={d30['fem']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
