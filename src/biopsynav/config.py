@@ -73,7 +73,7 @@ class AnatomySection:
     side: str = opt("", "Which breast of a bilateral label map: 'left' or 'right' (the "
                         "patient's; RAS -x is left). Empty: the only breast, or the one "
                         "holding the lesions.", choices=("", "left", "right"))
-    breast_protrusion_mm: float = opt(20.0, "A label map of the whole anterior torso is cut "
+    breast_protrusion_mm: float = opt(25.0, "A label map of the whole anterior torso is cut "
                                             "to its breasts: the columns (along the anterior "
                                             "axis) whose tissue stands more than this off the "
                                             "torso layer (docs/anatomy.md, 'The breast of a "

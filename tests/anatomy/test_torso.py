@@ -17,6 +17,7 @@ from scipy import ndimage
 from biopsynav.anatomy.torso import back_voxels, cut_torso
 from biopsynav.case import Case
 from biopsynav.cli import main
+from biopsynav.config import AnatomySection
 
 SPACING = 2.0  # mm
 SHAPE = (150, 70, 130)  # LPS x (right to left), y (anterior to posterior), z (inferior up)
@@ -24,7 +25,8 @@ LAYER = (85.0, 110.0)  # LPS y of the torso layer in front of the muscle, mm
 MUSCLE = (110.0, 120.0)
 RADIUS = 55.0  # hemispherical breasts on the layer
 CENTRES = ((80.0, 140.0), (220.0, 140.0))  # LPS (x, z), mm: the patient's right, then left
-FOLD_RADIUS = np.sqrt(RADIUS ** 2 - 20.0 ** 2)  # where the breast stands 20 mm off the layer
+PROTRUSION = AnatomySection().breast_protrusion_mm  # the default, mm
+FOLD_RADIUS = np.sqrt(RADIUS ** 2 - PROTRUSION ** 2)  # where the breast stands that far off
 
 
 def torso_labels(lesions=((80.0, 50.0, 150.0),), graded: bool = False) -> np.ndarray:
@@ -97,8 +99,8 @@ def test_one_breast_of_the_expected_volume_with_the_abdomen_cut(torso_case, caps
     # the cut faces are crop faces, the back is the chest wall
     assert a.crop_vertices.sum() > 100 and a.fixed_vertices.sum() > 100
     cut_y = -a.vertices[a.crop_vertices][:, 1]  # LPS y
-    # through the layer and the breast's rim that stands under 20 mm off it
-    assert cut_y.min() > LAYER[0] - 20.0 - 2 * SPACING
+    # through the layer and the breast's rim that stands under PROTRUSION off it
+    assert cut_y.min() > LAYER[0] - PROTRUSION - 2 * SPACING
     assert cut_y.max() > LAYER[0] + 15.0, "down to the chest wall, which holds its foot"
     code, out, _ = run(capsys, "info", torso_case, "--json")
     info = json.loads(out)

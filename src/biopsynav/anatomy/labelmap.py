@@ -197,7 +197,7 @@ class BreastFinding:
     """How the breast of a torso segmentation is found (:mod:`.torso`; ``protrusion_mm`` 0
     turns the cut off), mm."""
 
-    protrusion_mm: float = 20.0
+    protrusion_mm: float = 25.0  # [anatomy] breast_protrusion_mm's default
     torso_disc_mm: float = 200.0
 
 
