@@ -18,9 +18,10 @@ the abdomen. The breast is the tissue that protrudes from that layer:
   faces (never pushed). A map of one breast alone has no layer: the disc always meets empty
   columns, ``B`` stays under :data:`MIN_LAYER_MM` everywhere, and nothing is cut.
 
-The defaults were chosen on four exams of a public 3 T prone breast MRI collection
-(docs/anatomy.md): at 20 mm the footprint's lower edge falls on the fold crease of each exam's
-sagittal slices.
+The defaults were chosen on exams of a public 3 T prone breast MRI collection
+(docs/anatomy.md): from 20 mm the footprint's lower edge falls on the fold crease of each
+exam's sagittal slices, and at 25 mm its lateral edge on the crease where the skin leaves the
+chest (at 20 mm it ran down the lateral slope).
 """
 
 from __future__ import annotations
