@@ -23,7 +23,12 @@ hand):
 
 Run it alone on the machine. Writes ``benchmarks/results/mri-exam-NN-SIDE.json``; the last
 line reads ``RESULT volume_ml=... total_min=... table1_mean_mm=... net_d30_mm=...
-fem_d30_mm=...`` (nan where not measured).
+fem_d30_mm=... bound_covered=k/n`` (nan where not measured). ``--case DIR`` takes a case of
+that exam and side that ``run`` already finished: step 4 and the figures, without stage
+times.
+
+The tracker's 95 % bound (``biopsynav.tracker.bound``, fitted on UC Davis) is checked against
+the network's TRE of each push: an MRI breast took no part in its fit.
 """
 
 from __future__ import annotations
@@ -105,19 +110,34 @@ def tumour_motion(case_dir: Path, push_minutes: float) -> dict:
                     "--push-minutes", str(push_minutes), "--out", str(out)], check=True)
     data = json.loads(out.read_text())
     means = {m: depth_means(data, m) for m in ("net", "fem", "rigid")}
-    return {"rows": data["rows"], "depth_means_mm": means}
+    return {"rows": data["rows"], "depth_means_mm": means, "bound": bound_check(data["rows"])}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--collection", type=Path, required=True)
-    p.add_argument("--exam", required=True, help="two digits, e.g. 06")
-    p.add_argument("--side", choices=("left", "right"), required=True)
-    p.add_argument("--workdir", type=Path, default=None)
-    p.add_argument("--push-minutes", type=float, default=8.0)
-    p.add_argument("--no-truth", action="store_true")
-    args = p.parse_args(argv)
-    sys.stdout.reconfigure(line_buffering=True)
+def bound_check(rows: list[dict]) -> dict:
+    """The tracker's 95 % bound (``biopsynav.tracker.bound``, fitted on UC Davis; this breast
+    took no part) against the network's TRE per push: the bound at the least displacement the
+    network can have predicted (true |d| less its TRE, as benchmarks/error_bound.py checks it),
+    and how many TREs it covers."""
+    import numpy as np
+
+    from biopsynav.tracker.bound import error_bound_mm
+
+    checked = []
+    for r in rows:
+        if r["status"].get("net") != "ok" or r.get("reference_mm") is None:
+            continue
+        least = max(r["reference_mm"] - r["tre_mm"]["net"], 0.0)
+        b = float(error_bound_mm(np.array([[least, 0.0, 0.0]]), r["depth_mm"])[0])
+        checked.append({"lesion": r["lesion"], "depth_mm": r["depth_mm"], "bound_mm": b,
+                        "tre_mm": r["tre_mm"]["net"], "covered": r["tre_mm"]["net"] <= b})
+    return {"pushes": checked, "covered": f"{sum(c['covered'] for c in checked)}/{len(checked)}"}
+
+
+def from_label_map(args: argparse.Namespace) -> tuple[Path, float, dict, float]:
+    """Unpack, ``init`` and ``run`` (every default): the case folder, init's seconds, the
+    run's stage seconds and its minutes in all."""
+    from biopsynav.pipeline import run_case
+
     work = args.workdir or Path(tempfile.mkdtemp(prefix="mri-"))
     label_map = unpack(args.collection, args.exam, work)
     case_dir = work / f"e{args.exam}-{args.side}"
@@ -127,12 +147,31 @@ def main(argv: list[str] | None = None) -> int:
     print(cli("init", str(case_dir), "--labelmap", str(label_map), *FLAGS,
               *lesion_flag(label_map), "--side", args.side).stdout.strip())
     init_s = time.perf_counter() - t
-    info = json.loads(cli("info", str(case_dir), "--json").stdout)
-    from biopsynav.pipeline import run_case
-
     start = time.perf_counter()
     timings = run_case(case_dir)["timings_s"]
-    total_min = (time.perf_counter() - start) / 60
+    return case_dir, init_s, timings, (time.perf_counter() - start) / 60
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--collection", type=Path, default=None)
+    p.add_argument("--exam", required=True, help="two digits, e.g. 06")
+    p.add_argument("--side", choices=("left", "right"), required=True)
+    p.add_argument("--workdir", type=Path, default=None)
+    p.add_argument("--push-minutes", type=float, default=8.0)
+    p.add_argument("--no-truth", action="store_true")
+    p.add_argument("--case", type=Path, default=None,
+                   help="a case of this exam and side that `run` finished: its tumours' motion "
+                        "and figures only (no stage times)")
+    args = p.parse_args(argv)
+    sys.stdout.reconfigure(line_buffering=True)
+    if args.case is None and args.collection is None:
+        sys.exit("mri_exam: give --collection (from the label map) or --case (a finished run)")
+    if args.case is None:
+        case_dir, init_s, timings, total_min = from_label_map(args)
+    else:
+        case_dir, init_s, timings, total_min = args.case, math.nan, {}, math.nan
+    info = json.loads(cli("info", str(case_dir), "--json").stdout)
     table1 = json.loads((case_dir / "eval" / "table1.json").read_text())
     table2 = json.loads((case_dir / "eval" / "table2.json").read_text())
     summary = json.loads((case_dir / "dataset_summary.json").read_text())
@@ -153,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     write_result(f"mri-exam-{args.exam}-{args.side}", figures)
     print(f"RESULT volume_ml={info['modelled']['breast_volume_ml']:.0f} "
           f"total_min={total_min:.1f} table1_mean_mm={table1['mean_e_mm']:.4f} "
-          f"net_d30_mm={d30['net']:.2f} fem_d30_mm={d30['fem']:.2f}")
+          f"net_d30_mm={d30['net']:.2f} fem_d30_mm={d30['fem']:.2f} "
+          f"bound_covered={motion.get('bound', {}).get('covered', 'nan')}")
     return 0
 
 
