@@ -40,6 +40,9 @@ HAND_CROPS = {"01": ({"right": (90, 155, 60, 225), "left": (190, 255, 60, 215)},
               "10": ({"right": (30, 165, 30, 200), "left": (215, 330, 40, 190)}, -3),
               "13": ({"right": (68, 158, 55, 215), "left": (188, 270, 60, 213)}, -3)}
 TISSUE = (1, -2, -3, -4)
+#: the label flags of the collection's simple maps, but for the lesion labels and the side
+LABEL_FLAGS = ["--breast-labels", "1,-2", "--chest-labels", "-1", "--tissue-labels",
+               "1=fat,-2=skin"]
 
 
 def hand_crop_ml(path: Path, box: tuple[int, int, int, int]) -> float:
@@ -54,8 +57,7 @@ def hand_crop_ml(path: Path, box: tuple[int, int, int, int]) -> float:
 
 def modelled(path: Path, side: str, lesion: int, case_dir: Path) -> dict:
     """``init`` with the label flags alone; what it modelled (``info --json``) and its time."""
-    flags = ["--breast-labels", "1,-2", "--lesion-labels", str(lesion), "--chest-labels", "-1",
-             "--tissue-labels", "1=fat,-2=skin", "--side", side]
+    flags = [*LABEL_FLAGS, "--lesion-labels", str(lesion), "--side", side]
     start = time.time()
     subprocess.run([sys.executable, "-m", "biopsynav.cli", "init", str(case_dir),
                     "--labelmap", str(path), *flags], check=True, capture_output=True)

@@ -34,6 +34,7 @@ the network's TRE of each push: an MRI breast took no part in its fit.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import subprocess
@@ -44,11 +45,11 @@ import zipfile
 from pathlib import Path
 
 from figures import depth_means
+from mri_breasts import LABEL_FLAGS
 from resultfile import write_result
 from time_to_model import stage_minutes
 
 ROOT = Path(__file__).resolve().parents[1]
-FLAGS = ["--breast-labels", "1,-2", "--chest-labels", "-1", "--tissue-labels", "1=fat,-2=skin"]
 TUMOUR_LABELS = (-3, -4)  # malignant, benign
 LABEL_MAP = "Label_map_simple.mha"
 
@@ -76,9 +77,7 @@ def unpack(collection: Path, exam: str, work: Path) -> Path:
     if out.is_file():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
-    archive = out.parent / "simple.zip"
-    archive.write_bytes(archive_bytes(collection, exam))
-    with zipfile.ZipFile(archive) as z:
+    with zipfile.ZipFile(io.BytesIO(archive_bytes(collection, exam))) as z:
         member = next(n for n in z.namelist() if n.lower().endswith(".mha"))
         tmp = out.with_suffix(".mha.tmp")
         tmp.write_bytes(z.read(member))
@@ -144,7 +143,7 @@ def from_label_map(args: argparse.Namespace) -> tuple[Path, float, dict, float]:
     if case_dir.exists():
         sys.exit(f"mri_exam: {case_dir} exists; the benchmark starts from the label map")
     t = time.perf_counter()
-    print(cli("init", str(case_dir), "--labelmap", str(label_map), *FLAGS,
+    print(cli("init", str(case_dir), "--labelmap", str(label_map), *LABEL_FLAGS,
               *lesion_flag(label_map), "--side", args.side).stdout.strip())
     init_s = time.perf_counter() - t
     start = time.perf_counter()

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ..config import label_item
+from ..config import AnatomySection, label_item
 from ..errors import InputError
 from ..grid.index import image_array_to_xyz
 from .torso import anterior_axis, back_voxels, cut_torso
@@ -197,8 +197,8 @@ class BreastFinding:
     """How the breast of a torso segmentation is found (:mod:`.torso`; ``protrusion_mm`` 0
     turns the cut off), mm."""
 
-    protrusion_mm: float = 25.0  # [anatomy] breast_protrusion_mm's default
-    torso_disc_mm: float = 200.0
+    protrusion_mm: float = AnatomySection().breast_protrusion_mm
+    torso_disc_mm: float = AnatomySection().torso_disc_mm
 
 
 def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side: str,
