@@ -17,15 +17,17 @@ hand):
    --chest-labels -1 --tissue-labels 1=fat,-2=skin --side SIDE`` (the tumour labels the map
    holds), and what it modelled;
 3. ``biopsynav run`` with every default, each stage timed;
-4. the tumours' motion: ``benchmarks/truth.py`` with every lesion pushed by 10, 20 and 30 mm
-   from Table 2's placement, the network and the FE engine (the network's teacher) against
-   the P2 tetrahedral truth, each reference push bounded by ``--push-minutes``.
+4. the tumours' motion under pushes of exactly 10, 20 and 30 mm from Table 2's placement by
+   the network and by the FE engine (the network's teacher), and their distance;
+5. unless ``--no-truth``: ``benchmarks/truth.py`` with the same pushes, the network and the
+   FE engine against the P2 tetrahedral truth, each reference push bounded by
+   ``--push-minutes``.
 
 Run it alone on the machine. Writes ``benchmarks/results/mri-exam-NN-SIDE.json``; the last
 line reads ``RESULT volume_ml=... total_min=... table1_mean_mm=... net_d30_mm=...
 fem_d30_mm=... bound_covered=k/n`` (nan where not measured). ``--case DIR`` takes a case of
-that exam and side that ``run`` already finished: step 4 and the figures, without stage
-times.
+that exam and side that ``run`` already finished: steps 4 and 5 and the figures, without
+stage times.
 
 The tracker's 95 % bound (``biopsynav.tracker.bound``, fitted on UC Davis) is checked against
 the network's TRE of each push: an MRI breast took no part in its fit.
@@ -112,6 +114,42 @@ def tumour_motion(case_dir: Path, push_minutes: float) -> dict:
     return {"rows": data["rows"], "depth_means_mm": means, "bound": bound_check(data["rows"])}
 
 
+def model_motion(case_dir: Path, depths: tuple[float, ...] = (10.0, 20.0, 30.0)) -> dict:
+    """Each tumour's motion (mm) under pushes of exactly ``depths`` from Table 2's placement,
+    by the network and by the FE engine (its teacher's solve), and their distance: what the
+    case's own models say where no independent truth was solved. Rows: lesion, depth_mm,
+    net_mm and fem_mm (|displacement|, None where that engine did not answer reliably, with
+    its status), net_fem_mm."""
+    import numpy as np
+
+    from biopsynav.case import Case
+    from biopsynav.evaluate.placement import place_case_probe
+    from truth import method_trackers
+
+    case = Case.load(case_dir)
+    trackers = method_trackers(case)
+    rows = []
+    for li in range(len(case.anatomy.lesions)):
+        placement = place_case_probe(case, li)
+        for tr in trackers.values():
+            tr.set_rest_pose(placement.pose)
+        for depth in depths:
+            row, disp = {"lesion": int(case.anatomy.lesions[li].id), "depth_mm": depth}, {}
+            for name, tr in trackers.items():
+                res = tr.update(placement.pushed(depth))
+                row[f"{name}_status"] = res.status
+                disp[name] = res.lesions[li].displacement if res.reliable else None
+                row[f"{name}_mm"] = None if disp[name] is None else float(
+                    np.linalg.norm(disp[name]))
+            both = all(d is not None for d in disp.values())
+            row["net_fem_mm"] = (float(np.linalg.norm(disp["net"] - disp["fem"]))
+                                 if both else None)
+            rows.append(row)
+            print(f"lesion {row['lesion']} at {depth:g} mm: network {row['net_mm']} mm, FE "
+                  f"{row['fem_mm']} mm, apart {row['net_fem_mm']} mm", flush=True)
+    return {"depths_mm": list(depths), "rows": rows}
+
+
 def bound_check(rows: list[dict]) -> dict:
     """The tracker's 95 % bound (``biopsynav.tracker.bound``, fitted on UC Davis; this breast
     took no part) against the network's TRE per push: the bound at the least displacement the
@@ -177,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     pushes = case_dir / "refine" / "dataset_summary.json"
     pushes = json.loads(pushes.read_text()) if pushes.is_file() else {}
     motion = {} if args.no_truth else tumour_motion(case_dir, args.push_minutes)
+    models = model_motion(case_dir)
     d30 = {m: motion.get("depth_means_mm", {}).get(m, [math.nan] * 3)[2]
            for m in ("net", "fem")}
     figures = {"modelled": info["modelled"], "warnings": info["warnings"],
@@ -187,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
                "refine_pushes": {k: pushes.get(k) for k in ("failures", "too_deep", "minutes")},
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "table2_placements": table2["placements"],
-               "table2_tables": table2["tables"], "tumour_motion": motion}
+               "table2_tables": table2["tables"], "tumour_motion": motion,
+               "model_motion": models}
     write_result(f"mri-exam-{args.exam}-{args.side}", figures)
     print(f"RESULT volume_ml={info['modelled']['breast_volume_ml']:.0f} "
           f"total_min={total_min:.1f} table1_mean_mm={table1['mean_e_mm']:.4f} "

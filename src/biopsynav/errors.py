@@ -17,11 +17,15 @@ class InputError(BiopsynavError):
 
 
 class SolverError(BiopsynavError):
-    """A finite-element solve that did not converge; carries the Newton log."""
+    """A finite-element solve that did not converge; carries the Newton log and, where the
+    solver sets it, ``reached``: the last converged state (load factor, solver-specific
+    state) a retry can start from, or None."""
 
-    def __init__(self, what: str, where: str | None = None, log: list[dict] | None = None) -> None:
+    def __init__(self, what: str, where: str | None = None, log: list[dict] | None = None,
+                 reached: tuple | None = None) -> None:
         super().__init__(what, where)
         self.log = log or []
+        self.reached = reached
 
 
 class TrainingError(BiopsynavError):

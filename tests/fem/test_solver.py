@@ -3,6 +3,7 @@ prescribed displacements."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
@@ -13,6 +14,7 @@ from scipy.optimize import fsolve
 from biopsynav.errors import InputError, SolverError
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
 from biopsynav.fem.linsolve import available_backends
+from biopsynav.fem.solver import solve_once, stiffer_springs
 from tests.fem.mesh import box_mesh
 
 from .conftest import E_MPA, NU, distorted_box, lame
@@ -507,11 +509,11 @@ def test_elastic_contact_gives_the_springs_as_asked_their_own_budget(monkeypatch
     model, loads = _block_on_one_spring()
     real, budgets = solver_mod.solve_once, []
 
-    def first_fails(model, loads, settings=None):
+    def first_fails(model, loads, settings=None, resume_from=None):
         budgets.append(settings.max_total_iterations)
         if len(budgets) == 1:
             raise SolverError("made to fail", "test")
-        return real(model, loads, settings)
+        return real(model, loads, settings, resume_from)
 
     monkeypatch.setattr(solver_mod, "solve_once", first_fails)
     for first_budget, total, first in ((0, 0, 0), (40, 0, 40), (40, 400, 40), (40, 20, 20),
@@ -520,6 +522,46 @@ def test_elastic_contact_gives_the_springs_as_asked_their_own_budget(monkeypatch
         solve(model, loads, SolverSettings(max_total_iterations=total,
                                            first_attempt_budget=first_budget))
         assert budgets == [first, total]
+
+
+def test_a_fallback_starts_where_the_springs_before_it_stopped(monkeypatch):
+    """The stiffer springs start from the last load factor the springs as asked converged
+    at (their state the first guess), and reach the answer they reach from rest."""
+    import biopsynav.fem.solver as solver_mod
+
+    model, loads = _block_on_one_spring()
+    half = dataclasses.replace(loads, prescribed_displacement=0.5 * loads.prescribed_displacement)
+    u_half, _ = solve_once(model, half)
+    reached = (0.5, model.to_free(u_half))
+    real, starts = solver_mod.solve_once, []
+
+    def first_stops_halfway(model, loads, settings=None, resume_from=None):
+        starts.append(resume_from)
+        if len(starts) == 1:
+            raise SolverError("made to fail", "test", reached=reached)
+        return real(model, loads, settings, resume_from)
+
+    monkeypatch.setattr(solver_mod, "solve_once", first_stops_halfway)
+    u, report = solve(model, loads, SolverSettings(spring_fallback=(4.0,)))
+    assert starts[0] is None and starts[1] is reached
+    assert report.spring_factor == 4.0
+    assert report.log[0]["load"] == 1.0 and report.log[0]["step"] == 0.5  # from 0.5, not rest
+    monkeypatch.undo()
+    cold, cold_report = solve_once(model, stiffer_springs(loads, 4.0))
+    np.testing.assert_allclose(u, cold, atol=1e-6)
+    assert report.residual_rel < 1e-8
+    assert report.reference_residual == pytest.approx(cold_report.reference_residual)
+
+
+def test_a_failed_solve_says_how_far_it_converged():
+    """A solve stopped by its budget carries the last converged load factor and state."""
+    model, loads = _block_on_one_spring()
+    deep = dataclasses.replace(loads, prescribed_displacement=20 * loads.prescribed_displacement,
+                               prescribed_stiffness=None)
+    with pytest.raises(SolverError) as caught:
+        solve_once(model, deep, SolverSettings(max_total_iterations=6, initial_load_step=0.25))
+    load, state = caught.value.reached
+    assert 0.0 < load < 1.0 and state.shape == (model.n_eq,) and np.abs(state).max() > 0.0
 
 
 def test_elastic_contact_in_single_precision_converges_to_the_double_answer():
@@ -550,12 +592,12 @@ def test_elastic_contact_falls_back_to_stiffer_springs(monkeypatch):
     real, tried = solver_mod.solve_once, []
 
     def failing_below(limit):
-        def solve_once(model, loads, settings=None):
+        def solve_once(model, loads, settings=None, resume_from=None):
             k = loads.prescribed_stiffness
             tried.append(None if k is None else float(k[0]))
             if k is not None and k[0] < limit:
                 raise SolverError("made to fail", "test")
-            return real(model, loads, settings)
+            return real(model, loads, settings, resume_from)
         return solve_once
 
     monkeypatch.setattr(solver_mod, "solve_once", failing_below(0.1))

@@ -202,11 +202,11 @@ def test_the_springs_as_asked_get_the_tracker_s_budget_then_their_fallback(coars
                                     2.0).first_attempt_budget == 0  # no budget stays none
     real, budgets = solver_mod.solve_once, []
 
-    def first_runs_out(model, loads, settings=None):
+    def first_runs_out(model, loads, settings=None, resume_from=None):
         budgets.append(settings.max_total_iterations)
         if len(budgets) == 1:
             raise solver_mod.SolverError("no convergence within max_total_iterations", "test")
-        return real(model, loads, settings)
+        return real(model, loads, settings, resume_from)
 
     tracker = Tracker.load(coarse_case.dir, engine="fem")
     tracker.set_rest_pose(TOP)

@@ -100,6 +100,8 @@ class SolveReport:
     lowest_scaled_eigenvalue: float | None = None
     backend: str = ""
     log: list[dict] = field(default_factory=list)
+    #: the last converged (load factor, free displacement (n_eq,) mm), or None
+    reached: tuple[float, np.ndarray] | None = field(default=None, repr=False)
 
     def fallback_note(self) -> str:
         """What a user should know of an answer of elastic contact's fallbacks: '' when the
@@ -252,22 +254,33 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
     """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails
     (within ``settings.first_attempt_budget`` iterations, where set) is solved again with
     stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``), and
-    the report's ``spring_factor`` says which answered. Raises the first SolverError when
-    none does."""
+    the report's ``spring_factor`` says which answered. Each stiffer-spring attempt starts
+    from the furthest load factor an attempt before it converged at (its state the first
+    guess), not from rest. Raises the first SolverError when none does."""
     settings = settings or SolverSettings()
     if loads.prescribed_stiffness is None:
         return solve_once(model, loads, settings)
     try:
         return solve_once(model, loads, first_attempt_settings(settings))
     except SolverError as first:
+        reached = first.reached
         for factor in settings.spring_fallback:
+            start = reached if math.isfinite(factor) else None  # points met: from rest
             try:
-                u, report = solve_once(model, stiffer_springs(loads, factor), settings)
-            except SolverError:
+                u, report = solve_once(model, stiffer_springs(loads, factor), settings, start)
+            except SolverError as exc:
+                reached = _further(reached, exc.reached)
                 continue
             report.spring_factor = factor
             return u, report
         raise first from None
+
+
+def _further(a: tuple | None, b: tuple | None) -> tuple | None:
+    """Of two reached states (load factor, free displacement), the one at the larger load."""
+    if a is None or b is None:
+        return a if b is None else b
+    return a if a[0] >= b[0] else b
 
 
 def first_attempt_settings(settings: SolverSettings) -> SolverSettings:
@@ -283,9 +296,15 @@ def stiffer_springs(loads: Loads, factor: float) -> Loads:
     return dataclasses.replace(loads, prescribed_stiffness=stiffness)
 
 
-def solve_once(model: FEModel, loads: Loads,
-               settings: SolverSettings | None = None) -> tuple[np.ndarray, SolveReport]:
+def solve_once(model: FEModel, loads: Loads, settings: SolverSettings | None = None,
+               resume_from: tuple[float, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, SolveReport]:
     """Static equilibrium of ``model`` under ``loads``.
+
+    ``resume_from`` (load factor in (0, 1), free displacement (n_eq,) mm), where given: the load
+    stepping begins there instead of at rest, the state the first Newton guess (elastic
+    contact's fallbacks start from what the springs before them reached; a state of other
+    loads is a guess, never an answer).
 
     Returns the displacement (n_nodes, 3) in mm (zero on fixed and unused nodes) and a
     :class:`SolveReport`. Each ``report.log`` entry holds: increment, load (target load
@@ -295,7 +314,7 @@ def solve_once(model: FEModel, loads: Loads,
     Raises:
         SolverError: no convergence down to ``min_load_step``, inverted elements, or more
             than ``settings.max_total_iterations`` Newton iterations in all (when > 0), with
-            the Newton log attached.
+            the Newton log and the last converged state (``reached``) attached.
     """
     settings = settings or SolverSettings()
     start = time.perf_counter()
@@ -313,25 +332,46 @@ def solve_once(model: FEModel, loads: Loads,
               or (prepared.elastic and settings.elastic_single_precision))
     solver = linear_solver(model, settings, single)
     report.backend = solver.name
+    if resume_from is not None and 0.0 < resume_from[0] < 1.0:
+        report.reference_residual = _rest_reference_residual(system, solver)
+    else:
+        resume_from = None
     try:
-        u = _continuation(system, solver, settings, report)
+        u = _continuation(system, solver, settings, report, resume_from)
         u = _enforce_constraints(system, solver, settings, report, u)
     except _BudgetExhausted:
         raise SolverError(f"no convergence within max_total_iterations = "
                           f"{settings.max_total_iterations} Newton iterations (|R|/|R0| = "
                           f"{report.log[-1]['residual_rel']:.3g} at load factor "
-                          f"{report.log[-1]['load']:.4f})", "fem.solve", log=report.log) from None
+                          f"{report.log[-1]['load']:.4f})", "fem.solve", log=report.log,
+                          reached=report.reached) from None
+    except SolverError as exc:
+        exc.reached = report.reached
+        raise
     _final_checks(system, settings, report, u)
     report.time_s = time.perf_counter() - start
     return model.to_nodes(u), report
 
 
+def _rest_reference_residual(system: _System, solver: LinearSolver) -> float:
+    """|R0| of ``system`` (see :meth:`_System.reference_residual`), from one linear solve
+    at rest: what the first Newton iteration of a solve from rest computes on the way."""
+    r, data, _, _ = system.evaluate(np.zeros(system.model.n_eq), 1.0, tangent=True)
+    _factor(solver, data)
+    return system.reference_residual(_solve(solver, r))
+
+
 def _continuation(system: _System, solver: LinearSolver, settings: SolverSettings,
-                  report: SolveReport) -> np.ndarray:
-    """Adaptive load stepping from t = 0 to t = 1; returns the converged free displacement."""
+                  report: SolveReport, start: tuple[float, np.ndarray] | None = None
+                  ) -> np.ndarray:
+    """Adaptive load stepping to t = 1 from rest, or from ``start`` (load factor, free
+    displacement); returns the converged free displacement and keeps the last converged
+    state in ``report.reached``."""
     u = np.zeros(system.model.n_eq)
     u_back, t_back = u, 0.0  # the converged state before u, for the secant predictor
     t, dt = 0.0, settings.initial_load_step
+    if start is not None:  # the secant predictor then extrapolates from rest through it
+        t, u = float(start[0]), np.array(start[1], dtype=float)
     last_reason = ""
     while t < 1.0:
         target = 1.0 if t + dt >= 1.0 - 1e-12 else t + dt
@@ -351,6 +391,7 @@ def _continuation(system: _System, solver: LinearSolver, settings: SolverSetting
         report.increments += 1
         u_back, t_back, u = u, t, u_new
         t, dt = target, (2.0 * dt if n_it <= EASY_ITERATIONS else dt)
+        report.reached = (t, u)
     return u
 
 
