@@ -70,7 +70,7 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     import dataclasses
 
     from biopsynav.case import Case
-    from biopsynav.runtime import REFERENCE, estimate_run, probe_seconds
+    from biopsynav.runtime import REFERENCE, REFINE_PUSH_MINUTES, estimate_run, probe_seconds
 
     case = Case.load(base_case)
     ref = REFERENCE["probe_s"]
@@ -86,6 +86,11 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     double = estimate_run(case, (ref, ref))
     for stage in ("train", "generate"):
         assert double.minutes[stage] == pytest.approx(2.0 * same.minutes[stage])
+    pushes = []
+    for samples in (500, 1000):  # the rigid pushes: their count, not the cells
+        case.cfg.refine = dataclasses.replace(case.cfg.refine, samples=samples)
+        pushes.append(estimate_run(case, (ref, ref)).minutes["refine pushes"])
+    assert pushes == pytest.approx([0.5 * REFINE_PUSH_MINUTES, REFINE_PUSH_MINUTES])
     assert double.minutes["evaluate and report"] == same.minutes["evaluate and report"]
     case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, deformations_per_lesion=2
                                             * case.cfg.evaluate.deformations_per_lesion)
@@ -96,17 +101,18 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
 
 
 def test_what_remains_is_rescaled_by_what_the_stages_took():
-    """The data stage taking twice its estimate doubles the FE stages ahead; the training
-    taking half halves the training ahead; a stage that was up to date rescales nothing."""
+    """The data stage taking twice its estimate doubles the evaluation's FE solves ahead (not
+    the rigid pushes); the training taking half halves the training ahead; a stage that was
+    up to date rescales nothing."""
     from biopsynav.runtime import Estimate, remaining_minutes
 
     est = Estimate({"generate": 2.0, "train": 10.0, "refine pushes": 3.0,
                     "refine training": 2.0, "evaluate and report": 1.0}, 1.0)
     assert remaining_minutes(est, {}) == pytest.approx(18.0)
     assert remaining_minutes(est, {"anatomy and grid": 1.0, "training data": 240.0}) == \
-        pytest.approx(10.0 + 6.0 + 2.0 + 2.0)
+        pytest.approx(10.0 + 3.0 + 2.0 + 2.0)
     assert remaining_minutes(est, {"training data": 240.0, "network training": 300.0}) == \
-        pytest.approx(6.0 + 1.0 + 2.0)
+        pytest.approx(3.0 + 1.0 + 2.0)
     assert remaining_minutes(est, {"training data": 0.5}) == pytest.approx(16.0)
     assert remaining_minutes(est, {"training data": 240.0, "network training": 300.0,
                                    "refine": 600.0, "evaluation": 60.0}) == 0.0

@@ -6,8 +6,12 @@ the case and to this machine today, from three probes of ten U-Net training step
 
 * **the machine's speed today**: the probe on the reference case's grid against the reference
   run's own probe, so that a slow day of a shared VM lengthens the estimate;
-* **FE stages** (``generate``, the rigid pushes of ``[refine]``) scale with their samples and
-  with the active cells (a solve costs about ``cells^1.3``), times the machine's speed;
+* **FE stages**: ``generate`` scales with its samples and with the active cells (a solve
+  costs about ``cells^1.3``), times the machine's speed; the rigid pushes of ``[refine]``
+  with their samples and the teacher's refinement cubed, times the machine's speed, from the
+  median of five breasts (:data:`REFINE_PUSH_MINUTES`): their cost is set by the share of
+  deep pushes that need the 4x-spring fallback, which neither the cells nor the data stage
+  predict;
 * **training stages** scale with their iterations and with the probe on the case's own grid
   at the stage's batch and arithmetic (its step against the reference case's, batch 4 fp32);
 * evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
@@ -36,6 +40,11 @@ REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
              "minutes": {"generate": 2.68, "train": 29.6, "refine pushes": 3.32,
                          "refine training": 6.43, "evaluate and report": 3.47}}
 PROBE_STEPS = 10  # steps timed after one warm-up; their median
+#: Minutes of 1,000 default ``[refine]`` rigid pushes on the 2-core machine: the median of
+#: five breasts, each alone (benchmarks/results: time-to-model-phantom, 11.0 min on 2,225
+#: active cells; mri-exam 02 left 10.1 on 3,822, 06 left 7.4 on 4,199, 13 right 9.5 on
+#: 2,524; the reference run's 3.3 on 2,041). Not scaled by the cells: they do not predict it.
+REFINE_PUSH_MINUTES = 9.5
 
 
 @dataclass
@@ -121,8 +130,8 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
                / ref["samples"] * cells * slowness,
                "train": m["train"] * cfg.network.iterations / ref["iterations"] * step}
     if cfg.refine.samples:
-        minutes["refine pushes"] = (m["refine pushes"] * cfg.refine.samples / ref["samples"]
-                                    * cells * cfg.refine.teacher_refine ** 3 * slowness)
+        minutes["refine pushes"] = (REFINE_PUSH_MINUTES * cfg.refine.samples / ref["samples"]
+                                    * cfg.refine.teacher_refine ** 3 * slowness)
         minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
                                       / ref["refine_iterations"] * refine_step)
     minutes["evaluate and report"] = m["evaluate and report"] * table2_work(case) * slowness
@@ -153,14 +162,17 @@ def table2_work(case) -> float:
 RUN_STAGES = {"training data": ("generate",), "network training": ("train",),
               "refine": ("refine pushes", "refine training"),
               "evaluation": ("evaluate and report",)}
-FE_STAGES = ("generate", "refine pushes", "evaluate and report")
+FE_STAGES = ("generate", "evaluate and report")  # rescaled by the data stage
+#: stages that nothing before them rescales
+UNSCALED_STAGES = ("refine pushes",)
 
 
 def remaining_minutes(estimate: Estimate, done_s: dict[str, float]) -> float:
     """Expected minutes of the run's stages not in ``done_s`` (run stage -> seconds taken).
     Once a stage has run, what it took against its estimate rescales the stages of its kind
-    still ahead (FE stages by the data stage, training by the network's): the estimate
-    learns this case and this day as the run goes."""
+    still ahead (the evaluation's FE solves by the data stage, training by the network's;
+    not the rigid pushes, whose cost the data stage does not predict): the estimate learns
+    this case and this day as the run goes."""
     ratio = {"fe": _taken_ratio(estimate, done_s, "training data", "generate"),
              "train": _taken_ratio(estimate, done_s, "network training", "train")}
     total = 0.0
@@ -169,7 +181,8 @@ def remaining_minutes(estimate: Estimate, done_s: dict[str, float]) -> float:
             continue
         for part in parts:
             kind = "fe" if part in FE_STAGES else "train"
-            total += estimate.minutes.get(part, 0.0) * ratio[kind]
+            scale = 1.0 if part in UNSCALED_STAGES else ratio[kind]
+            total += estimate.minutes.get(part, 0.0) * scale
     return total
 
 
