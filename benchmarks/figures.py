@@ -159,6 +159,13 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "face, against the glued face)",
      Cell("truth-agreement-phantom", per_depth("contact_mm"), AGREE_CMD + " --orders 2"),
      "-", "-"),
+    ("the same, phantom lesion 2 at 10 / 20 / 30 mm: between the two codes; what the probe "
+     "body changes",
+     Cell("truth-agreement-phantom-lesion1",
+          lambda f: per_depth("codes_mm")(f) + "; " + per_depth("contact_mm")(f),
+          "python benchmarks/truth_agreement.py --lesion-ids 1 --stored "
+          "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 --result-name "
+          "truth-agreement-phantom-lesion1"), "<= 0.2 mm at 30 mm", "-"),
     ("the same at 10 mm: NGSolve's P3 against its P2 on the same mesh",
      Cell("truth-agreement-phantom-p3", per_depth("p3_mm"), AGREE_CMD + " --depths 10 "
           "--orders 2 3 --result-name truth-agreement-phantom-p3"), "<= 0.1 mm", "-"),
