@@ -37,8 +37,8 @@ FE_EXPONENT = 1.3
 REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041, "batch": 4,
              "samples": 1000, "iterations": 50000, "refine_iterations": 16000,
              "table2_pushes": 8, "reference_refinement": 2.0,
-             "minutes": {"generate": 2.68, "train": 29.6, "refine pushes": 3.32,
-                         "refine training": 6.43, "evaluate and report": 3.47}}
+             "minutes": {"generate": 2.68, "train": 29.6, "refine training": 6.43,
+                         "evaluate and report": 3.47}}  # its pushes: REFINE_PUSH_MINUTES
 PROBE_STEPS = 10  # steps timed after one warm-up; their median
 #: Minutes of 1,000 default ``[refine]`` rigid pushes on the 2-core machine: the median of
 #: five breasts, each alone (benchmarks/results: time-to-model-phantom, 11.0 min on 2,225
@@ -162,9 +162,9 @@ def table2_work(case) -> float:
 RUN_STAGES = {"training data": ("generate",), "network training": ("train",),
               "refine": ("refine pushes", "refine training"),
               "evaluation": ("evaluate and report",)}
-FE_STAGES = ("generate", "evaluate and report")  # rescaled by the data stage
-#: stages that nothing before them rescales
-UNSCALED_STAGES = ("refine pushes",)
+#: the run stage whose taken time rescales each estimated stage ahead (none: the rigid pushes)
+RESCALED_BY = {"generate": "training data", "evaluate and report": "training data",
+               "train": "network training", "refine training": "network training"}
 
 
 def remaining_minutes(estimate: Estimate, done_s: dict[str, float]) -> float:
@@ -173,15 +173,14 @@ def remaining_minutes(estimate: Estimate, done_s: dict[str, float]) -> float:
     still ahead (the evaluation's FE solves by the data stage, training by the network's;
     not the rigid pushes, whose cost the data stage does not predict): the estimate learns
     this case and this day as the run goes."""
-    ratio = {"fe": _taken_ratio(estimate, done_s, "training data", "generate"),
-             "train": _taken_ratio(estimate, done_s, "network training", "train")}
+    ratio = {"training data": _taken_ratio(estimate, done_s, "training data", "generate"),
+             "network training": _taken_ratio(estimate, done_s, "network training", "train")}
     total = 0.0
     for stage, parts in RUN_STAGES.items():
         if stage in done_s:
             continue
         for part in parts:
-            kind = "fe" if part in FE_STAGES else "train"
-            scale = 1.0 if part in UNSCALED_STAGES else ratio[kind]
+            scale = ratio[RESCALED_BY[part]] if part in RESCALED_BY else 1.0
             total += estimate.minutes.get(part, 0.0) * scale
     return total
 

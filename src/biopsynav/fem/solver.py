@@ -362,16 +362,16 @@ def _rest_reference_residual(system: _System, solver: LinearSolver) -> float:
 
 
 def _continuation(system: _System, solver: LinearSolver, settings: SolverSettings,
-                  report: SolveReport, start: tuple[float, np.ndarray] | None = None
+                  report: SolveReport, resume_from: tuple[float, np.ndarray] | None = None
                   ) -> np.ndarray:
-    """Adaptive load stepping to t = 1 from rest, or from ``start`` (load factor, free
+    """Adaptive load stepping to t = 1 from rest, or from ``resume_from`` (load factor, free
     displacement); returns the converged free displacement and keeps the last converged
     state in ``report.reached``."""
     u = np.zeros(system.model.n_eq)
     u_back, t_back = u, 0.0  # the converged state before u, for the secant predictor
     t, dt = 0.0, settings.initial_load_step
-    if start is not None:  # the secant predictor then extrapolates from rest through it
-        t, u = float(start[0]), np.array(start[1], dtype=float)
+    if resume_from is not None:  # the secant predictor then extrapolates from rest through it
+        t, u = float(resume_from[0]), np.array(resume_from[1], dtype=float)
     last_reason = ""
     while t < 1.0:
         target = 1.0 if t + dt >= 1.0 - 1e-12 else t + dt
