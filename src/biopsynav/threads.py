@@ -1,4 +1,5 @@
-"""CPU thread settings, in one place: how many threads, and one thread for small solves.
+"""CPU thread settings and features, in one place: how many threads, one thread for small
+solves, and whether the CPU has AMX-BF16 tiles (bf16 training and inference).
 
 PyTorch's intra-op threads (training, TorchScript), OpenVINO's (``threads`` of its runner) and
 NumPy/SciPy's BLAS threads are all set from here.
@@ -6,10 +7,12 @@ NumPy/SciPy's BLAS threads are all set from here.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import torch
 
@@ -113,3 +116,16 @@ def one_thread() -> Iterator[None]:
             yield
         finally:
             torch.set_num_threads(torch_threads)
+
+
+@functools.cache
+def cpu_has_amx_bf16() -> bool:
+    """Whether this CPU has AMX-BF16 tile instructions (``amx_bf16`` in ``/proc/cpuinfo``;
+    False where that file is absent): oneDNN's and OpenVINO's bf16 convolutions then run on
+    the tiles."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return any(line.startswith("flags") and "amx_bf16" in line.split()
+               for line in text.splitlines())

@@ -52,6 +52,35 @@ def test_exported_matches_eager(trained, runtime):
     assert np.all(one[:, ~data.active.numpy()] == 0)
 
 
+def test_the_bf16_runtime_predicts_like_fp32(trained):
+    """On a CPU with AMX-BF16, OpenVINO in bfloat16 predicts within 1 % of the largest
+    output of OpenVINO in fp32 (bf16 keeps 8 bits of mantissa), says so in ``precision``,
+    and keeps inactive nodes at exactly zero."""
+    from biopsynav.inference.runtimes import openvino_bf16_available
+
+    if not openvino_bf16_available():
+        pytest.skip("no AMX-BF16 on this CPU, or openvino not installed")
+    case, _ = trained
+    data = load_dataset(case)
+    fp32 = Surrogate.load(case / "model", FINGERPRINT, runtime="openvino", warmup=1)
+    bf16 = Surrogate.load(case / "model", FINGERPRINT, runtime="openvino-bf16", warmup=1)
+    assert (fp32.precision, bf16.precision) == ("fp32", "bf16")
+    x = data.inputs[data.test_idx[:3]].numpy()
+    ref, low = fp32.predict(x), bf16.predict(x)
+    assert np.abs(low - ref).max() <= 0.01 * np.abs(ref).max()
+    assert np.all(low[:, :, ~data.active.numpy()] == 0)
+
+
+@pytest.mark.parametrize("amx", [False, True])
+def test_auto_takes_bf16_only_where_the_cpu_has_amx(monkeypatch, amx):
+    import biopsynav.inference.runtimes as R
+
+    if not R.openvino_available():
+        pytest.skip("openvino not installed")
+    monkeypatch.setattr(R, "cpu_has_amx_bf16", lambda: amx)
+    assert R.resolve_runtime("auto").name == ("openvino-bf16" if amx else "openvino")
+
+
 def test_predict_rejects_bad_shape(trained):
     case, _ = trained
     sur = Surrogate.load(case / "model", FINGERPRINT, runtime="torchscript", warmup=0)
@@ -121,7 +150,7 @@ def test_a_registered_runtime_is_a_case_toml_choice_and_runs(monkeypatch):
     assert config_from_dict({"network": {"runtime": "zeros"}}, "t").network.runtime == "zeros"
     assert runtimes.resolve_runtime("zeros").make(None, 1, (2, 2, 2))(
         np.zeros((1, 4, 2, 2, 2), np.float32)).shape == (1, 3, 2, 2, 2)
-    with pytest.raises(InputError, match="one of auto, torchscript, openvino, zeros"):
+    with pytest.raises(InputError, match="one of auto, torchscript, openvino, openvino-bf16, zeros"):
         config_from_dict({"network": {"runtime": "tensorrt"}}, "t")
 
 

@@ -301,11 +301,11 @@ def test_tracker_load_takes_the_network_thread_count(phantom, trained_le):
     case_dir, _, _ = phantom
     for threads in (1, 2):
         run = Tracker.load(case_dir, threads=threads)._surrogate._run
-        assert run.name == "openvino" and run.threads == threads
+        assert run.name.startswith("openvino") and run.threads == threads
     from biopsynav.igtl.service import service_tracker
 
     served = service_tracker(case_dir)._surrogate._run  # [igtl] inference_threads = 2
-    assert served.name == "openvino" and served.threads == min(2, os.cpu_count())
+    assert served.name.startswith("openvino") and served.threads == min(2, os.cpu_count())
 
 
 def test_tracker_load_takes_the_case_runtime(phantom, trained_le):

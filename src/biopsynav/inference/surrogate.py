@@ -2,8 +2,9 @@
 
 ``Surrogate.load(model_dir, expected_fingerprint)`` refuses a model trained for another anatomy
 or grid (FingerprintError), checks the exported file against its checksum, picks the runtime
-(TorchScript, or OpenVINO with fp32 forced), sets the thread count and warms the runtime up, so
-that :meth:`Surrogate.predict` does nothing but the forward pass. Precision is always fp32.
+(:mod:`~biopsynav.inference.runtimes`: TorchScript, OpenVINO in fp32, or OpenVINO in bf16 on
+a CPU with AMX-BF16; ``precision`` says which), sets the thread count and warms the runtime
+up, so that :meth:`Surrogate.predict` does nothing but the forward pass.
 
 When the model was trained on top of the linear-elastic baseline (``meta.json`` ``baseline``
 ``kind = linear-elastic``), the exported network is the residual net and ``predict`` returns
@@ -46,7 +47,7 @@ class Surrogate:
         self.model_dir = model_dir
         self.node_shape: tuple[int, int, int] = tuple(meta["node_shape"])  # type: ignore
         self.runtime: str = runner.name  # type: ignore[attr-defined]
-        self.precision = "fp32"
+        self.precision: str = getattr(runner, "precision", "fp32")
 
     @property
     def fingerprint(self) -> str:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import functools
 import io
 import math
 import sys
@@ -43,7 +42,7 @@ from ..errors import InputError, TrainingError
 from ..fileio import remove_partial_writes, write_bytes_atomic
 from ..inference.runtimes import ONNX, TORCHSCRIPT
 from ..layout import BEST, CHECKPOINT, HISTORY, LOSS_CURVE, META, MODEL_DIR
-from ..threads import set_threads
+from ..threads import cpu_has_amx_bf16, set_threads
 from .data import (
     Dataset,
     dataset_contact_input,
@@ -94,18 +93,6 @@ def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError("device 'cuda' requested but no CUDA GPU is available", "--device")
     return torch.device(name)
-
-
-@functools.cache
-def cpu_has_amx_bf16() -> bool:
-    """Whether this CPU has AMX-BF16 tile instructions (``amx_bf16`` in ``/proc/cpuinfo``;
-    False where that file is absent): oneDNN's bf16 convolutions then run on the tiles."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return any(line.startswith("flags") and "amx_bf16" in line.split()
-               for line in text.splitlines())
 
 
 def use_bf16(precision: str, dev: torch.device) -> bool:
