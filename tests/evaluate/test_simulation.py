@@ -134,3 +134,24 @@ def test_fine_reference_moves_the_lesion_and_fem_tracks_it(coarse_phantom):
     assert recs["rigid"].tre_mm > 2.0  # the lesion moved
     assert recs["fem"].tre_mm < recs["rigid"].tre_mm  # the coarse FE follows it
     assert recs["reference"].time_ms > 0
+
+
+def test_a_case_without_lesions_says_table_2_has_nothing_to_track(coarse_phantom, tmp_path):
+    """A healthy breast (no lesions) gets Table 2's note, written and printed, with no
+    reference built and no push solved; the report shows the note, not empty tables."""
+    from biopsynav.case import Case
+    from biopsynav.evaluate.run import table2_markdown, table2_text, write_table2
+    from biopsynav.evaluate.simulation import NO_LESIONS, run_simulation
+    from biopsynav.report.sections import table2_blocks
+
+    healthy = Case(coarse_phantom.dir, coarse_phantom.cfg,
+                   dataclasses.replace(coarse_phantom.anatomy, lesions=[]), coarse_phantom.grid)
+    said: list[str] = []
+    result = run_simulation(healthy, log=said.append)
+    assert result["note"] == NO_LESIONS and not result["records"] and not result["tables"]
+    assert said == [f"Table 2: {NO_LESIONS}"]
+    write_table2(tmp_path, result, "table2", log=said.append)
+    assert NO_LESIONS[1:] in (tmp_path / "eval" / "table2.md").read_text()
+    assert NO_LESIONS in table2_text(result) and "nothing to track" in table2_markdown(result)
+    (block,) = table2_blocks(result, "by simulation", tmp_path / "t2.png")
+    assert NO_LESIONS in block.text and not (tmp_path / "t2.png").exists()

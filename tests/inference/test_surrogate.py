@@ -150,7 +150,8 @@ def test_a_registered_runtime_is_a_case_toml_choice_and_runs(monkeypatch):
     assert config_from_dict({"network": {"runtime": "zeros"}}, "t").network.runtime == "zeros"
     assert runtimes.resolve_runtime("zeros").make(None, 1, (2, 2, 2))(
         np.zeros((1, 4, 2, 2, 2), np.float32)).shape == (1, 3, 2, 2, 2)
-    with pytest.raises(InputError, match="one of auto, torchscript, openvino, openvino-bf16, zeros"):
+    known = "one of auto, torchscript, openvino, openvino-bf16, zeros"
+    with pytest.raises(InputError, match=known):
         config_from_dict({"network": {"runtime": "tensorrt"}}, "t")
 
 

@@ -93,7 +93,10 @@ def _source_line(result: dict) -> str:
 
 
 def table2_text(result: dict) -> str:
-    """All method tables of a Table 2 result as aligned plain text, with failures."""
+    """All method tables of a Table 2 result as aligned plain text, with failures; a case
+    without lesions: its note alone."""
+    if "note" in result:
+        return f"Table 2 ({result['source']}): {result['note']}."
     parts = [f"Table 2 ({result['source']}): TRE in mm per lesion and probe displacement "
              f"(edges {', '.join(f'{e:g}' for e in BIN_EDGES_MM)} mm). " + _source_line(result)]
     for m, what in shown_tables(result):
@@ -127,7 +130,11 @@ def _failures_text(result: dict) -> str:
 
 
 def table2_markdown(result: dict) -> str:
-    """Table 2 as a Markdown document (one table per method, the paper's figures, failures)."""
+    """Table 2 as a Markdown document (one table per method, the paper's figures, failures);
+    a case without lesions: its note."""
+    if "note" in result:
+        note = result["note"]
+        return f"# Table 2 ({result['source']})\n\n{note[0].upper()}{note[1:]}.\n"
     lines = [f"# Table 2 ({result['source']})", "",
              "Target registration error (mm) of the lesion under the probe, per lesion and "
              "probe displacement range (D10 < 12.5 mm, D15 [12.5, 17.5), D20 [17.5, 22.5), "

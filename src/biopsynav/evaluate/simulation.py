@@ -98,6 +98,9 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     """
     t_start = time.perf_counter()
     case = as_case(case)
+    if not case.anatomy.lesions:
+        log(f"Table 2: {NO_LESIONS}")
+        return no_lesions_result(methods, time.perf_counter() - t_start)
     setup = setup_for(case, quick)
     settings = evaluation_solver_settings(case)
     reference = build_reference(case, setup, settings)
@@ -134,6 +137,19 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
         "failures": [r.to_dict() for r in records if r.tre_mm is None],
         "timing": _timing(records, reference.build_s, time.perf_counter() - t_start),
     }
+
+
+#: Table 2 of a case without lesions (a healthy breast, modelled beside the one that holds
+#: the tumour): nothing to push over or to track
+NO_LESIONS = ("the case has no lesions, so there is nothing to track: no push solved (Table 1 "
+              "judges the network)")
+
+
+def no_lesions_result(methods: Sequence[str], seconds: float) -> dict:
+    """The Table 2 result of a case without lesions: no records or tables, its ``note``."""
+    return {"source": "simulation", "methods": list(methods), "bins": list(BIN_NAMES),
+            "records": [], "tables": {}, "placements": [], "reference": {}, "failures": [],
+            "note": NO_LESIONS, "timing": {"total_s": seconds}}
 
 
 def _reference_lesions(reference, lesions: list[int]) -> list[int]:

@@ -219,7 +219,10 @@ def table2_section(case_dir: Path, fig_dir: Path) -> Section:
 
 
 def table2_blocks(result: dict, title: str, png: Path) -> list:
-    """Tables (one per method), the paper's figures, a summary figure and the failures."""
+    """Tables (one per method), the paper's figures, a summary figure and the failures; for
+    a case without lesions, its note alone."""
+    if "note" in result:
+        return [Para(f"Table 2 {title}: {result['note']}.")]
     blocks: list = [Para(f"Table 2 {title}: " + table2_text(result).split("\n\n")[0]
                          .split(": ", 1)[1])]
     for m, what in shown_tables(result):
