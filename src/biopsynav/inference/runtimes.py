@@ -95,7 +95,8 @@ class TorchScriptRunner:
 
 
 class OpenVinoRunner:
-    """OpenVINO on the CPU with the inference precision forced to fp32 (never bf16)."""
+    """OpenVINO on the CPU at the runner's ``precision``, forced: fp32 here (OpenVINO would
+    pick bf16 on AMX by itself); :class:`OpenVinoBf16Runner` asks for bf16."""
 
     name = "openvino"
     precision = "fp32"
@@ -146,9 +147,9 @@ class OpenVinoRunner:
 
 
 class OpenVinoBf16Runner(OpenVinoRunner):
-    """OpenVINO on the CPU in bfloat16 (its layers on the AMX-BF16 tiles, accumulating in
-    fp32; input and output fp32): about 40 % off a tracker update on the larger MRI breasts,
-    the lesions within 0.011 mm of fp32's (docs/network.md, "Inference runtimes")."""
+    """OpenVINO on the CPU in bfloat16: its layers on the AMX-BF16 tiles, accumulating in
+    fp32; input and output fp32 (what it costs in accuracy and buys in time: docs/network.md,
+    "Inference runtimes")."""
 
     name = "openvino-bf16"
     precision = "bf16"
