@@ -111,6 +111,20 @@ def per_depth(key: str) -> Callable[[dict], str]:
     return lambda data: " / ".join(fmt(r[key], 3) for r in data["figures"]["rows"]) + " mm"
 
 
+def per_lesion_depth(*keys: str) -> Callable[[dict], str]:
+    """Renderer of a truth-agreement result of several lesions: per lesion (numbered from 1),
+    each of ``keys``' distances per depth, mm."""
+    def render(data: dict) -> str:
+        rows = data["figures"]["rows"]
+        parts = []
+        for lesion in dict.fromkeys(r["lesion"] for r in rows):
+            mine = [r for r in rows if r["lesion"] == lesion]
+            parts.append(f"lesion {lesion + 1}: " + "; ".join(
+                " / ".join(fmt(r[k], 3) for r in mine) for k in keys) + " mm")
+        return ", ".join(parts)
+    return render
+
+
 AGREE_CMD = ("python benchmarks/truth_agreement.py --lesion-ids 0 --stored "
              "src/biopsynav/data/truths/phantom.json")
 TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
@@ -166,6 +180,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "python benchmarks/truth_agreement.py --lesion-ids 1 --stored "
           "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 --result-name "
           "truth-agreement-phantom-lesion1"), "<= 0.2 mm at 30 mm", "-"),
+    ("the same, phantom lesions 3 and 4 at 10 / 20 / 30 mm: between the two codes; what the "
+     "probe body changes",
+     Cell("truth-agreement-phantom-lesions2-3", per_lesion_depth("codes_mm", "contact_mm"),
+          "python benchmarks/truth_agreement.py --lesion-ids 2,3 --stored "
+          "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 --result-name "
+          "truth-agreement-phantom-lesions2-3"), "<= 0.2 mm at 30 mm", "-"),
     ("the same at 10 mm: NGSolve's P3 against its P2 on the same mesh",
      Cell("truth-agreement-phantom-p3", per_depth("p3_mm"), AGREE_CMD + " --depths 10 "
           "--orders 2 3 --result-name truth-agreement-phantom-p3"), "<= 0.1 mm", "-"),
