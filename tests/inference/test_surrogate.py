@@ -81,6 +81,15 @@ def test_auto_takes_bf16_only_where_the_cpu_has_amx(monkeypatch, amx):
     assert R.resolve_runtime("auto").name == ("openvino-bf16" if amx else "openvino")
 
 
+def test_bf16_asked_for_on_a_cpu_without_amx_says_what_it_needs(monkeypatch):
+    import biopsynav.inference.runtimes as R
+
+    monkeypatch.setattr(R, "cpu_has_amx_bf16", lambda: False)
+    with pytest.raises(InputError, match="not available here: it needs the openvino package "
+                                         "and a CPU with AMX-BF16"):
+        R.resolve_runtime("openvino-bf16")
+
+
 def test_predict_rejects_bad_shape(trained):
     case, _ = trained
     sur = Surrogate.load(case / "model", FINGERPRINT, runtime="torchscript", warmup=0)

@@ -35,7 +35,8 @@ class Runner(Protocol):
 
 @dataclass(frozen=True)
 class RuntimeSpec:
-    """One runtime: ``make(model_path, threads, node_shape) -> Runner``."""
+    """One runtime: ``make(model_path, threads, node_shape) -> Runner``; ``needs``: what
+    ``available`` checks, said when a runtime asked for by name is not available."""
 
     name: str
     model_file: str
@@ -43,6 +44,7 @@ class RuntimeSpec:
     available: Callable[[], bool] = lambda: True
     own_threads: bool = False
     auto_rank: int = 0
+    needs: str = "its package installed"
 
 
 RUNTIMES: dict[str, RuntimeSpec] = {}
@@ -67,7 +69,8 @@ def resolve_runtime(name: str) -> RuntimeSpec:
         raise InputError(f"unknown runtime {name!r}; known: {', '.join(runtime_choices())}",
                          "runtime")
     if not spec.available():
-        raise InputError(f"runtime {name!r} requested but it is not installed", "runtime")
+        raise InputError(f"runtime {name!r} requested but not available here: it needs "
+                         f"{spec.needs}", "runtime")
     return spec
 
 
@@ -173,9 +176,10 @@ def openvino_available() -> bool:
 register_runtime(RuntimeSpec("torchscript", TORCHSCRIPT,
                              lambda path, threads, shape: TorchScriptRunner(path, threads)))
 register_runtime(RuntimeSpec("openvino", ONNX, OpenVinoRunner, openvino_available,
-                             own_threads=True, auto_rank=1))
+                             own_threads=True, auto_rank=1, needs="the openvino package"))
 register_runtime(RuntimeSpec("openvino-bf16", ONNX, OpenVinoBf16Runner, openvino_bf16_available,
-                             own_threads=True, auto_rank=2))
+                             own_threads=True, auto_rank=2,
+                             needs="the openvino package and a CPU with AMX-BF16"))
 
 
 def load_torchscript(path: str | Path) -> torch.jit.ScriptModule:
