@@ -13,6 +13,7 @@ from scipy.optimize import fsolve
 
 from biopsynav.errors import InputError, SolverError
 from biopsynav.fem import FEModel, Loads, SolverSettings, solve
+from biopsynav.fem import solver as solver_module
 from biopsynav.fem.linsolve import available_backends
 from biopsynav.fem.solver import solve_once, stiffer_springs
 from tests.fem.mesh import box_mesh
@@ -188,10 +189,31 @@ def test_non_convergence_raises_with_log():
 def test_newton_budget_stops_the_solve_with_its_log():
     model, forces = _pushed_box(force=0.1)
     _, free = solve(model, Loads(forces=forces))
-    assert free.iterations > 3
+    assert free.iterations > 2
+    # the first iteration (from the rest factorisation) cuts |R| by a third only: not converging
     with pytest.raises(SolverError) as info:
-        solve(model, Loads(forces=forces), SolverSettings(max_total_iterations=3))
-    assert len(info.value.log) == 3 and "max_total_iterations = 3" in info.value.what
+        solve(model, Loads(forces=forces), SolverSettings(max_total_iterations=1))
+    assert len(info.value.log) == 1 and "max_total_iterations = 1" in info.value.what
+
+
+def test_a_solve_converging_at_its_budget_is_given_a_few_iterations_more_with_shift():
+    model, forces = _pushed_box(force=0.1)
+    u_free, free = solve(model, Loads(forces=forces))
+    budget = free.iterations - 2  # the last iterations of this solve are reuse steps
+    assert budget >= 2 and free.log[budget - 1]["mode"] == "reuse"
+    shift = SolverSettings(max_total_iterations=budget, indefinite_tangent="shift")
+    u, report = solve(model, Loads(forces=forces), shift)
+    assert report.iterations == free.iterations and np.array_equal(u, u_free)
+    assert budget + solver_module.GRACE_ITERATIONS >= report.iterations
+    with pytest.raises(SolverError):  # ldlt: the budget is the budget
+        solve(model, Loads(forces=forces), SolverSettings(max_total_iterations=budget))
+
+
+def test_budget_grace_ends():
+    spent = solver_module._budget_spent
+    assert not spent(0, 100, False)  # no budget
+    assert not spent(10, 9, False) and spent(10, 10, False)
+    assert not spent(10, 10, True) and spent(10, 10 + solver_module.GRACE_ITERATIONS, True)
 
 
 def test_svk_past_its_limit_point_is_reported():
@@ -685,3 +707,44 @@ def test_a_tolerance_below_the_round_off_floor_fails_saying_so(tmp_path):
     with pytest.raises(SolverError, match="round-off floor"):
         solve(model, loads, SolverSettings(tol_residual=1e-13, tol_displacement=1e-13,
                                            single_precision=False))
+
+
+def _indented_block():
+    """A neo-Hookean 40 mm cube held at its base, the middle of its top face pulled 20 mm
+    down and 6 mm sideways by springs: Newton's first steps meet tangents that are not
+    positive definite, its answer is stable."""
+    nodes, hexes = box_mesh((4, 4, 4), (40.0, 40.0, 40.0))
+    model = FEModel(nodes, hexes, 1.0, E_MPA, NU, nodes[:, 2] < 1e-9, "neo-hookean")
+    top = np.flatnonzero((nodes[:, 2] > 40 - 1e-9) & (np.abs(nodes[:, 0] - 20) <= 10)
+                         & (np.abs(nodes[:, 1] - 20) <= 10))
+    w = sp.csr_matrix((np.ones(len(top)), (np.arange(len(top)), top)),
+                      shape=(len(top), len(nodes)))
+    g = np.tile([6.0, 0.0, -20.0], (len(top), 1))
+    return model, Loads(prescribed_matrix=w, prescribed_displacement=g,
+                        prescribed_stiffness=np.full(len(top), 10 * E_MPA))
+
+
+def test_a_tangent_not_positive_definite_is_shifted_to_the_same_answer():
+    model, loads = _indented_block()
+    u, report = solve(model, loads, SolverSettings(indefinite_tangent="shift"))
+    modes = {e["mode"].split("(")[0] for e in report.log}
+    assert "shifted" in modes and "indefinite" not in modes and report.spring_factor == 1.0
+    u_ldlt, ldlt = solve(model, loads)
+    assert "indefinite" in {e["mode"].split("(")[0] for e in ldlt.log}
+    assert np.abs(u - u_ldlt).max() < 1e-6 * np.abs(u).max()
+
+
+def test_the_protocol_names_the_indefinite_tangent_only_when_it_is_shift():
+    """Data sets solved before ``[solver] indefinite_tangent`` existed (LDL^T then, the
+    default) keep their fingerprint; ``shift`` makes other answers and another one."""
+    from biopsynav.config import config_from_dict
+    from biopsynav.dataset.store import protocol_dict, protocol_fingerprint
+
+    cfg = config_from_dict({}, "case.toml")
+    assert cfg.solver.indefinite_tangent == "ldlt"
+    ldlt = protocol_dict(cfg, 8, 2)
+    assert "indefinite_tangent" not in ldlt["solver"]
+    cfg.solver.indefinite_tangent = "shift"
+    shift = protocol_dict(cfg, 8, 2)
+    assert shift["solver"]["indefinite_tangent"] == "shift"
+    assert protocol_fingerprint(ldlt) != protocol_fingerprint(shift)

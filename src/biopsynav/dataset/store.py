@@ -83,6 +83,11 @@ FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "s
                        "rigid_share": 0.0, "too_deep_redraw": "elsewhere", "lesion_share": 0.0}
 
 
+#: [solver] keys added after data sets were made, with the behaviour those data sets had: a key
+#: at its former value leaves the protocol (and its fingerprint) as it was.
+FORMER_SOLVER_VALUES = {"indefinite_tangent": "ldlt"}
+
+
 def recorded_probe_value(protocol: dict, key: str) -> Any:
     """The stored ``protocol``'s [probe] ``key``; a key it leaves out reads as its
     :data:`FORMER_PROBE_VALUES` entry."""
@@ -96,7 +101,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     sections ([anatomy] tissue_labels, [grid] min_fraction, and with rigid pushes [tracker]
     fem_contact, with its contact_stiffness
     when elastic), [solver] without ``backend``
-    and ``threads`` (speed and round-off only; workers always factor on one thread), [probe]
+    and ``threads`` (speed and round-off only; workers always factor on one thread) and without
+    keys at their :data:`FORMER_SOLVER_VALUES`, [probe]
     (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
     push is rigid; without ``lesion_reach_mm`` when no push is centred near a lesion; never
@@ -106,6 +112,9 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
         solver.pop(key, None)
+    for key, former in FORMER_SOLVER_VALUES.items():  # data made before the key existed
+        if solver.get(key) == former:
+            solver.pop(key)
     probe = cfg.section_dict("probe")
     fe_model = {"tissue_labels": cfg.anatomy.tissue_labels, "min_fraction": cfg.grid.min_fraction}
     if probe.get("rigid_share", 0.0) > 0.0:  # rigid pushes: the tracker's contact set and holds

@@ -1,9 +1,11 @@
 """Sparse direct solvers for the symmetric tangent, with the symbolic analysis done once.
 
 Every backend receives the upper triangle of the matrix in CSR form (``indptr``, ``indices``
-fixed per model, ``data`` new at each Newton iteration) and offers ``factor(data)`` and
-``solve(rhs)``. ``factor`` raises :class:`FactorizationError` when the matrix cannot be
-factored (singular, or not positive definite for a Cholesky-type backend).
+fixed per model, ``data`` new at each Newton iteration) and offers ``factor(data,
+definite=False)`` and ``solve(rhs)``. ``factor`` raises :class:`FactorizationError` when the
+matrix cannot be factored (singular, or not positive definite for a Cholesky-type backend);
+with ``definite=True`` also when it is not positive definite, instead of factoring it by the
+backend's indefinite fallback (``tests_definiteness`` says whether the backend can tell).
 
 * ``pardiso``: MKL Pardiso through pypardiso's library handle, called directly: analysis
   (phase 11) once per model, then numerical factorisation (22) and solve (33). It first tries
@@ -39,8 +41,9 @@ class FactorizationError(RuntimeError):
 class LinearSolver(Protocol):
     name: str
     last_mode: str
+    tests_definiteness: bool
 
-    def factor(self, data: np.ndarray) -> None: ...
+    def factor(self, data: np.ndarray, definite: bool = False) -> None: ...
 
     def solve(self, rhs: np.ndarray) -> np.ndarray: ...
 
@@ -212,6 +215,7 @@ class PardisoSolver:
     """MKL Pardiso: SPD Cholesky first, symmetric indefinite LDL^T when that fails."""
 
     name = "pardiso"
+    tests_definiteness = True
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, threads: int = 0,
                  single: bool = False) -> None:
@@ -225,13 +229,14 @@ class PardisoSolver:
         self._active = self._spd
         self.last_mode = "spd"
 
-    def factor(self, data: np.ndarray) -> None:
+    def factor(self, data: np.ndarray, definite: bool = False) -> None:
         try:
             self._spd.factor(data)
             self._active, self.last_mode = self._spd, "spd"
             return
         except FactorizationError:
-            pass
+            if definite:
+                raise
         if self._indefinite is None:
             self._indefinite = self._make_indefinite()
         self._indefinite.factor(data)
@@ -246,6 +251,7 @@ class CholmodSolver:
     """CHOLMOD (scikit-sparse): symbolic analysis once; SuperLU when not positive definite."""
 
     name = "cholmod"
+    tests_definiteness = True
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray) -> None:
         self.indptr, self.indices = indptr, indices
@@ -253,7 +259,7 @@ class CholmodSolver:
         self._lu: SuperLUSolver | None = None
         self.last_mode = "spd"
 
-    def factor(self, data: np.ndarray) -> None:
+    def factor(self, data: np.ndarray, definite: bool = False) -> None:
         from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
         matrix = full_matrix(self.indptr, self.indices, data).tocsc()
@@ -263,6 +269,8 @@ class CholmodSolver:
             self._factor.cholesky_inplace(matrix)
             self._lu, self.last_mode = None, "spd"
         except CholmodNotPositiveDefiniteError:
+            if definite:
+                raise FactorizationError("not positive definite (CHOLMOD)") from None
             self._lu = SuperLUSolver(self.indptr, self.indices)
             self._lu.factor(data)
             self.last_mode = "lu"
@@ -277,13 +285,14 @@ class SuperLUSolver:
     """SciPy SuperLU on the full matrix (no reusable analysis in SciPy)."""
 
     name = "superlu"
+    tests_definiteness = False  # LU factors any non-singular matrix
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray) -> None:
         self.indptr, self.indices = indptr, indices
         self._lu = None
         self.last_mode = "lu"
 
-    def factor(self, data: np.ndarray) -> None:
+    def factor(self, data: np.ndarray, definite: bool = False) -> None:
         matrix = full_matrix(self.indptr, self.indices, data).tocsc()
         try:
             self._lu = spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")

@@ -34,6 +34,15 @@ ARMIJO = 1e-4
 MAX_BACKTRACKS = 6
 LS_TOLERANCE = 0.25  # accept a step once the energy slope drops to this fraction (Crisfield)
 UNSTABLE_EIGENVALUE = 1e-9  # a Jacobi-scaled tangent eigenvalue below minus this: unstable
+#: With ``indefinite_tangent = "shift"``: an increment (or a solve at its Newton budget) still
+#: converging, its last iteration cutting |R| by REUSE_AFTER or reusing its factors, gets up to
+#: this many iterations more (else a solve cut off one or two iterations short of its
+#: tolerance starts its last increment again, or goes to the stiffer-spring fallback).
+GRACE_ITERATIONS = 6
+#: ``indefinite_tangent = "shift"``: the smallest and largest shifts tried, as fractions of
+#: each diagonal entry; a solve starts from a tenth of the last shift that factored.
+SHIFT_FIRST, SHIFT_LAST = 1e-2, 1e2
+INDEFINITE_TANGENTS = ("shift", "ldlt")
 
 
 #: Elastic contact (``Loads.prescribed_stiffness``) that does not converge is solved again
@@ -53,7 +62,12 @@ class SolverSettings:
     in turn (inf: the points met; :data:`SPRING_FALLBACK`); ``elastic_single_precision``,
     whether elastic contact is factored in single precision (faster, but less robust near a
     limit point: springs that converge in double precision may not in single). Data
-    generation sets all three."""
+    generation sets all three. ``indefinite_tangent``: what a Newton iteration does with a
+    tangent that is not positive definite: ``shift`` factors ``K + s diag|K|`` with the
+    smallest shift ``s`` (1e-2, 1e-1, ...) that makes it so (a descent direction of the
+    energy), and lets a solve still converging at its iteration limits finish
+    (:data:`GRACE_ITERATIONS`); ``ldlt`` factors the indefinite ``L D L^T`` (a Newton step
+    towards any stationary point)."""
 
     tol_residual: float = 1e-8
     tol_displacement: float = 1e-8
@@ -72,6 +86,7 @@ class SolverSettings:
     first_attempt_budget: int = 0
     spring_fallback: tuple[float, ...] = SPRING_FALLBACK
     elastic_single_precision: bool = False
+    indefinite_tangent: str = "ldlt"
 
     @classmethod
     def from_config(cls, solver_section) -> SolverSettings:
@@ -133,6 +148,7 @@ class _System:
         self.lam = np.zeros((n_pts, 3))
         self.k0_cacheable = not loads.has_constraints
         self.fictitious = fictitious_stiffness(model)
+        self.last_shift = 0.0  # the last diagonal shift that made the tangent definite
 
     def evaluate(self, u: np.ndarray, t: float, tangent: bool):
         """Residual (n_eq,), tangent upper-CSR data (or None), min det F, potential energy."""
@@ -418,8 +434,10 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
     if (det <= 0.0 or not np.isfinite(energy)) and base is not None:
         u = base.copy()
         r, data, det, energy = system.evaluate(u, t, tangent=True)
-    active, reuse, min_det = solver, False, det
-    for it in range(1, settings.max_iterations + 1):
+    active, reuse, min_det, it, converging = solver, False, det, 0, False
+    grace = _grace(settings)
+    while it < settings.max_iterations or (converging and it < settings.max_iterations + grace):
+        it += 1
         r_before = float(np.linalg.norm(r))
         state = _reuse_step(system, active, u, r, t) if reuse else None
         if state is not None:
@@ -432,8 +450,7 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
                 if data is None:
                     r, data, _, energy = system.evaluate(u, t, tangent=True)
                 active = solver
-                _factor(active, data)
-                mode = active.last_mode
+                mode = _factor_tangent(system, active, settings, data)
             du = _solve(active, r)
             if report.reference_residual == 0.0:
                 report.reference_residual = system.reference_residual(du / (t - t_prev))
@@ -454,13 +471,27 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
         r_norm = float(np.linalg.norm(r))
         reuse = settings.reuse_factorization and r_norm <= (
             REUSE_CONTRACTION if mode == "reuse" else REUSE_AFTER) * r_before
+        converging = mode == "reuse" or r_norm <= REUSE_AFTER * r_before
         _log_iteration(report, (t, t_prev, it), r_norm, (du_norm, step, min_det, mode))
         if r_norm <= tol_r * report.reference_residual and _small_step(du_norm, u, tol_d):
             return u, it
-        if 0 < settings.max_total_iterations <= report.iterations:
+        if _budget_spent(settings.max_total_iterations, report.iterations,
+                         converging and grace > 0):
             raise _BudgetExhausted
-    raise _IncrementFailed(f"{settings.max_iterations} Newton iterations without convergence "
+    raise _IncrementFailed(f"{it} Newton iterations without convergence "
                            f"(|R|/|R0| = {report.log[-1]['residual_rel']:.3g})")
+
+
+def _grace(settings: SolverSettings) -> int:
+    """The iterations a still-converging increment or solve gets past its limits."""
+    return GRACE_ITERATIONS if settings.indefinite_tangent == "shift" else 0
+
+
+def _budget_spent(budget: int, iterations: int, converging: bool) -> bool:
+    """Whether a solve with the Newton ``budget`` (0: none) stops after ``iterations``: at
+    the budget, or ``GRACE_ITERATIONS`` past it while it is ``converging``."""
+    return 0 < budget <= iterations and (not converging
+                                         or iterations >= budget + GRACE_ITERATIONS)
 
 
 def _small_step(du_norm: float, u: np.ndarray, tol_d: float) -> bool:
@@ -494,6 +525,38 @@ def _factor(solver: LinearSolver, data: np.ndarray) -> None:
         solver.factor(data)
     except FactorizationError as exc:
         raise _IncrementFailed(str(exc)) from None
+
+
+def _factor_tangent(system: _System, solver: LinearSolver, settings: SolverSettings,
+                    data: np.ndarray) -> str:
+    """Factor the tangent ``data`` for a Newton step; returns the mode logged: the backend's
+    (``spd``, ``indefinite(k neg)``, ...) or ``shifted(s)`` (``settings.indefinite_tangent``
+    is ``shift`` and the tangent is not positive definite: ``K + s diag|K|`` factored, with
+    the smallest tried shift ``s`` that is; the backend's own indefinite factorisation when
+    none up to SHIFT_LAST is)."""
+    if settings.indefinite_tangent == "ldlt" or not solver.tests_definiteness:
+        _factor(solver, data)
+        return solver.last_mode
+    try:
+        solver.factor(data, definite=True)
+        return solver.last_mode
+    except FactorizationError:
+        pass
+    diagonal = system.model.diag_pos
+    scale = np.abs(data[diagonal])
+    shift = max(SHIFT_FIRST, 0.1 * system.last_shift)
+    while shift <= SHIFT_LAST:
+        shifted = data.copy()
+        shifted[diagonal] += shift * scale
+        try:
+            solver.factor(shifted, definite=True)
+        except FactorizationError:
+            shift *= 10.0
+            continue
+        system.last_shift = shift
+        return f"shifted({shift:g})"
+    _factor(solver, data)
+    return solver.last_mode
 
 
 def _solve(solver: LinearSolver, r: np.ndarray) -> np.ndarray:
@@ -621,7 +684,7 @@ def _final_checks(system: _System, settings: SolverSettings, report: SolveReport
                           f"{min_det:.3g})", "fem.solve", log=report.log)
     last = report.log[-1]["increment"] if report.log else 0
     modes = [e["mode"] for e in report.log if e["increment"] == last and e["mode"] != "reuse"]
-    if modes and modes[-1].startswith("indefinite"):
+    if modes and modes[-1].startswith(("indefinite", "shifted")):
         lowest = lowest_scaled_eigenvalue(system, u)
         report.lowest_scaled_eigenvalue = lowest
         if lowest < -UNSTABLE_EIGENVALUE:
