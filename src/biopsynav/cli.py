@@ -230,12 +230,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from .tracker.csvtrack import track_csv
+    from .tracker.csvtrack import track_csv, track_summary
 
-    counts = track_csv(loaded_case(args), args.poses, args.out, engine=args.engine)
-    per_status = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-    print(f"{sum(counts.values())} poses tracked ({per_status}); lesion positions and the "
-          f"reason of every unreliable one written to {args.out}")
+    case = loaded_case(args)
+    counts = track_csv(case, args.poses, args.out, engine=args.engine)
+    print(track_summary(counts, len(case.anatomy.lesions), args.out))
     return 0
 
 

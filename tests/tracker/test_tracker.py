@@ -375,3 +375,13 @@ def test_an_extrapolating_teacher_s_fe_engine_answers_richardson_s_extrapolation
     expected = fit + extrapolation_weight(1.5, 2.0) * (fit - case_grid)
     assert np.linalg.norm(fit - case_grid) > 0.01
     assert np.abs(extrapolated - expected).max() < 1e-6
+
+
+def test_track_says_when_a_case_has_no_lesions_to_write():
+    from biopsynav.tracker.csvtrack import track_summary
+
+    with_lesions = track_summary({"ok": 9, "out_of_envelope": 2}, 3, "out.csv")
+    assert with_lesions.startswith("11 poses tracked (9 ok, 2 out_of_envelope)")
+    assert "lesion positions" in with_lesions and "no lesions" not in with_lesions
+    healthy = track_summary({"ok": 11}, 0, "out.csv")
+    assert "no lesions" in healthy and "out.csv holds the header alone" in healthy

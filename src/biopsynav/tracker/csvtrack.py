@@ -99,3 +99,15 @@ def track_csv(case: Case | str | Path, poses: str | Path, out: str | Path,
     tracked = track_rows(tracker, rows)
     write_text_atomic(out, lesions_csv(tracked))
     return dict(Counter(result.status for _, result in tracked))
+
+
+def track_summary(counts: dict[str, int], n_lesions: int, out: str | Path) -> str:
+    """What ``biopsynav track`` prints after tracking: the poses per status (``counts``) and
+    where the lesions went; for a case without lesions (a healthy breast), that ``out``
+    holds the header alone."""
+    per_status = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+    done = f"{sum(counts.values())} poses tracked ({per_status})"
+    if n_lesions == 0:
+        return (f"{done}; the case has no lesions, so {out} holds the header alone (the "
+                "tracker still follows the probe: `serve` and the Python API give the skin)")
+    return f"{done}; lesion positions and the reason of every unreliable one written to {out}"
