@@ -106,9 +106,11 @@ class Cell:
         return (data or {}).get("date", "-")
 
 
-def per_depth(key: str) -> Callable[[dict], str]:
-    """Renderer of one distance per row (depth) of a truth-agreement result, mm."""
-    return lambda data: " / ".join(fmt(r[key], 3) for r in data["figures"]["rows"]) + " mm"
+def per_depth(*keys: str) -> Callable[[dict], str]:
+    """Renderer of a truth-agreement result of one lesion: each of ``keys``' distances per
+    row (depth), mm, the keys apart by semicolons."""
+    return lambda data: "; ".join(" / ".join(fmt(r[key], 3) for r in data["figures"]["rows"])
+                                  + " mm" for key in keys)
 
 
 def per_lesion_depth(*keys: str) -> Callable[[dict], str]:
@@ -175,8 +177,7 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "-", "-"),
     ("the same, phantom lesion 2 at 10 / 20 / 30 mm: between the two codes; what the probe "
      "body changes",
-     Cell("truth-agreement-phantom-lesion1",
-          lambda f: per_depth("codes_mm")(f) + "; " + per_depth("contact_mm")(f),
+     Cell("truth-agreement-phantom-lesion1", per_depth("codes_mm", "contact_mm"),
           "python benchmarks/truth_agreement.py --lesion-ids 1 --stored "
           "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 --result-name "
           "truth-agreement-phantom-lesion1"), "<= 0.2 mm at 30 mm", "-"),
