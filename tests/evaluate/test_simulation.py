@@ -142,7 +142,7 @@ def test_a_case_without_lesions_says_table_2_has_nothing_to_track(coarse_phantom
     from biopsynav.case import Case
     from biopsynav.evaluate.run import table2_markdown, table2_text, write_table2
     from biopsynav.evaluate.simulation import NO_LESIONS, run_simulation
-    from biopsynav.report.sections import table2_blocks
+    from biopsynav.report.sections import table2_blocks, timing_section
 
     healthy = Case(coarse_phantom.dir, coarse_phantom.cfg,
                    dataclasses.replace(coarse_phantom.anatomy, lesions=[]), coarse_phantom.grid)
@@ -155,3 +155,5 @@ def test_a_case_without_lesions_says_table_2_has_nothing_to_track(coarse_phantom
     assert NO_LESIONS in table2_text(result) and "nothing to track" in table2_markdown(result)
     (block,) = table2_blocks(result, "by simulation", tmp_path / "t2.png")
     assert NO_LESIONS in block.text and not (tmp_path / "t2.png").exists()
+    timing = timing_section(tmp_path, tmp_path)  # the report's timing, no reference built
+    assert any("Table 2 by simulation took" in getattr(b, "text", "") for b in timing.blocks)
