@@ -42,7 +42,6 @@ GRACE_ITERATIONS = 6
 #: ``indefinite_tangent = "shift"``: the smallest and largest shifts tried, as fractions of
 #: each diagonal entry; a solve starts from a tenth of the last shift that factored.
 SHIFT_FIRST, SHIFT_LAST = 1e-2, 1e2
-INDEFINITE_TANGENTS = ("shift", "ldlt")
 
 
 #: Elastic contact (``Loads.prescribed_stiffness``) that does not converge is solved again
