@@ -173,8 +173,7 @@ def test_a_model_taught_by_force_patches_still_loads_in_a_case_that_asks_for_rig
 def test_a_data_sets_elastic_push_gives_its_springs_a_short_budget_and_no_points_met():
     """Data generation's rigid pushes: the springs as asked get ``[dataset] newton_budget``,
     their one fallback 4x springs gets the rigid budget, both in single precision where
-    ``[solver] single_precision`` is on, then those springs once more with the shifted
-    tangent; never the points met (the dragging teacher)."""
+    ``[solver] single_precision`` is on; never the points met (the dragging teacher)."""
     from types import SimpleNamespace
 
     from biopsynav.dataset.worker import RIGID_BUDGET_FACTOR, rigid_push_settings
@@ -189,9 +188,7 @@ def test_a_data_sets_elastic_push_gives_its_springs_a_short_budget_and_no_points
         assert settings.spring_fallback == (4.0,)
         assert all(np.isfinite(settings.spring_fallback))
         assert settings.elastic_single_precision is single
-        assert settings.shifted_last_attempt and settings.indefinite_tangent == "ldlt"
     assert SolverSettings().elastic_single_precision is False  # the tracker's: double
-    assert not SolverSettings().shifted_last_attempt  # the tracker's: the points met last
 
 
 def test_pushes_near_lesions_enter_the_protocol_only_when_drawn(base_case):

@@ -748,28 +748,3 @@ def test_the_protocol_names_the_indefinite_tangent_only_when_it_is_shift():
     shift = protocol_dict(cfg, 8, 2)
     assert shift["solver"]["indefinite_tangent"] == "shift"
     assert protocol_fingerprint(ldlt) != protocol_fingerprint(shift)
-
-
-def test_elastic_contact_that_every_fallback_fails_gets_a_shifted_last_attempt(monkeypatch):
-    """Data generation's rigid pushes: after the springs as asked and the 4x springs fail
-    with ``ldlt``, the 4x springs are tried once more with ``shift`` from the furthest state
-    reached; without ``shifted_last_attempt`` the first error is raised."""
-    model, loads = _indented_block()
-    calls = []
-
-    def fake_solve_once(model_, loads_, settings, resume_from=None):
-        springs = float(np.mean(loads_.prescribed_stiffness) / np.mean(loads.prescribed_stiffness))
-        calls.append((round(springs, 6), settings.indefinite_tangent))
-        if settings.indefinite_tangent == "ldlt":
-            raise SolverError(f"no convergence ({springs:g}x)", "fem.solve",
-                              reached=(0.5, np.zeros(model_.n_eq)))
-        return np.zeros((model_.n_nodes, 3)), solver_module.SolveReport()
-
-    monkeypatch.setattr(solver_module, "solve_once", fake_solve_once)
-    settings = SolverSettings(spring_fallback=(4.0,), shifted_last_attempt=True)
-    _, report = solve(model, loads, settings)
-    assert calls == [(1.0, "ldlt"), (4.0, "ldlt"), (4.0, "shift")] and report.spring_factor == 4.0
-    calls.clear()
-    with pytest.raises(SolverError, match=r"\(1x\)"):
-        solve(model, loads, SolverSettings(spring_fallback=(4.0,)))
-    assert calls == [(1.0, "ldlt"), (4.0, "ldlt")]

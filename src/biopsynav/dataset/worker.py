@@ -331,10 +331,8 @@ def rigid_push_settings(ctx: SampleContext) -> Any:
     more is past their limit point, and the FE engine's fallbacks to stiffer springs
     (:data:`biopsynav.fem.solver.SPRING_FALLBACK`) get the whole budget; all are factored in
     single precision (with ``[solver] single_precision``). Never the points met: that teacher
-    drags the tissue (docs/experiments.md, "`[refine]` on the case grid with elastic contact"):
-    when the fallback fails, its springs try once more with the tangent shifted where it is
-    not positive definite (``shifted_last_attempt``), and a draw that fails that too is
-    recorded as failed and redrawn."""
+    drags the tissue (docs/experiments.md, "`[refine]` on the case grid with elastic contact"), so
+    a draw that no springs answer is recorded as failed and redrawn."""
     from ..fem.solver import SPRING_FALLBACK
 
     budget = ctx.settings.max_total_iterations
@@ -342,7 +340,6 @@ def rigid_push_settings(ctx: SampleContext) -> Any:
                                first_attempt_budget=budget,
                                spring_fallback=tuple(f for f in SPRING_FALLBACK
                                                      if math.isfinite(f)),
-                               shifted_last_attempt=True,
                                elastic_single_precision=ctx.settings.single_precision)
 
 

@@ -66,10 +66,7 @@ class SolverSettings:
     smallest shift ``s`` (1e-2, 1e-1, ...) that makes it so (a descent direction of the
     energy), and lets a solve still converging at its iteration limits finish
     (:data:`GRACE_ITERATIONS`); ``ldlt`` factors the indefinite ``L D L^T`` (a Newton step
-    towards any stationary point). ``shifted_last_attempt`` (elastic contact, with
-    ``ldlt``; data generation sets it): when every spring fallback failed, one more attempt
-    with the stiffest finite fallback springs and ``shift``, so that a push is redrawn only
-    when that fails too; the answers of every push that ``ldlt`` answers stay the same."""
+    towards any stationary point)."""
 
     tol_residual: float = 1e-8
     tol_displacement: float = 1e-8
@@ -89,7 +86,6 @@ class SolverSettings:
     spring_fallback: tuple[float, ...] = SPRING_FALLBACK
     elastic_single_precision: bool = False
     indefinite_tangent: str = "ldlt"
-    shifted_last_attempt: bool = False
 
     @classmethod
     def from_config(cls, solver_section) -> SolverSettings:
@@ -292,25 +288,7 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
                 continue
             report.spring_factor = factor
             return u, report
-        if settings.shifted_last_attempt and settings.indefinite_tangent != "shift":
-            return _shifted_last_attempt(model, loads, settings, reached, first)
         raise first from None
-
-
-def _shifted_last_attempt(model: FEModel, loads: Loads, settings: SolverSettings,
-                          reached: tuple | None, first: SolverError
-                          ) -> tuple[np.ndarray, SolveReport]:
-    """Elastic contact's last try when every spring fallback failed: the stiffest finite
-    springs of ``settings.spring_fallback`` with ``indefinite_tangent = "shift"``, from the
-    furthest state ``reached``; raises ``first`` (the first attempt's error) when it fails."""
-    factor = max((f for f in settings.spring_fallback if math.isfinite(f)), default=1.0)
-    shift = dataclasses.replace(settings, indefinite_tangent="shift")
-    try:
-        u, report = solve_once(model, stiffer_springs(loads, factor), shift, reached)
-    except SolverError:
-        raise first from None
-    report.spring_factor = factor
-    return u, report
 
 
 def _further(a: tuple | None, b: tuple | None) -> tuple | None:
