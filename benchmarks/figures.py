@@ -106,11 +106,16 @@ class Cell:
         return (data or {}).get("date", "-")
 
 
+def depth_series(rows: list[dict], key: str) -> str:
+    """``key``'s distances of truth-agreement ``rows`` (one per depth), ``a / b / c``."""
+    return " / ".join(fmt(r[key], 3) for r in rows)
+
+
 def per_depth(*keys: str) -> Callable[[dict], str]:
     """Renderer of a truth-agreement result of one lesion: each of ``keys``' distances per
     row (depth), mm, the keys apart by semicolons."""
-    return lambda data: "; ".join(" / ".join(fmt(r[key], 3) for r in data["figures"]["rows"])
-                                  + " mm" for key in keys)
+    return lambda data: "; ".join(depth_series(data["figures"]["rows"], key) + " mm"
+                                  for key in keys)
 
 
 def per_lesion_depth(*keys: str) -> Callable[[dict], str]:
@@ -121,14 +126,22 @@ def per_lesion_depth(*keys: str) -> Callable[[dict], str]:
         parts = []
         for lesion in dict.fromkeys(r["lesion"] for r in rows):
             mine = [r for r in rows if r["lesion"] == lesion]
-            parts.append(f"lesion {lesion + 1}: " + "; ".join(
-                " / ".join(fmt(r[k], 3) for r in mine) for k in keys) + " mm")
+            parts.append(f"lesion {lesion + 1}: "
+                         + "; ".join(depth_series(mine, k) for k in keys) + " mm")
         return ", ".join(parts)
     return render
 
 
 AGREE_CMD = ("python benchmarks/truth_agreement.py --lesion-ids 0 --stored "
              "src/biopsynav/data/truths/phantom.json")
+
+
+def agreement_cmd(lesion_ids: str, result_name: str) -> str:
+    """The command of a P2-against-NGSolve agreement on phantom lesions ``lesion_ids``
+    (0-based, comma-separated), 20 minutes a push, written as ``result_name``."""
+    return (f"python benchmarks/truth_agreement.py --lesion-ids {lesion_ids} --stored "
+            "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 "
+            f"--result-name {result_name}")
 TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
              "src/biopsynav/data/truths/phantom.json")
 UCD_TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
@@ -178,15 +191,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("the same, phantom lesion 2 at 10 / 20 / 30 mm: between the two codes; what the probe "
      "body changes",
      Cell("truth-agreement-phantom-lesion1", per_depth("codes_mm", "contact_mm"),
-          "python benchmarks/truth_agreement.py --lesion-ids 1 --stored "
-          "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 --result-name "
-          "truth-agreement-phantom-lesion1"), "<= 0.2 mm at 30 mm", "-"),
+          agreement_cmd("1", "truth-agreement-phantom-lesion1")), "<= 0.2 mm at 30 mm", "-"),
     ("the same, phantom lesions 3 and 4 at 10 / 20 / 30 mm: between the two codes; what the "
      "probe body changes",
      Cell("truth-agreement-phantom-lesions2-3", per_lesion_depth("codes_mm", "contact_mm"),
-          "python benchmarks/truth_agreement.py --lesion-ids 2,3 --stored "
-          "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 --result-name "
-          "truth-agreement-phantom-lesions2-3"), "<= 0.2 mm at 30 mm", "-"),
+          agreement_cmd("2,3", "truth-agreement-phantom-lesions2-3")), "<= 0.2 mm at 30 mm",
+     "-"),
     ("the same at 10 mm: NGSolve's P3 against its P2 on the same mesh",
      Cell("truth-agreement-phantom-p3", per_depth("p3_mm"), AGREE_CMD + " --depths 10 "
           "--orders 2 3 --result-name truth-agreement-phantom-p3"), "<= 0.1 mm", "-"),
