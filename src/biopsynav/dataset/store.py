@@ -88,6 +88,14 @@ FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "s
 FORMER_SOLVER_VALUES = {"indefinite_tangent": "ldlt"}
 
 
+def drop_former_values(section: dict, formers: dict) -> None:
+    """Remove from a config ``section`` every key at its ``formers`` value (the behaviour of
+    data sets made before the key existed), so that their protocol stays as it was."""
+    for key, former in formers.items():
+        if section.get(key) == former:
+            section.pop(key)
+
+
 def recorded_probe_value(protocol: dict, key: str) -> Any:
     """The stored ``protocol``'s [probe] ``key``; a key it leaves out reads as its
     :data:`FORMER_PROBE_VALUES` entry."""
@@ -112,9 +120,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
         solver.pop(key, None)
-    for key, former in FORMER_SOLVER_VALUES.items():  # data made before the key existed
-        if solver.get(key) == former:
-            solver.pop(key)
+    drop_former_values(solver, FORMER_SOLVER_VALUES)  # data made before the key existed
     probe = cfg.section_dict("probe")
     fe_model = {"tissue_labels": cfg.anatomy.tissue_labels, "min_fraction": cfg.grid.min_fraction}
     if probe.get("rigid_share", 0.0) > 0.0:  # rigid pushes: the tracker's contact set and holds
@@ -126,9 +132,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     probe.pop("calibration_pushes", None)  # its calibration is recorded in the data set
     if probe.get("lesion_share", 0.0) == 0.0:  # no push is centred near a lesion
         probe.pop("lesion_reach_mm", None)
-    for key, former in FORMER_PROBE_VALUES.items():  # e.g. uniform forces: the former protocol
-        if probe.get(key) == former:
-            probe.pop(key)
+    drop_former_values(probe, FORMER_PROBE_VALUES)  # e.g. uniform forces: the former protocol
     stretch = cfg.dataset.max_edge_stretch
     checks = {} if stretch == DEFAULT_MAX_EDGE_STRETCH else {"max_edge_stretch": stretch}
     material = cfg.section_dict("material")
