@@ -210,10 +210,10 @@ def test_a_solve_converging_at_its_budget_is_given_a_few_iterations_more_with_sh
 
 
 def test_budget_grace_ends():
-    spent = solver_module._budget_spent
-    assert not spent(0, 100, False)  # no budget
-    assert not spent(10, 9, False) and spent(10, 10, False)
-    assert not spent(10, 10, True) and spent(10, 10 + solver_module.GRACE_ITERATIONS, True)
+    spent, grace = solver_module._budget_spent, solver_module.GRACE_ITERATIONS
+    assert not spent(0, 100, 0)  # no budget
+    assert not spent(10, 9, 0) and spent(10, 10, 0)
+    assert not spent(10, 10, grace) and spent(10, 10 + grace, grace)
 
 
 def test_svk_past_its_limit_point_is_reported():

@@ -475,7 +475,7 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
         if r_norm <= tol_r * report.reference_residual and _small_step(du_norm, u, tol_d):
             return u, it
         if _budget_spent(settings.max_total_iterations, report.iterations,
-                         converging and grace > 0):
+                         grace if converging else 0):
             raise _BudgetExhausted
     raise _IncrementFailed(f"{it} Newton iterations without convergence "
                            f"(|R|/|R0| = {report.log[-1]['residual_rel']:.3g})")
@@ -486,11 +486,10 @@ def _grace(settings: SolverSettings) -> int:
     return GRACE_ITERATIONS if settings.indefinite_tangent == "shift" else 0
 
 
-def _budget_spent(budget: int, iterations: int, converging: bool) -> bool:
+def _budget_spent(budget: int, iterations: int, grace: int) -> bool:
     """Whether a solve with the Newton ``budget`` (0: none) stops after ``iterations``: at
-    the budget, or ``GRACE_ITERATIONS`` past it while it is ``converging``."""
-    return 0 < budget <= iterations and (not converging
-                                         or iterations >= budget + GRACE_ITERATIONS)
+    the budget plus ``grace`` (the iterations more a still-converging solve gets, else 0)."""
+    return 0 < budget and iterations >= budget + grace
 
 
 def _small_step(du_norm: float, u: np.ndarray, tol_d: float) -> bool:
