@@ -305,3 +305,22 @@ def test_result_that_cannot_be_encoded_becomes_an_error_status(monkeypatch):
     assert kinds(batches[0])[-1] == ("POINT", "Lesions")
     assert batches[-1][0].body.string == "tracker_error: unusable result: cannot pack"
     assert session.stats.tracker_failures == 1
+
+
+def test_a_case_without_lesions_sends_skin_and_status_alone():
+    """A breast modelled before any lesion was marked: poses are tracked, the deformed skin
+    and the status go out, and no lesion message (an empty POINT list would clear Slicer's)."""
+    import trimesh
+
+    skin = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
+    tracker = RigidLesionTracker(np.zeros((0, 3)), skin=(skin.vertices, skin.faces))
+    session, clock = make_session(tracker, skin_model_rate_hz=5.0)
+    session.add_peer("slicer")
+    plus = session.add_peer("plus", True)
+    first = sent(session.on_messages(plus, [pose(np.eye(4))]))
+    clock.t += 0.2
+    batches = first + sent(session.on_messages(plus, [pose(translation(0, 2, 0))]))
+    devices = {m.device for b in batches for m in b}
+    assert {"BreastSkin", "TrackingStatus"} <= devices
+    assert not any(d == "Lesions" or d.startswith("Lesion") for d in devices), devices
+

@@ -105,6 +105,11 @@ def summary(stats: ServerStats, seconds: float) -> str:
             f"dropped); {stats.tracker_failures} tracker failures")
 
 
+#: What ``serve`` says of a case without lesions (a breast modelled before any was marked).
+NO_LESIONS = ("the case has no lesions: clients receive the deformed skin (POLYDATA "
+              "'BreastSkin') and the tracking status, no lesion positions")
+
+
 def serve(case: Case | str | Path, tracker_addr: str | Address | None = None,
           listen_addr: str | Address | None = None, device: str | None = None) -> ServerStats:
     """``biopsynav serve``: load the tracker of ``case`` (loaded, or its folder) and run the
@@ -113,6 +118,8 @@ def serve(case: Case | str | Path, tracker_addr: str | Address | None = None,
 
     case = as_case(case)
     log.info("loading the tracker of %s", case.dir)
+    if not case.anatomy.lesions:
+        log.info(NO_LESIONS)
     cfg = case.cfg.igtl
     return run_service(service_tracker(case, cfg), tracker_addr or cfg.tracker,
                        listen_addr or cfg.listen, device or cfg.probe_device, settings=cfg)
