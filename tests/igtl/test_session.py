@@ -309,7 +309,7 @@ def test_result_that_cannot_be_encoded_becomes_an_error_status(monkeypatch):
 
 def test_a_case_without_lesions_sends_skin_and_status_alone():
     """A breast modelled before any lesion was marked: poses are tracked, the deformed skin
-    and the status go out, and no lesion message (an empty POINT list would clear Slicer's)."""
+    and the status go out, and no lesion message."""
     import trimesh
 
     skin = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
