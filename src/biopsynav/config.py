@@ -328,7 +328,8 @@ class ProbeSection:
                                   "face instead of a force patch: the skin under the face at "
                                   "rest (within contact_tolerance_mm, as the tracker takes it) "
                                   "moves with the face by a depth drawn uniformly in [0, "
-                                  "max_push_mm] along a direction tilted as the force is, held "
+                                  "max_push_mm] (less by max_chest_compression) along a "
+                                  "direction tilted as the force is, held "
                                   "by [tracker] fem_contact constraints (docs/dataset.md). 0: "
                                   "the paper's force patches only; 1: rigid pushes only.",
                              lo=0.0, hi=1.0)
@@ -342,6 +343,16 @@ class ProbeSection:
     lesion_reach_mm: float = opt(20.0, "With lesion_share > 0: how far from the skin vertex "
                                        "nearest a lesion a lesion-centred push may be centred.",
                                  lo=0.0, hi=1000.0)
+    max_chest_compression: float = opt(0.6, "A rigid push moves the face towards the chest "
+                                            "wall by at most this share of the tissue in front "
+                                            "of it under the face (the median chest-wall "
+                                            "distance of the skin the face holds at rest): a "
+                                            "deeper draw is drawn shallower along the same line, "
+                                            "and the tracking network answers out_of_envelope "
+                                            "beyond it. Chosen on the solves that failed: on the "
+                                            "MRI breasts nearly all pressed further "
+                                            "(docs/dataset.md). 0: no such limit.",
+                                       lo=0.0, hi=1.0)
     rigid_max_tilt_deg: float = opt(15.0, "Largest angle between a rigid push and the inward "
                                           "normal. The skin sticks to the face, so a steeper "
                                           "push drags it across the face by the push's "
@@ -557,8 +568,9 @@ class RefineSection:
                                    "lesion_share of the refine case; lesion_reach_mm from "
                                    "[probe]).", lo=0.0, hi=1.0)
     max_push_mm: float = opt(35.0, "Deepest fine push (mm of probe displacement); depths are "
-                                   "uniform up to it, tilts within [probe] "
-                                   "rigid_max_tilt_deg.", lo=1.0, hi=200.0)
+                                   "uniform up to it (less by [probe] max_chest_compression), "
+                                   "tilts within [probe] rigid_max_tilt_deg.", lo=1.0,
+                             hi=200.0)
     material_model: str = opt("neo-hookean-split-sri-inner",
                               "Hyperelastic law of the refine teacher's rigid pushes ([material] "
                               "model of the refine case), and so of every solve that stands for "
@@ -604,7 +616,9 @@ class TrackerSection:
                       choices=("net", "fem"))
     envelope_margin: float = opt(1.1, "Contact displacements up to this factor of the largest "
                                       "trained one, and probe displacements (their mean norm) "
-                                      "up to this factor of the deepest trained push, are "
+                                      "up to this factor of the deepest trained push, and "
+                                      "compressions of the tissue before the chest wall up to "
+                                      "this factor of [probe] max_chest_compression, are "
                                       "accepted; beyond, the answer is out_of_envelope.",
                                  lo=1.0, hi=10.0)
     rigid_tolerance: float = opt(1e-3, "Largest deviation of a pose rotation from orthonormal.",

@@ -32,7 +32,9 @@ With ``[probe] rigid_share`` > 0 that share of the samples is a rigid-probe push
 (docs/dataset.md): contact points within ``contact_tolerance_mm`` of the face plane (the
 tracker's rest contact), avoiding skin in cells anchored to the chest wall; the direction
 tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
-``[0, max_push_mm]`` along it (prescribed, no force).
+``[0, max_push_mm]`` along it (prescribed, no force), shorter where that would press the
+tissue in front of the chest wall by more than ``max_chest_compression``
+(:func:`deepest_rigid_push`).
 
 With ``[probe] lesion_share`` > 0 that share of the samples is centred near a lesion instead
 of anywhere (:func:`lesion_for_sample`, :func:`centres_near_lesion`): the biopsy probe sits
@@ -201,7 +203,7 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
               force_exponent: float = 1.0, force_scale: float = 1.0) -> ProbePush:
     """One random push following the protocol (module docstring); ``rigid``: a rigid-probe
     push instead (contact within ``contact_tolerance_mm`` of the face, tilt within
-    ``rigid_max_tilt_deg``, a depth uniform in ``[0, max_push_mm]`` instead of the force; a
+    ``rigid_max_tilt_deg``, a depth uniform in ``[0, deepest_rigid_push]`` instead of the force; a
     patch holding a ``pinned`` skin vertex (:func:`pinned_skin`) is redrawn).
 
     ``centers``: the eligible centre vertices (:func:`eligible_centers`, precomputed by
@@ -233,12 +235,39 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
     axis_angle = rng.uniform(0.0, 2.0 * np.pi)
     max_tilt = probe.rigid_max_tilt_deg if rigid else probe.max_tilt_deg
     tilt = np.radians(rng.uniform(-max_tilt, max_tilt))
-    amount = float(rng.uniform(0.0, probe.max_push_mm) if rigid
-                   else force_scale * probe.f_max_n * rng.uniform(0.0, 1.0) ** force_exponent)
+    direction = tilted_direction(normal, tilt, axis_angle)
+    amount = float(rng.uniform(0.0, deepest_rigid_push(anatomy, probe, contact, direction))
+                   if rigid else
+                   force_scale * probe.f_max_n * rng.uniform(0.0, 1.0) ** force_exponent)
     return ProbePush(vertex, anatomy.vertices[vertex].copy(), normal, long_axis, short_axis,
-                     contact, tilted_direction(normal, tilt, axis_angle),
+                     contact, direction,
                      float(np.degrees(tilt)), 0.0 if rigid else amount, attempt,
                      amount if rigid else 0.0)
+
+
+def chest_distance(anatomy: Anatomy, contact: np.ndarray) -> float:
+    """The tissue in front of the chest wall under a probe face (mm): the median chest-wall
+    distance (:meth:`Anatomy.chest_depth`) of the skin vertices ``contact`` (indices) it holds."""
+    return float(np.median(anatomy.chest_depth(anatomy.vertices[np.asarray(contact)])))
+
+
+def towards_chest(anatomy: Anatomy, motion: np.ndarray) -> float:
+    """The part (mm) of a probe ``motion`` (3,) mm that goes towards the chest wall (along
+    its plane's normal; 0 for motion away from it or along it)."""
+    n = np.asarray(anatomy.chest_normal, dtype=np.float64)
+    return max(float(np.asarray(motion) @ n) / float(np.linalg.norm(n)), 0.0)
+
+
+def deepest_rigid_push(anatomy: Anatomy, probe: ProbeSection, contact: np.ndarray,
+                       direction: np.ndarray) -> float:
+    """The deepest rigid push (mm) along the unit ``direction`` (3,) of the face holding skin
+    ``contact``: ``max_push_mm``, and with ``max_chest_compression`` > 0 no deeper than moves
+    the face towards the chest wall by that share of :func:`chest_distance`."""
+    towards = towards_chest(anatomy, direction)
+    if probe.max_chest_compression <= 0.0 or towards <= 0.0:
+        return float(probe.max_push_mm)
+    allowed = probe.max_chest_compression * max(chest_distance(anatomy, contact), 0.0)
+    return min(float(probe.max_push_mm), allowed / towards)
 
 
 #: The stream that decides a sample's kind (``SeedSequence([seed, index, 0, RIGID_STREAM])``):

@@ -30,12 +30,11 @@ REFINE_VAL_INTERVAL = 250
 
 def refined_config(cfg: CaseConfig) -> CaseConfig:
     """The refine case's configuration: ``cfg`` with the law ``[refine] material_model``
-    and ``[refine] fictitious_stiffness``,
-    every push a rigid-probe push (depth
-    uniform up to ``[refine] max_push_mm``, no force calibration, ``[refine] lesion_share``
-    of them centred near a lesion), ``[refine] samples``
-    samples of which ``held_out`` held out, solved on the finer teacher, and the training
-    starting from the case's model (``../model``) with the ``[refine]`` schedule."""
+    and ``[refine] fictitious_stiffness``, every push a rigid-probe push (depth uniform up to
+    ``[refine] max_push_mm`` and ``[probe] max_chest_compression``, no force calibration,
+    ``[refine] lesion_share`` of them centred near a lesion), ``[refine] samples`` samples of
+    which ``held_out`` held out, solved on the finer teacher, and the training starting from
+    the case's model (``../model``) with the ``[refine]`` schedule."""
     r, out = cfg.refine, copy.deepcopy(cfg)
     # the refine case does not refine again; its pushes are solved with the refine law
     out.refine = RefineSection(samples=0, material_model=r.material_model,

@@ -121,6 +121,52 @@ def test_the_kind_is_fixed_per_sample_and_a_share_of_zero_is_the_old_protocol(ba
     assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) == fp_before
 
 
+def test_a_rigid_push_compresses_the_tissue_before_the_chest_wall_by_the_share_at_most(
+        base_case):
+    """``[probe] max_chest_compression``: a rigid push moves the face towards the chest wall by
+    at most that share of the tissue under it; a draw within the limit is the draw of before,
+    a deeper one the same line shallower; force patches and their protocol stay as they were;
+    0 is the protocol of rigid pushes from before the key."""
+    from biopsynav.probe import chest_distance, towards_chest
+
+    case = Case.load(base_case)
+    probe = case.cfg.probe
+    centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
+    fp_patches = protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST))
+    probe.max_chest_compression = 0.1
+    assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) == fp_patches
+    probe.rigid_share = 1.0
+
+    def draws(share: float) -> list:
+        probe.max_chest_compression = share
+        return [push_for_sample(case.anatomy, probe, 0, i, 0, centers) for i in range(40)]
+
+    free, limited = draws(0.0), draws(0.3)
+    fp = {}
+    for share in (0.0, 0.3):
+        probe.max_chest_compression = share
+        fp[share] = protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST))
+    shallower = 0
+    for a, b in zip(free, limited, strict=True):
+        assert a.vertex == b.vertex and np.allclose(a.direction, b.direction)
+        share = towards_chest(case.anatomy, b.displacement) / chest_distance(case.anatomy,
+                                                                             b.contact)
+        assert share <= 0.3 + 1e-9
+        depth_a, depth_b = np.linalg.norm(a.displacement), np.linalg.norm(b.displacement)
+        if depth_b < depth_a - 1e-9:  # the same random number on a shorter range
+            shallower += 1
+            unit = towards_chest(case.anatomy, b.direction)
+            allowed = 0.3 * chest_distance(case.anatomy, b.contact) / unit
+            assert allowed < probe.max_push_mm  # only where the limit bites
+            assert depth_b / depth_a == pytest.approx(allowed / probe.max_push_mm)
+        else:
+            assert depth_b == pytest.approx(depth_a)
+    assert 5 < shallower < 40
+    assert fp[0.0] != fp[0.3]
+    probe.max_chest_compression = 0.0
+    assert "max_chest_compression" not in protocol_dict(case.cfg, N_TRAIN, N_TEST)["probe"]
+
+
 def test_a_data_set_of_rigid_pushes_alone_does_not_depend_on_the_force_range(base_case):
     """With every push rigid (a [refine] data set) the force patches' keys leave the
     protocol: a new force range keeps the data set; a store that recorded them (made before)

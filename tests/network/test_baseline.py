@@ -277,6 +277,38 @@ def test_tracker_refuses_pushes_deeper_than_the_deepest_trained_one(phantom, tra
     assert all(not np.all(np.isfinite(les.center)) for les in deep.lesions or [])
 
 
+def test_tracker_refuses_pushes_compressing_the_tissue_beyond_the_trained_share(phantom,
+                                                                                trained_le):
+    """A push that moves the face towards the chest wall by more than ``envelope_margin`` x
+    the envelope's ``max_chest_compression`` of the tissue under the face gives
+    out_of_envelope, naming the share; a model without the figure has no such limit."""
+    from biopsynav.inference.surrogate import Surrogate
+    from biopsynav.probe import chest_distance
+    from biopsynav.tracker import Tracker
+
+    _, case, _ = phantom
+    model_dir, _ = trained_le
+    sur = Surrogate.load(model_dir, case.fingerprint(), runtime="torchscript", threads=1,
+                         warmup=0, case=case)
+    tracker = Tracker(case, "net", surrogate=sur)
+    assert tracker.max_compression == 0.0  # no rigid pushes in the synthetic store
+    top = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 75.0], [0, 0, 0, 1]])
+    n_contact = tracker.set_rest_pose(top)
+    tissue = chest_distance(case.anatomy, tracker._contact)
+    assert n_contact and 40.0 < tissue < 80.0  # the dome's top, its chest wall below
+    tracker.max_contact_mm = np.inf
+    pose = top.copy()
+    pose[2, 3] -= 8.0  # straight down, towards the chest wall
+    compression = -tracker.contact_displacement(pose).mean(axis=0)[2] / tissue
+    assert tracker.update(pose).status == "ok"
+    tracker.max_compression = 1.01 * compression / tracker.envelope_margin
+    assert tracker.update(pose).status == "ok"
+    tracker.max_compression = 0.99 * compression / tracker.envelope_margin
+    deep = tracker.update(pose)
+    assert deep.status == "out_of_envelope" and "in front of the chest wall" in deep.reason
+    assert f"{100 * compression:.0f} %" in deep.reason
+
+
 def test_training_with_the_baseline_resumes_from_its_checkpoint(phantom, tmp_path):
     """The baseline's set-up timings must not enter the checkpoint signature (they did: every
     run with a baseline trained afresh)."""

@@ -80,7 +80,8 @@ FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "too
 #: [probe] values that a protocol leaves out, being what every data set had before the key
 #: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
 FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "shape": "rectangle",
-                       "rigid_share": 0.0, "too_deep_redraw": "elsewhere", "lesion_share": 0.0}
+                       "rigid_share": 0.0, "too_deep_redraw": "elsewhere", "lesion_share": 0.0,
+                       "max_chest_compression": 0.0}
 
 
 #: [solver] keys added after data sets were made, with the behaviour those data sets had: a key
@@ -111,7 +112,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     when elastic), [solver] without ``backend``
     and ``threads`` (speed and round-off only; workers always factor on one thread) and without
     keys at their :data:`FORMER_SOLVER_VALUES`, [probe]
-    (without ``contact_tolerance_mm`` and ``rigid_share`` when there are no rigid pushes: the
+    (without ``contact_tolerance_mm``, ``max_chest_compression`` and ``rigid_share`` when there
+    are no rigid pushes: the
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
     push is rigid; without ``lesion_reach_mm`` when no push is centred near a lesion; never
     ``calibration_pushes``: the calibration it found is recorded in the
@@ -129,6 +131,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
             fe_model["contact_stiffness"] = cfg.tracker.contact_stiffness
     else:  # force patches only: the protocol of before rigid pushes (rigid_share 0: below)
         probe.pop("contact_tolerance_mm", None)
+        probe.pop("max_chest_compression", None)
     probe.pop("calibration_pushes", None)  # its calibration is recorded in the data set
     if probe.get("lesion_share", 0.0) == 0.0:  # no push is centred near a lesion
         probe.pop("lesion_reach_mm", None)

@@ -192,7 +192,8 @@ def _rms(values: torch.Tensor) -> np.ndarray:
 def envelope(data: Dataset) -> dict:
     """The training envelope in mm: largest contact input and target displacement norms, and
     (when the store has it) the deepest training push, ``max_probe_disp_mm`` (the mean norm
-    of the contact points' displacement, ``[probe] max_push_mm``'s measure)."""
+    of the contact points' displacement, ``[probe] max_push_mm``'s measure), and for rigid
+    pushes drawn with it, ``max_chest_compression``."""
     x = data.inputs[data.train_idx]
     y = data.targets[data.train_idx]
     contact = torch.linalg.vector_norm(x[:, :3], dim=1)
@@ -201,7 +202,20 @@ def envelope(data: Dataset) -> dict:
            "max_weight_sum": float(x[:, 3].max())}
     if data.probe_disp_mm is not None:
         out["max_probe_disp_mm"] = float(data.probe_disp_mm[data.train_idx.numpy()].max())
+    share = rigid_chest_compression(data.attrs.get("protocol") or {})
+    if share > 0.0:
+        out["max_chest_compression"] = share
     return out
+
+
+def rigid_chest_compression(protocol: dict) -> float:
+    """The ``[probe] max_chest_compression`` a data set's rigid pushes were drawn with (0: no
+    rigid pushes, or drawn before the limit existed)."""
+    from ..dataset.store import recorded_probe_value
+
+    if float(recorded_probe_value(protocol, "rigid_share")) <= 0.0:
+        return 0.0
+    return float(recorded_probe_value(protocol, "max_chest_compression"))
 
 
 def dataset_contact_input(data: Dataset) -> str:

@@ -33,7 +33,13 @@ from ..errors import InputError, SolverError
 from ..footprint import Footprint, as_footprint
 from ..grid.embedding import Embedding, surface_embedding
 from ..grid.index import field_to_tensor
-from ..probe import ContactInputOperator, contact_input_operator, skin_under_face
+from ..probe import (
+    ContactInputOperator,
+    chest_distance,
+    contact_input_operator,
+    skin_under_face,
+    towards_chest,
+)
 from . import result as st
 from .bound import error_bound_mm
 from .contactset import (
@@ -158,6 +164,10 @@ class Tracker:
         # the deepest training push (mean contact-point displacement); models trained before
         # it was recorded have only the contact bound
         self.max_probe_mm = float(env.get("max_probe_disp_mm", np.inf))
+        # rigid pushes compressing the tissue in front of the chest wall under the face by no
+        # more than this share (models trained before the limit, or without rigid pushes: 0)
+        self.max_compression = float(env.get("max_chest_compression", 0.0))
+        self._chest_mm = np.inf  # the rest contact's distance to the chest wall, mm
         self.envelope_margin = case.cfg.tracker.envelope_margin
 
     def _lesion_embedding(self) -> tuple[np.ndarray, Embedding]:
@@ -220,6 +230,7 @@ class Tracker:
         self._contact = idx
         self._contact_points = self.case.anatomy.vertices[idx]
         self._contact_normals = self.case.anatomy.normals[idx]
+        self._chest_mm = chest_distance(self.case.anatomy, idx) if len(idx) else np.inf
         self._forget_contact_sets()
         if len(idx):
             self._contact_emb = Embedding.build(self.case.grid, self._contact_points,
@@ -409,6 +420,12 @@ class Tracker:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"probe displacement {depth:.1f} mm "
                                     f"beyond the deepest trained push, {self.max_probe_mm:.1f} "
                                     "mm", start)
+        compression = towards_chest(self.case.anatomy, u_c.mean(axis=0)) / max(self._chest_mm, 1e-9)
+        if self.max_compression > 0 and compression > self.max_compression * self.envelope_margin:
+            return self._unreliable(st.OUT_OF_ENVELOPE, f"the probe compresses the "
+                                    f"{self._chest_mm:.0f} mm of tissue in front of the chest "
+                                    f"wall by {100 * compression:.0f} %, beyond the trained "
+                                    f"{100 * self.max_compression:.0f} %", start)
         try:
             if self.engine == "net":
                 field, disp = self._net_answer(u_c, as_pose(pose), with_surface or with_field,
