@@ -215,6 +215,19 @@ class Tracker:
     def n_contact(self) -> int:
         return len(self._contact)
 
+    def _beyond_trained_compression(self, u_c: np.ndarray) -> str:
+        """Why the face's motion ``u_c`` (n, 3) mm presses the tissue before the chest wall
+        under it beyond ``envelope_margin`` x the trained share, '' when it does not (or the
+        model has no such limit)."""
+        if self.max_compression <= 0.0:
+            return ""
+        share = towards_chest(self.case.anatomy, u_c.mean(axis=0)) / max(self._chest_mm, 1e-9)
+        if share <= self.max_compression * self.envelope_margin:
+            return ""
+        return (f"the probe compresses the {self._chest_mm:.0f} mm of tissue in front of the "
+                f"chest wall by {100 * share:.0f} %, beyond the trained "
+                f"{100 * self.max_compression:.0f} %")
+
     def set_rest_pose(self, pose: np.ndarray) -> int:
         """Take ``pose`` (probe just touching the skin) as the rest pose; return the number of
         contact points. Raises InputError for a pose that is not a finite rigid transform."""
@@ -420,12 +433,9 @@ class Tracker:
             return self._unreliable(st.OUT_OF_ENVELOPE, f"probe displacement {depth:.1f} mm "
                                     f"beyond the deepest trained push, {self.max_probe_mm:.1f} "
                                     "mm", start)
-        compression = towards_chest(self.case.anatomy, u_c.mean(axis=0)) / max(self._chest_mm, 1e-9)
-        if self.max_compression > 0 and compression > self.max_compression * self.envelope_margin:
-            return self._unreliable(st.OUT_OF_ENVELOPE, f"the probe compresses the "
-                                    f"{self._chest_mm:.0f} mm of tissue in front of the chest "
-                                    f"wall by {100 * compression:.0f} %, beyond the trained "
-                                    f"{100 * self.max_compression:.0f} %", start)
+        pressed = self._beyond_trained_compression(u_c)
+        if pressed:
+            return self._unreliable(st.OUT_OF_ENVELOPE, pressed, start)
         try:
             if self.engine == "net":
                 field, disp = self._net_answer(u_c, as_pose(pose), with_surface or with_field,
