@@ -265,3 +265,15 @@ def test_pushes_near_lesions_of_a_case_without_lesions_are_refused_before_a_stor
     with pytest.raises(InputError, match=r"\[probe\] lesion_share.*no lesions"):
         generate_case(bare, workers=1, progress=False)
     assert not (tmp_path / "dataset.zarr").exists()
+
+
+def test_the_envelope_holds_the_compression_its_rigid_pushes_were_drawn_with():
+    """A model's envelope names ``max_chest_compression`` only when its data set holds rigid
+    pushes drawn with it (a stored protocol without the key was drawn before it: no limit)."""
+    from biopsynav.network.data import rigid_chest_compression
+
+    rigid = {"probe": {"rigid_share": 1.0, "max_chest_compression": 0.6}}
+    assert rigid_chest_compression(rigid) == 0.6
+    assert rigid_chest_compression({"probe": {"rigid_share": 1.0}}) == 0.0
+    assert rigid_chest_compression({"probe": {"max_chest_compression": 0.6}}) == 0.0
+    assert rigid_chest_compression({}) == 0.0
