@@ -41,10 +41,11 @@ REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
                          "evaluate and report": 3.47}}  # its pushes: REFINE_PUSH_MINUTES
 PROBE_STEPS = 10  # steps timed after one warm-up; their median
 #: Minutes of 1,000 default ``[refine]`` rigid pushes on the 2-core machine: the median of
-#: five breasts, each alone (benchmarks/results: time-to-model-phantom, 11.0 min on 2,225
-#: active cells; mri-exam 02 left 10.1 on 3,822, 06 left 7.4 on 4,199, 13 right 9.5 on
-#: 2,524; the reference run's 3.3 on 2,041). Not scaled by the cells: they do not predict it.
-REFINE_PUSH_MINUTES = 9.5
+#: five breasts with ``[probe] max_chest_compression``, each alone, 2026-12-03
+#: (time-to-model-phantom 11.0 min on 2,225 active cells, which the limit leaves alone; MRI
+#: 13 right 4.6 on 2,524, 05 right 7.2 on 3,529, 05 left 6.5 on 3,656, 06 right 6.7 on
+#: 4,068; docs/dataset.md). Not scaled by the cells: they do not predict it.
+REFINE_PUSH_MINUTES = 6.7
 
 
 @dataclass
