@@ -253,9 +253,9 @@ def chest_distance(anatomy: Anatomy, contact: np.ndarray) -> float:
 
 def towards_chest(anatomy: Anatomy, motion: np.ndarray) -> float:
     """The part (mm) of a probe ``motion`` (3,) mm that goes towards the chest wall (along
-    its plane's normal; 0 for motion away from it or along it)."""
-    n = np.asarray(anatomy.chest_normal, dtype=np.float64)
-    return max(float(np.asarray(motion) @ n) / float(np.linalg.norm(n)), 0.0)
+    its plane's unit normal, as :meth:`Anatomy.chest_depth` measures; 0 for motion away from
+    it or along it)."""
+    return max(float(np.asarray(motion) @ anatomy.chest_normal), 0.0)
 
 
 def deepest_rigid_push(anatomy: Anatomy, probe: ProbeSection, contact: np.ndarray,
