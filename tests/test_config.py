@@ -33,6 +33,8 @@ def test_defaults_round_trip(tmp_path):
     ({"probe": {"footprint_mm": [50.0]}}, "two positive lengths"),
     ({"dataset": {"contact_input": "nearest"}}, "must be one of"),
     ({"solver": {"indefinite_tangent": "cholesky"}}, "indefinite_tangent must be one of"),
+    ({"probe": {"max_chest_compression": 1.5}}, "max_chest_compression"),
+    ({"probe": {"max_chest_compression": "half"}}, "max_chest_compression"),
     ({"dataset": {"newton_budget": -1}}, "below its minimum"),
     ({"igtl": {"stall_timeout_s": 0.0}}, "below its minimum"),
     ({"network": {"weight_decay": -0.1}}, "below its minimum"),
