@@ -84,6 +84,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.contact.constraints import contact_constraint_names  # noqa: E402
 from biopsynav.errors import BiopsynavError, InputError  # noqa: E402
+from biopsynav.evaluate.p2 import QUADRATURE_DEGREE, QUADRATURE_DEGREES  # noqa: E402
 from biopsynav.evaluate.placement import place_case_probe  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings, select_lesions  # noqa: E402
 from biopsynav.fem import FEModel  # noqa: E402
@@ -245,7 +246,8 @@ def reference_model(case: Case, e_mpa: float, nu: float, placement, args) -> tup
     probe = case.cfg.probe
     ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
                              fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
-                             rim=rim_at(placement.pose, probe.footprint, args.tet_rim))
+                             rim=rim_at(placement.pose, probe.footprint, args.tet_rim),
+                             quadrature_degree=args.quadrature_degree)
     return ref, ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm,
                             args.friction)
 
@@ -287,10 +289,11 @@ def pushes_facts(ref, contact: np.ndarray, got: dict, depths: list[float],
 def push_key(ref, e_mpa: float, nu: float, placement, at: np.ndarray, args,
              probe_body: bool) -> dict:
     """What a lesion's P2 pushes depend on besides their depths: the mesh, the material, the
-    probe's pose and body, and the points answered."""
+    probe's pose and body, the quadrature rule and the points answered."""
     return {"mesh": ref.mesh_fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "pose": np.asarray(placement.pose).tolist(), "friction": args.friction,
             "edge_radius_mm": args.edge_radius, "probe_body": probe_body,
+            "quadrature_degree": args.quadrature_degree,
             "points": hashlib.sha256(np.ascontiguousarray(at, dtype=np.float64).tobytes()
                                      ).hexdigest()}
 
@@ -395,6 +398,10 @@ def add_reference_arguments(p: argparse.ArgumentParser, fine_mm: float) -> None:
     p.add_argument("--edge-radius", type=non_negative_mm, default=0.0,
                    help="the reference's probe: its face's edges rounded by this radius, mm, "
                         "with sides that no skin passes (0: a flat face with sharp edges)")
+    p.add_argument("--quadrature-degree", type=int, choices=QUADRATURE_DEGREES,
+                   default=QUADRATURE_DEGREE,
+                   help="the degree of the reference's quadrature rule over each tetrahedron "
+                        f"(default {QUADRATURE_DEGREE}: the stored truths')")
     p.add_argument("--progress", action="store_true",
                    help="log the reference's load steps and contact rounds to stderr")
     p.add_argument("--push-minutes", type=non_negative_minutes, default=0.0,

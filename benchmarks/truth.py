@@ -102,7 +102,8 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
             "tet_fine_mm": args.tet_fine,
-            **probe_key(case.cfg.probe, args.friction, args.tet_rim, args.edge_radius)}
+            **probe_key(case.cfg.probe, args.friction, args.tet_rim, args.edge_radius,
+                        args.quadrature_degree)}
 
 
 def load_reference(path: Path, key: dict) -> dict:

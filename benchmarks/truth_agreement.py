@@ -4,6 +4,7 @@
 
     python benchmarks/truth_agreement.py [CASE] [--lesion-ids 1,5] [--depths 10 20 30]
                                          [--tet-size 10] [--tet-fine 4] [--orders 2 3]
+                                         [--quadrature-degree 5] [--intorder 5]
                                          [--stored src/biopsynav/data/truths/phantom.json]
                                          [--push-minutes 20] [--out FILE]
                                          [--result-name NAME | --no-result-file]
@@ -16,10 +17,12 @@ chest-wall plane fixed, homogeneous neo-Hookean with the E and nu of the case's 
 tissue. Answered by:
 
 * ``p2``: biopsynav's P2 reference on gmsh's tetrahedra (``--tet-size`` mm, ``--tet-fine`` mm
-  within 35 mm of the probe);
+  within 35 mm of the probe), integrated by scikit-fem's rule of ``--quadrature-degree``;
 * ``ngsolve pK``: NGSolve on the same tetrahedra with elements of each order K of
   ``--orders`` (2: the same element; 3 and up: p refinement on the same mesh, which tells
-  how far the P2 answer is from converged on that mesh).
+  how far the P2 answer is from converged on that mesh), integrated by NGSolve's rule of
+  ``--intorder``. The two codes' rules of one degree have different points: where the
+  answers differ by their quadrature error, raising both degrees brings them together.
 
 Printed per lesion and depth: each answer's lesion displacement |u| (mm) and the distance
 between displacement vectors: p2 against NGSolve p2 (the two codes on one discretisation),
@@ -65,7 +68,8 @@ def glued_model(case, e_mpa: float, nu: float, placement, args) -> SimpleNamespa
 
     probe = case.cfg.probe
     ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
-                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine)
+                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
+                             quadrature_degree=args.quadrature_degree)
     n_vertices = int(ref.corners.max()) + 1
     touched = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
     held = touched[touched < n_vertices]
@@ -105,14 +109,15 @@ def p2_glued(model: SimpleNamespace, placement, lesion: np.ndarray, depths: list
 
 
 def ngsolve_glued(model: SimpleNamespace, e_mpa: float, nu: float, placement,
-                  lesion: np.ndarray, depths: list[float], order: int) -> dict:
-    """NGSolve's answers on the P2 model's own tetrahedra, elements of ``order``."""
+                  lesion: np.ndarray, depths: list[float], order: int, intorder: int) -> dict:
+    """NGSolve's answers on the P2 model's own tetrahedra, elements of ``order``, integrated
+    by NGSolve's rule of degree ``intorder``."""
     from ngsolve_peer import NgsolvePush, push_depths
 
     ref = model.ref
     t0 = time.perf_counter()
     problem = NgsolvePush(ref.nodes[:model.n_vertices], ref.corners, e_mpa, nu, model.fixed,
-                          model.held, order=order)
+                          model.held, order=order, intorder=intorder)
     out = push_depths(problem, placement.pose[:3, 2], depths, lesion)
     return {"displacement": out.displacement, "dofs": out.dofs, "failure": out.failure,
             "seconds": time.perf_counter() - t0, "newton_per_step": out.newton}
@@ -186,6 +191,7 @@ def largest(rows: list[dict], key: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from biopsynav.evaluate.p2 import QUADRATURE_DEGREE, QUADRATURE_DEGREES
     from biopsynav.evaluate.placement import place_case_probe
     from biopsynav.evaluate.references import default_tissue_material
 
@@ -196,6 +202,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-size", type=float, default=10.0)
     p.add_argument("--tet-fine", type=float, default=4.0)
     p.add_argument("--orders", type=int, nargs="+", default=[2, 3])
+    p.add_argument("--quadrature-degree", type=int, choices=QUADRATURE_DEGREES,
+                   default=QUADRATURE_DEGREE,
+                   help="degree of biopsynav's P2 quadrature rule (scikit-fem's)")
+    p.add_argument("--intorder", type=int, default=5,
+                   help="degree of NGSolve's quadrature rule")
     p.add_argument("--push-minutes", type=float, default=0.0,
                    help="give a P2 push up that long (0: no limit)")
     p.add_argument("--stored", type=Path, default=None,
@@ -216,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         lesion = np.asarray(case.anatomy.lesions[li].center)
         model = glued_model(case, e_mpa, nu, placement, args)
         p2, p2_facts = p2_glued(model, placement, lesion, args.depths, args)
-        ng = {o: ngsolve_glued(model, e_mpa, nu, placement, lesion, args.depths, o)
+        ng = {o: ngsolve_glued(model, e_mpa, nu, placement, lesion, args.depths, o,
+                               args.intorder)
               for o in args.orders}
         facts[str(li)] = {"p2": p2_facts,
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
@@ -233,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
                "p_max_mm": max((largest(rows, f"p{o}_mm") for o in higher), default=float("nan")),
                "contact_max_mm": largest(rows, "contact_mm"),
                "E_mpa": e_mpa, "nu": nu, "tet_size_mm": args.tet_size,
-               "tet_fine_mm": args.tet_fine, "rows": rows, "facts": facts}
+               "tet_fine_mm": args.tet_fine, "quadrature_degree": args.quadrature_degree,
+               "intorder": args.intorder, "rows": rows, "facts": facts}
     if args.out:
         args.out.write_text(json.dumps(figures, indent=1))
     if not args.no_result_file:

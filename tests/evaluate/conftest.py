@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 
-def cube_reference(size_mm: float):
+def cube_reference(size_mm: float, **build):
     """The P2 reference of a 30 mm cube of ``size_mm`` tetrahedra, its bottom face
-    (z = -15) the chest wall, E 5 kPa, nu 0.45."""
+    (z = -15) the chest wall, E 5 kPa, nu 0.45 (``build``: more of TetReference.build's options)."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -20,7 +20,7 @@ def cube_reference(size_mm: float):
                               normals=np.asarray(box.vertex_normals),
                               chest_point=np.array([0.0, 0.0, -15.0]),
                               chest_normal=np.array([0.0, 0.0, -1.0]))
-    return TetReference.build(anatomy, size_mm, 5e-3, 0.45)
+    return TetReference.build(anatomy, size_mm, 5e-3, 0.45, **build)
 
 
 @pytest.fixture(scope="session")

@@ -228,6 +228,48 @@ def test_crushing_an_element_costs_energy():
         element_quadrature(ref.nodes[:4], ref.corners, degree=4)
 
 
+def test_a_finer_rule_is_chosen_by_degree_and_named_in_every_answer_key():
+    """``quadrature_degree`` picks scikit-fem's rule (7: 24 points, exact on the volume);
+    two rules integrate small strains alike (the energy's Taylor terms up to degree 5 are
+    polynomials both integrate exactly) and part as the strain grows, the error behind the
+    two codes' 0.26 mm gap at 30 mm (docs/evaluation.md). The rule is part of the key of
+    every stored answer, so a truth of another degree is solved again, not reused."""
+    from biopsynav.config import ProbeSection
+    from biopsynav.evaluate.p2 import QUADRATURE_DEGREE, probe_key
+
+    from .conftest import cube_reference
+
+    ref5, ref7 = cube_reference(10.0), cube_reference(10.0, quadrature_degree=7)
+    assert (ref5.weights.shape[1], ref7.weights.shape[1]) == (14, 24)
+    assert ref7.weights.sum() == pytest.approx(30.0 ** 3)
+    x = ref5.nodes / 15.0
+    gaps = []
+    for amplitude in (0.01, 0.5):  # the largest strain about 0.02 and 1
+        u = amplitude * 15.0 * np.stack([x[:, 0] * x[:, 2], 0.5 * x[:, 1] * x[:, 2],
+                                         -0.5 * x[:, 2] ** 2], axis=1)
+        f5 = ref5.forces_and_tangent(u, tangent=False)
+        f7 = ref7.forces_and_tangent(u, tangent=False)
+        gaps.append(np.linalg.norm(f5 - f7) / np.linalg.norm(f7))
+    assert gaps[0] < 1e-9 < 1e-6 < gaps[1]
+    assert probe_key(ProbeSection())["quadrature_degree"] == QUADRATURE_DEGREE
+    assert probe_key(ProbeSection(), quadrature_degree=7)["quadrature_degree"] == 7
+
+
+@pytest.mark.parametrize("degree", ["4", "8", "seven"])
+def test_the_benchmarks_refuse_a_rule_with_negative_weights_before_any_work(
+        degree, tmp_path, capsys, monkeypatch):
+    """``truth.py --quadrature-degree`` takes the degrees whose rule weighs every point
+    positively (5, 6, 7); anything else stops the parser before a case is read."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth
+
+    with pytest.raises(SystemExit) as stop:
+        truth.main([str(tmp_path / "missing"), "--quadrature-degree", degree,
+                    "--reference", str(tmp_path / "ref.json")])
+    assert stop.value.code == 2 and "--quadrature-degree" in capsys.readouterr().err
+    assert not (tmp_path / "ref.json").exists()
+
+
 def test_rigid_motions_give_no_forces(cube):
     c, s = np.cos(0.7), np.sin(0.7)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -65,6 +65,11 @@ SHIFTS = (0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
 #: of degree 4 weighs the centroid by -0.0132) makes the discrete energy unbounded below: an
 #: element lowers it without limit by crushing its centroid towards J = 0, and Newton follows.
 QUADRATURE_DEGREE = 5
+#: The degrees a reference may ask for: scikit-fem's rules with positive weights only, exact
+#: at least to degree 5 (14, 15 and 24 points; its rules of degree 8 and 9 weigh some
+#: points negatively). At 30 mm pushes the degree-5 rule leaves a quadrature error of
+#: about 0.3 mm at the lesion (docs/evaluation.md, "The truth against a second FE code").
+QUADRATURE_DEGREES = (5, 6, 7)
 #: Newton reuses a factored tangent (modified Newton) after a full update that cut the
 #: residual to this share of the one before, and goes on reusing it while each update cuts
 #: it to FROZEN_CONTRACTION; otherwise the current tangent is factored. Over phantom lesion
@@ -92,16 +97,16 @@ SHORTER_STEPS = 3
 
 
 def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
-              edge_radius_mm: float = 0.0) -> dict:
+              edge_radius_mm: float = 0.0, quadrature_degree: int = QUADRATURE_DEGREE) -> dict:
     """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``), the face's
     ``friction``, the tetrahedra along its edge (``rim_mm``, :func:`rim_at`) and the radius
     of its rounded edges (``edge_radius_mm``, :mod:`~biopsynav.evaluate.p2_contact`): the
     part of every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``)
-    that names the probe, with the quadrature rule (:data:`QUADRATURE_DEGREE`). The probe's
-    defaults add nothing to it."""
+    that names the probe, with the quadrature rule's degree (:data:`QUADRATURE_DEGREE` by
+    default). The probe's defaults add nothing to it."""
     key = {"footprint": [probe.shape, *probe.footprint_mm],
            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE,
-           "quadrature_degree": QUADRATURE_DEGREE}
+           "quadrature_degree": int(quadrature_degree)}
     if friction != "stick":
         key["friction"] = friction
     if rim_mm:
@@ -359,16 +364,18 @@ class TetReference:
     @classmethod
     def build(cls, anatomy, size_mm: float, e_mpa: float, nu: float,
               fine_at: np.ndarray | None = None, fine_mm: float = 2.0,
-              chest_tol_mm: float = 0.05, rim: Rim | None = None) -> TetReference:
+              chest_tol_mm: float = 0.05, rim: Rim | None = None,
+              quadrature_degree: int = QUADRATURE_DEGREE) -> TetReference:
         """The reference of ``anatomy`` (a biopsynav Anatomy) on tetrahedra of about
         ``size_mm`` (``fine_mm`` around ``fine_at``, finer along the ``rim``: :func:`tet_mesh`)
-        with a homogeneous material (E MPa, nu)."""
+        with a homogeneous material (E MPa, nu), integrated by the rule of
+        ``quadrature_degree`` (:func:`element_quadrature`)."""
         from scipy.spatial import cKDTree
 
         points, tets = tet_mesh(anatomy.vertices, anatomy.faces, size_mm, fine_at, fine_mm,
                                 rim=rim)
         nodes, elements = p2_nodes(points, tets)
-        grads, weights = element_quadrature(points, tets)
+        grads, weights = element_quadrature(points, tets, quadrature_degree)
         mu, lam = lame_constants(np.array([e_mpa]), np.array([nu]))
         skin_nodes = _boundary_nodes(tets, len(points), elements)
         locs = nodes[skin_nodes]
