@@ -709,7 +709,7 @@ def test_a_lesion_stopped_between_depths_continues_from_the_last_one(coarse_phan
     case, e_mpa = convergence.homogeneous(coarse_phantom, 0.45)
     placement = place_probe(case.anatomy, 0)
     args = SimpleNamespace(tet_size=25.0, tet_fine=15.0, tet_rim=0.0, friction="stick",
-                           edge_radius=0.0, push_minutes=0.0)
+                           edge_radius=0.0, push_minutes=0.0, quadrature_degree=5)
     kept = tmp_path / "lesion0.partial.npz"
 
     def pushes(e: float, stop_at: int = 0) -> tuple[list, list[bool]]:
@@ -757,7 +757,7 @@ def test_a_push_past_its_time_limit_is_given_up_and_said_so(coarse_phantom, monk
     case, e_mpa = convergence.homogeneous(coarse_phantom, 0.45)
     placement = place_probe(case.anatomy, 0)
     args = SimpleNamespace(tet_size=25.0, tet_fine=15.0, tet_rim=0.0, friction="stick",
-                           edge_radius=0.0, push_minutes=1.0)
+                           edge_radius=0.0, push_minutes=1.0, quadrature_degree=5)
     push = TetReference.push
     limits = []
 

@@ -39,7 +39,7 @@ def _stored_reference(truth, case, path: Path, depth: float, disp: list[float]) 
 
     e_mpa, nu, _ = truth.reference_material(case)
     args = argparse.Namespace(depths=[depth], tet_size=10.0, tet_fine=4.0, friction="stick",
-                              tet_rim=0.0, edge_radius=0.0)
+                              tet_rim=0.0, edge_radius=0.0, quadrature_degree=5)
     key = truth.reference_key(case, e_mpa, nu, args)
     path.write_text(json.dumps({"key": key, "lesions": {"0": {"displacement": [disp],
                                                               "failure": None}}}))
