@@ -68,7 +68,7 @@ QUADRATURE_DEGREE = 5
 #: The degrees a reference may ask for: scikit-fem's rules with positive weights only, exact
 #: at least to degree 5 (14, 15 and 24 points; its rules of degree 8 and 9 weigh some
 #: points negatively). At 30 mm pushes the degree-5 rule leaves a quadrature error of
-#: about 0.3 mm at the lesion (docs/evaluation.md, "The truth against a second FE code").
+#: 0.1-0.3 mm at a phantom lesion (docs/evaluation.md, "The truth against a second FE code").
 QUADRATURE_DEGREES = (5, 6, 7)
 #: Newton reuses a factored tangent (modified Newton) after a full update that cut the
 #: residual to this share of the one before, and goes on reusing it while each update cuts
