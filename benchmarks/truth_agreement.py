@@ -10,11 +10,11 @@
                                          [--result-name NAME | --no-result-file]
 
 CASE: a case folder (default: the built-in phantom, made in a temporary folder). For each
-lesion (indices, as ``truth.py --lesion-ids``) the probe is placed as in Table 2 and pushed
-along its beam to each depth, with the face glued to the skin it touches at rest (no probe
-body: skin the face reaches later is free, ``convergence.py --no-probe-body``), the
-chest-wall plane fixed, homogeneous neo-Hookean with the E and nu of the case's default
-tissue. Answered by:
+lesion (0-based indices; ``truth.py --lesion-ids`` takes the lesions' ids) the probe is
+placed as in Table 2 and pushed along its beam to each depth, with the face glued to the
+skin it touches at rest (no probe body: skin the face reaches later is free,
+``convergence.py --no-probe-body``), the chest-wall plane fixed, homogeneous neo-Hookean
+with the E and nu of the case's default tissue. Answered by:
 
 * ``p2``: biopsynav's P2 reference on gmsh's tetrahedra (``--tet-size`` mm, ``--tet-fine`` mm
   within 35 mm of the probe), integrated by scikit-fem's rule of ``--quadrature-degree``;
@@ -197,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("case_dir", type=Path, nargs="?", default=None)
-    p.add_argument("--lesion-ids", default="0", help="lesion indices, comma-separated")
+    p.add_argument("--lesion-ids", default="0",
+                   help="lesion indices (0-based), comma-separated (truth.py's are ids)")
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0])
     p.add_argument("--tet-size", type=float, default=10.0)
     p.add_argument("--tet-fine", type=float, default=4.0)
