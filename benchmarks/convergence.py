@@ -398,16 +398,23 @@ def add_reference_arguments(p: argparse.ArgumentParser, fine_mm: float) -> None:
     p.add_argument("--edge-radius", type=non_negative_mm, default=0.0,
                    help="the reference's probe: its face's edges rounded by this radius, mm, "
                         "with sides that no skin passes (0: a flat face with sharp edges)")
-    p.add_argument("--quadrature-degree", type=int, choices=QUADRATURE_DEGREES,
-                   default=QUADRATURE_DEGREE,
-                   help="the degree of the reference's quadrature rule over each tetrahedron "
-                        f"(default {QUADRATURE_DEGREE}: the stored truths')")
+    add_quadrature_argument(p)
     p.add_argument("--progress", action="store_true",
                    help="log the reference's load steps and contact rounds to stderr")
     p.add_argument("--push-minutes", type=non_negative_minutes, default=0.0,
                    help="give up a reference push still solving after this many minutes: "
                         "that depth and the deeper ones are recorded as failed ('gave up'), "
                         "the depths before kept (0: no limit)")
+
+
+def add_quadrature_argument(p: argparse.ArgumentParser) -> None:
+    """``--quadrature-degree``: the degree of the P2 reference's rule over each tetrahedron,
+    one of :data:`~biopsynav.evaluate.p2.QUADRATURE_DEGREES` (rules with positive weights)."""
+    p.add_argument("--quadrature-degree", type=int, choices=QUADRATURE_DEGREES,
+                   default=QUADRATURE_DEGREE,
+                   help="the degree of the P2 reference's quadrature rule over each "
+                        f"tetrahedron, scikit-fem's (default {QUADRATURE_DEGREE}: the stored "
+                        "truths')")
 
 
 def check_edge_radius(case: Case, args) -> None:

@@ -45,6 +45,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from convergence import add_quadrature_argument
 from resultfile import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -190,8 +191,20 @@ def largest(rows: list[dict], key: str) -> float:
     return max(values) if values else float("nan")
 
 
+def rule_degree(text: str) -> int:
+    """NGSolve's quadrature degree given on the command line: an integer, 2 or more (a P2
+    stiffness needs degree 2; NGSolve takes anything lower, negative included, as a
+    one-point rule without a word)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"{text!r}: a rule's degree, an integer, 2 or more")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
-    from biopsynav.evaluate.p2 import QUADRATURE_DEGREE, QUADRATURE_DEGREES
     from biopsynav.evaluate.placement import place_case_probe
     from biopsynav.evaluate.references import default_tissue_material
 
@@ -203,11 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-size", type=float, default=10.0)
     p.add_argument("--tet-fine", type=float, default=4.0)
     p.add_argument("--orders", type=int, nargs="+", default=[2, 3])
-    p.add_argument("--quadrature-degree", type=int, choices=QUADRATURE_DEGREES,
-                   default=QUADRATURE_DEGREE,
-                   help="degree of biopsynav's P2 quadrature rule (scikit-fem's)")
-    p.add_argument("--intorder", type=int, default=5,
-                   help="degree of NGSolve's quadrature rule")
+    add_quadrature_argument(p)
+    p.add_argument("--intorder", type=rule_degree, default=5,
+                   help="degree of NGSolve's quadrature rule (2 or more)")
     p.add_argument("--push-minutes", type=float, default=0.0,
                    help="give a P2 push up that long (0: no limit)")
     p.add_argument("--stored", type=Path, default=None,

@@ -509,6 +509,25 @@ def test_the_benchmarks_refuse_a_bad_mesh_option_before_any_work(option, value, 
     assert not (tmp_path / "ref.json").exists()
 
 
+@pytest.mark.parametrize("option, value", [
+    ("--intorder", "1"), ("--intorder", "-1"), ("--intorder", "five"),
+    ("--quadrature-degree", "4"), ("--quadrature-degree", "9")])
+def test_the_agreement_refuses_a_bad_rule_before_any_work(option, value, tmp_path, capsys,
+                                                         monkeypatch):
+    """``truth_agreement.py --intorder`` (NGSolve's rule) takes an integer of 2 or more
+    (NGSolve reads anything lower, negative too, as one point without a word), and
+    ``--quadrature-degree`` the P2 rules with positive weights; anything else stops the
+    parser (exit 2, the option named) before a mesh is made or a file written."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth_agreement
+
+    out = tmp_path / "agree.json"
+    with pytest.raises(SystemExit) as stop:
+        truth_agreement.main([option, value, "--out", str(out), "--no-result-file"])
+    assert stop.value.code == 2 and option in capsys.readouterr().err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("minutes", ["-1", "inf", "soon"])
 def test_the_benchmarks_refuse_a_bad_push_time_limit_before_any_work(minutes, tmp_path, capsys,
                                                                     monkeypatch):
