@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                "train_min": minutes.get("network training", math.nan),
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
-               **tre}
+               "prior": (meta.get("prior") or {}).get("name", "none"), **tre}
     write_result(f"time-to-model-{args.case}", figures, speed_probes=probes)
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)

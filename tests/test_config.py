@@ -110,6 +110,7 @@ def test_defaults_round_trip(tmp_path):
     ({"refine": {"batch_size": 0}}, "below its minimum"),
     ({"refine": {"batch_size": 2.5}}, "must be an integer"),
     ({"refine": {"batch_size": "big"}}, "batch_size"),
+    ({"network": {"prior": "someone-else"}}, "prior"),
 ])
 def test_bad_values_name_the_key(data, message):
     with pytest.raises(InputError) as err:

@@ -25,7 +25,7 @@ def tiny_settings(**kw) -> NetworkSection:
     base = dict(preset="custom", base_channels=8, levels=3, activation="silu",
                 features="quadratic", iterations=300, val_interval=100,
                 warmup_iterations=20, learning_rate=3e-3, batch_size=4, threads=1, seed=0,
-                baseline="none")  # synthetic data have no case (FE model)
+                baseline="none", prior="none")  # synthetic data have no case (FE model)
     base.update(kw)
     return NetworkSection(**base)
 

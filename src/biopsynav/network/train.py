@@ -56,6 +56,7 @@ from .data import (
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import write_model
+from .priors import Prior, choose_prior
 from .unet import UNetSpec, count_parameters, section_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
@@ -287,6 +288,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
     source = source_model(case_dir, s, spec, full)  # checked before the baselines' work
+    prior, start_line = starting_point(case, case_dir, s, spec, source)
+    if progress:
+        print(f"[network] {start_line}; {s.iterations} iterations", flush=True)
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
                                                         s.contact_projection)
     in_scale, out_scale, quad_scale = network_scales(data, spec, baseline_meta["kind"], source)
@@ -295,6 +299,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                                   if not k.endswith("_s")}  # not its timings
     if source is not None:
         signature["init_from"] = source.checksum
+    if prior is not None:
+        signature["prior"] = prior.checksum()
     if projections is not None:
         projections = tuple(p.to(dev) for p in projections)
 
@@ -302,6 +308,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy(), quad_scale).to(dev)
     if source is not None:
         net.unet.load_state_dict(source.weights)
+    elif prior is not None:
+        net.unet.load_state_dict(prior.state_dict())
     elif baseline_meta["kind"] != "none":
         # residual net starts as exactly zero: the model starts as the physics baseline
         torch.nn.init.zeros_(net.unet.head.weight)
@@ -316,8 +324,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     resumed_from = state["iteration"]
 
     runner = TrainingLoop(net, opt, data, s, dev, out, signature, state, projections)
-    if ckpt is None and (source is not None or baseline_meta["kind"] != "none"):
-        runner.keep_initial()  # the source model, or the baseline alone, is the one to beat
+    if ckpt is None and (source is not None or prior is not None
+                         or baseline_meta["kind"] != "none"):
+        runner.keep_initial()  # the source model, prior or baseline alone: the one to beat
     with deterministic_algorithms():
         runner.run(progress=progress, stop_after=stop_after)
     finished = state["iteration"] >= s.iterations
@@ -339,7 +348,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                               "best_val_e_mm": state["best_val"],
                               "best_iteration": state["best_iteration"],
                               "history": state["history"],
-                              **({} if source is None else {"init_from": source.summary()})},
+                              **({} if source is None else {"init_from": source.summary()}),
+                              **({} if prior is None else {"prior": prior.summary()})},
                     runtime=s.runtime, baseline=baseline_meta)
     last = state["history"][-1]["val_mean_e_mm"] if state["history"] else math.nan
     return TrainSummary(out, state["iteration"], s.iterations, state["best_val"],
@@ -362,6 +372,23 @@ def deterministic_algorithms() -> Iterator[None]:
     finally:
         torch.use_deterministic_algorithms(was[0])
         fill.fill_uninitialized_memory = was[1]
+
+
+def starting_point(case: Case | str | Path, case_dir: Path, s: NetworkSection, spec: UNetSpec,
+                   source: SourceModel | None) -> tuple[Prior | None, str]:
+    """The prior the training starts from (``[network] prior``; none when ``init_from``
+    names a source model) and one line saying where it starts."""
+    if source is not None:
+        return None, f"from the trained model {source.path} ([network] init_from)"
+    prior, line = choose_prior(s.prior, lambda: as_case(case).anatomy, spec.to_dict())
+    if prior is None and s.iterations < SCRATCH_ITERATIONS:
+        line += (f" (the defaults' recipe from scratch is {SCRATCH_ITERATIONS:,} iterations, "
+                 "docs/network.md)")
+    return prior, line
+
+
+#: Iterations of the defaults' recipe from scratch (docs/network.md, "Starting from a prior").
+SCRATCH_ITERATIONS = 12500
 
 
 def source_model(case_dir: Path, s: NetworkSection, spec: UNetSpec, full: Dataset
