@@ -64,7 +64,13 @@ def ttm_tre(data: dict) -> str:
 
 
 def ttm_total(data: dict) -> str:
-    return f"{fmt(data['figures']['total_min'], 1)} min"
+    """The whole run's minutes and the day's speed: the U-Net probe against the reference
+    machine's (``biopsynav.runtime.REFERENCE``), and the minutes at that machine's speed."""
+    from biopsynav.runtime import REFERENCE
+
+    total = data["figures"]["total_min"]
+    slowness = data["speed_probes"]["unet_step_s"] / REFERENCE["probe_s"]
+    return f"{fmt(total, 1)} min (speed probe {slowness:.2f}x: {fmt(total / slowness, 1)} at 1x)"
 
 
 def ttm_stages(data: dict) -> str:

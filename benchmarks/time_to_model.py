@@ -3,6 +3,7 @@ reached.
 
     python benchmarks/time_to_model.py [--case phantom|ucdavis|ucdavis-homogeneous]
                                        [--workdir DIR] [--keep] [--no-truth]
+                                       [--prior auto --iterations 4000]
 
 * ``phantom``: what ``make demo`` does (``biopsynav demo``: the built-in phantom, every
   default, Table 2 on 3 lesions);
@@ -23,6 +24,9 @@ tracking network's lesion TRE against it at 10 / 20 / 30 mm over every lesion
 (``benchmarks/truth.py CASE --lesions 0 --methods net``; a minute or two, the truth is not
 solved again). The three-tissue breast has no such truth (the P2 reference is homogeneous), so
 its TRE is not measured; its time and Table 1 are.
+
+``--prior`` and ``--iterations`` set ``[network]`` in the new case (docs/network.md, "Starting
+from a prior"); the result is then ``time-to-model-<case>-prior.json``.
 
 Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
 ``RESULT total_min=... train_min=... tre_d10_mm=... tre_d30_mm=...`` (nan where not measured).
@@ -85,14 +89,24 @@ def init_ucdavis(case_dir: Path, homogeneous: bool) -> None:
     subprocess.run(cmd, check=True)
 
 
-def build_and_run(kind: str, case_dir: Path) -> tuple[dict, float]:
-    """The pipeline from nothing: its stage times (s) and the init's time (s)."""
-    from biopsynav.pipeline import run_case, run_demo
+def build_and_run(kind: str, case_dir: Path, network: dict) -> tuple[dict, float]:
+    """The pipeline from nothing, ``[network]`` values ``network`` set in the new case (none:
+    every default): its stage times (s) and the init's time (s)."""
+    from biopsynav.case import make_phantom_case
+    from biopsynav.config import load_config, save_config
+    from biopsynav.pipeline import FULL_DEMO, run_case, run_demo
 
     if kind == "phantom":
+        if network:  # what run_demo builds, with those values
+            make_phantom_case(case_dir, overrides={**FULL_DEMO, "network": network})
         return run_demo(case_dir)["timings_s"], 0.0
     t = time.perf_counter()
     init_ucdavis(case_dir, homogeneous=kind == "ucdavis-homogeneous")
+    if network:
+        cfg = load_config(case_dir)
+        for key, value in network.items():
+            setattr(cfg.network, key, value)
+        save_config(case_dir, cfg)
     init_s = time.perf_counter() - t
     return run_case(case_dir)["timings_s"], init_s
 
@@ -139,6 +153,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="where the case is built (default: a temporary folder)")
     p.add_argument("--keep", action="store_true", help="keep the case folder")
     p.add_argument("--no-truth", action="store_true", help="skip the TRE against the truth")
+    p.add_argument("--prior", default=None, help="[network] prior of the new case (default: "
+                   "the case's default); the result file is then time-to-model-CASE-prior")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="[network] iterations of the new case (default: the case's default)")
     args = p.parse_args(argv)
     sys.stdout.reconfigure(line_buffering=True)
     work = args.workdir or Path(tempfile.mkdtemp(prefix="ttm-"))
@@ -147,7 +165,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"time_to_model: {case_dir} exists; the benchmark starts from nothing")
     probes = speed_probes()
     start = time.perf_counter()
-    timings, init_s = build_and_run(args.case, case_dir)
+    network = {k: v for k, v in (("prior", args.prior), ("iterations", args.iterations))
+               if v is not None}
+    timings, init_s = build_and_run(args.case, case_dir, network)
     total_min = (time.perf_counter() - start) / 60
     minutes = stage_minutes(case_dir, timings, init_s)
     table1 = json.loads((case_dir / "eval" / "table1.json").read_text())
@@ -158,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), **tre}
-    write_result(f"time-to-model-{args.case}", figures, speed_probes=probes)
+    suffix = "-prior" if args.prior not in (None, "none") else ""
+    write_result(f"time-to-model-{args.case}{suffix}", figures, speed_probes=probes)
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)
     print("\n".join(f"  {k:<22} {v:6.2f} min" for k, v in minutes.items()))

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
+from biopsynav import prior_registry as priors
 from biopsynav.config import NetworkSection
 from biopsynav.errors import InputError
-from biopsynav.network import priors
+from biopsynav.network.priors import export_prior
 from biopsynav.network.train import train
 from biopsynav.network.unet import UNet3d, section_spec
 
@@ -30,7 +31,7 @@ def exported(trained, tmp_path, monkeypatch):
     """The synthetic case's trained model exported as the prior ``other`` (surface of seed 1),
     registered alone."""
     source_case, _ = trained
-    path = priors.export_prior(source_case / "model", "other", "a test network",
+    path = export_prior(source_case / "model", "other", "a test network",
                                priors.surface_fingerprint(_surface(1)), "synthetic",
                                out_dir=tmp_path / "priors")
     prior = priors.Prior("other", path, json.loads(path.with_suffix(".json").read_text()))
@@ -96,7 +97,7 @@ def test_a_model_trained_from_a_prior_is_not_exported_as_one(exported, other_cas
     s = tiny_settings(iterations=2, val_interval=1, prior="other")
     train(other_case, settings=s, model_dir=tmp_path / "m", progress=False)
     with pytest.raises(InputError, match="trained from scratch"):
-        priors.export_prior(tmp_path / "m", "again", "", "0" * 64, "x", out_dir=tmp_path / "p")
+        export_prior(tmp_path / "m", "again", "", "0" * 64, "x", out_dir=tmp_path / "p")
 
 
 def test_the_packaged_priors_load_into_the_default_network():
@@ -107,10 +108,11 @@ def test_the_packaged_priors_load_into_the_default_network():
         UNet3d(spec).load_state_dict(prior.state_dict())  # strict: every weight, no other
 
 
-def test_the_phantom_starts_from_the_uc_davis_breast(tmp_path):
+def test_auto_starts_the_phantom_from_the_uc_davis_breast_and_none_is_the_default(tmp_path):
     from biopsynav.case import make_phantom_case
 
     case = make_phantom_case(tmp_path / "ph")
+    assert case.cfg.network.prior == "none"
     spec = section_spec(case.cfg.network).to_dict()
-    prior, _ = priors.choose_prior(case.cfg.network.prior, lambda: case.anatomy, spec)
+    prior, _ = priors.choose_prior("auto", lambda: case.anatomy, spec)
     assert prior.name == "ucdavis-breast3"

@@ -42,6 +42,7 @@ from ..errors import InputError, TrainingError
 from ..fileio import remove_partial_writes, write_bytes_atomic
 from ..inference.runtimes import ONNX, TORCHSCRIPT
 from ..layout import BEST, CHECKPOINT, HISTORY, LOSS_CURVE, META, MODEL_DIR
+from ..prior_registry import Prior, choose_prior
 from ..threads import cpu_has_amx_bf16, set_threads
 from .data import (
     Dataset,
@@ -56,7 +57,6 @@ from .data import (
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import write_model
-from .priors import Prior, choose_prior
 from .unet import UNetSpec, count_parameters, section_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
@@ -288,7 +288,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
     source = source_model(case_dir, s, spec, full)  # checked before the baselines' work
-    prior, start_line = starting_point(case, case_dir, s, spec, source)
+    prior, start_line = starting_point(case, s, spec, source)
     if progress:
         print(f"[network] {start_line}; {s.iterations} iterations", flush=True)
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
@@ -374,21 +374,13 @@ def deterministic_algorithms() -> Iterator[None]:
         fill.fill_uninitialized_memory = was[1]
 
 
-def starting_point(case: Case | str | Path, case_dir: Path, s: NetworkSection, spec: UNetSpec,
+def starting_point(case: Case | str | Path, s: NetworkSection, spec: UNetSpec,
                    source: SourceModel | None) -> tuple[Prior | None, str]:
     """The prior the training starts from (``[network] prior``; none when ``init_from``
     names a source model) and one line saying where it starts."""
     if source is not None:
         return None, f"from the trained model {source.path} ([network] init_from)"
-    prior, line = choose_prior(s.prior, lambda: as_case(case).anatomy, spec.to_dict())
-    if prior is None and s.iterations < SCRATCH_ITERATIONS:
-        line += (f" (the defaults' recipe from scratch is {SCRATCH_ITERATIONS:,} iterations, "
-                 "docs/network.md)")
-    return prior, line
-
-
-#: Iterations of the defaults' recipe from scratch (docs/network.md, "Starting from a prior").
-SCRATCH_ITERATIONS = 12500
+    return choose_prior(s.prior, lambda: as_case(case).anatomy, spec.to_dict())
 
 
 def source_model(case_dir: Path, s: NetworkSection, spec: UNetSpec, full: Dataset
