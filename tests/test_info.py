@@ -84,3 +84,16 @@ def test_info_names_an_extrapolated_teacher():
     assert words.startswith("grid of 5 mm cells fitted to the case grid, extrapolated from "
                             "the case grid (order 2), neo-hookean, 100% rigid-probe pushes")
     assert teacher_words({"teacher_refine": 2}, 7.3).startswith("grid of 3.65 mm cells")
+
+
+def test_info_names_the_prior_the_case_network_started_from(trained_case, tmp_path):
+    case_dir = tmp_path / "case"
+    shutil.copytree(trained_case, case_dir)
+    assert "prior" not in case_summary(case_dir)["model_teacher"]  # trained from scratch
+    meta_path = case_dir / "model" / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    meta["training"]["prior"] = {"name": "ucdavis-breast3", "checksum": "0" * 64}
+    meta["checksum"] = meta_checksum(meta)
+    meta_path.write_text(json.dumps(meta))
+    assert case_summary(case_dir)["model_teacher"].endswith(
+        "the case network started from the packaged network 'ucdavis-breast3'")

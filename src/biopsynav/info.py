@@ -114,6 +114,11 @@ def model_teacher(case: Case) -> str:
     if source:  # [network] init_from: trained further from another model
         words += (f"; started from the model in {source.get('path')}, taught by "
                   f"{teacher_words(source.get('teacher') or {}, case.grid.spacing)}")
+    case_meta = meta if meta_path == case.paths.model_meta else read_json(
+        case.paths.model_meta, "retrain with `biopsynav train CASE`", missing_ok=True)
+    prior = ((case_meta or {}).get("training") or {}).get("prior")
+    if prior:  # [network] prior: the case network started from another breast's
+        words += f"; the case network started from the packaged network {prior.get('name')!r}"
     return words + pending
 
 
