@@ -175,6 +175,13 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("lesion TRE against the P2 truth, every phantom lesion, 10 / 20 / 30 mm: the network of "
      "today's defaults (the case `make demo` makes)",
      Cell("phantom-default-truth", tre("net"), TRUTH_CMD), "D10 <= 0.5, D30 <= 1.5 mm", "-"),
+    ("the same, one network trained on the demo's 1,000 rigid pushes alone (no force patches, "
+     "no case network; from scratch, 4,000 iterations at batch 16); its training minutes",
+     Cell("pushes-only-phantom", lambda d: (
+         " / ".join(fmt(d["figures"][f"tre_d{k}_mm"]) for k in (10, 20, 30))
+         + f" mm; {fmt(d['figures']['train_min'], 1)} min"),
+          "python benchmarks/pushes_only.py CASE --reference "
+          "src/biopsynav/data/truths/phantom.json"), "D10 <= 0.5, D30 <= 1.5 mm", "-"),
     ("Table 1 of that case, mean / max e; one prediction, median / p99",
      Cell("train-and-predict", lambda d: (
          f"{fmt(d['figures']['mean_e_mm'], 4)} / {fmt(d['figures']['max_e_mm'], 3)} mm; "

@@ -1,0 +1,34 @@
+"""benchmarks/pushes_only.py: a case's rigid pushes trained alone, in a copy of the case."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+def test_the_copy_links_the_push_data_and_leaves_the_case_alone(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import pushes_only
+
+    case = tmp_path / "case"
+    (case / "refine" / "dataset.zarr").mkdir(parents=True)
+    (case / "inputs").mkdir()
+    for name in ("anatomy.npz", "grid.npz", "case.toml", "inputs/lesions.csv"):
+        (case / name).write_text(name)
+    for name in pushes_only.REFINE_FILES:
+        (case / "refine" / name).write_text("refine " + name)
+    refine = pushes_only.copy_case(case, tmp_path / "work")
+    assert (refine / "dataset.zarr").is_symlink()
+    assert (refine / "dataset.zarr").resolve() == (case / "refine" / "dataset.zarr").resolve()
+    assert (refine / "case.toml").read_text() == "refine case.toml"
+    assert (refine.parent / "inputs" / "lesions.csv").read_text() == "inputs/lesions.csv"
+    assert not (refine / "model").exists() and not (case / "refine" / "model").exists()
+
+
+def test_the_defaults_are_the_measured_recipe(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import pushes_only
+
+    args = pushes_only.parser().parse_args(["c", "--reference", "t.json"])
+    assert (args.prior, args.iterations, args.batch, args.lr) == ("none", 4000, 16, 2e-3)
