@@ -6,7 +6,8 @@ case network (docs/pipeline.md, "no force patches at all").
                                      [--workdir DIR]
 
 CASE is a case whose ``refine/dataset.zarr`` is complete (e.g. the one ``make demo`` or
-``time_to_model.py --keep`` leaves). A copy of it (the data set linked, not copied) gets one
+``time_to_model.py --keep`` leaves) and whose anatomy the truth is of (refused before any
+work otherwise). A copy of it (the data set linked, not copied) gets one
 training on those pushes, from scratch or from the packaged prior ``--prior``, with
 ``[network]``'s other settings, into ``WORKDIR/case/refine/model``; then ``truth.py``
 compares that model with the stored P2 truth ``--reference`` over every lesion at 10 / 20 /
@@ -75,9 +76,23 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_reference(case_dir: Path, reference: Path) -> None:
+    """Exit naming the file when ``reference`` is not a stored truth of ``case_dir``'s
+    anatomy (``truth.py`` would solve it again, for hours)."""
+    from biopsynav.case import as_case
+
+    try:
+        key = json.loads(reference.read_text())["key"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        sys.exit(f"pushes_only: {reference} is not a stored truth ({exc})")
+    if key.get("anatomy") != as_case(case_dir).anatomy.fingerprint():
+        sys.exit(f"pushes_only: {reference} is the truth of another anatomy than {case_dir}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     sys.stdout.reconfigure(line_buffering=True)
+    check_reference(args.case_dir, args.reference)
     work = args.workdir or Path(tempfile.mkdtemp(prefix="pushes-only-"))
     refine_dir = copy_case(args.case_dir, work)
     training = train_on_pushes(refine_dir, args)

@@ -32,3 +32,22 @@ def test_the_defaults_are_the_measured_recipe(monkeypatch):
 
     args = pushes_only.parser().parse_args(["c", "--reference", "t.json"])
     assert (args.prior, args.iterations, args.batch, args.lr) == ("none", 4000, 16, 2e-3)
+
+
+def test_a_truth_of_another_anatomy_is_refused_before_any_work(tmp_path, monkeypatch):
+    import pytest
+
+    from biopsynav.case import make_phantom_case
+
+    monkeypatch.syspath_prepend(str(BENCH))
+    import pushes_only
+
+    make_phantom_case(tmp_path / "ph")
+    other = tmp_path / "other.json"
+    other.write_text('{"key": {"anatomy": "0"}, "lesions": {}}')
+    with pytest.raises(SystemExit, match="another anatomy"):
+        pushes_only.main([str(tmp_path / "ph"), "--reference", str(other),
+                          "--workdir", str(tmp_path / "work")])
+    assert not (tmp_path / "work").exists()
+    stored = Path(__file__).resolve().parents[2] / "src/biopsynav/data/truths/phantom.json"
+    pushes_only.check_reference(tmp_path / "ph", stored)  # the phantom's own: accepted
