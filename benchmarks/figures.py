@@ -153,6 +153,14 @@ TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
 UCD_TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
                  "src/biopsynav/data/truths/ucdavis-homogeneous.json")
 TTM = "python benchmarks/time_to_model.py --case {}"
+PUSHES_CMD = "python benchmarks/pushes_only.py CASE --reference src/biopsynav/data/truths/{}.json"
+
+
+def pushes_only(data: dict) -> str:
+    """A pushes-only training's TRE at 10 / 20 / 30 mm and its minutes."""
+    f = data["figures"]
+    return (" / ".join(fmt(f[f"tre_d{k}_mm"]) for k in (10, 20, 30))
+            + f" mm; {fmt(f['train_min'], 1)} min")
 
 #: BENCHMARKS.md: (what, cell, target, paper)
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
@@ -177,11 +185,8 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("phantom-default-truth", tre("net"), TRUTH_CMD), "D10 <= 0.5, D30 <= 1.5 mm", "-"),
     ("the same, one network trained on the demo's 1,000 rigid pushes alone (no force patches, "
      "no case network; from scratch, 4,000 iterations at batch 16); its training minutes",
-     Cell("pushes-only-phantom", lambda d: (
-         " / ".join(fmt(d["figures"][f"tre_d{k}_mm"]) for k in (10, 20, 30))
-         + f" mm; {fmt(d['figures']['train_min'], 1)} min"),
-          "python benchmarks/pushes_only.py CASE --reference "
-          "src/biopsynav/data/truths/phantom.json"), "D10 <= 0.5, D30 <= 1.5 mm", "-"),
+     Cell("pushes-only-phantom", pushes_only, PUSHES_CMD.format("phantom")),
+     "D10 <= 0.5, D30 <= 1.5 mm", "-"),
     ("Table 1 of that case, mean / max e; one prediction, median / p99",
      Cell("train-and-predict", lambda d: (
          f"{fmt(d['figures']['mean_e_mm'], 4)} / {fmt(d['figures']['max_e_mm'], 3)} mm; "
@@ -222,6 +227,9 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
     ("the same: its FE teacher",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-", "-"),
+    ("the same breast: one network trained on 1,000 `[refine]` rigid pushes alone (as the "
+     "phantom's above); its training minutes",
+     Cell("pushes-only-ucdh", pushes_only, PUSHES_CMD.format("ucdavis-homogeneous")), "-", "-"),
     ("one FE solve, phantom grid, 3.0 N push: biopsynav / scikit-fem",
      Cell("fem-solve", pair("fem_ms", "peer_ms", 0), "python benchmarks/fem_solve.py"),
      "<= 250 ms", "407.7 ms (SOFA)"),
