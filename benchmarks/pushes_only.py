@@ -23,15 +23,14 @@ import argparse
 import dataclasses
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 from figures import depth_means
 from resultfile import write_result
+from time_to_model import net_against_truth
 
-ROOT = Path(__file__).resolve().parents[1]
 CASE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "inputs")
 REFINE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "dataset_summary.json")
 
@@ -96,12 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     work = args.workdir or Path(tempfile.mkdtemp(prefix="pushes-only-"))
     refine_dir = copy_case(args.case_dir, work)
     training = train_on_pushes(refine_dir, args)
-    out, reference = work / "truth.json", work / "reference.json"
-    shutil.copy(args.reference, reference)  # truth.py may rewrite it; the stored one stays
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(refine_dir.parent),
-                    "--lesions", "0", "--methods", "net", "--reference", str(reference),
-                    "--out", str(out)], check=True)
-    data = json.loads(out.read_text())
+    data = net_against_truth(refine_dir.parent, args.reference)
     tre = dict(zip(("tre_d10_mm", "tre_d20_mm", "tre_d30_mm"), depth_means(data, "net"),
                    strict=True))
     figures = {**tre, "train_min": training["train_time_s"] / 60,

@@ -35,6 +35,7 @@ Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import shutil
@@ -89,6 +90,18 @@ def init_ucdavis(case_dir: Path, homogeneous: bool) -> None:
     subprocess.run(cmd, check=True)
 
 
+def check_network(network: dict) -> None:
+    """Exit naming the option when the ``[network]`` values asked are not valid case.toml
+    values (before any work)."""
+    from biopsynav.config import config_from_dict
+    from biopsynav.errors import InputError
+
+    try:
+        config_from_dict({"network": network}, "time_to_model options")
+    except InputError as exc:
+        sys.exit(f"time_to_model: {exc}")
+
+
 def build_and_run(kind: str, case_dir: Path, network: dict) -> tuple[dict, float]:
     """The pipeline from nothing, ``[network]`` values ``network`` set in the new case (none:
     every default): its stage times (s) and the init's time (s)."""
@@ -104,9 +117,8 @@ def build_and_run(kind: str, case_dir: Path, network: dict) -> tuple[dict, float
     init_ucdavis(case_dir, homogeneous=kind == "ucdavis-homogeneous")
     if network:
         cfg = load_config(case_dir)
-        for key, value in network.items():
-            setattr(cfg.network, key, value)
-        save_config(case_dir, cfg)
+        save_config(case_dir, dataclasses.replace(
+            cfg, network=dataclasses.replace(cfg.network, **network)))
     init_s = time.perf_counter() - t
     return run_case(case_dir)["timings_s"], init_s
 
@@ -125,19 +137,26 @@ def stage_minutes(case_dir: Path, timings: dict, init_s: float) -> dict:
     return minutes
 
 
+def net_against_truth(case_dir: Path, truth: Path) -> dict:
+    """``truth.py``'s comparison of the case's tracking network with the stored P2 truth
+    ``truth`` over every lesion at 10 / 20 / 30 mm (its ``--out`` JSON); the truth is read
+    from a copy (truth.py may rewrite it; the stored one stays)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        reference = Path(tmp) / "p2.json"
+        shutil.copy(truth, reference)
+        out = Path(tmp) / "truth.json"
+        subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
+                        "--lesions", "0", "--depths", "10", "20", "30", "--methods", "net",
+                        "--reference", str(reference), "--out", str(out)], check=True)
+        return json.loads(out.read_text())
+
+
 def truth_tre(kind: str, case_dir: Path) -> dict:
     """The tracking network's TRE against the stored P2 truth, mean per depth (mm); {} where
     none is stored for this case."""
     if kind not in TRUTHS:
         return {}
-    with tempfile.TemporaryDirectory() as tmp:
-        reference = Path(tmp) / "p2.json"
-        shutil.copy(TRUTHS[kind], reference)  # truth.py may rewrite it; the stored one stays
-        out = Path(tmp) / "truth.json"
-        subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
-                        "--lesions", "0", "--depths", "10", "20", "30", "--methods", "net",
-                        "--reference", str(reference), "--out", str(out)], check=True)
-        data = json.loads(out.read_text())
+    data = net_against_truth(case_dir, TRUTHS[kind])
     tre = {f"tre_d{depth}_mm": mean
            for depth, mean in zip((10, 20, 30), depth_means(data, "net"), strict=True)}
     rows = data["rows"]
@@ -158,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=None,
                    help="[network] iterations of the new case (default: the case's default)")
     args = p.parse_args(argv)
+    network = {k: v for k, v in (("prior", args.prior), ("iterations", args.iterations))
+               if v is not None}
+    check_network(network)
     sys.stdout.reconfigure(line_buffering=True)
     work = args.workdir or Path(tempfile.mkdtemp(prefix="ttm-"))
     case_dir = work / args.case
@@ -165,8 +187,6 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"time_to_model: {case_dir} exists; the benchmark starts from nothing")
     probes = speed_probes()
     start = time.perf_counter()
-    network = {k: v for k, v in (("prior", args.prior), ("iterations", args.iterations))
-               if v is not None}
     timings, init_s = build_and_run(args.case, case_dir, network)
     total_min = (time.perf_counter() - start) / 60
     minutes = stage_minutes(case_dir, timings, init_s)

@@ -1,0 +1,22 @@
+"""benchmarks/time_to_model.py: the options it sets in the new case are checked first."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.mark.parametrize("option, value, named", [("--prior", "someone-else", "prior"),
+                                                  ("--iterations", "0", "iterations")])
+def test_a_bad_network_option_is_refused_before_any_work(option, value, named, tmp_path,
+                                                         monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import time_to_model
+
+    with pytest.raises(SystemExit) as stop:
+        time_to_model.main(["--case", "phantom", "--workdir", str(tmp_path), option, value])
+    assert named in str(stop.value.code) and str(stop.value.code).startswith("time_to_model:")
+    assert not (tmp_path / "phantom").exists()
