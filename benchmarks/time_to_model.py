@@ -26,7 +26,8 @@ solved again). The three-tissue breast has no such truth (the P2 reference is ho
 its TRE is not measured; its time and Table 1 are.
 
 ``--prior`` and ``--iterations`` set ``[network]`` in the new case (docs/network.md, "Starting
-from a prior"); the result is then ``time-to-model-<case>-prior.json``.
+from a prior"); the result is then ``time-to-model-<case>-prior.json`` (``-itN`` added with
+``--iterations N``).
 
 Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
 ``RESULT total_min=... train_min=... tre_d10_mm=... tre_d30_mm=...`` (nan where not measured).
@@ -175,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prior", default=None, help="[network] prior of the new case (default: "
                    "the case's default); the result file is then time-to-model-CASE-prior")
     p.add_argument("--iterations", type=int, default=None,
-                   help="[network] iterations of the new case (default: the case's default)")
+                   help="[network] iterations of the new case (default: the case's default); the "
+                   "result file is then time-to-model-CASE[-prior]-itN")
     args = p.parse_args(argv)
     network = {k: v for k, v in (("prior", args.prior), ("iterations", args.iterations))
                if v is not None}
@@ -198,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), **tre}
-    suffix = "-prior" if args.prior not in (None, "none") else ""
+    suffix = ("-prior" if args.prior not in (None, "none") else "") + (
+        f"-it{args.iterations}" if args.iterations is not None else "")
     write_result(f"time-to-model-{args.case}{suffix}", figures, speed_probes=probes)
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)
