@@ -138,13 +138,13 @@ def per_lesion_depth(*keys: str) -> Callable[[dict], str]:
     return render
 
 
-AGREE_CMD = ("python benchmarks/truth_agreement.py --lesion-ids 0 --stored "
+AGREE_CMD = ("python benchmarks/truth_agreement.py --lesion-ids 1 --stored "
              "src/biopsynav/data/truths/phantom.json")
 
 
 def agreement_cmd(lesion_ids: str, result_name: str) -> str:
     """The command of a P2-against-NGSolve agreement on phantom lesions ``lesion_ids``
-    (0-based, comma-separated), 20 minutes a push, written as ``result_name``."""
+    (their ids, comma-separated), 20 minutes a push, written as ``result_name``."""
     return (f"python benchmarks/truth_agreement.py --lesion-ids {lesion_ids} --stored "
             "src/biopsynav/data/truths/phantom.json --orders 2 --push-minutes 20 "
             f"--result-name {result_name}")
@@ -209,16 +209,16 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("the same, phantom lesion 2 at 10 / 20 / 30 mm: between the two codes; what the probe "
      "body changes",
      Cell("truth-agreement-phantom-lesion1", per_depth("codes_mm", "contact_mm"),
-          agreement_cmd("1", "truth-agreement-phantom-lesion1")), "<= 0.2 mm at 30 mm", "-"),
+          agreement_cmd("2", "truth-agreement-phantom-lesion1")), "<= 0.2 mm at 30 mm", "-"),
     ("the same, phantom lesions 3 and 4 at 10 / 20 / 30 mm: between the two codes; what the "
      "probe body changes",
      Cell("truth-agreement-phantom-lesions2-3", per_lesion_depth("codes_mm", "contact_mm"),
-          agreement_cmd("2,3", "truth-agreement-phantom-lesions2-3")), "<= 0.2 mm at 30 mm",
+          agreement_cmd("3,4", "truth-agreement-phantom-lesions2-3")), "<= 0.2 mm at 30 mm",
      "-"),
     ("the same, phantom lesion 4 with one quadrature rule in both codes (24 points): between "
      "the two codes (degree 5 in each: 0.003 / 0.018 / 0.261 mm, the rows above)",
      Cell("truth-agreement-phantom-lesion3-q7", per_depth("codes_mm"),
-          agreement_cmd("3", "truth-agreement-phantom-lesion3-q7")
+          agreement_cmd("4", "truth-agreement-phantom-lesion3-q7")
           + " --quadrature-degree 7 --intorder 6"), "<= 0.2 mm at 30 mm", "-"),
     ("the same at 10 mm: NGSolve's P3 against its P2 on the same mesh",
      Cell("truth-agreement-phantom-p3", per_depth("p3_mm"), AGREE_CMD + " --depths 10 "

@@ -10,7 +10,8 @@
                                          [--result-name NAME | --no-result-file]
 
 CASE: a case folder (default: the built-in phantom, made in a temporary folder). For each
-lesion (0-based indices; ``truth.py --lesion-ids`` takes the lesions' ids) the probe is
+lesion named by ``--lesion-ids`` (the ids of the case's lesion list, as ``truth.py`` takes
+them; default: the first lesion; rows and result keys give its 0-based index) the probe is
 placed as in Table 2 and pushed along its beam to each depth, with the face glued to the
 skin it touches at rest (no probe body: skin the face reaches later is free,
 ``convergence.py --no-probe-body``), the chest-wall plane fixed, homogeneous neo-Hookean
@@ -45,7 +46,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from convergence import add_quadrature_argument
+from convergence import add_quadrature_argument, chosen_lesions
 from resultfile import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -210,8 +211,9 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("case_dir", type=Path, nargs="?", default=None)
-    p.add_argument("--lesion-ids", default="0",
-                   help="lesion indices (0-based), comma-separated (truth.py's are ids)")
+    p.add_argument("--lesion-ids", default=None,
+                   help="ids of the lesions, comma-separated, as truth.py takes them (default: "
+                   "the first lesion)")
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0])
     p.add_argument("--tet-size", type=float, default=10.0)
     p.add_argument("--tet-fine", type=float, default=4.0)
@@ -234,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     e_mpa, nu = default_tissue_material(case)
     stored = stored_truth(args.stored, case)
     rows, facts = [], {}
-    for li in (int(s) for s in args.lesion_ids.split(",")):
+    for li in chosen_lesions(case, 1, args.lesion_ids) if args.lesion_ids else [0]:
         placement = place_case_probe(case, li)
         lesion = np.asarray(case.anatomy.lesions[li].center)
         model = glued_model(case, e_mpa, nu, placement, args)
@@ -245,7 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         facts[str(li)] = {"p2": p2_facts,
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
                              for o, a in ng.items()}}
-        print(f"lesion {li}: P2 {p2_facts['dofs']} dofs {p2_facts['seconds']:.0f} s"
+        print(f"lesion {li} (id {case.anatomy.lesions[li].id}): P2 {p2_facts['dofs']} dofs "
+              f"{p2_facts['seconds']:.0f} s"
               f"{' (' + p2_facts['failure'] + ')' if p2_facts['failure'] else ''}; "
               + "; ".join(f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s"
                           + (f" ({a['failure']})" if a["failure"] else "")
