@@ -52,12 +52,12 @@ from resultfile import write_result
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def load_case(case_dir: Path | None):
-    """The case at ``case_dir``, or the built-in phantom made in a temporary folder."""
+def load_case(case_dir: Path | None, scratch: Path):
+    """The case at ``case_dir``, or the built-in phantom made in the folder ``scratch``."""
     from biopsynav.case import Case, make_phantom_case
 
     if case_dir is None:
-        return make_phantom_case(Path(tempfile.mkdtemp(prefix="agree-")) / "phantom"), "phantom"
+        return make_phantom_case(scratch / "phantom"), "phantom"
     return Case.load(case_dir), case_dir.name
 
 
@@ -206,9 +206,6 @@ def rule_degree(text: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from biopsynav.evaluate.placement import place_case_probe
-    from biopsynav.evaluate.references import default_tissue_material
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("case_dir", type=Path, nargs="?", default=None)
     p.add_argument("--lesion-ids", default=None,
@@ -232,7 +229,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="write no file under benchmarks/results (a check, not a benchmark)")
     args = p.parse_args(argv)
     sys.stdout.reconfigure(line_buffering=True)
-    case, name = load_case(args.case_dir)
+    with tempfile.TemporaryDirectory(prefix="agree-") as scratch:  # the phantom, if made
+        case, name = load_case(args.case_dir, Path(scratch))
+        return agree(case, name, args)
+
+
+def agree(case, name: str, args) -> int:
+    """Solve, print and write the agreement on ``case`` (``name``: its result file's)."""
+    from biopsynav.evaluate.placement import place_case_probe
+    from biopsynav.evaluate.references import default_tissue_material
+
     e_mpa, nu = default_tissue_material(case)
     stored = stored_truth(args.stored, case)
     rows, facts = [], {}

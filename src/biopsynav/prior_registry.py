@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,15 +49,37 @@ class Prior:
         return dict(self.info["architecture"])
 
     def checksum(self) -> str:
-        """SHA-256 of the weights file (part of a training's signature)."""
-        return hashlib.sha256(self.weights_path.read_bytes()).hexdigest()
+        """SHA-256 of the weights file (part of a training's signature); InputError naming
+        the prior when the file cannot be read."""
+        try:
+            return hashlib.sha256(self.weights_path.read_bytes()).hexdigest()
+        except OSError as exc:
+            raise self._unreadable(exc) from None
 
     def state_dict(self) -> dict:
-        """The U-Net's weights as float32 tensors."""
+        """The U-Net's weights as float32 tensors; InputError naming the prior when its file
+        is not a readable ``.npz`` of arrays."""
         import torch
 
-        with np.load(self.weights_path) as z:
-            return {k: torch.from_numpy(z[k].astype(np.float32)) for k in z.files}
+        try:
+            with np.load(self.weights_path, allow_pickle=False) as z:
+                return {k: torch.from_numpy(z[k].astype(np.float32)) for k in z.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, AttributeError) as exc:
+            raise self._unreadable(exc) from None
+
+    def load_into(self, unet: Any) -> None:
+        """Load the weights into ``unet`` (a :class:`~biopsynav.network.unet.UNet3d`), every
+        weight and no other; InputError naming the prior when they do not fit it."""
+        try:
+            unet.load_state_dict(self.state_dict())
+        except RuntimeError as exc:
+            first = str(exc).strip().splitlines()[0]
+            raise InputError(f"the prior {self.name!r} ({self.weights_path}) does not fit this "
+                             f"network: {first}", WHERE) from None
+
+    def _unreadable(self, exc: Exception) -> InputError:
+        return InputError(f"the prior {self.name!r}: cannot read its weights "
+                          f"{self.weights_path} ({type(exc).__name__}: {exc})", WHERE)
 
     def summary(self) -> dict:
         """What a model trained from it records in meta.json."""

@@ -116,3 +116,22 @@ def test_auto_starts_the_phantom_from_the_uc_davis_breast_and_none_is_the_defaul
     spec = section_spec(case.cfg.network).to_dict()
     prior, _ = priors.choose_prior("auto", lambda: case.anatomy, spec)
     assert prior.name == "ucdavis-breast3"
+
+
+def test_a_damaged_or_mismatched_prior_is_named_not_a_numpy_error(exported, tmp_path):
+    """A registered prior whose file is damaged, missing or of another network fails with an
+    InputError that names the prior and its file."""
+    spec = section_spec(tiny_settings())
+    damaged = tmp_path / "damaged.npz"
+    damaged.write_bytes(b"not a zip file")
+    bad = priors.Prior("damaged", damaged, exported.info)
+    for call in (bad.state_dict, lambda: bad.load_into(UNet3d(spec))):
+        with pytest.raises(InputError, match="'damaged'.*damaged.npz"):
+            call()
+    missing = priors.Prior("gone", tmp_path / "gone.npz", exported.info)
+    with pytest.raises(InputError, match="'gone'.*gone.npz"):
+        missing.checksum()
+    other = tmp_path / "other.npz"
+    np.savez(other, **{k: np.zeros(1, np.float16) for k in exported.state_dict()})
+    with pytest.raises(InputError, match="'shaped' .*does not fit this network"):
+        priors.Prior("shaped", other, exported.info).load_into(UNet3d(spec))

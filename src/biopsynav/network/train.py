@@ -309,7 +309,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     if source is not None:
         net.unet.load_state_dict(source.weights)
     elif prior is not None:
-        net.unet.load_state_dict(prior.state_dict())
+        prior.load_into(net.unet)
     elif baseline_meta["kind"] != "none":
         # residual net starts as exactly zero: the model starts as the physics baseline
         torch.nn.init.zeros_(net.unet.head.weight)
