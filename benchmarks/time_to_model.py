@@ -165,6 +165,14 @@ def truth_tre(kind: str, case_dir: Path) -> dict:
     return tre
 
 
+def result_name(case: str, prior: str | None, iterations: int | None) -> str:
+    """The result file's name: ``time-to-model-<case>``, with ``-prior`` when a prior was
+    set and ``-itN`` when ``[network] iterations`` was, so that no variant overwrites the
+    defaults' figures."""
+    return (f"time-to-model-{case}" + ("-prior" if prior not in (None, "none") else "")
+            + (f"-it{iterations}" if iterations is not None else ""))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--case", choices=("phantom", "ucdavis", "ucdavis-homogeneous"),
@@ -200,9 +208,8 @@ def main(argv: list[str] | None = None) -> int:
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), **tre}
-    suffix = ("-prior" if args.prior not in (None, "none") else "") + (
-        f"-it{args.iterations}" if args.iterations is not None else "")
-    write_result(f"time-to-model-{args.case}{suffix}", figures, speed_probes=probes)
+    write_result(result_name(args.case, args.prior, args.iterations), figures,
+                 speed_probes=probes)
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)
     print("\n".join(f"  {k:<22} {v:6.2f} min" for k, v in minutes.items()))
