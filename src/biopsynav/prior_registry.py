@@ -33,6 +33,9 @@ from .errors import InputError
 
 WHERE = "[network] prior"
 PRIOR_DIR = Path(__file__).resolve().parent / "data" / "priors"
+#: what reading a weights file that is not an ``.npz`` of arrays raises (a ``.npy`` in its
+#: place: TypeError; a damaged zip: BadZipFile; pickled objects: ValueError)
+UNREADABLE = (OSError, ValueError, EOFError, TypeError, AttributeError, zipfile.BadZipFile)
 
 
 @dataclass(frozen=True)
@@ -64,7 +67,7 @@ class Prior:
         try:
             with np.load(self.weights_path, allow_pickle=False) as z:
                 return {k: torch.from_numpy(z[k].astype(np.float32)) for k in z.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, AttributeError) as exc:
+        except UNREADABLE as exc:
             raise self._unreadable(exc) from None
 
     def load_into(self, unet: Any) -> None:
