@@ -128,6 +128,11 @@ def test_a_damaged_or_mismatched_prior_is_named_not_a_numpy_error(exported, tmp_
     for call in (bad.state_dict, lambda: bad.load_into(UNet3d(spec))):
         with pytest.raises(InputError, match="'damaged'.*damaged.npz"):
             call()
+    plain = tmp_path / "plain.npz"
+    with plain.open("wb") as f:
+        np.save(f, np.zeros(3))  # an .npy under the .npz name
+    with pytest.raises(InputError, match="'plain'.*plain.npz"):
+        priors.Prior("plain", plain, exported.info).state_dict()
     missing = priors.Prior("gone", tmp_path / "gone.npz", exported.info)
     with pytest.raises(InputError, match="'gone'.*gone.npz"):
         missing.checksum()
