@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml requirements.lock
 	touch $(STAMP)
 
 LOCK_FLAGS := --quiet --generate-hashes --allow-unsafe --no-emit-index-url --no-emit-find-links \
-	--strip-extras --extra dev --extra fast -c constraints.txt
+	--strip-extras --extra dev --extra fast --extra peer -c constraints.txt
 
 lock:
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)

@@ -12,7 +12,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
-pytest.importorskip("ngsolve", reason="NGSolve is the second FE code (the dev extra)")
+pytest.importorskip("ngsolve", reason="NGSolve is the second FE code (the peer extra, which "
+                    "requirements.lock holds)")
 
 
 def test_the_p2_truth_and_ngsolve_agree_on_one_mesh(tmp_path):
