@@ -46,36 +46,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from figures import depth_means
 from resultfile import write_result
+from speedprobe import speed_probes
 
 ROOT = Path(__file__).resolve().parents[1]
 UCDAVIS = ROOT.parent / "shared" / "data" / "ucdavis_breast3" / "volmesh3.vtk"
 TRUTHS_DIR = ROOT / "src" / "biopsynav" / "data" / "truths"  # the stored P2 truths
 TRUTHS = {"phantom": TRUTHS_DIR / "phantom.json",
           "ucdavis-homogeneous": TRUTHS_DIR / "ucdavis-homogeneous.json"}
-
-
-def speed_probes() -> dict:
-    """The day's speed: a U-Net training step (batch 4, fp32) on the phantom's grid and a matmul
-    (seconds)."""
-    import torch
-
-    from biopsynav.case import make_phantom_case
-    from biopsynav.runtime import probe_seconds
-
-    with tempfile.TemporaryDirectory() as tmp:
-        case = make_phantom_case(Path(tmp) / "ph")
-        step = float(np.median([probe_seconds(case, as_reference=True) for _ in range(3)]))
-    a = torch.randn(1024, 1024)
-    times = []
-    for _ in range(6):
-        t = time.perf_counter()
-        a @ a
-        times.append(time.perf_counter() - t)
-    return {"unet_step_s": step, "matmul_1024_s": float(np.median(times[1:]))}
 
 
 def init_ucdavis(case_dir: Path, homogeneous: bool) -> None:

@@ -48,6 +48,7 @@ import numpy as np
 from biopsynav.igtl.protocol import MessageReader, encode_transform
 from biopsynav.igtl.replies import POINT_DEVICE
 from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
+from speedprobe import speed_probes  # noqa: E402
 
 HOST = "127.0.0.1"
 PROBE_DEVICE = "ProbeToReference"
@@ -363,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.case_dir and not args.quick:
         write_result("tracking-latency", {
             "update_p50_ms": upd50, "update_p99_ms": upd99, "rtt_p50_ms": rtt50,
-            "rtt_p99_ms": rtt99, "lost": lost, "fem_update_ms": fem}, case=str(args.case_dir))
+            "rtt_p99_ms": rtt99, "lost": lost, "fem_update_ms": fem}, case=str(args.case_dir),
+            speed_probes=speed_probes())  # after the timings: it would load the machine
     return 0
 
 

@@ -47,6 +47,18 @@ def test_a_changed_result_file_changes_the_rendering(figures, tmp_path, monkeypa
     assert figures.rendered_block("benchmarks") != before
 
 
+def test_a_latency_is_shown_with_its_days_speed_probe(figures):
+    """A result that holds the day's speed probe shows it (the reference machine's probe
+    time gives 1.00x); one without shows its figures alone."""
+    from biopsynav.runtime import REFERENCE
+
+    render = figures.with_speed(figures.pair("update_p50_ms", "update_p99_ms"))
+    data = {"figures": {"update_p50_ms": 1.0, "update_p99_ms": 2.0}}
+    assert render(data) == "1.00 / 2.00 ms"
+    data["speed_probes"] = {"unet_step_s": 2 * REFERENCE["probe_s"], "matmul_1024_s": 0.01}
+    assert render(data) == "1.00 / 2.00 ms (speed probe 2.00x)"
+
+
 def test_a_missing_result_file_says_how_to_make_it(figures, tmp_path, monkeypatch):
     monkeypatch.setattr(figures, "RESULTS", tmp_path)
     assert "not measured (`python benchmarks/fem_solve.py`)" in figures.bench_block()
