@@ -242,7 +242,7 @@ def agree(case, name: str, args) -> int:
     e_mpa, nu = default_tissue_material(case)
     stored = stored_truth(args.stored, case)
     rows, facts = [], {}
-    for li in chosen_lesions(case, 1, args.lesion_ids) if args.lesion_ids else [0]:
+    for li in chosen_lesions(case, 1, args.lesion_ids):  # no ids: the first lesion
         placement = place_case_probe(case, li)
         lesion = np.asarray(case.anatomy.lesions[li].center)
         model = glued_model(case, e_mpa, nu, placement, args)

@@ -528,6 +528,24 @@ def test_the_agreement_refuses_a_bad_rule_before_any_work(option, value, tmp_pat
     assert not out.exists()
 
 
+@pytest.mark.parametrize("ids, named", [("99", "no lesion with id 99"),
+                                         ("1,x", "not a comma list of lesion ids")])
+def test_the_agreement_refuses_a_lesion_id_the_case_lacks_before_any_solve(ids, named,
+                                                                          tmp_path,
+                                                                          monkeypatch):
+    """``truth_agreement.py --lesion-ids`` takes ids of the case's lesion list (as truth.py
+    does): an id the phantom lacks, or a word, stops it with one line naming the ids it
+    has, before a mesh is made or a file written."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth_agreement
+
+    out = tmp_path / "agree.json"
+    with pytest.raises(SystemExit) as stop:
+        truth_agreement.main(["--lesion-ids", ids, "--out", str(out), "--no-result-file"])
+    assert named in str(stop.value.code) and "--lesion-ids" in str(stop.value.code)
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("minutes", ["-1", "inf", "soon"])
 def test_the_benchmarks_refuse_a_bad_push_time_limit_before_any_work(minutes, tmp_path, capsys,
                                                                     monkeypatch):

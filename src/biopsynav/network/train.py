@@ -299,8 +299,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                                   if not k.endswith("_s")}  # not its timings
     if source is not None:
         signature["init_from"] = source.checksum
-    if prior is not None:
-        signature["prior"] = prior.checksum()
+    prior_summary = None if prior is None else prior.summary()  # its file hashed once
+    if prior_summary is not None:
+        signature["prior"] = prior_summary["checksum"]
     if projections is not None:
         projections = tuple(p.to(dev) for p in projections)
 
@@ -349,7 +350,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                               "best_iteration": state["best_iteration"],
                               "history": state["history"],
                               **({} if source is None else {"init_from": source.summary()}),
-                              **({} if prior is None else {"prior": prior.summary()})},
+                              **({} if prior_summary is None else {"prior": prior_summary})},
                     runtime=s.runtime, baseline=baseline_meta)
     last = state["history"][-1]["val_mean_e_mm"] if state["history"] else math.nan
     return TrainSummary(out, state["iteration"], s.iterations, state["best_val"],
