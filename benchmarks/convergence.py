@@ -569,10 +569,12 @@ def series_answers(tracker: Tracker, placements: dict, points: dict, depths: lis
     return {key: {li: a[key] for li, a in answers.items()} for key in ("displacement", "field")}
 
 
-def chosen_lesions(case: Case, count: int, ids: str | None = None) -> list[int]:
+def chosen_lesions(case: Case, count: int, ids: str | None = None,
+                   where: str | None = None) -> list[int]:
     """Indices of the lesions evaluated: those whose ids the comma list ``ids`` names (e.g.
     '2,3,7', as the case's lesion list spells them), else ``count`` of them spread over the
-    list as Table 2 picks them (0: all). SystemExit with one line for an id the case lacks."""
+    list as Table 2 picks them (0: all). SystemExit with one line for an id the case lacks,
+    naming the case as ``where`` (default: its folder)."""
     if not ids:
         return select_lesions(len(case.anatomy.lesions), count)
     index = {int(lesion.id): i for i, lesion in enumerate(case.anatomy.lesions)}
@@ -583,7 +585,7 @@ def chosen_lesions(case: Case, count: int, ids: str | None = None) -> list[int]:
                          "(e.g. 2,3,7)") from None
     unknown = [v for v in wanted if v not in index]
     if unknown:
-        raise SystemExit(f"error: --lesion-ids: {case.dir} has no lesion with id "
+        raise SystemExit(f"error: --lesion-ids: {where or case.dir} has no lesion with id "
                          f"{', '.join(map(str, unknown))} (its ids: "
                          f"{', '.join(map(str, sorted(index)))})")
     return sorted({index[v] for v in wanted})

@@ -6,8 +6,9 @@ case network (docs/pipeline.md, "no force patches at all").
                                      [--workdir DIR]
 
 CASE is a case whose ``refine/dataset.zarr`` is complete (e.g. the one ``make demo`` or
-``time_to_model.py --keep`` leaves) and whose anatomy the truth is of (refused before any
-work otherwise). A copy of it (the data set linked, not copied) gets one
+``time_to_model.py --keep`` leaves) and of which ``truth.py`` takes the truth as it is (its
+anatomy, material, depths, mesh and probe; refused before any work otherwise, naming what
+differs). A copy of it (the data set linked, not copied) gets one
 training on those pushes, from scratch or from the packaged prior ``--prior``, with
 ``[network]``'s other settings, into ``WORKDIR/case/refine/model``; then ``truth.py``
 compares that model with the stored P2 truth ``--reference`` over every lesion at 10 / 20 /
@@ -30,6 +31,7 @@ from pathlib import Path
 from figures import depth_means
 from resultfile import write_result
 from time_to_model import net_against_truth
+from truth import reference_differences
 
 CASE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "inputs")
 REFINE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "dataset_summary.json")
@@ -76,16 +78,20 @@ def parser() -> argparse.ArgumentParser:
 
 
 def check_reference(case_dir: Path, reference: Path) -> None:
-    """Exit naming the file when ``reference`` is not a stored truth of ``case_dir``'s
-    anatomy (``truth.py`` would solve it again, for hours)."""
+    """Exit naming the file and what differs when ``reference`` is not a stored truth that
+    ``truth.py`` would take as it is for ``case_dir`` at 10 / 20 / 30 mm (it would solve it
+    again, for hours)."""
     from biopsynav.case import as_case
+    from biopsynav.errors import BiopsynavError
 
     try:
-        key = json.loads(reference.read_text())["key"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        sys.exit(f"pushes_only: {reference} is not a stored truth ({exc})")
-    if key.get("anatomy") != as_case(case_dir).anatomy.fingerprint():
-        sys.exit(f"pushes_only: {reference} is the truth of another anatomy than {case_dir}")
+        case = as_case(case_dir)
+    except BiopsynavError as exc:
+        sys.exit(f"pushes_only: {exc}")
+    differs = reference_differences(case, reference, [10.0, 20.0, 30.0])
+    if differs:
+        sys.exit(f"pushes_only: {reference} is no stored truth of {case_dir} as truth.py "
+                 f"reads it: {', '.join(differs)} differ{'s' if len(differs) == 1 else ''}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -234,7 +234,23 @@ def summary(rows: list[dict], method: str) -> dict:
             "answered": f"{len(answered)}/{len(judged)}"}
 
 
-def main(argv: list[str] | None = None) -> int:
+def reference_differences(case: Case, reference: Path, depths: list[float]) -> list[str]:
+    """What keeps the truth file ``reference`` from serving ``case`` at ``depths`` (mm) with
+    this script's default reference options: the names of the key entries it holds
+    otherwise (all solved again, for hours), or why it is no truth file; [] where it
+    serves."""
+    try:
+        stored = json.loads(Path(reference).read_text())["key"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return [f"not a truth file ({exc})"]
+    args = parser().parse_args([str(case.dir), "--depths", *map(str, depths)])
+    e_mpa, nu, _ = reference_material(case)
+    wanted = reference_key(case, e_mpa, nu, args)
+    return [k for k, v in wanted.items() if not isinstance(stored, dict) or stored.get(k) != v]
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line of this script."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("case_dir", type=Path)
     p.add_argument("--lesions", type=int, default=3, help="lesions evaluated (0: all)")
@@ -255,7 +271,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="what is judged against the reference (without net, no trained model "
                         "is needed: the FE engine alone)")
     p.add_argument("--out", type=Path, default=None, help="write the rows as JSON")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     args.methods = tuple(m for m in METHODS if m in args.methods)
     show_progress(args)
     start = time.perf_counter()

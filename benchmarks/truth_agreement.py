@@ -57,7 +57,7 @@ def load_case(case_dir: Path | None, scratch: Path):
     from biopsynav.case import Case, make_phantom_case
 
     if case_dir is None:
-        return make_phantom_case(scratch / "phantom"), "phantom"
+        return make_phantom_case(scratch / "phantom"), "phantom"  # the built-in phantom
     return Case.load(case_dir), case_dir.name
 
 
@@ -242,7 +242,8 @@ def agree(case, name: str, args) -> int:
     e_mpa, nu = default_tissue_material(case)
     stored = stored_truth(args.stored, case)
     rows, facts = [], {}
-    for li in chosen_lesions(case, 1, args.lesion_ids):  # no ids: the first lesion
+    where = None if args.case_dir else "the built-in phantom"
+    for li in chosen_lesions(case, 1, args.lesion_ids, where):  # no ids: the first lesion
         placement = place_case_probe(case, li)
         lesion = np.asarray(case.anatomy.lesions[li].center)
         model = glued_model(case, e_mpa, nu, placement, args)

@@ -528,14 +528,15 @@ def test_the_agreement_refuses_a_bad_rule_before_any_work(option, value, tmp_pat
     assert not out.exists()
 
 
-@pytest.mark.parametrize("ids, named", [("99", "no lesion with id 99"),
+@pytest.mark.parametrize("ids, named", [("99", "the built-in phantom has no lesion with id 99"),
                                          ("1,x", "not a comma list of lesion ids")])
 def test_the_agreement_refuses_a_lesion_id_the_case_lacks_before_any_solve(ids, named,
                                                                           tmp_path,
                                                                           monkeypatch):
     """``truth_agreement.py --lesion-ids`` takes ids of the case's lesion list (as truth.py
     does): an id the phantom lacks, or a word, stops it with one line naming the ids it
-    has, before a mesh is made or a file written."""
+    has and the phantom (not the temporary folder it was made in), before a mesh is made or
+    a file written."""
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import truth_agreement
 

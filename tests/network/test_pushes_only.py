@@ -34,7 +34,11 @@ def test_the_defaults_are_the_measured_recipe(monkeypatch):
     assert (args.prior, args.iterations, args.batch, args.lr) == ("none", 4000, 16, 2e-3)
 
 
-def test_a_truth_of_another_anatomy_is_refused_before_any_work(tmp_path, monkeypatch):
+def test_a_truth_truth_py_would_solve_again_is_refused_before_any_work(tmp_path, monkeypatch):
+    """The truth's whole key is checked as truth.py reads it: another anatomy, or the
+    phantom's own truth with another depth list, stops the run naming what differs."""
+    import json
+
     import pytest
 
     from biopsynav.case import make_phantom_case
@@ -43,11 +47,13 @@ def test_a_truth_of_another_anatomy_is_refused_before_any_work(tmp_path, monkeyp
     import pushes_only
 
     make_phantom_case(tmp_path / "ph")
-    other = tmp_path / "other.json"
-    other.write_text('{"key": {"anatomy": "0"}, "lesions": {}}')
-    with pytest.raises(SystemExit, match="another anatomy"):
-        pushes_only.main([str(tmp_path / "ph"), "--reference", str(other),
-                          "--workdir", str(tmp_path / "work")])
-    assert not (tmp_path / "work").exists()
     stored = Path(__file__).resolve().parents[2] / "src/biopsynav/data/truths/phantom.json"
+    truth = json.loads(stored.read_text())
+    for key, value in (("anatomy", "0"), ("depths_mm", [10.0, 20.0])):
+        other = tmp_path / f"other-{key}.json"
+        other.write_text(json.dumps({"key": {**truth["key"], key: value}, "lesions": {}}))
+        with pytest.raises(SystemExit, match=f"{key} differs"):
+            pushes_only.main([str(tmp_path / "ph"), "--reference", str(other),
+                              "--workdir", str(tmp_path / "work")])
+    assert not (tmp_path / "work").exists()
     pushes_only.check_reference(tmp_path / "ph", stored)  # the phantom's own: accepted
