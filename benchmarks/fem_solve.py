@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: 
 from tests.peers.skfem_peer import SkfemModel  # noqa: E402
 
 from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
+from speedprobe import speed_probes  # noqa: E402
 
 PUSH_AT_MM = np.array([20.0, 10.0, 80.0])
 TILT_DEG = 30.0
@@ -122,7 +123,8 @@ def main() -> None:
           f"max_disp_mm={max_disp:.1f} newton_iters={iters:g}")
     write_result("fem-solve", {"fem_ms": fem_ms, "peer_ms": peer_ms,
                                "ratio": peer_ms / fem_ms, "max_disp_mm": max_disp,
-                               "newton_iters": iters})
+                               "newton_iters": iters},
+                 speed_probes=speed_probes())  # after the timings: it would load the machine
 
 
 if __name__ == "__main__":

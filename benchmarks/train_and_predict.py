@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
+from speedprobe import speed_probes  # noqa: E402
 
 QUICK = {"grid": {"cell_size_mm": 12.0}, "dataset": {"n_train": 64, "n_test": 16},
          "network": {"iterations": 300, "val_interval": 100}}
@@ -78,7 +79,8 @@ def main(argv: list[str] | None = None) -> dict:
     if not args.quick:
         write_result("train-and-predict", {k: r[k] for k in (
             "mean_e_mm", "std_e_mm", "max_e_mm", "max_disp_mm", "train_min",
-            "predict_p50_ms", "predict_p99_ms")}, case=str(case_dir))
+            "predict_p50_ms", "predict_p99_ms")}, case=str(case_dir),
+            speed_probes=speed_probes())  # after the timings: it would load the machine
     return r
 
 
