@@ -4,6 +4,7 @@
 
     python benchmarks/truth_agreement.py [CASE] [--lesion-ids 1,5] [--depths 10 20 30]
                                          [--tet-size 10] [--tet-fine 4] [--orders 2 3]
+                                         [--h-fine 2.8 2]
                                          [--quadrature-degree 5] [--intorder 5]
                                          [--stored src/biopsynav/data/truths/phantom.json]
                                          [--push-minutes 20] [--out FILE]
@@ -24,14 +25,20 @@ with the E and nu of the case's default tissue. Answered by:
   how far the P2 answer is from converged on that mesh), integrated by NGSolve's rule of
   ``--intorder``. The two codes' rules of one degree have different points: where the
   answers differ by their quadrature error, raising both degrees brings them together.
+  ``--orders`` with no order leaves NGSolve out;
+* ``p2 hF``: biopsynav's P2 on a mesh refined near the probe, ``F`` mm within 35 mm of it
+  for each F of ``--h-fine`` (h refinement: how far the P2 answer is from converged in the
+  mesh size where the probe deforms the tissue most).
 
 Printed per lesion and depth: each answer's lesion displacement |u| (mm) and the distance
 between displacement vectors: p2 against NGSolve p2 (the two codes on one discretisation),
-NGSolve p2 against its higher orders (p convergence), and, with ``--stored`` (a truth file of
+NGSolve p2 against its higher orders (p convergence), p2 against p2 on each finer mesh (h
+convergence), and, with ``--stored`` (a truth file of
 ``truth.py``: the probe a rigid body on which reached skin slides), the stored truth against
 p2 glued (what the probe body changes: the contact model). Writes
 ``benchmarks/results/truth-agreement-<case>.json``; the last line reads ``RESULT
-codes_max_mm=... p_max_mm=... contact_max_mm=...`` (the largest of each distance).
+codes_max_mm=... p_max_mm=... h_max_mm=... contact_max_mm=...`` (the largest of each
+distance; nan where not asked).
 """
 
 from __future__ import annotations
@@ -61,16 +68,19 @@ def load_case(case_dir: Path | None, scratch: Path):
     return Case.load(case_dir), case_dir.name
 
 
-def glued_model(case, e_mpa: float, nu: float, placement, args) -> SimpleNamespace:
+def glued_model(case, e_mpa: float, nu: float, placement, args,
+                fine_mm: float | None = None) -> SimpleNamespace:
     """biopsynav's P2 model meshed for ``placement`` and the glued face's node sets, taken
     alike by both codes: the skin vertices the face touches at rest (the tracker's rule) and
     the edge midpoints between two of them (a rigid translation's quadratic trace); the chest
-    wall's vertices and the midpoints between two of them."""
+    wall's vertices and the midpoints between two of them. ``fine_mm``: the tetrahedra near
+    the probe (default ``--tet-fine``)."""
     from biopsynav.evaluate.p2 import EDGES, TetReference
 
     probe = case.cfg.probe
     ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
-                             fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine,
+                             fine_at=placement.pose[:3, 3],
+                             fine_mm=args.tet_fine if fine_mm is None else fine_mm,
                              quadrature_degree=args.quadrature_degree)
     n_vertices = int(ref.corners.max()) + 1
     touched = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
@@ -145,8 +155,9 @@ def stored_truth(path: Path | None, case) -> dict:
 
 
 def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
-                stored: dict) -> list[dict]:
-    """One row per depth of lesion index ``li``: every answer's |u| and the distances."""
+                stored: dict, finer: dict[float, list] | None = None) -> list[dict]:
+    """One row per depth of lesion index ``li``: every answer's |u| and the distances
+    (``finer``: the P2 answers on each finer mesh, by its size near the probe, mm)."""
     rows = []
     body = stored.get(str(li), {}).get("displacement", [None] * len(depths))
     body_depths = stored.get(str(li), {}).get("depths_mm", depths)
@@ -158,6 +169,9 @@ def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
             if order != 2 and 2 in ng:
                 row[f"p{order}_mm"] = distance(ng[2]["displacement"][k],
                                                ng[order]["displacement"][k])
+        for fine, answers in (finer or {}).items():
+            row[f"p2_h{fine:g}"] = answers[k]
+            row[f"h{fine:g}_mm"] = distance(p2[k], answers[k])
         stored_k = body[body_depths.index(depth)] if depth in body_depths else None
         row["probe_body"] = stored_k
         row["contact_mm"] = distance(stored_k, p2[k])
@@ -173,16 +187,18 @@ def num_text(v) -> str:
     return "-" if v is None else f"{v:6.3f}"
 
 
-def print_rows(rows: list[dict], orders: list[int]) -> None:
+def print_rows(rows: list[dict], orders: list[int], fines: list[float] = ()) -> None:
     """The table: |u| of each answer and the distances, mm."""
     higher = [o for o in orders if o != 2]
     head = (["lesion", "depth", "|u| p2", *[f"|u| ng p{o}" for o in orders], "p2-ng"]
-            + [f"ng p2-p{o}" for o in higher] + ["|u| body", "body-glued"])
+            + [f"ng p2-p{o}" for o in higher] + [f"p2-h{f:g}" for f in fines]
+            + ["|u| body", "body-glued"])
     print("  ".join(f"{h:>9}" for h in head))
     for r in rows:
         cells = ([str(r["lesion"]), f"{r['depth_mm']:g}", norm_text(r["p2"])]
                  + [norm_text(r.get(f"ngsolve_p{o}")) for o in orders] + [num_text(r["codes_mm"])]
                  + [num_text(r.get(f"p{o}_mm")) for o in higher]
+                 + [num_text(r.get(f"h{f:g}_mm")) for f in fines]
                  + [norm_text(r["probe_body"]), num_text(r["contact_mm"])])
         print("  ".join(f"{c:>9}" for c in cells), flush=True)
 
@@ -190,6 +206,17 @@ def print_rows(rows: list[dict], orders: list[int]) -> None:
 def largest(rows: list[dict], key: str) -> float:
     values = [r[key] for r in rows if r.get(key) is not None]
     return max(values) if values else float("nan")
+
+
+def positive_mm(text: str) -> float:
+    """A mesh size given on the command line: a finite number of millimetres above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: a size in mm above 0")
+    return value
 
 
 def rule_degree(text: str) -> int:
@@ -214,7 +241,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0])
     p.add_argument("--tet-size", type=float, default=10.0)
     p.add_argument("--tet-fine", type=float, default=4.0)
-    p.add_argument("--orders", type=int, nargs="+", default=[2, 3])
+    p.add_argument("--orders", type=int, nargs="*", default=[2, 3],
+                   help="NGSolve's element orders (none: NGSolve left out)")
+    p.add_argument("--h-fine", type=positive_mm, nargs="*", default=[],
+                   help="biopsynav's P2 again with tetrahedra of these sizes within 35 mm of "
+                        "the probe, mm (h refinement; each below --tet-fine)")
     add_quadrature_argument(p)
     p.add_argument("--intorder", type=rule_degree, default=5,
                    help="degree of NGSolve's quadrature rule (2 or more)")
@@ -228,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-result-file", action="store_true",
                    help="write no file under benchmarks/results (a check, not a benchmark)")
     args = p.parse_args(argv)
+    if any(f >= args.tet_fine for f in args.h_fine):
+        p.error(f"--h-fine: each size below --tet-fine ({args.tet_fine:g} mm): a finer mesh")
     sys.stdout.reconfigure(line_buffering=True)
     with tempfile.TemporaryDirectory(prefix="agree-") as scratch:  # the phantom, if made
         case, name = load_case(args.case_dir, Path(scratch))
@@ -251,7 +284,12 @@ def agree(case, name: str, args) -> int:
         ng = {o: ngsolve_glued(model, e_mpa, nu, placement, lesion, args.depths, o,
                                args.intorder)
               for o in args.orders}
-        facts[str(li)] = {"p2": p2_facts,
+        finer, finer_facts = {}, {}
+        for fine in args.h_fine:
+            finer[fine], finer_facts[f"p2_h{fine:g}"] = p2_glued(
+                glued_model(case, e_mpa, nu, placement, args, fine), placement, lesion,
+                args.depths, args)
+        facts[str(li)] = {"p2": p2_facts, **finer_facts,
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
                              for o, a in ng.items()}}
         print(f"lesion {li} (id {case.anatomy.lesions[li].id}): P2 {p2_facts['dofs']} dofs "
@@ -259,22 +297,27 @@ def agree(case, name: str, args) -> int:
               f"{' (' + p2_facts['failure'] + ')' if p2_facts['failure'] else ''}; "
               + "; ".join(f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s"
                           + (f" ({a['failure']})" if a["failure"] else "")
-                          for o, a in ng.items()), flush=True)
-        rows += lesion_rows(li, args.depths, p2, ng, stored)
-    print_rows(rows, args.orders)
+                          for o, a in ng.items())
+              + "".join(f"; P2 {f['dofs']} dofs near the probe {name[4:]} mm {f['seconds']:.0f} s"
+                        for name, f in finer_facts.items()), flush=True)
+        rows += lesion_rows(li, args.depths, p2, ng, stored, finer)
+    print_rows(rows, args.orders, args.h_fine)
     higher = [o for o in args.orders if o != 2]
     figures = {"codes_max_mm": largest(rows, "codes_mm"),
                "p_max_mm": max((largest(rows, f"p{o}_mm") for o in higher), default=float("nan")),
+               "h_max_mm": max((largest(rows, f"h{f:g}_mm") for f in args.h_fine),
+                               default=float("nan")),
                "contact_max_mm": largest(rows, "contact_mm"),
                "E_mpa": e_mpa, "nu": nu, "tet_size_mm": args.tet_size,
-               "tet_fine_mm": args.tet_fine, "quadrature_degree": args.quadrature_degree,
+               "tet_fine_mm": args.tet_fine, "h_fine_mm": args.h_fine,
+               "quadrature_degree": args.quadrature_degree,
                "intorder": args.intorder, "rows": rows, "facts": facts}
     if args.out:
         args.out.write_text(json.dumps(figures, indent=1))
     if not args.no_result_file:
         write_result(args.result_name or f"truth-agreement-{name}", figures)
     print(f"RESULT codes_max_mm={figures['codes_max_mm']:.4f} p_max_mm={figures['p_max_mm']:.4f}"
-          f" contact_max_mm={figures['contact_max_mm']:.4f}")
+          f" h_max_mm={figures['h_max_mm']:.4f} contact_max_mm={figures['contact_max_mm']:.4f}")
     return 0
 
 

@@ -37,3 +37,38 @@ def test_the_p2_truth_and_ngsolve_agree_on_one_mesh(tmp_path):
     assert figures["codes_max_mm"] < 1e-3, figures["codes_max_mm"]
     assert figures["p_max_mm"] > 10 * figures["codes_max_mm"], figures
     assert "RESULT codes_max_mm=" in proc.stdout.splitlines()[-1]
+
+
+def test_h_refinement_of_the_p2_truth_alone(tmp_path):
+    """``--orders`` with none and ``--h-fine``: biopsynav's P2 alone, on the coarse mesh and
+    on one refined near the probe; the refinement moves the lesion (a discretisation error
+    that can be told), by less than the push moves it, and the result line names it."""
+    out = tmp_path / "h.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "truth_agreement.py"), "--lesion-ids", "1",
+         "--depths", "6", "--tet-size", "20", "--tet-fine", "12", "--orders", "--h-fine", "8",
+         "--out", str(out), "--no-result-file"],
+        capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    figures = json.loads(out.read_text())
+    (row,) = figures["rows"]
+    moved = sum(c * c for c in row["p2"]) ** 0.5
+    assert 1e-4 < row["h8_mm"] < 0.5 * moved, (row["h8_mm"], moved)
+    assert figures["h_max_mm"] == row["h8_mm"] and row["codes_mm"] is None
+    assert "ngsolve_p2" not in row
+    assert f"h_max_mm={row['h8_mm']:.4f}" in proc.stdout.splitlines()[-1]
+
+
+@pytest.mark.parametrize("sizes", [["12"], ["0"], ["x"]])
+def test_a_refinement_that_is_not_finer_is_refused_before_any_solve(sizes, tmp_path, capsys):
+    """An ``--h-fine`` size no finer than ``--tet-fine`` (or not a size) stops the script with
+    one line naming the option, before a case is made or a file written."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import truth_agreement
+
+    out = tmp_path / "h.json"
+    with pytest.raises(SystemExit) as stop:
+        truth_agreement.main(["--tet-fine", "12", "--orders", "--h-fine", *sizes,
+                              "--out", str(out), "--no-result-file"])
+    assert stop.value.code == 2 and "--h-fine" in capsys.readouterr().err
+    assert not out.exists()
