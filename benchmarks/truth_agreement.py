@@ -298,8 +298,9 @@ def agree(case, name: str, args) -> int:
               + "; ".join(f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s"
                           + (f" ({a['failure']})" if a["failure"] else "")
                           for o, a in ng.items())
-              + "".join(f"; P2 {f['dofs']} dofs near the probe {name[4:]} mm {f['seconds']:.0f} s"
-                        for name, f in finer_facts.items()), flush=True)
+              + "".join(f"; P2 {f['dofs']} dofs, {fine:g} mm near the probe, {f['seconds']:.0f} s"
+                        for fine, f in zip(args.h_fine, finer_facts.values(), strict=True)),
+              flush=True)
         rows += lesion_rows(li, args.depths, p2, ng, stored, finer)
     print_rows(rows, args.orders, args.h_fine)
     higher = [o for o in args.orders if o != 2]
