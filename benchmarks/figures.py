@@ -230,6 +230,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("the same at 10 mm: NGSolve's P3 against its P2 on the same mesh",
      Cell("truth-agreement-phantom-p3", per_depth("p3_mm"), AGREE_CMD + " --depths 10 "
           "--orders 2 3 --result-name truth-agreement-phantom-p3"), "<= 0.1 mm", "-"),
+    ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
+     "between the two codes; what the probe body changes",
+     Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
+          "python benchmarks/truth_agreement.py CASE --lesion-ids 5 --stored "
+          "src/biopsynav/data/truths/ucdavis-homogeneous.json --orders 2 --push-minutes 30 "
+          "--result-name truth-agreement-ucdavis-lesion4"), "<= 0.2 mm at 30 mm", "-"),
     ("UC Davis (one material), every lesion: the network (defaults of 2026-11-30)",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
     ("the same: its FE teacher",
