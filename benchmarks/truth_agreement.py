@@ -179,6 +179,11 @@ def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
     return rows
 
 
+def failed_text(facts: dict) -> str:
+    """`` (why it failed)`` for a solve's ``facts`` that hold a failure, else ''."""
+    return f" ({facts['failure']})" if facts["failure"] else ""
+
+
 def norm_text(v) -> str:
     return "-" if v is None else f"{np.linalg.norm(v):6.2f}"
 
@@ -292,14 +297,14 @@ def agree(case, name: str, args) -> int:
         facts[str(li)] = {"p2": p2_facts, **finer_facts,
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
                              for o, a in ng.items()}}
-        print(f"lesion {li} (id {case.anatomy.lesions[li].id}): P2 {p2_facts['dofs']} dofs "
-              f"{p2_facts['seconds']:.0f} s"
-              f"{' (' + p2_facts['failure'] + ')' if p2_facts['failure'] else ''}; "
-              + "; ".join(f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s"
-                          + (f" ({a['failure']})" if a["failure"] else "")
-                          for o, a in ng.items())
-              + "".join(f"; P2 {f['dofs']} dofs, {fine:g} mm near the probe, {f['seconds']:.0f} s"
-                        for fine, f in zip(args.h_fine, finer_facts.values(), strict=True)),
+        parts = ([f"P2 {p2_facts['dofs']} dofs {p2_facts['seconds']:.0f} s"
+                  + failed_text(p2_facts)]
+                 + [f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s" + failed_text(a)
+                    for o, a in ng.items()]
+                 + [f"P2 {f['dofs']} dofs, {fine:g} mm near the probe, {f['seconds']:.0f} s"
+                    + failed_text(f)
+                    for fine, f in zip(args.h_fine, finer_facts.values(), strict=True)])
+        print(f"lesion {li} (id {case.anatomy.lesions[li].id}): " + "; ".join(parts),
               flush=True)
         rows += lesion_rows(li, args.depths, p2, ng, stored, finer)
     print_rows(rows, args.orders, args.h_fine)
