@@ -53,7 +53,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from convergence import add_quadrature_argument, chosen_lesions
+from convergence import add_quadrature_argument, chosen_lesions, non_negative_mm
 from resultfile import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -213,17 +213,6 @@ def largest(rows: list[dict], key: str) -> float:
     return max(values) if values else float("nan")
 
 
-def positive_mm(text: str) -> float:
-    """A mesh size given on the command line: a finite number of millimetres above 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: a size in mm above 0")
-    return value
-
-
 def rule_degree(text: str) -> int:
     """NGSolve's quadrature degree given on the command line: an integer, 2 or more (a P2
     stiffness needs degree 2; NGSolve takes anything lower, negative included, as a
@@ -248,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tet-fine", type=float, default=4.0)
     p.add_argument("--orders", type=int, nargs="*", default=[2, 3],
                    help="NGSolve's element orders (none: NGSolve left out)")
-    p.add_argument("--h-fine", type=positive_mm, nargs="*", default=[],
+    p.add_argument("--h-fine", type=non_negative_mm, nargs="*", default=[],
                    help="biopsynav's P2 again with tetrahedra of these sizes within 35 mm of "
                         "the probe, mm (h refinement; each below --tet-fine)")
     add_quadrature_argument(p)
@@ -264,8 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-result-file", action="store_true",
                    help="write no file under benchmarks/results (a check, not a benchmark)")
     args = p.parse_args(argv)
-    if any(f >= args.tet_fine for f in args.h_fine):
-        p.error(f"--h-fine: each size below --tet-fine ({args.tet_fine:g} mm): a finer mesh")
+    if not all(0 < f < args.tet_fine for f in args.h_fine):
+        p.error(f"--h-fine: each size above 0 and below --tet-fine ({args.tet_fine:g} mm): a "
+                "finer mesh")
     sys.stdout.reconfigure(line_buffering=True)
     with tempfile.TemporaryDirectory(prefix="agree-") as scratch:  # the phantom, if made
         case, name = load_case(args.case_dir, Path(scratch))
@@ -289,12 +279,11 @@ def agree(case, name: str, args) -> int:
         ng = {o: ngsolve_glued(model, e_mpa, nu, placement, lesion, args.depths, o,
                                args.intorder)
               for o in args.orders}
-        finer, finer_facts = {}, {}
-        for fine in args.h_fine:
-            finer[fine], finer_facts[f"p2_h{fine:g}"] = p2_glued(
-                glued_model(case, e_mpa, nu, placement, args, fine), placement, lesion,
-                args.depths, args)
-        facts[str(li)] = {"p2": p2_facts, **finer_facts,
+        finer = {fine: p2_glued(glued_model(case, e_mpa, nu, placement, args, fine),
+                                placement, lesion, args.depths, args)
+                 for fine in args.h_fine}  # size near the probe -> (answers, facts)
+        facts[str(li)] = {"p2": p2_facts,
+                          **{f"p2_h{fine:g}": f for fine, (_, f) in finer.items()},
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
                              for o, a in ng.items()}}
         parts = ([f"P2 {p2_facts['dofs']} dofs {p2_facts['seconds']:.0f} s"
@@ -303,10 +292,11 @@ def agree(case, name: str, args) -> int:
                     for o, a in ng.items()]
                  + [f"P2 {f['dofs']} dofs, {fine:g} mm near the probe, {f['seconds']:.0f} s"
                     + failed_text(f)
-                    for fine, f in zip(args.h_fine, finer_facts.values(), strict=True)])
+                    for fine, (_, f) in finer.items()])
         print(f"lesion {li} (id {case.anatomy.lesions[li].id}): " + "; ".join(parts),
               flush=True)
-        rows += lesion_rows(li, args.depths, p2, ng, stored, finer)
+        rows += lesion_rows(li, args.depths, p2, ng, stored,
+                            {fine: answers for fine, (answers, _) in finer.items()})
     print_rows(rows, args.orders, args.h_fine)
     higher = [o for o in args.orders if o != 2]
     figures = {"codes_max_mm": largest(rows, "codes_mm"),
