@@ -88,7 +88,10 @@ def check_reference(case_dir: Path, reference: Path) -> None:
         case = as_case(case_dir)
     except BiopsynavError as exc:
         sys.exit(f"pushes_only: {exc}")
-    differs = reference_differences(case, reference, [10.0, 20.0, 30.0])
+    try:
+        differs = reference_differences(case, reference, [10.0, 20.0, 30.0])
+    except ValueError as exc:
+        sys.exit(f"pushes_only: {reference}: {exc}")
     if differs:
         sys.exit(f"pushes_only: {reference} is no stored truth of {case_dir} as truth.py "
                  f"reads it: {', '.join(differs)} differ{'s' if len(differs) == 1 else ''}")

@@ -237,16 +237,18 @@ def summary(rows: list[dict], method: str) -> dict:
 def reference_differences(case: Case, reference: Path, depths: list[float]) -> list[str]:
     """What keeps the truth file ``reference`` from serving ``case`` at ``depths`` (mm) with
     this script's default reference options: the names of the key entries it holds
-    otherwise (all solved again, for hours), or why it is no truth file; [] where it
-    serves."""
+    otherwise (all solved again, for hours); [] where it serves. ValueError saying why when
+    ``reference`` is no readable truth file (JSON with a ``key`` object)."""
     try:
         stored = json.loads(Path(reference).read_text())["key"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        return [f"not a truth file ({exc})"]
+        raise ValueError(f"not a readable truth file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(stored, dict):
+        raise ValueError("not a truth file (its 'key' is no object)")
     args = parser().parse_args([str(case.dir), "--depths", *map(str, depths)])
     e_mpa, nu, _ = reference_material(case)
     wanted = reference_key(case, e_mpa, nu, args)
-    return [k for k, v in wanted.items() if not isinstance(stored, dict) or stored.get(k) != v]
+    return [k for k, v in wanted.items() if stored.get(k) != v]
 
 
 def parser() -> argparse.ArgumentParser:

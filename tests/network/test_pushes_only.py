@@ -36,7 +36,9 @@ def test_the_defaults_are_the_measured_recipe(monkeypatch):
 
 def test_a_truth_truth_py_would_solve_again_is_refused_before_any_work(tmp_path, monkeypatch):
     """The truth's whole key is checked as truth.py reads it: another anatomy, or the
-    phantom's own truth with another depth list, stops the run naming what differs."""
+    phantom's own truth with another depth list, stops the run naming what differs; a file
+    that is no truth file (broken JSON, no key, a key that is no object, none at all) stops
+    it saying so; nothing is written."""
     import json
 
     import pytest
@@ -55,5 +57,14 @@ def test_a_truth_truth_py_would_solve_again_is_refused_before_any_work(tmp_path,
         with pytest.raises(SystemExit, match=f"{key} differs"):
             pushes_only.main([str(tmp_path / "ph"), "--reference", str(other),
                               "--workdir", str(tmp_path / "work")])
+    for name, text in (("broken.json", "{not json"), ("keyless.json", '{"lesions": {}}'),
+                       ("odd-key.json", '{"key": [1], "lesions": {}}')):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(SystemExit, match="not a .*truth file"):
+            pushes_only.main([str(tmp_path / "ph"), "--reference", str(tmp_path / name),
+                              "--workdir", str(tmp_path / "work")])
+    with pytest.raises(SystemExit, match="not a readable truth file"):
+        pushes_only.main([str(tmp_path / "ph"), "--reference", str(tmp_path / "missing.json"),
+                          "--workdir", str(tmp_path / "work")])
     assert not (tmp_path / "work").exists()
     pushes_only.check_reference(tmp_path / "ph", stored)  # the phantom's own: accepted
