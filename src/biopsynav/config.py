@@ -27,6 +27,7 @@ from .layout import CASE_FILE
 from .materials import MATERIAL_LAWS, material_law_names
 from .prior_registry import prior_choices
 from .reference_registry import P2_FRICTIONS, reference_names
+from .teacher_registry import GRID_TEACHER, teacher_names
 
 
 def opt(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
@@ -399,6 +400,24 @@ class DatasetSection:
                                         "logged as 'implausible' and redrawn, and counts "
                                         "against max_failure_share on its own (docs/dataset.md)."
                                         " 0: no check.", lo=0.0, hi=1e6)
+    teacher: str = opt(GRID_TEACHER, "The FE code that solves the samples: 'grid' (default), "
+                                     "the immersed hexahedral FE on the case grid or a finer "
+                                     "one (teacher_refine); 'p2', the P2 tetrahedral FE of "
+                                     "Table 2's truth with its probe (a rigid face holding "
+                                     "the skin it touches at rest; [evaluate] p2_friction, "
+                                     "p2_rim_mm, p2_edge_radius_mm), a gmsh mesh of "
+                                     "teacher_size_mm refined to teacher_fine_mm under each "
+                                     "push, its values at the case grid's nodes: rigid pushes "
+                                     "of one material only (docs/dataset.md, "
+                                     "'The P2 teacher'). [refine] teacher sets it in the refine "
+                                     "case.", choices=teacher_names)
+    teacher_size_mm: float = opt(10.0, "With teacher = 'p2': tetrahedron size away from the "
+                                       "push (mm; [evaluate] p2_size_mm is the truth's).",
+                                 lo=0.5, hi=200.0)
+    teacher_fine_mm: float = opt(8.0, "With teacher = 'p2': tetrahedron size within 35 mm of "
+                                      "the push (mm; the truth's, [evaluate] p2_fine_mm, is 4). "
+                                      "8 (default): a push in seconds on one core (4: minutes; "
+                                      "docs/dataset.md, 'The P2 teacher').", lo=0.5, hi=200.0)
     teacher_refine: float = opt(1.0, "The teacher's grid: each sample is solved on cells this "
                                      "many times smaller than [grid] cell_size_mm (any factor "
                                      "from 1 to 4: 1.46 turns 7.3 mm cells into 5 mm) and "
@@ -573,6 +592,16 @@ class RefineSection:
                                      "extrapolation = 2: the teacher of cases made on "
                                      "2026-11-27, about five times the cost).",
                                 lo=1.0, hi=4.0)
+    teacher: str = opt(GRID_TEACHER, "The refine pushes' FE code ([dataset] teacher of the "
+                                     "refine case): 'grid' (default), the hexahedral FE of "
+                                     "teacher_refine; 'p2', the P2 tetrahedral FE of Table 2's "
+                                     "truth on its own mesh (teacher_size_mm, "
+                                     "teacher_fine_mm; docs/dataset.md, 'The P2 teacher'). "
+                                     "One material only.", choices=teacher_names)
+    teacher_size_mm: float = opt(10.0, "With teacher = 'p2': [dataset] teacher_size_mm of the "
+                                       "refine case.", lo=0.5, hi=200.0)
+    teacher_fine_mm: float = opt(8.0, "With teacher = 'p2': [dataset] teacher_fine_mm of the "
+                                      "refine case.", lo=0.5, hi=200.0)
     extrapolation: float = opt(0.0, "Richardson extrapolation order of the refine pushes "
                                     "([dataset] teacher_extrapolation of the refine case), "
                                     "with teacher_refine > 1: each is solved on the case grid "
@@ -891,6 +920,23 @@ def is_finite_number(value: Any) -> bool:
             and math.isfinite(value))
 
 
+def _check_teachers(cfg: CaseConfig, where: str) -> None:
+    """InputError for a teacher other than the grid's asked with a finer grid or force
+    patches, which it does not solve."""
+    for key, teacher, refine, rigid in (
+            ("[dataset]", cfg.dataset.teacher, cfg.dataset.teacher_refine,
+             cfg.probe.rigid_share),
+            ("[refine]", cfg.refine.teacher, cfg.refine.teacher_refine, 1.0)):
+        if teacher == GRID_TEACHER:
+            continue
+        if refine != 1:
+            raise InputError(f"{key} teacher = {teacher!r} solves its own mesh: teacher_refine "
+                             f"(now {refine:g}) is the grid teacher's; set it to 1", where)
+        if rigid < 1:
+            raise InputError(f"{key} teacher = {teacher!r} solves rigid pushes only: set "
+                             f"[probe] rigid_share = 1 (now {rigid:g})", where)
+
+
 def _check_special(cfg: CaseConfig, where: str) -> None:
     fp = cfg.probe.footprint_mm
     if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
@@ -908,6 +954,7 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
         raise InputError("[refine] extrapolation extrapolates from the case grid and a finer "
                          "teacher: set [refine] teacher_refine > 1 too, or extrapolation = 0 "
                          "(the case grid's own rigid pushes)", where)
+    _check_teachers(cfg, where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)

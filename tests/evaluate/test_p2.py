@@ -854,3 +854,22 @@ def test_a_failed_lesion_is_solved_again_on_request_from_its_last_answer(coarse_
     stored = json.loads(ref_file.read_text())["lesions"]["0"]
     assert stored["failure"] == "" and stored["displacement"][1] is not None
     assert not kept.exists()
+
+
+def test_points_are_found_in_their_tetrahedron_or_said_to_lie_outside(cube):
+    """The interpolation looks each point up among nearby tetrahedra: every point of the
+    cube is found (its value of a quadratic field exact), every point outside is marked and
+    gets an empty row, and the one-point form raises for it."""
+    rng = np.random.default_rng(5)
+    inside_pts = rng.uniform(-14.9, 14.9, (400, 3))
+    outside_pts = rng.uniform(15.1, 30.0, (50, 3)) * rng.choice([-1.0, 1.0], (50, 3))
+    points = np.vstack([inside_pts, outside_pts])
+    matrix, inside = cube.interpolation(points)
+    assert inside[:400].all() and not inside[400:].any()
+    field = cube.nodes[:, :1] ** 2 + cube.nodes[:, 1:2] * cube.nodes[:, 2:3]
+    np.testing.assert_allclose((matrix @ field)[:400, 0],
+                               inside_pts[:, 0] ** 2 + inside_pts[:, 1] * inside_pts[:, 2],
+                               atol=1e-9)
+    assert matrix[400:].nnz == 0
+    with pytest.raises(ValueError, match="outside the tetrahedral mesh"):
+        cube._interpolation(outside_pts[:1])

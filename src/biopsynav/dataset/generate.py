@@ -27,6 +27,7 @@ from ..case import Case, as_case
 from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
+from ..teacher_registry import GRID_TEACHER, teacher_builder
 from .grow import grow_store, growth_summary, sizes_alone_differ
 from .pool import WorkerProcesses
 from .store import (
@@ -145,7 +146,7 @@ def working_case(case: Case, store: DatasetStore, workers: int = 1) -> Case:
 def preflight(case: Any) -> None:
     """Raise here, in the main process, what every worker would raise while setting up (a skin
     vertex outside the active cells, no push centre, pushes near lesions of a case without
-    any), instead of a pool that keeps crashing."""
+    any, a teacher that cannot teach the case), instead of a pool that keeps crashing."""
     from ..fem.tissues import label_tissues
     from ..grid.embedding import surface_embedding
     from ..probe import check_lesion_share, eligible_centers
@@ -154,6 +155,8 @@ def preflight(case: Any) -> None:
     surface_embedding(case.grid, case.anatomy)
     eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
     check_lesion_share(case.anatomy, case.cfg.probe)
+    if case.cfg.dataset.teacher != GRID_TEACHER:
+        teacher_builder(case.cfg.dataset.teacher).check(case)
 
 
 def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool

@@ -40,6 +40,7 @@ from ..contact.constraints import is_elastic
 from ..errors import FingerprintError, InputError
 from ..fem.teacher import teacher_refinement
 from ..layout import DATASET_NAME
+from ..teacher_registry import GRID_TEACHER, teacher_builder
 
 FORMAT = "biopsynav-dataset/1"
 #: Bump when the protocol (draw order, input encoding) changes: old data is then refused.
@@ -169,7 +170,12 @@ def teacher_protocol(cfg: CaseConfig) -> dict:
     of before ``[dataset] teacher_refine``), else the refinement, the floor of its cells'
     weights (absent from data sets made before ``teacher_min_fraction``: 0.05 then) and how
     its solutions are fitted to the case grid (:data:`TEACHER_FIT`), and the order of a
-    Richardson extrapolation from the case grid's solution (absent when off)."""
+    Richardson extrapolation from the case grid's solution (absent when off). Another
+    teacher (``[dataset] teacher``, :mod:`biopsynav.teacher_registry`): its name and what its
+    answers depend on (its ``protocol(cfg)``)."""
+    if cfg.dataset.teacher != GRID_TEACHER:
+        builder = teacher_builder(cfg.dataset.teacher)
+        return {"teacher": cfg.dataset.teacher, "teacher_protocol": builder.protocol(cfg)}
     refine = teacher_refinement(cfg)
     if refine == 1:
         return {}

@@ -80,6 +80,16 @@ class SampleContext:
             from ..contact.greens import ContactCompliance
 
             self.compliance = ContactCompliance.from_case(case)
+        self.converged = converged_teacher(case)
+
+
+def converged_teacher(case: Any) -> Any:
+    """The solver of ``[dataset] teacher`` when it is not the grid FE
+    (:mod:`biopsynav.teacher_registry`), else None."""
+    from ..teacher_registry import GRID_TEACHER, teacher_builder
+
+    name = case.cfg.dataset.teacher
+    return None if name == GRID_TEACHER else teacher_builder(name)(case)
 
 
 def sample_solver_settings(case: Any) -> Any:
@@ -136,13 +146,13 @@ def solve_draw(ctx: SampleContext, push: Any, index: int, redraw: int) -> dict:
     """Solve and package one draw ``push`` of sample ``index`` (``redraw``: its same-place
     redraws before it); the dict of :func:`compute_sample` without ``too_deep_before``."""
     from ..errors import SolverError
-    from ..grid.index import field_to_tensor
-    from ..probe import contact_input
 
     contact, loaded = ctx.skin[push.contact], ctx.teacher.skin.matrix[push.contact]
     start = time.perf_counter()
     result: dict[str, Any] = {"index": int(index), "attempt": int(push.attempt),
                               "redraw": int(redraw), **push_metadata(push)}
+    if ctx.converged is not None:
+        return converged_draw(ctx, push, result, start)
     try:  # an extrapolating teacher's case grid first: it costs a fraction of the fine solve
         u_case = case_grid_solution(ctx, push)
         rejected = case_grid_rejection(ctx, u_case)
@@ -164,10 +174,46 @@ def solve_draw(ctx: SampleContext, push: Any, index: int, redraw: int) -> dict:
         rejected = extrapolation_rejection(ctx, u, u_case)
     if rejected is not None:
         return rejected_result(result, rejected, probe_disp, report.iterations, start)
-    node_disp = np.linalg.norm(u, axis=1)
     # the input from the stored field at the contact points (a refined teacher's field as
     # fitted to the case grid; on the case grid, contact_u itself), so that training
     # rebuilds it from the target
+    return kept_result(ctx, push, result, u, probe_disp, report.iterations,
+                       report.residual_rel, start)
+
+
+def converged_draw(ctx: SampleContext, push: Any, result: dict, start: float) -> dict:
+    """``result`` (the draw's record, started at ``start``, ``time.perf_counter`` s) with
+    ``push`` answered by the teacher of ``[dataset] teacher`` (:attr:`SampleContext.
+    converged`), its field on the case grid: kept unless it is not answered (recorded as
+    :data:`NOT_CONVERGED`) or stretches a case-grid cell beyond ``[dataset]
+    max_edge_stretch``. Its Newton iterations are not counted (``newton_iters`` and
+    ``residual`` 0)."""
+    from ..evaluate.p2 import PushTimeout
+
+    contact = ctx.skin[push.contact]
+    try:
+        answer = ctx.converged.solve(push)
+    except (FloatingPointError, RuntimeError, PushTimeout) as exc:
+        result.update(ok=False, kind=NOT_CONVERGED, error=f"{ctx.case.cfg.dataset.teacher} "
+                      f"teacher: {exc or type(exc).__name__}",
+                      solve_s=time.perf_counter() - start, diagnostics=[], newton_iters=0)
+        return result
+    probe_disp = probe_displacement(face_motion(ctx, push, contact @ answer.field))
+    why = implausible(ctx.model, answer.field, ctx.case.cfg.dataset.max_edge_stretch)
+    if why:
+        return rejected_result(result, (IMPLAUSIBLE, why), probe_disp, 0, start)
+    return kept_result(ctx, push, result, answer.field, probe_disp, 0, 0.0, start)
+
+
+def kept_result(ctx: SampleContext, push: Any, result: dict, u: np.ndarray,
+                probe_disp: float, iterations: int, residual: float, start: float) -> dict:
+    """``result`` of a kept draw: the network input built from the case-grid field ``u``
+    (n_nodes, 3) mm at the contact points, the target ``u``, and the per-sample record."""
+    from ..grid.index import field_to_tensor
+    from ..probe import contact_input
+
+    contact = ctx.skin[push.contact]
+    node_disp = np.linalg.norm(u, axis=1)
     result.update(
         ok=True,
         inputs=field_to_tensor(contact_input(contact, face_motion(ctx, push, contact @ u),
@@ -178,8 +224,8 @@ def solve_draw(ctx: SampleContext, push: Any, index: int, redraw: int) -> dict:
         max_disp_mm=float(node_disp.max()),
         mean_disp_mm=float(node_disp[ctx.active].mean()),
         probe_disp_mm=probe_disp,
-        newton_iters=int(report.iterations),
-        residual=float(report.residual_rel),
+        newton_iters=int(iterations),
+        residual=float(residual),
         solve_s=float(time.perf_counter() - start),
     )
     return result

@@ -94,6 +94,10 @@ SURFACE_TOL_MM = 0.05
 #: a load step that had to be halved makes the next half as long, at most this many times
 #: in a row (:meth:`TetReference._load_steps`)
 SHORTER_STEPS = 3
+#: A point is looked for first among the tetrahedra whose centroids are this many nearest it
+#: (:meth:`TetReference.interpolation`), then among all within the largest one's reach
+LOCATE_CANDIDATES = 16
+LOCATE_CHUNK = 400_000  # point-candidate pairs a chunk of the search holds
 
 
 def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
@@ -890,21 +894,82 @@ class TetReference:
 
     def _interpolation(self, points: np.ndarray) -> sp.csr_matrix:
         """(k, n) P2 interpolation at ``points`` (k, 3) mm; ValueError outside the mesh."""
+        matrix, inside = self.interpolation(points)
+        if not inside.all():
+            raise ValueError(f"point {points[np.flatnonzero(~inside)[0]]} lies outside the "
+                             "tetrahedral mesh")
+        return matrix
+
+    def interpolation(self, points: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+        """The P2 interpolation (k, n) at ``points`` (k, 3) mm and which of them lie in the
+        mesh, (k,) bool (the rows of the others are empty)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        element, bary = self._locate(points)
+        inside = element >= 0
+        rows = np.repeat(np.flatnonzero(inside), 10)
+        cols = self.elements[element[inside]].ravel()
+        vals = shape_values(bary[inside]).ravel()
+        matrix = sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
+        return matrix, inside
+
+    def _locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The element (k,) holding each of ``points`` (k, 3) mm (-1: none) and the point's
+        barycentric coordinates (k, 4) in it: among the :data:`LOCATE_CANDIDATES` nearest
+        centroids, then, for a point not found there, among every tetrahedron whose centroid
+        lies within the largest tetrahedron's reach of it."""
+        k = min(LOCATE_CANDIDATES, len(self.corners))
+        element, bary = self._locate_among(points, k)
+        for i in np.flatnonzero(element < 0):
+            cand = np.asarray(self._centroid_tree.query_ball_point(points[i], self._reach),
+                              dtype=np.int64)
+            if cand.size:
+                found, lam = self._best_of(points[i][None], cand[None])
+                element[i], bary[i] = found[0], lam[0]
+        return element, bary
+
+    def _locate_among(self, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_locate` among the ``k`` tetrahedra whose centroids are nearest each point
+        (in chunks, so that memory stays bounded)."""
+        element = np.full(len(points), -1, dtype=np.int64)
+        bary = np.zeros((len(points), 4))
+        chunk = max(1, LOCATE_CHUNK // k)
+        for start in range(0, len(points), chunk):
+            x = points[start:start + chunk]
+            _, cand = self._centroid_tree.query(x, k=k)
+            rows = slice(start, start + len(x))
+            element[rows], bary[rows] = self._best_of(x, np.asarray(cand).reshape(len(x), k))
+        return element, bary
+
+    def _best_of(self, x: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Of the candidate tetrahedra ``cand`` (m, k) of each point ``x`` (m, 3) mm, the
+        one holding it (-1: none) and its barycentric coordinates (m, 4)."""
+        lam = np.einsum("ckij,ckj->cki", self._inverse_edges[cand],
+                        x[:, None, :] - self.nodes[self.corners[cand, 0]])
+        full = np.concatenate([1.0 - lam.sum(axis=2, keepdims=True), lam], axis=2)
+        score = full.min(axis=2)
+        best = np.argmax(score, axis=1)
+        rows = np.arange(len(x))
+        ok = score[rows, best] >= -1e-9
+        return np.where(ok, cand[rows, best], -1), full[rows, best]
+
+    @cached_property
+    def _centroid_tree(self) -> Any:
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.nodes[self.corners].mean(axis=1))
+
+    @cached_property
+    def _inverse_edges(self) -> np.ndarray:
+        """(t, 3, 3): maps ``x - x0`` to the barycentric coordinates 1-3 of each tetrahedron."""
         p, t = self.nodes, self.corners
-        e = p[t[:, 1:]] - p[t[:, :1]]  # (t, 3, 3) edge vectors as rows
-        inv = np.linalg.inv(e.transpose(0, 2, 1))
-        rows, cols, vals = [], [], []
-        for i, x in enumerate(points):
-            lam = np.einsum("tij,tj->ti", inv, x - p[t[:, 0]])
-            bary = np.hstack([1.0 - lam.sum(axis=1, keepdims=True), lam])
-            inside = np.flatnonzero(bary.min(axis=1) >= -1e-9)
-            if inside.size == 0:
-                raise ValueError(f"point {x} lies outside the tetrahedral mesh")
-            el = inside[0]
-            rows += [i] * 10
-            cols += list(self.elements[el])
-            vals += list(shape_values(bary[el][None])[0])
-        return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), len(self.nodes)))
+        return np.linalg.inv((p[t[:, 1:]] - p[t[:, :1]]).transpose(0, 2, 1))
+
+    @cached_property
+    def _reach(self) -> float:
+        """The largest distance (mm) from a tetrahedron's centroid to one of its corners."""
+        corners = self.nodes[self.corners]
+        return float(np.linalg.norm(corners - corners.mean(axis=1, keepdims=True),
+                                    axis=2).max())
 
 
 class _SymmetricSolver:

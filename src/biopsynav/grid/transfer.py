@@ -9,6 +9,10 @@ centre of every fine active cell, weighted by its tissue volume), with a small p
 differences between neighbouring nodes so that nodes the tissue barely touches follow their
 neighbours. Fixed (chest-wall) nodes stay zero. The operator is factorised once per grid pair.
 
+A field known at some nodes only (the P2 teacher's, :mod:`biopsynav.dataset.converged`: its
+value at the nodes inside its tetrahedral mesh) reaches the other active nodes by
+:func:`harmonic_extension`.
+
 Given the contact points of a rigid probe, the fit also holds them (``held``): the case-grid
 field moves them as the fine field does, so that the network input built from a stored target
 is the contact displacement the tracker measures. Without it the least-squares fit smooths
@@ -107,6 +111,45 @@ class FieldTransfer:
         soft = HOLD_SOFTNESS * float(np.mean(np.diag(schur)))
         gap = target - c @ values
         return values + y @ np.linalg.solve(schur + soft * np.eye(len(schur)), gap)
+
+
+def harmonic_extension(grid: Grid, field: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``field`` (n_nodes, 3) mm kept at the ``known`` nodes (n_nodes,) bool and zero at the
+    fixed ones, carried to the other active nodes as smoothly as the grid's edges allow (the
+    sum of squared differences along edges between active nodes made least: a discrete
+    Laplace equation, so that a carried value never exceeds the known ones around it);
+    inactive nodes zero."""
+    known = np.asarray(known, dtype=bool) & ~np.asarray(grid.fixed_nodes).ravel()
+    active = np.asarray(grid.active_nodes).ravel()
+    unknown = np.flatnonzero(active & ~known & ~np.asarray(grid.fixed_nodes).ravel())
+    out = np.where(known[:, None], np.asarray(field, dtype=np.float64), 0.0)
+    if not unknown.size:
+        return out
+    col = np.full(grid.n_nodes, -1, dtype=np.int64)
+    col[unknown] = np.arange(len(unknown))
+    diff = neighbour_differences(grid, col, len(unknown))  # rows u_a - u_b, unknown columns
+    given = _edge_values(grid, col, out)  # the known end of each such edge (0 for none)
+    lhs = (diff.T @ diff).tocsc()
+    lhs = lhs + sp.identity(len(unknown), format="csc") * 1e-9 * float(lhs.diagonal().mean())
+    out[unknown] = splu(lhs).solve(np.asarray(diff.T @ given))
+    return out
+
+
+def _edge_values(grid: Grid, col: np.ndarray, field: np.ndarray) -> np.ndarray:
+    """(n_edges, 3): for each edge row of :func:`neighbour_differences` (the same order),
+    minus the value of its end that is not a column (known or fixed: ``field`` there), so
+    that ``diff @ x - values`` is ``u_a - u_b`` along every edge."""
+    active = np.asarray(grid.active_nodes).ravel()
+    flat = np.arange(grid.n_nodes).reshape(grid.node_shape)
+    rows = []
+    for axis in range(3):
+        a = np.moveaxis(flat, axis, 0)[:-1].ravel()
+        b = np.moveaxis(flat, axis, 0)[1:].ravel()
+        keep = active[a] & active[b] & ((col[a] >= 0) | (col[b] >= 0))
+        a, b = a[keep], b[keep]
+        rows.append(np.where((col[a] < 0)[:, None], field[a], 0.0)
+                    - np.where((col[b] < 0)[:, None], field[b], 0.0))
+    return -np.concatenate(rows)
 
 
 def fine_cell_samples(fine: Grid) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:

@@ -1,0 +1,145 @@
+"""The P2 teacher (``[dataset] teacher = "p2"``, set by ``[refine] teacher``): rigid pushes
+solved by the P2 tetrahedral FE of Table 2's truth, brought to the case grid.
+
+Each push gets its own gmsh mesh, ``[dataset] teacher_fine_mm`` tetrahedra within 35 mm of
+the push's centre and ``teacher_size_mm`` elsewhere (:meth:`biopsynav.evaluate.p2.
+TetReference.build`, as the truth meshes each probe placement), the probe the truth's (a
+rigid face holding the skin it touches at rest; ``[evaluate] p2_friction``, ``p2_rim_mm``,
+``p2_edge_radius_mm``), the material the case's default tissue (one material). The push's
+rest pose is the face of the grid teacher's draw (its long axis, the centre's outward normal)
+and it moves by the draw's displacement without turning, as the grid teacher's contact
+points do.
+
+The answer reaches the case grid as its value at every active node inside the tetrahedral
+mesh, carried to the active nodes outside it (in cells the skin cuts) by
+:func:`biopsynav.grid.transfer.harmonic_extension`: no value beyond those around it. (A
+least-squares fit over the tissue holding the contact points, as the grid teacher's finer
+grids are fitted, flung the nodes of nearly empty cells to 2-4 times the push on the
+phantom.) The network's input does not read the target (elastic contact: the face's own
+motion). A push still solving after :data:`PUSH_LIMIT_S` is given up and redrawn like a
+push that did not converge.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+#: How an answer reaches the case grid (in the data set's protocol)
+TO_CASE_GRID = "values at the nodes in the mesh, harmonic extension to the others"
+#: A push still solving after this many seconds is given up (recorded as not converged)
+PUSH_LIMIT_S = 1800.0
+
+
+@dataclass
+class P2Answer:
+    """A push answered by :class:`P2Teacher`: the field on the case grid (n_nodes, 3) mm,
+    the unknowns of its mesh, its tetrahedra folded over at a node, and seconds spent."""
+
+    field: np.ndarray
+    dofs: int
+    folded: int
+    seconds: float
+
+
+class P2Teacher:
+    """Rigid pushes of one case solved by the P2 truth's FE (module docstring)."""
+
+    def __init__(self, case: Any) -> None:
+        self.check(case)
+        self.case = case
+        self.e_mpa, self.nu = _one_material(case)
+        self.nodes = case.grid.node_coords()
+        self.active = np.flatnonzero(np.asarray(case.grid.active_nodes).ravel())
+
+    @staticmethod
+    def check(case: Any) -> None:
+        """InputError when gmsh does not import or the case has several materials."""
+        from ..evaluate.references import require_gmsh
+
+        require_gmsh()
+        _one_material(case)
+
+    @staticmethod
+    def protocol(cfg: Any) -> dict:
+        """What its answers depend on beside the case's anatomy, grid and material: the
+        truth's mesh sizes and probe (:func:`biopsynav.evaluate.p2.probe_key`), the fit."""
+        from ..evaluate.p2 import probe_key
+
+        ev, data = cfg.evaluate, cfg.dataset
+        return {"size_mm": float(data.teacher_size_mm), "fine_mm": float(data.teacher_fine_mm),
+                **probe_key(cfg.probe, str(ev.p2_friction), float(ev.p2_rim_mm),
+                            float(ev.p2_edge_radius_mm)),
+                "to_case_grid": TO_CASE_GRID, "push_limit_s": PUSH_LIMIT_S}
+
+    def solve(self, push: Any) -> P2Answer:
+        """``push`` (a rigid :class:`biopsynav.probe.ProbePush`) on its own P2 mesh, fitted
+        to the case grid (:meth:`_on_case_grid`); raises FloatingPointError, RuntimeError or
+        :class:`~biopsynav.evaluate.p2.PushTimeout` when it is not answered."""
+        start = time.perf_counter()
+        model, rest = self._model(push)
+        ev, probe = self.case.cfg.evaluate, self.case.cfg.probe
+        contact = model.contact(rest, probe.footprint, probe.contact_tolerance_mm,
+                                str(ev.p2_friction))
+        pose = rest.copy()
+        pose[:3, 3] += push.displacement
+        model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=probe.footprint,
+                   edge_radius_mm=float(ev.p2_edge_radius_mm), time_limit_s=PUSH_LIMIT_S)
+        field = self._on_case_grid(model)
+        return P2Answer(field, model.n_dofs, len(model.tangled(model.last)),
+                        time.perf_counter() - start)
+
+    def _on_case_grid(self, model: Any) -> np.ndarray:
+        """The last push of ``model`` on the case grid (n_nodes, 3) mm: its value at every
+        active node inside the mesh, carried to the others by
+        :func:`~biopsynav.grid.transfer.harmonic_extension`."""
+        from ..grid.transfer import harmonic_extension
+
+        matrix, inside = model.interpolation(self.nodes[self.active])
+        field = np.zeros((self.case.grid.n_nodes, 3))
+        field[self.active] = matrix @ model.last
+        known = np.zeros(self.case.grid.n_nodes, dtype=bool)
+        known[self.active] = inside
+        return harmonic_extension(self.case.grid, field, known)
+
+    def _model(self, push: Any) -> tuple[Any, np.ndarray]:
+        """The P2 model meshed for ``push`` and the face's rest pose (4, 4): axes the push's
+        long axis and the centre's inward normal (the beam), origin the centre."""
+        from ..evaluate.p2 import TetReference, rim_at
+
+        ev, probe = self.case.cfg.evaluate, self.case.cfg.probe
+        rest = face_rest_pose(push)
+        data = self.case.cfg.dataset
+        model = TetReference.build(self.case.anatomy, float(data.teacher_size_mm), self.e_mpa,
+                                   self.nu, fine_at=rest[:3, 3],
+                                   fine_mm=float(data.teacher_fine_mm),
+                                   rim=rim_at(rest, probe.footprint, float(ev.p2_rim_mm)))
+        return model, rest
+
+
+def face_rest_pose(push: Any) -> np.ndarray:
+    """The probe pose (4, 4) of a drawn push at rest: x the face's long axis, z the beam
+    (into the tissue, against the centre's outward normal), origin the centre (mm)."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([push.long_axis, -push.short_axis, -push.normal])
+    pose[:3, 3] = push.center
+    return pose
+
+
+def _one_material(case: Any) -> tuple[float, float]:
+    """E (MPa) and nu of the case's default tissue; InputError when its grid mixes tissues
+    of other materials (the P2 FE has one)."""
+    from ..evaluate.references import default_tissue_material, other_materials
+
+    others = other_materials(case)
+    if others:
+        raise InputError("the P2 teacher has one material, and this case's grid mixes tissues "
+                         f"of other materials ({', '.join(others)} beside "
+                         f"{case.cfg.material.default_tissue}); use teacher = \"grid\"",
+                         "[dataset] teacher")
+    return default_tissue_material(case)

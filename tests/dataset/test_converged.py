@@ -1,0 +1,153 @@
+"""The P2 teacher (``[dataset] teacher = "p2"``): its samples are the P2 answer on the case grid,
+the same through local workers, a Dask cluster and a resume after a kill; what it cannot
+teach is refused before any work."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from dataset_helpers import edit_config
+from test_generate import count_done, start_generate, wait_for_done
+
+from biopsynav.case import Case
+from biopsynav.config import load_config
+from biopsynav.dataset.converged import face_rest_pose
+from biopsynav.dataset.generate import generate_case
+from biopsynav.dataset.worker import SampleContext
+from biopsynav.errors import InputError
+from biopsynav.evaluate.p2 import TetReference
+from biopsynav.evaluate.references import default_tissue_material
+from biopsynav.grid.index import tensor_to_field
+from biopsynav.probe import push_for_sample
+
+pytest.importorskip("gmsh")
+
+N_TRAIN, N_TEST = 5, 1
+N = N_TRAIN + N_TEST
+
+
+def p2_settings(case_dir: Path) -> None:
+    """Every push rigid, solved by the P2 teacher on coarse tetrahedra (seconds a push)."""
+    edit_config(case_dir, probe={"rigid_share": 1.0},
+                dataset={"teacher": "p2", "teacher_size_mm": 25.0, "teacher_fine_mm": 12.0,
+                         "n_train": N_TRAIN, "n_test": N_TEST})
+
+
+@pytest.fixture(scope="module")
+def p2_base(base_case: Path, tmp_path_factory) -> Path:
+    dst = tmp_path_factory.mktemp("p2") / "base"
+    shutil.copytree(base_case, dst)
+    p2_settings(dst)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def p2_reference(p2_base: Path, tmp_path_factory) -> Path:
+    """The P2-taught data set made by two local workers, uninterrupted."""
+    dst = tmp_path_factory.mktemp("p2ref") / "case"
+    shutil.copytree(p2_base, dst)
+    summary = generate_case(dst, workers=2, progress=False)
+    assert summary["count"] == N
+    return dst
+
+
+@pytest.fixture
+def p2_fresh(p2_base: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "case"
+    shutil.copytree(p2_base, dst)
+    return dst
+
+
+def test_a_sample_is_the_p2_answer_at_the_nodes_in_the_mesh(p2_reference):
+    """The stored target is the P2 push's value at every active node inside its mesh (the
+    same push solved again here), and no node outside it moves further than those."""
+    case = Case.load(p2_reference)
+    cfg = case.cfg
+    g = zarr.open_group(str(p2_reference / "dataset.zarr"), mode="r")
+    i = 0
+    ctx = SampleContext(case)
+    push = push_for_sample(case.anatomy, cfg.probe, cfg.dataset.seed, i, int(g["attempt"][i]),
+                           ctx.centers, pinned=ctx.pinned, training=True)
+    rest = face_rest_pose(push)
+    e_mpa, nu = default_tissue_material(case)
+    model = TetReference.build(case.anatomy, 25.0, e_mpa, nu, fine_at=rest[:3, 3], fine_mm=12.0)
+    contact = model.contact(rest, cfg.probe.footprint, cfg.probe.contact_tolerance_mm)
+    pose = rest.copy()
+    pose[:3, 3] += push.displacement
+    model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=cfg.probe.footprint)
+    active = np.flatnonzero(case.grid.active_nodes.ravel() & ~case.grid.fixed_nodes.ravel())
+    matrix, inside = model.interpolation(case.grid.node_coords()[active])
+    stored = tensor_to_field(g["targets"][i]).astype(np.float64)
+    assert inside.sum() > 10 and (~inside).sum() > 0
+    np.testing.assert_allclose(stored[active[inside]], (matrix @ model.last)[inside], atol=1e-4)
+    moved = np.linalg.norm(stored, axis=1)
+    assert moved[active[~inside]].max() <= moved[active[inside]].max() + 1e-4
+    assert g["probe_disp_mm"][i] == pytest.approx(push.push_mm, rel=1e-6)
+    assert np.all(g["targets"][i][:, ~case.grid.active_nodes] == 0)
+
+
+def test_local_workers_and_a_local_cluster_give_the_same_samples(p2_fresh, p2_reference,
+                                                                 assert_same_dataset):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        summary = generate_case(p2_fresh, scheduler=cluster.scheduler_address,
+                                progress=False)
+    assert summary["count"] == N
+    assert_same_dataset(p2_fresh, p2_reference)
+
+
+def test_a_killed_run_resumes_to_the_same_samples(p2_fresh, p2_reference, tmp_path,
+                                                  assert_same_dataset):
+    proc = start_generate(p2_fresh, tmp_path, workers=1)
+    wait_for_done(proc, p2_fresh, 1)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    at_kill = count_done(p2_fresh)
+    assert at_kill < N, "the kill came too late to interrupt the run"
+    summary = generate_case(p2_fresh, workers=2, progress=False)
+    assert summary["computed_this_run"] == N - at_kill
+    assert_same_dataset(p2_fresh, p2_reference)
+
+
+def test_the_teacher_is_part_of_the_protocol(p2_reference, tmp_path):
+    """A P2-taught data set is another data set: the grid teacher's run refuses it."""
+    from biopsynav.errors import FingerprintError
+
+    dst = tmp_path / "case"
+    shutil.copytree(p2_reference, dst)
+    edit_config(dst, dataset={"teacher": "grid"})
+    with pytest.raises(FingerprintError):
+        generate_case(dst, workers=1, progress=False)
+
+
+@pytest.mark.parametrize("edit, words", [
+    ({"dataset": {"teacher_refine": 2.0}}, "teacher_refine"),
+    ({"probe": {"rigid_share": 0.5}}, "rigid_share = 1"),
+])
+def test_what_the_p2_teacher_does_not_solve_is_refused_in_the_config(p2_fresh, edit, words):
+    with pytest.raises(InputError, match=words):
+        edit_config(p2_fresh, **edit)
+        load_config(p2_fresh)
+
+
+def test_a_case_of_several_materials_is_refused_before_any_work(ucdavis_dir, tmp_path):
+    """The P2 FE has one material: a case of fat and gland is refused by `generate`, naming
+    the teacher, before a worker starts."""
+    from biopsynav.cli import main
+
+    case_dir = tmp_path / "ud"
+    assert main(["init", str(case_dir), "--surface", str(ucdavis_dir / "volmesh3.vtk"),
+                 "--tissue-labels", "1=fat,2=gland,3=fat", "--cell-size", "15"]) == 0
+    edit_config(case_dir, probe={"rigid_share": 1.0}, dataset={"teacher": "p2"})
+    with pytest.raises(InputError, match="one material") as err:
+        generate_case(case_dir, workers=1, progress=False)
+    assert "[dataset] teacher" in str(err.value)
+    assert not (case_dir / "dataset.zarr").exists()
