@@ -151,3 +151,45 @@ def test_a_case_of_several_materials_is_refused_before_any_work(ucdavis_dir, tmp
         generate_case(case_dir, workers=1, progress=False)
     assert "[dataset] teacher" in str(err.value)
     assert not (case_dir / "dataset.zarr").exists()
+
+
+def test_the_cost_benchmark_times_a_local_cluster_and_extrapolates(base_case, tmp_path):
+    """``benchmarks/p2_teacher.py`` on the coarse phantom: its pushes solved through a
+    LocalCluster, per-push figures, and the larger clusters' wall times from them
+    (``N (solve + overhead) / workers``)."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    bench = root / "benchmarks"
+    proc = subprocess.run(
+        [sys.executable, str(bench / "p2_teacher.py"), str(base_case), "--samples", "3",
+         "--workers", "1", "--fine", "12", "--size", "25", "--no-result-file"],
+        capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("RESULT push_s_mean="), last
+    values = dict(item.split("=") for item in last.split()[1:])
+    push, overhead = float(values["push_s_mean"]), float(values["overhead_s"])
+    assert push > 0 and overhead >= 0
+    assert float(values["est_16w_400_min"]) == pytest.approx(
+        400 * (push + overhead) / 16 / 60, rel=0.02, abs=0.1)
+    assert "3 pushes" in proc.stdout
+    bad = subprocess.run([sys.executable, str(bench / "p2_teacher.py"), "--fine", "20",
+                          "--size", "10"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--fine <= --size" in bad.stderr
+
+
+def test_a_push_the_p2_teacher_does_not_answer_is_recorded_as_not_converged(p2_base,
+                                                                            monkeypatch):
+    """An element inverting (or the time limit passing) in the P2 push is a draw that did
+    not converge, named after the teacher, which the run then redraws."""
+    from biopsynav.dataset import worker
+
+    def inverted(*args, **kwargs):
+        raise FloatingPointError("an element inverted")
+
+    monkeypatch.setattr(TetReference, "push", inverted)
+    result = worker.compute_sample(SampleContext(Case.load(p2_base)), 0, 0)
+    assert not result["ok"] and result["kind"] == worker.NOT_CONVERGED
+    assert result["error"] == "P2 teacher: an element inverted"

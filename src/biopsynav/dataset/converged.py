@@ -79,8 +79,11 @@ class P2Teacher:
 
     def solve(self, push: Any) -> P2Answer:
         """``push`` (a rigid :class:`biopsynav.probe.ProbePush`) on its own P2 mesh, fitted
-        to the case grid (:meth:`_on_case_grid`); raises FloatingPointError, RuntimeError or
-        :class:`~biopsynav.evaluate.p2.PushTimeout` when it is not answered."""
+        to the case grid (:meth:`_on_case_grid`); SolverError when it is not answered (an
+        element inverted, Newton failed, or :data:`PUSH_LIMIT_S` passed)."""
+        from ..errors import SolverError
+        from ..evaluate.p2 import PushTimeout
+
         start = time.perf_counter()
         model, rest = self._model(push)
         ev, probe = self.case.cfg.evaluate, self.case.cfg.probe
@@ -88,8 +91,12 @@ class P2Teacher:
                                 str(ev.p2_friction))
         pose = rest.copy()
         pose[:3, 3] += push.displacement
-        model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=probe.footprint,
-                   edge_radius_mm=float(ev.p2_edge_radius_mm), time_limit_s=PUSH_LIMIT_S)
+        try:
+            model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=probe.footprint,
+                       edge_radius_mm=float(ev.p2_edge_radius_mm), time_limit_s=PUSH_LIMIT_S)
+        except (FloatingPointError, RuntimeError, PushTimeout) as exc:
+            raise SolverError(f"P2 teacher: {exc or type(exc).__name__}",
+                              "[dataset] teacher") from None
         field = self._on_case_grid(model)
         return P2Answer(field, model.n_dofs, len(model.tangled(model.last)),
                         time.perf_counter() - start)

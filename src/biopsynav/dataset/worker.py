@@ -188,16 +188,13 @@ def converged_draw(ctx: SampleContext, push: Any, result: dict, start: float) ->
     :data:`NOT_CONVERGED`) or stretches a case-grid cell beyond ``[dataset]
     max_edge_stretch``. Its Newton iterations are not counted (``newton_iters`` and
     ``residual`` 0)."""
-    from ..evaluate.p2 import PushTimeout
+    from ..errors import SolverError
 
     contact = ctx.skin[push.contact]
     try:
         answer = ctx.converged.solve(push)
-    except (FloatingPointError, RuntimeError, PushTimeout) as exc:
-        result.update(ok=False, kind=NOT_CONVERGED, error=f"{ctx.case.cfg.dataset.teacher} "
-                      f"teacher: {exc or type(exc).__name__}",
-                      solve_s=time.perf_counter() - start, diagnostics=[], newton_iters=0)
-        return result
+    except SolverError as exc:
+        return not_converged(result, exc, start)
     probe_disp = probe_displacement(face_motion(ctx, push, contact @ answer.field))
     why = implausible(ctx.model, answer.field, ctx.case.cfg.dataset.max_edge_stretch)
     if why:

@@ -70,7 +70,8 @@ def teacher(data: Dataset) -> dict:
     share of rigid-probe pushes (0: the paper's force patches only) with their contact
     constraints (and the springs' beta of elastic contact, else None), the teacher grid's
     refinement (1: the case grid) and the order of its extrapolation from the case grid
-    (0: none)."""
+    (0: none), and the FE code (``[dataset] teacher``; with another than the grid's, what
+    its answers depend on)."""
     from ..fem.teacher import whole_or_float
 
     protocol = data.attrs.get("protocol") or {}
@@ -83,7 +84,10 @@ def teacher(data: Dataset) -> dict:
             "fem_contact": protocol.get("fe_model", {}).get("fem_contact"),
             "contact_stiffness": protocol.get("fe_model", {}).get("contact_stiffness"),
             "teacher_refine": whole_or_float(dataset.get("teacher_refine", 1)),
-            "teacher_extrapolation": float(dataset.get("teacher_extrapolation", 0.0))}
+            "teacher_extrapolation": float(dataset.get("teacher_extrapolation", 0.0)),
+            "teacher": dataset.get("teacher", "grid"),
+            **({"teacher_protocol": dataset["teacher_protocol"]}
+               if "teacher_protocol" in dataset else {})}
 
 
 def _contact_input(data: Dataset) -> str:

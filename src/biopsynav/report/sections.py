@@ -194,13 +194,21 @@ def refined_table1_blocks(case_dir: Path, cfg: CaseConfig) -> list:
     if t1 is None:
         return []
     return [Note(f"The tracker uses the model trained further on {_num(t1.get('n_samples'))} "
-                 "held-out and the other rigid pushes of its refine teacher ([refine], law "
-                 f"{law_words(cfg.refine.material_model, cfg.refine.fictitious_stiffness)}, "
-                 "refine/eval): mean / max e against that "
+                 "held-out and the other rigid pushes of its refine teacher ([refine], "
+                 f"{refine_teacher_words(cfg)}, refine/eval): mean / max e against that "
                  f"teacher {_num(t1.get('mean_e_mm'))} / {_num(t1.get('max_e_mm'))} mm. The "
                  "table above is the case-grid network it started from, against its own "
                  "teacher, the case grid's force patches, law "
                  f"{law_words(cfg.material.model, cfg.material.fictitious_stiffness)}.")]
+
+
+def refine_teacher_words(cfg: CaseConfig) -> str:
+    """The refine teacher in words: the grid FE's law, or the P2 FE's mesh."""
+    r = cfg.refine
+    if r.teacher == "p2":
+        return (f"the P2 tetrahedral FE, {r.teacher_fine_mm:g} mm tetrahedra near the probe "
+                f"and {r.teacher_size_mm:g} mm elsewhere")
+    return f"law {law_words(r.material_model, r.fictitious_stiffness)}"
 
 
 def table2_section(case_dir: Path, fig_dir: Path) -> Section:

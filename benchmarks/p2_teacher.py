@@ -1,0 +1,158 @@
+"""What the P2 teacher of `[refine]` costs (`[refine] teacher = "p2"`, docs/dataset.md, "The
+P2 teacher"): its rigid pushes solved through a Dask LocalCluster, and what a larger cluster
+would take.
+
+    python benchmarks/p2_teacher.py [CASE] [--samples 24] [--workers 2] [--fine 8]
+                                    [--size 10] [--result-name NAME | --no-result-file]
+
+CASE: a case folder of one material (default: the built-in phantom, made in a temporary
+folder). A copy of its anatomy and grid gets ``[refine] teacher = "p2"`` with ``--samples``
+pushes (one held out), tetrahedra of ``--fine`` mm within 35 mm of each push and ``--size``
+mm elsewhere, and ``generate`` solves them through a ``distributed.LocalCluster`` of
+``--workers`` single-threaded processes (as ``generate --scheduler tcp://...`` does on a
+cluster). Printed: the wall time, each push's solve time (mean, median, 90th percentile),
+the data a push sends back (its input and target arrays), the time a worker spends on a
+push beyond its solve (scheduling, transfer, writing: ``(wall x workers - sum of solves) /
+pushes``), and from these the wall time of N = 50, 100, 200 and 400 pushes on 16 and 64
+workers (``N (solve + overhead) / workers``, the workers' start-up once: the pushes are
+independent, and the store is written by the client alone). Run it alone on the machine.
+
+Writes ``benchmarks/results/p2-teacher-<case>.json``; the last line reads ``RESULT
+push_s_mean=... push_s_p90=... wall_min=... overhead_s=... est_16w_400_min=...
+est_64w_400_min=...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from resultfile import write_result
+from speedprobe import speed_probes
+
+CASE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "inputs")
+ESTIMATE_WORKERS = (16, 64)
+ESTIMATE_PUSHES = (50, 100, 200, 400)
+
+
+def source_case(path: str | None, scratch: Path) -> tuple[Path, str]:
+    """The case to copy and its name: ``path``, or the built-in phantom made in ``scratch``."""
+    from biopsynav.case import make_phantom_case
+
+    if path is None:
+        return make_phantom_case(scratch / "phantom").paths.dir, "phantom"
+    return Path(path), Path(path).name
+
+
+def p2_refine_case(case_dir: Path, work: Path, args: argparse.Namespace) -> Path:
+    """A copy of ``case_dir``'s anatomy and grid whose refine case is taught by P2; the refine
+    case's folder."""
+    from biopsynav.case import Case
+    from biopsynav.config import load_config, save_config
+    from biopsynav.refine import refine_case
+
+    work.mkdir(parents=True)
+    for name in CASE_FILES:
+        src = case_dir / name
+        if src.is_dir():
+            shutil.copytree(src, work / name)
+        elif src.is_file():
+            shutil.copy2(src, work / name)
+    cfg = load_config(work)
+    cfg.refine.teacher, cfg.refine.samples, cfg.refine.held_out = "p2", args.samples, 1
+    cfg.refine.teacher_fine_mm, cfg.refine.teacher_size_mm = args.fine, args.size
+    save_config(work, cfg)
+    return refine_case(Case.load(work)).paths.dir
+
+
+def solve_through_cluster(refine_dir: Path, workers: int) -> tuple[float, dict]:
+    """Generate the refine case's pushes through a LocalCluster: wall seconds, the summary."""
+    from distributed import LocalCluster
+
+    from biopsynav.dataset.generate import generate_case
+
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        start = time.perf_counter()
+        summary = generate_case(refine_dir, scheduler=cluster.scheduler_address,
+                                progress=False)
+        return time.perf_counter() - start, summary
+
+
+def push_figures(refine_dir: Path) -> dict:
+    """Per-push solve seconds (kept pushes), data a push sends back (bytes), failures."""
+    import zarr
+
+    g = zarr.open_group(str(refine_dir / "dataset.zarr"), mode="r")
+    done = g["done"][...]
+    solve = np.asarray(g["solve_s"][...])[done]
+    sample_bytes = 4 * (int(np.prod(g["inputs"].shape[1:])) + int(np.prod(g["targets"].shape[1:])))
+    return {"pushes": int(done.sum()), "failures": len(g.attrs.get("failures", [])),
+            "push_s": solve.tolist(), "push_s_mean": float(solve.mean()),
+            "push_s_median": float(np.median(solve)),
+            "push_s_p90": float(np.percentile(solve, 90)), "sample_bytes": sample_bytes,
+            "probe_disp_mm": np.asarray(g["probe_disp_mm"][...])[done].tolist()}
+
+
+def estimates(push_s: float, overhead_s: float) -> dict:
+    """Minutes for N pushes on W workers: ``N (push_s + overhead_s) / W``."""
+    return {f"{w}w_{n}": n * (push_s + overhead_s) / w / 60.0
+            for w in ESTIMATE_WORKERS for n in ESTIMATE_PUSHES}
+
+
+def print_table(fig: dict, wall_s: float, workers: int, est: dict) -> None:
+    print(f"{fig['pushes']} pushes ({fig['failures']} draws not answered and redrawn) on "
+          f"{workers} workers in {wall_s / 60:.1f} min: a push {fig['push_s_mean']:.1f} s "
+          f"(median {fig['push_s_median']:.1f}, 90 % {fig['push_s_p90']:.1f}); "
+          f"{fig['sample_bytes'] / 1e3:.0f} kB sent back a push; {fig['overhead_s']:.2f} s "
+          "a push beyond its solve")
+    print("estimated wall time (min): " + "; ".join(
+        f"{w} workers: " + ", ".join(f"N={n} {est[f'{w}w_{n}']:.1f}" for n in ESTIMATE_PUSHES)
+        for w in ESTIMATE_WORKERS))
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("case", nargs="?", help="a case folder (default: the built-in phantom)")
+    p.add_argument("--samples", type=int, default=24, help="pushes solved (one held out)")
+    p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes")
+    p.add_argument("--fine", type=float, default=8.0, help="tetrahedra near the push, mm")
+    p.add_argument("--size", type=float, default=10.0, help="tetrahedra elsewhere, mm")
+    p.add_argument("--result-name", help="result file name (default p2-teacher-<case>)")
+    p.add_argument("--no-result-file", action="store_true", help="write no result file")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.samples < 2 or args.workers < 1 or not (0 < args.fine <= args.size):
+        print("error: --samples >= 2, --workers >= 1 and 0 < --fine <= --size",
+              file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix="p2teacher-") as scratch:
+        case_dir, name = source_case(args.case, Path(scratch))
+        refine_dir = p2_refine_case(case_dir, Path(scratch) / "work", args)
+        wall_s, _ = solve_through_cluster(refine_dir, args.workers)
+        fig = push_figures(refine_dir)
+    fig["wall_s"], fig["workers"] = wall_s, args.workers
+    fig["overhead_s"] = max(0.0, (wall_s * args.workers - sum(fig["push_s"])) / fig["pushes"])
+    fig["fine_mm"], fig["size_mm"] = args.fine, args.size
+    est = estimates(fig["push_s_mean"], fig["overhead_s"])
+    fig["estimate_min"] = est
+    print_table(fig, wall_s, args.workers, est)
+    if not args.no_result_file:
+        write_result(args.result_name or f"p2-teacher-{name}", fig, speed_probes=speed_probes())
+    print(f"RESULT push_s_mean={fig['push_s_mean']:.1f} push_s_p90={fig['push_s_p90']:.1f} "
+          f"wall_min={wall_s / 60:.2f} overhead_s={fig['overhead_s']:.2f} "
+          f"est_16w_400_min={est['16w_400']:.1f} est_64w_400_min={est['64w_400']:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
