@@ -9,9 +9,9 @@ centre of every fine active cell, weighted by its tissue volume), with a small p
 differences between neighbouring nodes so that nodes the tissue barely touches follow their
 neighbours. Fixed (chest-wall) nodes stay zero. The operator is factorised once per grid pair.
 
-A field known at some nodes only (the P2 teacher's, :mod:`biopsynav.dataset.converged`: its
-value at the nodes inside its tetrahedral mesh) reaches the other active nodes by
-:func:`harmonic_extension`.
+:class:`PointFit` is the same fit from values at any points (the P2 teacher's,
+:mod:`biopsynav.dataset.converged`, at the cell centres of a finer grid that lie in its
+tetrahedra), each push's points its own.
 
 Given the contact points of a rigid probe, the fit also holds them (``held``): the case-grid
 field moves them as the fine field does, so that the network input built from a stored target
@@ -56,17 +56,24 @@ def refined_grid(anatomy: Anatomy, settings: GridSection, refine: float,
     return build_grid(anatomy, fine, max_fixed_share, chest_tol_mm)
 
 
-class FieldTransfer:
-    """Fine-grid node fields (n_fine_nodes, 3) -> case-grid node fields (n_nodes, 3), mm.
+class PointFit:
+    """Values at points (n_points, 3) mm -> the case-grid node field (n_nodes, 3) mm whose
+    trilinear interpolation is nearest them in the least-squares sense (each point weighted),
+    with the neighbour-difference penalty (``smoothing``, relative to the data term's mean
+    diagonal); ``sample`` (n_points, n_values) CSR, when given, makes the values at the points
+    ``sample @ field`` of a field given instead.
 
     Attributes:
         free: (n_free,) flat case-grid nodes that carry values (active, not fixed).
     """
 
-    def __init__(self, coarse: Grid, fine: Grid, smoothing: float = SMOOTHING) -> None:
-        centres, weight, sample = fine_cell_samples(fine)
-        emb = Embedding.build(coarse, centres, require_active=False, where="teacher grid")
+    def __init__(self, coarse: Grid, points: np.ndarray, weights: np.ndarray,
+                 sample: sp.csr_matrix | None = None, smoothing: float = SMOOTHING,
+                 where: str = "teacher grid") -> None:
+        emb = Embedding.build(coarse, points, require_active=False, where=where)
         keep = coarse.active_cells.ravel()[emb.cells]
+        weight = np.asarray(weights, dtype=np.float64)
+        sample = sp.identity(len(points), format="csr") if sample is None else sample
         self.n_nodes = coarse.n_nodes
         self.free = np.flatnonzero(np.asarray(coarse.active_nodes & ~coarse.fixed_nodes).ravel())
         col = np.full(coarse.n_nodes, -1, dtype=np.int64)
@@ -80,18 +87,19 @@ class FieldTransfer:
 
         self._col = col
 
-    def __call__(self, fine_field: np.ndarray,
+    def __call__(self, values: np.ndarray,
                  held: tuple[sp.spmatrix, np.ndarray] | None = None) -> np.ndarray:
-        """The case-grid field (n_nodes, 3) mm of a fine node field (n_fine_nodes, 3) mm.
+        """The case-grid field (n_nodes, 3) mm of the values (n_values, 3) mm (at the points,
+        or of the field ``sample`` reads them from).
 
         ``held``: (W, g), the trilinear weights (m, n_nodes) of points in the case grid and
         their displacements (m, 3) mm, which the field must reproduce (``W u = g``, as nearly
         as the cells allow) while fitting the rest."""
-        values = self._lu.solve(np.asarray(self._rhs @ np.asarray(fine_field, np.float64)))
+        out_free = self._lu.solve(np.asarray(self._rhs @ np.asarray(values, np.float64)))
         if held is not None and held[0].shape[0]:
-            values = self._held(values, held[0], np.asarray(held[1], np.float64))
+            out_free = self._held(out_free, held[0], np.asarray(held[1], np.float64))
         out = np.zeros((self.n_nodes, 3))
-        out[self.free] = values
+        out[self.free] = out_free
         return out
 
     def _held(self, values: np.ndarray, weights: sp.spmatrix, target: np.ndarray
@@ -113,43 +121,14 @@ class FieldTransfer:
         return values + y @ np.linalg.solve(schur + soft * np.eye(len(schur)), gap)
 
 
-def harmonic_extension(grid: Grid, field: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """``field`` (n_nodes, 3) mm kept at the ``known`` nodes (n_nodes,) bool and zero at the
-    fixed ones, carried to the other active nodes as smoothly as the grid's edges allow (the
-    sum of squared differences along edges between active nodes made least: a discrete
-    Laplace equation, so that a carried value never exceeds the known ones around it);
-    inactive nodes zero."""
-    known = np.asarray(known, dtype=bool) & ~np.asarray(grid.fixed_nodes).ravel()
-    active = np.asarray(grid.active_nodes).ravel()
-    unknown = np.flatnonzero(active & ~known & ~np.asarray(grid.fixed_nodes).ravel())
-    out = np.where(known[:, None], np.asarray(field, dtype=np.float64), 0.0)
-    if not unknown.size:
-        return out
-    col = np.full(grid.n_nodes, -1, dtype=np.int64)
-    col[unknown] = np.arange(len(unknown))
-    diff = neighbour_differences(grid, col, len(unknown))  # rows u_a - u_b, unknown columns
-    given = _edge_values(grid, col, out)  # the known end of each such edge (0 for none)
-    lhs = (diff.T @ diff).tocsc()
-    lhs = lhs + sp.identity(len(unknown), format="csc") * 1e-9 * float(lhs.diagonal().mean())
-    out[unknown] = splu(lhs).solve(np.asarray(diff.T @ given))
-    return out
+class FieldTransfer(PointFit):
+    """Fine-grid node fields (n_fine_nodes, 3) -> case-grid node fields (n_nodes, 3), mm: the
+    :class:`PointFit` of the field at the centre of every fine active cell, weighted by its
+    tissue volume."""
 
-
-def _edge_values(grid: Grid, col: np.ndarray, field: np.ndarray) -> np.ndarray:
-    """(n_edges, 3): for each edge row of :func:`neighbour_differences` (the same order),
-    minus the value of its end that is not a column (known or fixed: ``field`` there), so
-    that ``diff @ x - values`` is ``u_a - u_b`` along every edge."""
-    active = np.asarray(grid.active_nodes).ravel()
-    flat = np.arange(grid.n_nodes).reshape(grid.node_shape)
-    rows = []
-    for axis in range(3):
-        a = np.moveaxis(flat, axis, 0)[:-1].ravel()
-        b = np.moveaxis(flat, axis, 0)[1:].ravel()
-        keep = active[a] & active[b] & ((col[a] >= 0) | (col[b] >= 0))
-        a, b = a[keep], b[keep]
-        rows.append(np.where((col[a] < 0)[:, None], field[a], 0.0)
-                    - np.where((col[b] < 0)[:, None], field[b], 0.0))
-    return -np.concatenate(rows)
+    def __init__(self, coarse: Grid, fine: Grid, smoothing: float = SMOOTHING) -> None:
+        centres, weight, sample = fine_cell_samples(fine)
+        super().__init__(coarse, centres, weight, sample, smoothing)
 
 
 def fine_cell_samples(fine: Grid) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
