@@ -100,6 +100,17 @@ def pair(a: str, b: str, digits: int = 2, unit: str = " ms") -> Callable[[dict],
                          f"{fmt(data['figures'][b], digits)}{unit}")
 
 
+def p2_teacher_cost(data: dict) -> str:
+    """The P2 teacher's pushes: seconds a push and the estimated minutes of 400 pushes on 16
+    and 64 workers."""
+    f = data["figures"]
+    est = f["estimate_min"]
+    return (f"a push {fmt(f['push_s_mean'], 0)} s (median {fmt(f['push_s_median'], 0)}, "
+            f"{f['pushes']} pushes of {', '.join(fmt(d, 1) for d in f['probe_disp_mm'])} mm) "
+            f"in {fmt(f['wall_s'] / 60, 1)} min on {f['workers']} workers; 400 pushes on 16 / "
+            f"64 workers: {fmt(est['16w_400'], 0)} / {fmt(est['64w_400'], 0)} min")
+
+
 @dataclass
 class Cell:
     """One figure: the result file it comes from and how it is shown."""
@@ -242,6 +253,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "python benchmarks/truth_agreement.py CASE --lesion-ids 5 --stored "
           "src/biopsynav/data/truths/ucdavis-homogeneous.json --orders 2 --push-minutes 30 "
           "--result-name truth-agreement-ucdavis-lesion4"), "<= 0.2 mm at 30 mm", "-"),
+    ("the P2 teacher (`[refine] teacher = \"p2\"`, the truth's 4 mm tetrahedra), phantom: its "
+     "rigid pushes through a Dask LocalCluster (one thread a worker), and the estimate for "
+     "larger clusters (`N (push + overhead) / workers`; the first pushes of the draw order, "
+     "shallower than the uniform 0-35 mm, so a low estimate)",
+     Cell("p2-teacher-phantom", with_speed(p2_teacher_cost),
+          "python benchmarks/p2_teacher.py --samples 4"), "-", "-"),
     ("UC Davis (one material), every lesion: the network (defaults of 2026-11-30)",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
     ("the same: its FE teacher",

@@ -2,7 +2,7 @@
 P2 teacher"): its rigid pushes solved through a Dask LocalCluster, and what a larger cluster
 would take.
 
-    python benchmarks/p2_teacher.py [CASE] [--samples 24] [--workers 2] [--fine 8]
+    python benchmarks/p2_teacher.py [CASE] [--samples 24] [--workers 2] [--fine 4]
                                     [--size 10] [--result-name NAME | --no-result-file]
 
 CASE: a case folder of one material (default: the built-in phantom, made in a temporary
@@ -122,7 +122,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("case", nargs="?", help="a case folder (default: the built-in phantom)")
     p.add_argument("--samples", type=int, default=24, help="pushes solved (one held out)")
     p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes")
-    p.add_argument("--fine", type=float, default=8.0, help="tetrahedra near the push, mm")
+    p.add_argument("--fine", type=float, default=4.0, help="tetrahedra near the push, mm")
     p.add_argument("--size", type=float, default=10.0, help="tetrahedra elsewhere, mm")
     p.add_argument("--result-name", help="result file name (default p2-teacher-<case>)")
     p.add_argument("--no-result-file", action="store_true", help="write no result file")

@@ -414,10 +414,13 @@ class DatasetSection:
     teacher_size_mm: float = opt(10.0, "With teacher = 'p2': tetrahedron size away from the "
                                        "push (mm; [evaluate] p2_size_mm is the truth's).",
                                  lo=0.5, hi=200.0)
-    teacher_fine_mm: float = opt(8.0, "With teacher = 'p2': tetrahedron size within 35 mm of "
-                                      "the push (mm; the truth's, [evaluate] p2_fine_mm, is 4). "
-                                      "8 (default): a push in seconds on one core (4: minutes; "
-                                      "docs/dataset.md, 'The P2 teacher').", lo=0.5, hi=200.0)
+    teacher_fine_mm: float = opt(4.0, "With teacher = 'p2': tetrahedron size within 35 mm of "
+                                      "the push (mm). 4 (default): the truth's ([evaluate] "
+                                      "p2_fine_mm), 1-5 min a push on one core; 8 solves a push "
+                                      "in 5-100 s but lies 0.15 / 0.38 / 1.17 mm from the 4 mm "
+                                      "answers at 10 / 20 / 30 mm pushes on the phantom, as far "
+                                      "as the grid teacher's network (docs/dataset.md, 'The P2 "
+                                      "teacher').", lo=0.5, hi=200.0)
     teacher_refine: float = opt(1.0, "The teacher's grid: each sample is solved on cells this "
                                      "many times smaller than [grid] cell_size_mm (any factor "
                                      "from 1 to 4: 1.46 turns 7.3 mm cells into 5 mm) and "
@@ -600,7 +603,7 @@ class RefineSection:
                                      "One material only.", choices=teacher_names)
     teacher_size_mm: float = opt(10.0, "With teacher = 'p2': [dataset] teacher_size_mm of the "
                                        "refine case.", lo=0.5, hi=200.0)
-    teacher_fine_mm: float = opt(8.0, "With teacher = 'p2': [dataset] teacher_fine_mm of the "
+    teacher_fine_mm: float = opt(4.0, "With teacher = 'p2': [dataset] teacher_fine_mm of the "
                                       "refine case.", lo=0.5, hi=200.0)
     extrapolation: float = opt(0.0, "Richardson extrapolation order of the refine pushes "
                                     "([dataset] teacher_extrapolation of the refine case), "

@@ -5,8 +5,9 @@
 case grid or a finer one (``[dataset] teacher_refine``). Any other name maps to a builder, a
 callable ``builder(case)`` or the ``"module:attribute"`` path of one, imported when first
 built (the configuration reads the names from here without importing the data stage), that
-returns an object whose ``solve(push, held)`` answers a rigid push on the case grid
-(:class:`biopsynav.dataset.converged.P2Teacher` is the built-in ``p2``), and whose class has
+returns an object whose ``solve(push)`` answers a rigid push on the case grid, (n_nodes, 3)
+mm, or raises SolverError (:class:`biopsynav.dataset.converged.P2Teacher` is the built-in
+``p2``), and whose class has
 ``check(case)`` (InputError for a case it cannot teach) and ``protocol(cfg)`` (what its
 answers depend on, recorded in the data set's protocol).
 """

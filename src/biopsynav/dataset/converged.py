@@ -27,8 +27,6 @@ push that did not converge.
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -44,17 +42,6 @@ FIT_REFINE = 2
 FIT_SMOOTHING = 1e-2
 #: A push still solving after this many seconds is given up (recorded as not converged)
 PUSH_LIMIT_S = 1800.0
-
-
-@dataclass
-class P2Answer:
-    """A push answered by :class:`P2Teacher`: the field on the case grid (n_nodes, 3) mm,
-    the unknowns of its mesh, its tetrahedra folded over at a node, and seconds spent."""
-
-    field: np.ndarray
-    dofs: int
-    folded: int
-    seconds: float
 
 
 class P2Teacher:
@@ -91,14 +78,13 @@ class P2Teacher:
                 "to_case_grid": TO_CASE_GRID, "fit_refine": FIT_REFINE,
                 "fit_smoothing": FIT_SMOOTHING, "push_limit_s": PUSH_LIMIT_S}
 
-    def solve(self, push: Any) -> P2Answer:
+    def solve(self, push: Any) -> np.ndarray:
         """``push`` (a rigid :class:`biopsynav.probe.ProbePush`) on its own P2 mesh, fitted
-        to the case grid (:meth:`_on_case_grid`); SolverError when it is not answered (an
-        element inverted, Newton failed, or :data:`PUSH_LIMIT_S` passed)."""
+        to the case grid (:meth:`_on_case_grid`): (n_nodes, 3) mm; SolverError when it is
+        not answered (an element inverted, Newton failed, or :data:`PUSH_LIMIT_S` passed)."""
         from ..errors import SolverError
         from ..evaluate.p2 import PushTimeout
 
-        start = time.perf_counter()
         model, rest = self._model(push)
         ev, probe = self.case.cfg.evaluate, self.case.cfg.probe
         contact = model.contact(rest, probe.footprint, probe.contact_tolerance_mm,
@@ -111,9 +97,7 @@ class P2Teacher:
         except (FloatingPointError, RuntimeError, PushTimeout) as exc:
             raise SolverError(f"P2 teacher: {exc or type(exc).__name__}",
                               "[dataset] teacher") from None
-        field = self._on_case_grid(model)
-        return P2Answer(field, model.n_dofs, len(model.tangled(model.last)),
-                        time.perf_counter() - start)
+        return self._on_case_grid(model)
 
     def _on_case_grid(self, model: Any) -> np.ndarray:
         """The last push of ``model`` on the case grid (n_nodes, 3) mm: the

@@ -192,14 +192,14 @@ def converged_draw(ctx: SampleContext, push: Any, result: dict, start: float) ->
 
     contact = ctx.skin[push.contact]
     try:
-        answer = ctx.converged.solve(push)
+        field = ctx.converged.solve(push)
     except SolverError as exc:
         return not_converged(result, exc, start)
-    probe_disp = probe_displacement(face_motion(ctx, push, contact @ answer.field))
-    why = implausible(ctx.model, answer.field, ctx.case.cfg.dataset.max_edge_stretch)
+    probe_disp = probe_displacement(face_motion(ctx, push, contact @ field))
+    why = implausible(ctx.model, field, ctx.case.cfg.dataset.max_edge_stretch)
     if why:
         return rejected_result(result, (IMPLAUSIBLE, why), probe_disp, 0, start)
-    return kept_result(ctx, push, result, answer.field, probe_disp, 0, 0.0, start)
+    return kept_result(ctx, push, result, field, probe_disp, 0, 0.0, start)
 
 
 def kept_result(ctx: SampleContext, push: Any, result: dict, u: np.ndarray,
