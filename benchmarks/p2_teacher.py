@@ -25,7 +25,6 @@ est_64w_400_min=...``.
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import tempfile
 import time
@@ -33,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pushes_only import copy_case_files
 from resultfile import write_result
 from speedprobe import speed_probes
 
-CASE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "inputs")
 ESTIMATE_WORKERS = (16, 64)
 ESTIMATE_PUSHES = (50, 100, 200, 400)
 
@@ -58,12 +57,7 @@ def p2_refine_case(case_dir: Path, work: Path, args: argparse.Namespace) -> Path
     from biopsynav.refine import refine_case
 
     work.mkdir(parents=True)
-    for name in CASE_FILES:
-        src = case_dir / name
-        if src.is_dir():
-            shutil.copytree(src, work / name)
-        elif src.is_file():
-            shutil.copy2(src, work / name)
+    copy_case_files(case_dir, work)
     cfg = load_config(work)
     cfg.refine.teacher, cfg.refine.samples, cfg.refine.held_out = "p2", args.samples, 1
     cfg.refine.teacher_fine_mm, cfg.refine.teacher_size_mm = args.fine, args.size

@@ -37,14 +37,20 @@ CASE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "inputs")
 REFINE_FILES = ("anatomy.npz", "grid.npz", "case.toml", "dataset_summary.json")
 
 
+def copy_case_files(case_dir: Path, out: Path) -> None:
+    """``case_dir``'s anatomy, grid, configuration and inputs (:data:`CASE_FILES`) into the
+    existing folder ``out``."""
+    for name in CASE_FILES:
+        src = case_dir / name
+        (shutil.copytree if src.is_dir() else shutil.copy2)(src, out / name)
+
+
 def copy_case(case_dir: Path, work: Path) -> Path:
     """``case_dir``'s anatomy, grid and configuration in ``work/case``, its refine case's too,
     with the refine data set linked; returns the copy's refine folder."""
     out = work / "case"
     (out / "refine").mkdir(parents=True)
-    for name in CASE_FILES:
-        src = case_dir / name
-        (shutil.copytree if src.is_dir() else shutil.copy2)(src, out / name)
+    copy_case_files(case_dir, out)
     for name in REFINE_FILES:
         shutil.copy2(case_dir / "refine" / name, out / "refine" / name)
     (out / "refine" / "dataset.zarr").symlink_to((case_dir / "refine" / "dataset.zarr").resolve())

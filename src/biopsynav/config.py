@@ -407,7 +407,7 @@ class DatasetSection:
                                      "the skin it touches at rest; [evaluate] p2_friction, "
                                      "p2_rim_mm, p2_edge_radius_mm), a gmsh mesh of "
                                      "teacher_size_mm refined to teacher_fine_mm under each "
-                                     "push, its values at the case grid's nodes: rigid pushes "
+                                     "push, its answer fitted to the case grid: rigid pushes "
                                      "of one material only (docs/dataset.md, "
                                      "'The P2 teacher'). [refine] teacher sets it in the refine "
                                      "case.", choices=teacher_names)

@@ -17,3 +17,15 @@ def edit_config(case_dir: Path, **sections: dict) -> None:
         for key, value in values.items():
             setattr(getattr(cfg, section), key, value)
     save_config(case_dir, cfg)
+
+
+def generate_through_local_cluster(case_dir: Path) -> dict:
+    """``generate`` of ``case_dir`` through a Dask LocalCluster of two single-threaded worker
+    processes (as ``generate --scheduler tcp://...``); its summary."""
+    from distributed import LocalCluster
+
+    from biopsynav.dataset.generate import generate_case
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        return generate_case(case_dir, scheduler=cluster.scheduler_address, progress=False)

@@ -12,19 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from dataset_helpers import edit_config
+from dataset_helpers import edit_config, generate_through_local_cluster
 from test_generate import count_done, start_generate, wait_for_done
 
 from biopsynav.case import Case
 from biopsynav.config import load_config
 from biopsynav.dataset.converged import face_rest_pose
 from biopsynav.dataset.generate import generate_case
-from biopsynav.dataset.worker import SampleContext
+from biopsynav.dataset.worker import SampleContext, input_springs
 from biopsynav.errors import InputError
 from biopsynav.evaluate.p2 import TetReference
 from biopsynav.evaluate.references import default_tissue_material
 from biopsynav.grid.index import tensor_to_field
-from biopsynav.probe import push_for_sample
+from biopsynav.probe import contact_input, push_for_sample
 
 pytest.importorskip("gmsh")
 
@@ -86,16 +86,15 @@ def test_a_sample_is_the_p2_answer_fitted_to_the_case_grid(p2_reference):
     assert np.linalg.norm(stored, axis=1).max() < 2.0 * push.push_mm
     assert g["probe_disp_mm"][i] == pytest.approx(push.push_mm, rel=1e-6)
     assert np.all(g["targets"][i][:, ~case.grid.active_nodes] == 0)
+    face = np.broadcast_to(push.displacement, (len(push.contact), 3))
+    expected = contact_input(ctx.skin[push.contact], face, "elastic", ctx.compliance,
+                             input_springs(ctx, push))
+    np.testing.assert_allclose(tensor_to_field(g["inputs"][i]), expected, rtol=1e-4, atol=1e-4)
 
 
 def test_local_workers_and_a_local_cluster_give_the_same_samples(p2_fresh, p2_reference,
                                                                  assert_same_dataset):
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
-        summary = generate_case(p2_fresh, scheduler=cluster.scheduler_address,
-                                progress=False)
+    summary = generate_through_local_cluster(p2_fresh)
     assert summary["count"] == N
     assert_same_dataset(p2_fresh, p2_reference)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from dataset_helpers import N_TEST, N_TRAIN, edit_config
+from dataset_helpers import N_TEST, N_TRAIN, edit_config, generate_through_local_cluster
 
 from biopsynav.case import Case
 from biopsynav.contact.greens import ContactCompliance
@@ -137,12 +137,7 @@ def test_one_worker_gives_the_same_samples_as_two(fresh_case, reference, assert_
 
 def test_dask_local_cluster_gives_the_same_samples(fresh_case, reference,
                                                   assert_same_dataset):
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
-        summary = generate_case(fresh_case, scheduler=cluster.scheduler_address,
-                                progress=False)
+    summary = generate_through_local_cluster(fresh_case)
     assert summary["count"] == N
     assert_same_dataset(fresh_case, reference)
 

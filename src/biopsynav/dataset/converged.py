@@ -48,11 +48,12 @@ class P2Teacher:
     """Rigid pushes of one case solved by the P2 truth's FE (module docstring)."""
 
     def __init__(self, case: Any) -> None:
+        from ..evaluate.references import default_tissue_material
         from ..grid.transfer import fine_cell_samples, refined_grid
 
         self.check(case)
         self.case = case
-        self.e_mpa, self.nu = _one_material(case)
+        self.e_mpa, self.nu = default_tissue_material(case)
         fine = refined_grid(case.anatomy, case.cfg.grid, FIT_REFINE, 1.0,
                             case.cfg.anatomy.chest_wall_tolerance_mm)
         self.points, self.weights, _ = fine_cell_samples(fine)
@@ -135,10 +136,10 @@ def face_rest_pose(push: Any) -> np.ndarray:
     return pose
 
 
-def _one_material(case: Any) -> tuple[float, float]:
-    """E (MPa) and nu of the case's default tissue; InputError when its grid mixes tissues
-    of other materials (the P2 FE has one)."""
-    from ..evaluate.references import default_tissue_material, other_materials
+def _one_material(case: Any) -> None:
+    """InputError when the case's grid mixes tissues of other materials than its default
+    tissue's (the P2 FE has one)."""
+    from ..evaluate.references import other_materials
 
     others = other_materials(case)
     if others:
@@ -146,4 +147,3 @@ def _one_material(case: Any) -> tuple[float, float]:
                          f"of other materials ({', '.join(others)} beside "
                          f"{case.cfg.material.default_tissue}); use teacher = \"grid\"",
                          "[dataset] teacher")
-    return default_tissue_material(case)

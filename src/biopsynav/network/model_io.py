@@ -73,6 +73,7 @@ def teacher(data: Dataset) -> dict:
     (0: none), and the FE code (``[dataset] teacher``; with another than the grid's, what
     its answers depend on)."""
     from ..fem.teacher import whole_or_float
+    from ..teacher_registry import GRID_TEACHER
 
     protocol = data.attrs.get("protocol") or {}
     probe, dataset = protocol.get("probe", {}), protocol.get("dataset", {})
@@ -85,7 +86,7 @@ def teacher(data: Dataset) -> dict:
             "contact_stiffness": protocol.get("fe_model", {}).get("contact_stiffness"),
             "teacher_refine": whole_or_float(dataset.get("teacher_refine", 1)),
             "teacher_extrapolation": float(dataset.get("teacher_extrapolation", 0.0)),
-            "teacher": dataset.get("teacher", "grid"),
+            "teacher": dataset.get("teacher", GRID_TEACHER),
             **({"teacher_protocol": dataset["teacher_protocol"]}
                if "teacher_protocol" in dataset else {})}
 
