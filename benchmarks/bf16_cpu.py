@@ -8,10 +8,11 @@
   at batch 16 channels-last in both arithmetics;
 * stability: ``--runs`` 40-iteration trainings of the test suite's network on its synthetic
   data (``tests/network/synth.py``), each in a fresh process, bf16 in each layout, counting
-  the ones whose loss turned NaN (``train`` picks the layout by the CPU's AMX-BF16,
-  ``training_layout``; both are forced here for the measurement).
+  the ones whose loss turned NaN (``train`` trains channels-last, ``training_layout``; both
+  are forced here for the measurement).
 
-Writes ``benchmarks/results/bf16-cpu.json``; the last line reads ``RESULT fp32_cl_ms=...
+Writes ``benchmarks/results/bf16-cpu-{amx,avx512,emulated}.json`` by the CPU's bf16
+arithmetic (``biopsynav.threads.cpu_bf16_unit``); the last line reads ``RESULT fp32_cl_ms=...
 bf16_cl_ms=... bf16_contig_ms=... nan_cl=k/n nan_contig=k/n``.
 """
 
@@ -36,7 +37,7 @@ sys.path.insert(0, {root!r})
 import biopsynav.network.train as T
 from tests.network.synth import tiny_settings
 layout = torch.contiguous_format if {contiguous} else torch.channels_last_3d
-T.training_layout = lambda amp, dev: layout  # measured here in both layouts, whatever the CPU
+T.training_layout = lambda dev: layout  # measured here in both layouts, whatever the CPU
 s = tiny_settings(iterations=40, val_interval=20, precision="bf16", device="cpu")
 try:
     T.train({case!r}, settings=s, model_dir={out!r}, progress=False)
@@ -93,6 +94,14 @@ def nan_runs(layout: str, runs: int, tmp: Path) -> int:
     return bad
 
 
+def result_name() -> str:
+    """The result file's name for this CPU's bf16 arithmetic."""
+    from biopsynav.threads import cpu_bf16_unit
+
+    unit = cpu_bf16_unit()
+    return "bf16-cpu-" + ("amx" if unit and "AMX" in unit else "avx512" if unit else "emulated")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=40)
@@ -115,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"nan_{layout}"] = f"{bad}/{args.runs}"
             print(f"bf16 {layout}: {bad} of {args.runs} trainings ended in a NaN loss",
                   flush=True)
-    write_result("bf16-cpu", figures)
+    write_result(result_name(), figures)
     print(f"RESULT fp32_cl_ms={figures['fp32_cl_ms']:.1f} bf16_cl_ms={figures['bf16_cl_ms']:.1f} "
           f"fp32_cl_b16_ms={figures['fp32_cl_b16_ms']:.1f} "
           f"bf16_cl_b16_ms={figures['bf16_cl_b16_ms']:.1f} "

@@ -181,6 +181,15 @@ def pushes_only(data: dict) -> str:
             + f" mm; {fmt(f['train_min'], 1)} min")
 
 #: BENCHMARKS.md: (what, cell, target, paper)
+def bf16_cells(d: dict) -> str:
+    """The cells of a ``bf16_cpu.py`` result."""
+    f = d["figures"]
+    return (f"{fmt(f['fp32_cl_ms'], 1)} / {fmt(f['bf16_cl_ms'], 1)} / "
+            f"{fmt(f['bf16_contig_ms'], 1)} ms; {fmt(f['fp32_cl_b16_ms'], 1)} / "
+            f"{fmt(f['bf16_cl_b16_ms'], 1)} ms; {f['nan_cl']} / {f['nan_contig']}; "
+            f"{' '.join(d['machine']['cpu_flags']) or 'none'}")
+
+
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("`make demo` from nothing, phantom: whole pipeline",
      Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")), "<= 15 min", "278 min (GPU)"),
@@ -283,17 +292,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("error-bound", lambda d: (f"{d['figures']['coverage']:.0%}; "
                                     f"{d['figures']['worst_ratio']:.1f}x"),
           "python benchmarks/error_bound.py"), "90-97 %; <= 3x", "-"),
-    ("one training step on the CPU, batch 4: fp32 / bf16 channels-last / bf16 contiguous; "
-     "batch 16 channels-last: fp32 / bf16; bf16 trainings whose loss turned NaN, "
-     "channels-last / contiguous; the CPU's bf16 flags",
-     Cell("bf16-cpu", lambda d: (f"{fmt(d['figures']['fp32_cl_ms'], 1)} / "
-                                 f"{fmt(d['figures']['bf16_cl_ms'], 1)} / "
-                                 f"{fmt(d['figures']['bf16_contig_ms'], 1)} ms; "
-                                 f"{fmt(d['figures']['fp32_cl_b16_ms'], 1)} / "
-                                 f"{fmt(d['figures']['bf16_cl_b16_ms'], 1)} ms; "
-                                 f"{d['figures']['nan_cl']} / {d['figures']['nan_contig']}; "
-                                 f"{' '.join(d['machine']['cpu_flags']) or 'none'}"),
-          "python benchmarks/bf16_cpu.py"), "-", "-"),
+    *[(f"one training step on the CPU ({unit}), batch 4: fp32 / bf16 channels-last / bf16 "
+       "contiguous; batch 16 channels-last: fp32 / bf16; bf16 trainings whose loss turned NaN, "
+       "channels-last / contiguous; the CPU's bf16 flags",
+       Cell(f"bf16-cpu-{kind}", bf16_cells, "python benchmarks/bf16_cpu.py"), "-", "-")
+      for kind, unit in (("amx", "AMX-BF16"), ("avx512", "AVX-512 BF16, no AMX"))],
     ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
                          "python benchmarks/suite_time.py"), "<= 10 min", "-"),
     ("clinical MRI breasts found by label flags alone, within 15 % of a hand crop",

@@ -3,7 +3,7 @@ reached.
 
     python benchmarks/time_to_model.py [--case phantom|ucdavis|ucdavis-homogeneous]
                                        [--workdir DIR] [--keep] [--no-truth]
-                                       [--prior auto --iterations 4000]
+                                       [--prior auto --iterations 4000] [--tag TAG]
 
 * ``phantom``: what ``make demo`` does (``biopsynav demo``: the built-in phantom, every
   default, Table 2 on 3 lesions);
@@ -165,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=None,
                    help="[network] iterations of the new case (default: the case's default); the "
                    "result file is then time-to-model-CASE[-prior]-itN")
+    p.add_argument("--tag", default=None, help="appended to the result file's name (another "
+                   "machine's run, say, that should not replace the reference's figures)")
     args = p.parse_args(argv)
     network = {k: v for k, v in (("prior", args.prior), ("iterations", args.iterations))
                if v is not None}
@@ -187,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), **tre}
-    write_result(result_name(args.case, args.prior, args.iterations), figures,
+    name = result_name(args.case, args.prior, args.iterations)
+    write_result(name + (f"-{args.tag}" if args.tag else ""), figures,
                  speed_probes=probes)
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)

@@ -92,7 +92,7 @@ def probe_seconds(case, node_shape: tuple[int, int, int] | None = None, *,
         s = dataclasses.replace(s, batch_size=batch)
     spec = section_spec(s)
     amp = use_bf16(s.precision, cpu)
-    layout = training_layout(amp, cpu)
+    layout = training_layout(cpu)
     net = UNet3d(spec).to(memory_format=layout)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
     shape = node_shape or case.grid.node_shape

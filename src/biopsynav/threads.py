@@ -119,13 +119,26 @@ def one_thread() -> Iterator[None]:
 
 
 @functools.cache
+def _cpu_flags() -> frozenset[str]:
+    """The CPU's flags (``/proc/cpuinfo``'s first ``flags`` line; empty where it is absent)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return frozenset()
+    return next((frozenset(ln.split(":", 1)[1].split()) for ln in text.splitlines()
+                 if ln.startswith("flags")), frozenset())
+
+
 def cpu_has_amx_bf16() -> bool:
     """Whether this CPU has AMX-BF16 tile instructions (``amx_bf16`` in ``/proc/cpuinfo``;
     False where that file is absent): oneDNN's and OpenVINO's bf16 convolutions then run on
     the tiles."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return any(line.startswith("flags") and "amx_bf16" in line.split()
-               for line in text.splitlines())
+    return "amx_bf16" in _cpu_flags()
+
+
+def cpu_bf16_unit() -> str | None:
+    """The CPU's bf16 arithmetic that oneDNN trains with: ``"AMX-BF16 tiles"``, else
+    ``"AVX-512 BF16"`` (``avx512_bf16``: bf16 dot products, fp32 sums), else None."""
+    if cpu_has_amx_bf16():
+        return "AMX-BF16 tiles"
+    return "AVX-512 BF16" if "avx512_bf16" in _cpu_flags() else None

@@ -8,6 +8,7 @@ import torch
 from biopsynav.errors import InputError
 from biopsynav.network.unet import (
     PRESETS,
+    Conv3d,
     UNet3d,
     UNetSpec,
     count_parameters,
@@ -99,3 +100,30 @@ def test_any_node_counts(shape):
         y2 = net(x2)
     assert y.shape == (1, 3, *shape) and torch.isfinite(y).all()
     assert not torch.equal(y[0, :, -1, -1, -1], y2[0, :, -1, -1, -1])
+
+
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last_3d])
+def test_a_convolution_two_nodes_deep_trains_in_fp32_under_cpu_autocast(layout):
+    """oneDNN's bf16 weight gradient of a padded 3x3x3 convolution of an input two nodes deep
+    read unwritten memory (another gradient each run, NaN losses now and then, on an AMD EPYC
+    with AVX-512 BF16): under CPU bf16 autocast such a convolution runs in fp32, so ten runs
+    give the fp32 gradient to the bit; a deeper input still runs in bf16."""
+    torch.manual_seed(0)
+    conv = Conv3d(64, 64, 3, padding=1).to(memory_format=layout)
+    x = torch.randn(4, 64, 2, 1, 3).contiguous(memory_format=layout)
+
+    def weight_grad(amp: bool, inp: torch.Tensor) -> tuple[torch.Tensor, torch.dtype]:
+        conv.zero_grad()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            out = conv(inp)
+        out.float().square().sum().backward()
+        return conv.weight.grad.clone(), out.dtype
+
+    ref, dtype = weight_grad(False, x)
+    assert dtype == torch.float32
+    for _ in range(10):
+        grad, dtype = weight_grad(True, x)
+        assert dtype == torch.float32 and torch.equal(grad, ref)
+    assert weight_grad(True, torch.randn(4, 64, 3, 1, 3))[1] == torch.bfloat16
+    scripted = torch.jit.script(conv)  # the exported model: the plain convolution
+    assert torch.equal(scripted(x), conv(x))

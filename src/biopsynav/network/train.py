@@ -43,7 +43,7 @@ from ..fileio import remove_partial_writes, write_bytes_atomic
 from ..inference.runtimes import ONNX, TORCHSCRIPT
 from ..layout import BEST, CHECKPOINT, HISTORY, LOSS_CURVE, META, MODEL_DIR
 from ..prior_registry import Prior, choose_prior
-from ..threads import cpu_has_amx_bf16, set_threads
+from ..threads import cpu_bf16_unit, set_threads
 from .data import (
     Dataset,
     dataset_contact_input,
@@ -98,34 +98,33 @@ def resolve_device(name: str) -> torch.device:
 
 def use_bf16(precision: str, dev: torch.device) -> bool:
     """Whether training autocasts its forward pass to bfloat16 on ``dev``: always for
-    'bf16', never for 'fp32'; for 'auto' on CUDA and on a CPU with AMX-BF16
-    (:func:`cpu_has_amx_bf16`), fp32 on other CPUs (docs/network.md, "Arithmetic")."""
+    'bf16', never for 'fp32'; for 'auto' on CUDA and on a CPU with bf16 arithmetic, AMX-BF16
+    or AVX-512 BF16 (:func:`cpu_bf16_unit`), fp32 on other CPUs (docs/network.md,
+    "Arithmetic")."""
     if precision != "auto":
         return precision == "bf16"
-    return dev.type == "cuda" or (dev.type == "cpu" and cpu_has_amx_bf16())
+    return dev.type == "cuda" or (dev.type == "cpu" and cpu_bf16_unit() is not None)
 
 
 def precision_line(amp: bool, dev: torch.device) -> str:
     """The one line ``train`` prints of its arithmetic and why."""
-    amx = dev.type == "cpu" and cpu_has_amx_bf16()
+    unit = cpu_bf16_unit() if dev.type == "cpu" else dev.type
     if not amp:
-        why = " (this CPU has no AMX-BF16)" if dev.type == "cpu" and not amx else ""
+        why = " (this CPU has neither AMX-BF16 nor AVX-512 BF16)" if unit is None else ""
         return f"[network] precision: fp32 on {dev.type}{why}"
-    if dev.type == "cpu" and not amx:
-        return ("[network] precision: bf16 autocast on a CPU without AMX-BF16 (contiguous "
-                "layout: stable, no faster than fp32), fp32 weights and loss")
-    where = "AMX-BF16 tiles" if amx else dev.type
-    return f"[network] precision: bf16 autocast on {where}, fp32 weights and loss"
+    if unit is None:
+        return ("[network] precision: bf16 autocast on a CPU without bf16 instructions "
+                "(emulated, slower than fp32), fp32 weights and loss")
+    return f"[network] precision: bf16 autocast on {unit}, fp32 weights and loss"
 
 
-def training_layout(amp: bool, dev: torch.device) -> torch.memory_format:
+def training_layout(dev: torch.device) -> torch.memory_format:
     """Memory layout of the training's convolutions: channels-last on the CPU (oneDNN trains
-    it 1.4x faster on one thread, 2x on two), except bf16 on a CPU without AMX-BF16, where
-    oneDNN's channels-last bf16 kernels turned losses NaN at random and the contiguous layout
-    did not (``benchmarks/bf16_cpu.py``, docs/network.md); GPUs keep their default."""
-    if dev.type != "cpu" or (amp and not cpu_has_amx_bf16()):
-        return torch.contiguous_format
-    return torch.channels_last_3d
+    it 1.4x faster on one thread, 2x on two, in fp32 and in bf16; ``benchmarks/bf16_cpu.py``,
+    docs/network.md); GPUs keep their default. The random NaN losses once seen in bf16
+    channels-last without AMX came from convolutions of inputs two nodes deep, which
+    :class:`~biopsynav.network.unet.Conv3d` runs in fp32."""
+    return torch.channels_last_3d if dev.type == "cpu" else torch.contiguous_format
 
 
 def lr_at(it: int, s: NetworkSection) -> float:
@@ -529,7 +528,7 @@ class TrainingLoop:
         self.amp = use_bf16(s.precision, dev)
         self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
         self.drawn_at = time.perf_counter()  # when loss_curve.png was last drawn
-        self.memory_format = training_layout(self.amp, dev)
+        self.memory_format = training_layout(dev)
         net.to(memory_format=self.memory_format)
 
     def step(self, it: int) -> float:
@@ -653,4 +652,4 @@ def train_case(case: Case | str | Path, preset: str | None = None, iterations: i
 
 __all__ = ["TrainSummary", "train", "train_case", "lr_at", "batch_indices", "validate",
            "resolve_device", "set_threads", "build_optimizer", "use_bf16", "training_layout",
-           "cpu_has_amx_bf16", "precision_line"]
+           "cpu_bf16_unit", "precision_line"]

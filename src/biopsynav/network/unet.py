@@ -117,12 +117,34 @@ def _act(kind: str) -> nn.Module:
     return table[kind]()
 
 
+class Conv3d(nn.Conv3d):
+    """A padded 3x3x3 :class:`torch.nn.Conv3d` (the same weights and state-dict keys) that
+    leaves bf16 autocast on the CPU for an input two nodes deep (``x.shape[2] == 2``) and
+    convolves it in fp32: oneDNN's bf16 weight gradient of such a convolution (16 channels
+    or more; channels-last from 8) reads memory it did not write, so the same step gives
+    another gradient each run and now and then a NaN loss (measured in torch 2.13 on an AMD
+    EPYC with AVX-512 BF16; docs/network.md, "Arithmetic"). Such inputs are the coarse levels
+    of grids 5-8 or 9-16 nodes long in x; every other input is left to autocast."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if torch.jit.is_scripting():  # the exported model: fp32, no autocast
+            return self._conv_forward(x, self.weight, self.bias)
+        return self._autocast_forward(x)
+
+    @torch.jit.unused
+    def _autocast_forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[2] == 2 and torch.is_autocast_enabled("cpu"):
+            with torch.autocast("cpu", enabled=False):
+                return self._conv_forward(x.float(), self.weight, self.bias)
+        return self._conv_forward(x, self.weight, self.bias)
+
+
 def double_conv(c_in: int, c_out: int, norm: str, act: str) -> nn.Sequential:
     """Two padded 3x3x3 convolutions, each followed by the norm and the activation."""
     bias = norm in ("none", "instance")
     return nn.Sequential(
-        nn.Conv3d(c_in, c_out, 3, padding=1, bias=bias), _norm(norm, c_out), _act(act),
-        nn.Conv3d(c_out, c_out, 3, padding=1, bias=bias), _norm(norm, c_out), _act(act),
+        Conv3d(c_in, c_out, 3, padding=1, bias=bias), _norm(norm, c_out), _act(act),
+        Conv3d(c_out, c_out, 3, padding=1, bias=bias), _norm(norm, c_out), _act(act),
     )
 
 
