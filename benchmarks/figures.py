@@ -90,6 +90,12 @@ def ttm_table1(data: dict) -> str:
     return f"{fmt(f['table1_mean_e_mm'], 4)} / {fmt(f['table1_max_e_mm'], 3)} mm"
 
 
+def ttm_summary(data: dict) -> str:
+    """A whole run in one cell: its minutes, each stage, Table 1 and the TRE."""
+    return (f"{ttm_total(data)}; {ttm_stages(data)}; Table 1 {ttm_table1(data)}; "
+            f"TRE {ttm_tre(data)}")
+
+
 def figure(key: str, digits: int = 2, unit: str = "") -> Callable[[dict], str]:
     """Renderer of one figure of a result file's ``figures``."""
     return lambda data: fmt(data["figures"][key], digits) + unit
@@ -201,6 +207,10 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("the same: the tracking network's lesion TRE against the P2 truth, 10 / 20 / 30 mm",
      Cell("time-to-model-phantom", ttm_tre, TTM.format("phantom")), "D10 <= 0.5, D30 <= 1.5 mm",
      "-"),
+    ("the same on an AMD EPYC with AVX-512 BF16 and no AMX (bf16 training): whole; each "
+     "stage; Table 1; the TRE against the P2 truth, 10 / 20 / 30 mm",
+     Cell("time-to-model-phantom-avx512", ttm_summary, TTM.format("phantom") + " --tag avx512"),
+     "<= 15 min", "-"),
     ("`run` from nothing, UC Davis of three tissues: whole pipeline",
      Cell("time-to-model-ucdavis", ttm_total, TTM.format("ucdavis")), "<= 15 min", "-"),
     ("the same, each stage", Cell("time-to-model-ucdavis", ttm_stages, TTM.format("ucdavis")),

@@ -511,12 +511,9 @@ class NetworkSection:
     precision: str = opt("auto", "Arithmetic of the training's forward pass: 'fp32', "
                                  "'bf16' (autocast to bfloat16; the loss, the contact "
                                  "projection and the weights stay fp32) or 'auto' (bf16 on "
-                                 "CUDA and on a CPU with AMX-BF16, fp32 on other CPUs). On a "
-                                 "CPU without AMX-BF16, 'bf16' trains in the contiguous "
-                                 "layout: oneDNN's channels-last bf16 kernels turned the loss "
-                                 "NaN at random there, and it is no faster than fp32 "
-                                 "(benchmarks/bf16_cpu.py, docs/network.md). Inference has its "
-                                 "own arithmetic: [network] runtime.",
+                                 "CUDA and on a CPU with AMX-BF16 or AVX-512 BF16, fp32 on "
+                                 "other CPUs; benchmarks/bf16_cpu.py, docs/network.md). "
+                                 "Inference has its own arithmetic: [network] runtime.",
                          choices=("auto", "fp32", "bf16"))
     threads: int = opt(0, "CPU threads for training and inference (0: the idle cores, "
                           "measured when it starts).", lo=0, hi=1024)

@@ -48,4 +48,9 @@ def teacher_builder(name: str) -> Callable[..., Any]:
     return builder
 
 
+def builder_or_none(name: str) -> Callable[..., Any] | None:
+    """The builder of teacher ``name`` (:func:`teacher_builder`), None for the grid FE."""
+    return None if name == GRID_TEACHER else teacher_builder(name)
+
+
 register_teacher("p2", "biopsynav.dataset.converged:P2Teacher")

@@ -27,7 +27,7 @@ from ..case import Case, as_case
 from ..errors import BiopsynavError, InputError
 from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
-from ..teacher_registry import GRID_TEACHER, teacher_builder
+from ..teacher_registry import builder_or_none
 from .grow import grow_store, growth_summary, sizes_alone_differ
 from .pool import WorkerProcesses
 from .store import (
@@ -155,8 +155,9 @@ def preflight(case: Any) -> None:
     surface_embedding(case.grid, case.anatomy)
     eligible_centers(case.anatomy, case.cfg.probe.min_chest_distance_mm)
     check_lesion_share(case.anatomy, case.cfg.probe)
-    if case.cfg.dataset.teacher != GRID_TEACHER:
-        teacher_builder(case.cfg.dataset.teacher).check(case)
+    builder = builder_or_none(case.cfg.dataset.teacher)
+    if builder is not None:
+        builder.check(case)
 
 
 def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool

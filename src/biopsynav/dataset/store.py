@@ -40,7 +40,7 @@ from ..contact.constraints import is_elastic
 from ..errors import FingerprintError, InputError
 from ..fem.teacher import teacher_refinement
 from ..layout import DATASET_NAME
-from ..teacher_registry import GRID_TEACHER, teacher_builder
+from ..teacher_registry import builder_or_none
 
 FORMAT = "biopsynav-dataset/1"
 #: Bump when the protocol (draw order, input encoding) changes: old data is then refused.
@@ -173,8 +173,8 @@ def teacher_protocol(cfg: CaseConfig) -> dict:
     Richardson extrapolation from the case grid's solution (absent when off). Another
     teacher (``[dataset] teacher``, :mod:`biopsynav.teacher_registry`): its name and what its
     answers depend on (its ``protocol(cfg)``)."""
-    if cfg.dataset.teacher != GRID_TEACHER:
-        builder = teacher_builder(cfg.dataset.teacher)
+    builder = builder_or_none(cfg.dataset.teacher)
+    if builder is not None:
         return {"teacher": cfg.dataset.teacher, "teacher_protocol": builder.protocol(cfg)}
     refine = teacher_refinement(cfg)
     if refine == 1:

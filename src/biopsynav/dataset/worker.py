@@ -86,10 +86,10 @@ class SampleContext:
 def converged_teacher(case: Any) -> Any:
     """The solver of ``[dataset] teacher`` when it is not the grid FE
     (:mod:`biopsynav.teacher_registry`), else None."""
-    from ..teacher_registry import GRID_TEACHER, teacher_builder
+    from ..teacher_registry import builder_or_none
 
-    name = case.cfg.dataset.teacher
-    return None if name == GRID_TEACHER else teacher_builder(name)(case)
+    builder = builder_or_none(case.cfg.dataset.teacher)
+    return None if builder is None else builder(case)
 
 
 def sample_solver_settings(case: Any) -> Any:

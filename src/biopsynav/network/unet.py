@@ -133,7 +133,7 @@ class Conv3d(nn.Conv3d):
 
     @torch.jit.unused
     def _autocast_forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.shape[2] == 2 and torch.is_autocast_enabled("cpu"):
+        if torch.is_autocast_enabled("cpu") and x.shape[2] == 2:  # no shape test when traced
             with torch.autocast("cpu", enabled=False):
                 return self._conv_forward(x.float(), self.weight, self.bias)
         return self._conv_forward(x, self.weight, self.bias)
