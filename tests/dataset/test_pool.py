@@ -52,3 +52,38 @@ def test_a_worker_killed_while_sending_its_result_leaves_nothing_waiting(monkeyp
         assert processes.submit(_pid).result(timeout=120) != first
     finally:
         processes.close()
+
+
+def test_a_script_without_the_main_guard_gets_an_error_not_a_hang(base_case, tmp_path):
+    """A script that calls generate_case with workers at its top level: each spawned worker
+    imports it again and dies while starting. The main process once waited for ever writing
+    the case to a dead worker's start pipe; now it stops within seconds naming the guard."""
+    import shutil
+    import subprocess
+    import sys
+
+    case = tmp_path / "case"
+    shutil.copytree(base_case, case)
+    script = tmp_path / "no_guard.py"
+    script.write_text("from biopsynav.dataset.generate import generate_case\n"
+                      f"generate_case({str(case)!r}, workers=2, progress=False)\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=300, cwd=tmp_path)
+    assert done.returncode != 0
+    assert 'needs its calls under `if __name__ == "__main__":`' in done.stderr
+    assert "During handling" not in done.stderr.split("InputError")[-1]
+
+
+def test_a_closed_pool_leaves_no_files(tmp_path):
+    """The set-up file and the workers' start marks live in a folder that close() removes."""
+    from biopsynav.dataset import pool
+
+    processes = pool.WorkerProcesses(1, _nothing, ())
+    folder = processes.folder
+    try:
+        assert processes.submit(_pid).result(timeout=120) > 0
+        assert len(list(folder.glob("started-*"))) == 1
+        processes.check_started()  # a worker started: nothing to say
+    finally:
+        processes.close()
+    assert not folder.exists()

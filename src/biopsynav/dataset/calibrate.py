@@ -110,7 +110,8 @@ class CalibrationSolves:
         try:
             self._collect(stage, float(force_n), queue, depths,
                           failures_allowed(self.n_pushes))
-        except BrokenProcessPool:  # the wait saw a worker die that no future names
+        except BrokenProcessPool:  # a worker died (whether a future names it or not)
+            self.processes.check_started()
             raise _worker_died() from None
         return depths
 
@@ -147,14 +148,13 @@ class CalibrationSolves:
 
 
 def _answer(future: Any) -> float:
-    """A calibration solve's depth (mm); a worker's death or error as one line."""
+    """A calibration solve's depth (mm); a worker's error as one line (its death,
+    BrokenProcessPool, is said by the round)."""
     from concurrent.futures.process import BrokenProcessPool
 
     try:
         return future.result()
-    except BrokenProcessPool:
-        raise _worker_died() from None
-    except BiopsynavError:
+    except (BiopsynavError, BrokenProcessPool):
         raise
     except Exception as exc:  # noqa: BLE001 - a worker's error, said in one line
         raise BiopsynavError(f"force calibration: a solve failed in its worker: "

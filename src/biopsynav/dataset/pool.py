@@ -6,17 +6,31 @@ workers), each ending itself when the main process dies, that notices a worker w
 without any future saying so and can be rebuilt after a crash. What a worker holds is set
 up once per process by the ``setup`` function it is given (the case's FE model, for
 instance); tasks are plain functions of that process's state.
+
+The set-up and its arguments travel through a file, not through the pipe that starts each
+process: CPython's spawn writes a new process's start data to a pipe whose read end it keeps
+open until the write ends, so a child that dies before reading data larger than the pipe's
+buffer (a script without ``if __name__ == "__main__":``, which the spawned child imports and
+runs again) left the main process writing for ever. Each worker leaves a mark once it has
+started; a pool that broke before any worker did is named as that mistake
+(:meth:`WorkerProcesses.check_started`).
 """
 
 from __future__ import annotations
 
 import os
+import pickle
+import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 from typing import Any
+
+from ..errors import InputError
 
 #: Environment of a worker process: one MKL/OpenMP thread keeps Pardiso's results
 #: bit-identical whatever the number of workers.
@@ -25,6 +39,11 @@ SINGLE_THREAD_ENV = {"MKL_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
 #: How often (s) a pool with nothing finished checks that its worker processes live: a
 #: worker killed at the wrong moment can leave the executor's own futures pending for ever.
 WORKER_WATCH_S = 5.0
+#: What a pool that broke before any worker process started says.
+NEVER_STARTED = ("the worker processes died while starting, before their set-up: a spawned "
+                 "worker imports the main script again, so a script that calls this with "
+                 "workers > 0 needs its calls under `if __name__ == \"__main__\":` (Python's "
+                 "own message is printed above); or run with workers = 0")
 
 
 class WorkerProcesses:
@@ -35,7 +54,10 @@ class WorkerProcesses:
         self.workers = workers or os.cpu_count() or 1
         threads = max(1, (os.cpu_count() or 1) // self.workers)
         self.env = {**SINGLE_THREAD_ENV, "NUMBA_NUM_THREADS": str(threads)}
-        self.setup, self.setup_args = setup, setup_args
+        self.folder = Path(tempfile.mkdtemp(prefix="biopsynav-workers-"))
+        self.setup_file = self.folder / "setup.pickle"
+        with open(self.setup_file, "wb") as f:
+            pickle.dump((setup, setup_args), f, protocol=pickle.HIGHEST_PROTOCOL)
         self.pool = self._new_pool()
 
     def _new_pool(self) -> ProcessPoolExecutor:
@@ -44,8 +66,13 @@ class WorkerProcesses:
         with _env(self.env):  # spawned children inherit it before importing MKL
             return ProcessPoolExecutor(self.workers, multiprocessing.get_context("spawn"),
                                        initializer=start_worker,
-                                       initargs=(self.env, os.getpid(), self.setup,
-                                                 self.setup_args))
+                                       initargs=(self.env, os.getpid(), str(self.setup_file)))
+
+    def check_started(self) -> None:
+        """InputError (:data:`NEVER_STARTED`) when no worker process of this pool has ever
+        started: a broken pool then has a cause that restarting it will not cure."""
+        if not any(self.folder.glob("started-*")):
+            raise InputError(NEVER_STARTED, "worker processes") from None
 
     def submit(self, task: Callable, *args: Any) -> Future:
         """``task(*args)`` in a worker (processes start lazily, with the workers' env)."""
@@ -72,7 +99,9 @@ class WorkerProcesses:
         return list((getattr(self.pool, "_processes", None) or {}).values())
 
     def restart(self) -> None:
-        """Replace a broken pool (a worker died) by a fresh one."""
+        """Replace a broken pool (a worker died) by a fresh one; InputError when no worker
+        had ever started (:meth:`check_started`)."""
+        self.check_started()
         self._kill_processes()
         self.pool.shutdown(wait=False, cancel_futures=True)
         self.pool = self._new_pool()
@@ -92,6 +121,7 @@ class WorkerProcesses:
         them."""
         self._kill_processes()
         self.pool.shutdown(wait=True, cancel_futures=True)
+        shutil.rmtree(self.folder, ignore_errors=True)
 
     def __enter__(self) -> WorkerProcesses:
         return self
@@ -113,14 +143,19 @@ def _release_result_reader(pool: ProcessPoolExecutor) -> None:
         writer.close()
 
 
-def start_worker(env: dict[str, str], parent: int, setup: Callable, setup_args: tuple) -> None:
+def start_worker(env: dict[str, str], parent: int, setup_file: str) -> None:
     """``ProcessPoolExecutor`` initializer: thread limits, a watchdog that ends the process
-    when the main process dies (kill -9 leaves no orphan computing), then ``setup``, once.
+    when the main process dies (kill -9 leaves no orphan computing), this worker's mark
+    (``started-PID`` beside ``setup_file``), then the set-up pickled in ``setup_file``, once.
     ``parent``: the main process id (passed in, so that a main process that died before this
     ran is noticed too)."""
     os.environ.update(env)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True,
                      name="parent-watchdog").start()
+    path = Path(setup_file)
+    (path.parent / f"started-{os.getpid()}").touch()
+    with open(path, "rb") as f:
+        setup, setup_args = pickle.load(f)
     setup(*setup_args)
 
 
