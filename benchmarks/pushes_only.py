@@ -3,7 +3,7 @@ case network (docs/pipeline.md, "no force patches at all").
 
     python benchmarks/pushes_only.py CASE --reference TRUTH.json [--prior NAME]
                                      [--iterations 4000] [--batch 16] [--lr 2e-3]
-                                     [--workdir DIR]
+                                     [--seed 0] [--workdir DIR]
 
 CASE is a case whose ``refine/dataset.zarr`` is complete (e.g. the one ``make demo`` or
 ``time_to_model.py --keep`` leaves) and of which ``truth.py`` takes the truth as it is (its
@@ -14,7 +14,7 @@ training on those pushes, from scratch or from the packaged prior ``--prior``, w
 compares that model with the stored P2 truth ``--reference`` over every lesion at 10 / 20 /
 30 mm. Run it alone on the machine.
 
-Writes ``benchmarks/results/pushes-only-<case name>[-<prior>].json``; the last line reads
+Writes ``benchmarks/results/pushes-only-<case name>[-<prior>][-seed<n>].json``; the last line reads
 ``RESULT tre_d10_mm=... tre_d20_mm=... tre_d30_mm=... train_min=...``.
 """
 
@@ -66,7 +66,8 @@ def train_on_pushes(refine_dir: Path, args: argparse.Namespace) -> dict:
     case = as_case(refine_dir)
     s = dataclasses.replace(case.cfg.network, init_from="", prior=args.prior,
                             iterations=args.iterations, batch_size=args.batch,
-                            learning_rate=args.lr, warmup_iterations=300, val_interval=500)
+                            learning_rate=args.lr, warmup_iterations=300, val_interval=500,
+                            seed=args.seed)
     train(case, settings=s, model_dir=refine_dir / "model")
     return json.loads((refine_dir / "model" / "meta.json").read_text())["training"]
 
@@ -79,6 +80,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, default=4000)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0, help="[network] seed of the training")
     p.add_argument("--workdir", type=Path, default=None)
     return p
 
@@ -116,8 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     figures = {**tre, "train_min": training["train_time_s"] / 60,
                "held_out_mean_e_mm": training["best_val_e_mm"], "prior": args.prior,
                "iterations": args.iterations, "batch_size": args.batch,
-               "learning_rate": args.lr, "rows": data["rows"]}
-    name = args.case_dir.resolve().name + ("" if args.prior == "none" else f"-{args.prior}")
+               "learning_rate": args.lr, "seed": args.seed, "rows": data["rows"]}
+    name = (args.case_dir.resolve().name + ("" if args.prior == "none" else f"-{args.prior}")
+            + (f"-seed{args.seed}" if args.seed else ""))
     write_result(f"pushes-only-{name}", figures)
     print(" ".join(["RESULT"] + [f"{k}={v:.3f}" for k, v in tre.items()]
                    + [f"train_min={figures['train_min']:.2f}"]))

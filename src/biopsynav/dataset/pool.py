@@ -56,8 +56,12 @@ class WorkerProcesses:
         self.env = {**SINGLE_THREAD_ENV, "NUMBA_NUM_THREADS": str(threads)}
         self.folder = Path(tempfile.mkdtemp(prefix="biopsynav-workers-"))
         self.setup_file = self.folder / "setup.pickle"
-        with open(self.setup_file, "wb") as f:
-            pickle.dump((setup, setup_args), f, protocol=pickle.HIGHEST_PROTOCOL)
+        try:
+            with open(self.setup_file, "wb") as f:
+                pickle.dump((setup, setup_args), f, protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
         self.pool = self._new_pool()
 
     def _new_pool(self) -> ProcessPoolExecutor:
