@@ -96,10 +96,10 @@ def nan_runs(layout: str, runs: int, tmp: Path) -> int:
 
 def result_name() -> str:
     """The result file's name for this CPU's bf16 arithmetic."""
-    from biopsynav.threads import cpu_bf16_unit
+    from biopsynav.threads import cpu_bf16_unit, cpu_has_amx_bf16
 
-    unit = cpu_bf16_unit()
-    return "bf16-cpu-" + ("amx" if unit and "AMX" in unit else "avx512" if unit else "emulated")
+    kind = "amx" if cpu_has_amx_bf16() else "avx512" if cpu_bf16_unit() else "emulated"
+    return f"bf16-cpu-{kind}"
 
 
 def main(argv: list[str] | None = None) -> int:

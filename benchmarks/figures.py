@@ -186,7 +186,7 @@ def pushes_only(data: dict) -> str:
     return (" / ".join(fmt(f[f"tre_d{k}_mm"]) for k in (10, 20, 30))
             + f" mm; {fmt(f['train_min'], 1)} min")
 
-#: BENCHMARKS.md: (what, cell, target, paper)
+
 def bf16_cells(d: dict) -> str:
     """The cells of a ``bf16_cpu.py`` result."""
     f = d["figures"]
@@ -196,6 +196,7 @@ def bf16_cells(d: dict) -> str:
             f"{' '.join(d['machine']['cpu_flags']) or 'none'}")
 
 
+#: BENCHMARKS.md: (what, cell, target, paper)
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("`make demo` from nothing, phantom: whole pipeline",
      Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")), "<= 15 min", "278 min (GPU)"),

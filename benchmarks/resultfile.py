@@ -18,13 +18,9 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def cpu_flags() -> list[str]:
     """The CPU's bf16 and AMX flags (what the training arithmetic could use)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return []
-    flags = next((ln.split(":", 1)[1].split() for ln in text.splitlines()
-                  if ln.startswith("flags")), [])
-    return sorted(f for f in set(flags) if "bf16" in f or f.startswith("amx"))
+    from biopsynav.threads import cpu_flags as all_flags
+
+    return sorted(f for f in all_flags() if "bf16" in f or f.startswith("amx"))
 
 
 def machine() -> dict:

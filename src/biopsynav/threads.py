@@ -119,7 +119,7 @@ def one_thread() -> Iterator[None]:
 
 
 @functools.cache
-def _cpu_flags() -> frozenset[str]:
+def cpu_flags() -> frozenset[str]:
     """The CPU's flags (``/proc/cpuinfo``'s first ``flags`` line; empty where it is absent)."""
     try:
         text = Path("/proc/cpuinfo").read_text()
@@ -133,7 +133,7 @@ def cpu_has_amx_bf16() -> bool:
     """Whether this CPU has AMX-BF16 tile instructions (``amx_bf16`` in ``/proc/cpuinfo``;
     False where that file is absent): oneDNN's and OpenVINO's bf16 convolutions then run on
     the tiles."""
-    return "amx_bf16" in _cpu_flags()
+    return "amx_bf16" in cpu_flags()
 
 
 def cpu_bf16_unit() -> str | None:
@@ -141,4 +141,4 @@ def cpu_bf16_unit() -> str | None:
     ``"AVX-512 BF16"`` (``avx512_bf16``: bf16 dot products, fp32 sums), else None."""
     if cpu_has_amx_bf16():
         return "AMX-BF16 tiles"
-    return "AVX-512 BF16" if "avx512_bf16" in _cpu_flags() else None
+    return "AVX-512 BF16" if "avx512_bf16" in cpu_flags() else None

@@ -114,7 +114,6 @@ def test_points_held_on_fixed_nodes_only_leave_the_fit_as_it_was(grids):
     assert np.array_equal(held, transfer(fine_field))
 
 
-
 def test_a_point_fit_returns_a_linear_field_from_scattered_values(grids):
     """Values of a field linear in space at scattered points inside the tissue (a P2
     teacher's) come back on the case grid at those points, up to the small smoothing."""
