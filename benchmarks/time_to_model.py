@@ -3,7 +3,8 @@ reached.
 
     python benchmarks/time_to_model.py [--case phantom|ucdavis|ucdavis-homogeneous]
                                        [--workdir DIR] [--keep] [--no-truth]
-                                       [--prior auto --iterations 4000] [--tag TAG]
+                                       [--prior auto --iterations 4000]
+                                       [--recipe chain|pushes] [--tag TAG]
 
 * ``phantom``: what ``make demo`` does (``biopsynav demo``: the built-in phantom, every
   default, Table 2 on 3 lesions);
@@ -25,9 +26,11 @@ tracking network's lesion TRE against it at 10 / 20 / 30 mm over every lesion
 solved again). The three-tissue breast has no such truth (the P2 reference is homogeneous), so
 its TRE is not measured; its time and Table 1 are.
 
-``--prior`` and ``--iterations`` set ``[network]`` in the new case (docs/network.md, "Starting
-from a prior"); the result is then ``time-to-model-<case>-prior.json`` (``-itN`` added with
-``--iterations N``).
+``--recipe`` chooses the new case's training data (:mod:`biopsynav.recipes`; ``init
+--recipe``, ``demo --recipe``): with ``pushes`` Table 1 is the tracking network on its
+held-out rigid pushes. ``--prior`` and ``--iterations`` set ``[network]`` in the new case
+(docs/network.md, "Starting from a prior"); the result is then
+``time-to-model-<case>[-<recipe>]-prior.json`` (``-itN`` added with ``--iterations N``).
 
 Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
 ``RESULT total_min=... train_min=... tre_d10_mm=... tre_d30_mm=...`` (nan where not measured).
@@ -46,6 +49,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from biopsynav.recipes import RECIPES
 from figures import depth_means
 from resultfile import write_result
 from speedprobe import speed_probes
@@ -57,14 +61,14 @@ TRUTHS = {"phantom": TRUTHS_DIR / "phantom.json",
           "ucdavis-homogeneous": TRUTHS_DIR / "ucdavis-homogeneous.json"}
 
 
-def init_ucdavis(case_dir: Path, homogeneous: bool) -> None:
-    """``biopsynav init`` of the UC Davis breast, as the README says."""
+def init_ucdavis(case_dir: Path, homogeneous: bool, recipe: str) -> None:
+    """``biopsynav init --recipe RECIPE`` of the UC Davis breast, as the README says."""
     if not UCDAVIS.is_file():
         sys.exit(f"time_to_model: the UC Davis breast is not at {UCDAVIS}")
     labels = "1=fat,2=fat,3=fat" if homogeneous else "1=fat,2=gland,3=skin"
     cmd = [sys.executable, "-m", "biopsynav.cli", "init", str(case_dir), "--surface",
            str(UCDAVIS), "--tissue-labels", labels, "--lesions",
-           str(ROOT / "examples" / "ucdavis_breast3" / "lesions.csv")]
+           str(ROOT / "examples" / "ucdavis_breast3" / "lesions.csv"), "--recipe", recipe]
     if homogeneous:
         cmd += ["--config", str(ROOT / "examples" / "ucdavis_breast3" / "homogeneous.toml")]
     subprocess.run(cmd, check=True)
@@ -82,19 +86,22 @@ def check_network(network: dict) -> None:
         sys.exit(f"time_to_model: {exc}")
 
 
-def build_and_run(kind: str, case_dir: Path, network: dict) -> tuple[dict, float]:
-    """The pipeline from nothing, ``[network]`` values ``network`` set in the new case (none:
-    every default): its stage times (s) and the init's time (s)."""
+def build_and_run(kind: str, case_dir: Path, network: dict, recipe: str) -> tuple[dict, float]:
+    """The pipeline from nothing with training data of ``recipe``, ``[network]`` values
+    ``network`` set in the new case (none: the recipe's): its stage times (s) and the init's
+    time (s)."""
     from biopsynav.case import make_phantom_case
     from biopsynav.config import load_config, save_config
-    from biopsynav.pipeline import FULL_DEMO, run_case, run_demo
+    from biopsynav.pipeline import demo_overrides, run_case, run_demo
+    from biopsynav.recipes import merged
 
     if kind == "phantom":
         if network:  # what run_demo builds, with those values
-            make_phantom_case(case_dir, overrides={**FULL_DEMO, "network": network})
-        return run_demo(case_dir)["timings_s"], 0.0
+            make_phantom_case(case_dir, overrides=merged(demo_overrides(recipe, False),
+                                                         {"network": network}))
+        return run_demo(case_dir, recipe=recipe)["timings_s"], 0.0
     t = time.perf_counter()
-    init_ucdavis(case_dir, homogeneous=kind == "ucdavis-homogeneous")
+    init_ucdavis(case_dir, homogeneous=kind == "ucdavis-homogeneous", recipe=recipe)
     if network:
         cfg = load_config(case_dir)
         save_config(case_dir, dataclasses.replace(
@@ -165,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=None,
                    help="[network] iterations of the new case (default: the case's default); the "
                    "result file is then time-to-model-CASE[-prior]-itN")
+    p.add_argument("--recipe", default="chain", choices=sorted(RECIPES),
+                   help="the new case's training data (biopsynav.recipes); the result file is "
+                   "then time-to-model-CASE-RECIPE for another than chain")
     p.add_argument("--tag", default=None, help="appended to the result file's name (another "
                    "machine's run, say, that should not replace the reference's figures)")
     args = p.parse_args(argv)
@@ -178,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"time_to_model: {case_dir} exists; the benchmark starts from nothing")
     probes = speed_probes()
     start = time.perf_counter()
-    timings, init_s = build_and_run(args.case, case_dir, network)
+    timings, init_s = build_and_run(args.case, case_dir, network, args.recipe)
     total_min = (time.perf_counter() - start) / 60
     minutes = stage_minutes(case_dir, timings, init_s)
     table1 = json.loads((case_dir / "eval" / "table1.json").read_text())
@@ -188,8 +198,10 @@ def main(argv: list[str] | None = None) -> int:
                "train_min": minutes.get("network training", math.nan),
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
-               "prior": (meta.get("prior") or {}).get("name", "none"), **tre}
-    name = result_name(args.case, args.prior, args.iterations)
+               "prior": (meta.get("prior") or {}).get("name", "none"), "recipe": args.recipe,
+               "table1_samples": table1.get("n_samples"), **tre}
+    name = result_name(args.case + ("" if args.recipe == "chain" else f"-{args.recipe}"),
+                       args.prior, args.iterations)
     write_result(name + (f"-{args.tag}" if args.tag else ""), figures,
                  speed_probes=probes)
     if not args.keep and args.workdir is None:

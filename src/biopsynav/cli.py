@@ -98,9 +98,10 @@ def cmd_init(args: argparse.Namespace) -> int:
     from .case import init_case
     from .config import CaseConfig, config_from_dict
     from .fileio import read_json
+    from .recipes import recipe_overrides
 
     cfg = CaseConfig()
-    overrides: dict = {"anatomy": {}}
+    overrides: dict = {**recipe_overrides(args.recipe), "anatomy": {}}
     if args.phantom:
         if args.surface or args.labelmap:
             raise InputError("--phantom takes no --surface or --labelmap", "init")
@@ -123,7 +124,7 @@ def cmd_init(args: argparse.Namespace) -> int:
     if args.tissue_labels:
         overrides["anatomy"]["tissue_labels"] = args.tissue_labels
     if args.cell_size:
-        overrides["grid"] = {"cell_size_mm": args.cell_size}
+        overrides.setdefault("grid", {})["cell_size_mm"] = args.cell_size
     if args.config:
         import tomllib
 
@@ -267,7 +268,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .pipeline import run_demo
 
-    run_demo(args.case_dir, quick=args.quick, workers=args.workers)
+    run_demo(args.case_dir, quick=args.quick, workers=args.workers, recipe=args.recipe)
     return 0
 
 
@@ -311,6 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "plane:px,py,pz,nx,ny,nz (default auto)")
     p.add_argument("--cell-size", type=float, help="grid cell size, mm")
     p.add_argument("--config", type=Path, help="a TOML file with case.toml sections to set")
+    _recipe_option(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild an existing case")
 
     p = add("info", cmd_info, "Print the case summary.")
@@ -392,7 +394,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("case_dir", type=Path, nargs="?", default=Path("demo-case"))
     p.add_argument("--quick", action="store_true", help="reduced sizes, a few minutes")
     p.add_argument("--workers", type=int, default=0)
+    _recipe_option(p)
     return parser
+
+
+def _recipe_option(p: argparse.ArgumentParser) -> None:
+    """``--recipe``: the training data's recipe of a new case (biopsynav.recipes)."""
+    from .recipes import DEFAULT_RECIPE, RECIPES
+
+    p.add_argument("--recipe", choices=sorted(RECIPES), default=DEFAULT_RECIPE,
+                   help="what teaches the tracking network (a new case's case.toml values): "
+                   + "; ".join(f"{r.name}: {r.summary}" for r in RECIPES.values())
+                   + f" (default {DEFAULT_RECIPE}; docs/pipeline.md)")
 
 
 #: Commands that write into the case folder: each holds the case's lock while it runs.

@@ -18,6 +18,7 @@ from .case import Case, build_case
 from .config import load_config
 from .fileio import read_json
 from .layout import CasePaths
+from .recipes import DEFAULT_RECIPE, merged, recipe_overrides
 from .reference_registry import check_reference
 from .runtime import estimate_run, remaining_minutes, stage_table
 
@@ -186,8 +187,19 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
             "expected_min": None if estimate is None else estimate.total}
 
 
-def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: int = 0) -> dict:
-    """Build the built-in phantom case (if absent) and run the whole pipeline on it."""
+def demo_overrides(recipe: str, quick: bool) -> dict:
+    """The demo case's case.toml values: ``recipe``'s, then the full demo's (or ``quick``'s
+    reduced sizes; a recipe without ``[refine]`` keeps it off)."""
+    values = merged(recipe_overrides(recipe), QUICK if quick else FULL_DEMO)
+    if recipe_overrides(recipe).get("refine", {}).get("samples") == 0:
+        values["refine"] = {"samples": 0}
+    return values
+
+
+def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: int = 0,
+             recipe: str = DEFAULT_RECIPE) -> dict:
+    """Build the built-in phantom case (if absent; its training data of ``recipe``,
+    :mod:`biopsynav.recipes`) and run the whole pipeline on it."""
     from .case import make_phantom_case
 
     case_dir = Path(case_dir)
@@ -195,7 +207,7 @@ def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: i
     if not CasePaths(case_dir).config.exists():
         print(f"building the built-in phantom case in {case_dir}"
               + (" (quick: reduced sizes)" if quick else ""))
-        make_phantom_case(case_dir, overrides=QUICK if quick else FULL_DEMO)
+        make_phantom_case(case_dir, overrides=demo_overrides(recipe, quick))
     result = run_case(case_dir, workers=workers, quick=quick)
     minutes = (time.perf_counter() - start) / 60
     print(f"\nbiopsynav demo finished in {minutes:.1f} min. Report: {result['report'][0]}")

@@ -127,16 +127,25 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
     step, refine_step = (p / ref["probe_s"] for p in (probes[1], probes[-1]))
     cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
     cfg, m = case.cfg, ref["minutes"]
-    minutes = {"generate": m["generate"] * (cfg.dataset.n_train + cfg.dataset.n_test)
-               / ref["samples"] * cells * slowness,
+    samples = cfg.dataset.n_train + cfg.dataset.n_test
+    rigid = cfg.probe.rigid_share * samples  # rigid pushes cost what [refine]'s do
+    minutes = {"generate": (m["generate"] * (samples - rigid) / ref["samples"] * cells * slowness
+                            + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, slowness)),
                "train": m["train"] * cfg.network.iterations / ref["iterations"] * step}
     if cfg.refine.samples:
-        minutes["refine pushes"] = (REFINE_PUSH_MINUTES * cfg.refine.samples / ref["samples"]
-                                    * cfg.refine.teacher_refine ** 3 * slowness)
+        minutes["refine pushes"] = rigid_push_minutes(cfg.refine.samples,
+                                                      cfg.refine.teacher_refine, slowness)
         minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
                                       / ref["refine_iterations"] * refine_step)
     minutes["evaluate and report"] = m["evaluate and report"] * table2_work(case) * slowness
     return Estimate(minutes, slowness)
+
+
+def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float) -> float:
+    """Expected minutes of ``pushes`` rigid-probe pushes on cells ``teacher_refine`` times
+    smaller than the case grid's (:data:`REFINE_PUSH_MINUTES`), at the machine's
+    ``slowness``."""
+    return REFINE_PUSH_MINUTES * pushes / REFERENCE["samples"] * teacher_refine ** 3 * slowness
 
 
 #: pushes per lesion of a stored truth (benchmarks/truth.py's 10, 20 and 30 mm)

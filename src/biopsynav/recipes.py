@@ -1,0 +1,73 @@
+"""Recipes: which FE samples teach the tracking network, as case.toml values written by ``init``
+and ``demo`` into a new case (``--recipe``).
+
+A recipe is plain data: the case.toml sections and values it sets over the configuration's
+defaults (the case's own ``case.toml`` then shows them, and every later stage reads them from
+there like any setting). Registered in :data:`RECIPES` (:func:`register_recipe`):
+
+* ``chain`` (default): the configuration's defaults, the paper's force patches teaching the
+  case network, then ``[refine]``'s 1,000 rigid-probe pushes training it further;
+* ``pushes``: those 1,000 rigid-probe pushes alone teach the tracking network from scratch
+  (no force patches, no force calibration, no case network, ``[refine] samples = 0``): the
+  same pushes as the chain's refine stage (law, depths, tilts, seed; 980 trained, 20 held
+  out), trained for 4,000 iterations at batch 16. Table 1 is then the tracking network against
+  its teacher on those 20 held-out pushes, not the paper's force patches
+  (docs/pipeline.md, "Recipes").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from .errors import InputError
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A named set of case.toml values (section -> key -> value) over the defaults."""
+
+    name: str
+    summary: str
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+#: name -> :class:`Recipe`; the choices of ``init --recipe`` and ``demo --recipe``
+RECIPES: dict[str, Recipe] = {}
+DEFAULT_RECIPE = "chain"
+
+
+def register_recipe(recipe: Recipe) -> None:
+    """Add ``recipe`` to :data:`RECIPES` (a name already there is replaced)."""
+    RECIPES[recipe.name] = recipe
+
+
+def recipe_overrides(name: str) -> dict[str, dict[str, Any]]:
+    """A fresh copy of recipe ``name``'s case.toml values; InputError naming the recipes
+    there are for an unknown name."""
+    if name not in RECIPES:
+        raise InputError(f"unknown recipe {name!r}; recipes: {', '.join(sorted(RECIPES))}",
+                         "--recipe")
+    return {section: dict(values) for section, values in RECIPES[name].overrides.items()}
+
+
+def merged(*layers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Section-wise union of case.toml value layers, a later layer's keys winning."""
+    out: dict[str, dict[str, Any]] = {}
+    for layer in layers:
+        for section, values in layer.items():
+            out.setdefault(section, {}).update(values)
+    return out
+
+
+register_recipe(Recipe(
+    "chain", "force patches teach the case network, then 1,000 rigid pushes train it further "
+             "([refine]): the configuration's defaults"))
+register_recipe(Recipe(
+    "pushes", "1,000 rigid-probe pushes alone teach the tracking network (no force patches, "
+              "no case network)",
+    {"probe": {"rigid_share": 1.0, "calibrate_force": False},
+     "material": {"model": "neo-hookean-split-sri-inner"},
+     "dataset": {"n_train": 980, "n_test": 20},
+     "network": {"iterations": 4000},
+     "refine": {"samples": 0}}))

@@ -1,0 +1,89 @@
+"""Recipes (biopsynav.recipes): the case.toml values ``init --recipe`` and ``demo --recipe``
+write, and a run of the ``pushes`` recipe from the command line."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from biopsynav.config import CaseConfig, config_from_dict, load_config
+from biopsynav.errors import InputError
+from biopsynav.recipes import RECIPES, recipe_overrides
+
+
+def test_an_unknown_recipe_is_refused_naming_the_recipes_there_are():
+    with pytest.raises(InputError) as err:
+        recipe_overrides("force")
+    assert "chain" in str(err.value) and "pushes" in str(err.value)
+
+
+def test_every_recipe_is_a_valid_case_toml_and_chain_is_the_defaults():
+    for name in RECIPES:
+        config_from_dict(recipe_overrides(name), f"recipe {name}")
+    assert config_from_dict(recipe_overrides("chain"), "chain") == CaseConfig()
+
+
+def test_the_pushes_recipe_draws_the_chains_refine_pushes():
+    """Its data set has the protocol of the chain's [refine] pushes (law, depths, tilts,
+    seed, counts), so what was measured of those pushes holds for it; and nothing else runs."""
+    from biopsynav.dataset.store import protocol_dict
+    from biopsynav.refine import refined_config
+
+    pushes = config_from_dict(recipe_overrides("pushes"), "pushes")
+    chain_refine = refined_config(CaseConfig())
+    assert (protocol_dict(pushes, pushes.dataset.n_train, pushes.dataset.n_test)
+            == protocol_dict(chain_refine, chain_refine.dataset.n_train,
+                             chain_refine.dataset.n_test))
+    assert pushes.refine.samples == 0 and not pushes.probe.calibrate_force
+    assert pushes.network.init_from == "" and pushes.network.prior == "none"
+
+
+def test_quick_demo_keeps_the_recipes_choice_of_refine():
+    from biopsynav.pipeline import demo_overrides
+
+    assert demo_overrides("pushes", quick=True)["refine"] == {"samples": 0}
+    assert demo_overrides("chain", quick=True)["refine"]["samples"] > 0
+    assert demo_overrides("pushes", quick=False)["probe"]["rigid_share"] == 1.0
+
+
+def test_the_estimate_prices_a_data_set_of_rigid_pushes_as_rigid_pushes(base_case):
+    from biopsynav.case import Case
+    from biopsynav.runtime import REFERENCE, estimate_run, rigid_push_minutes
+
+    case = Case.load(base_case)
+    ref = REFERENCE["probe_s"]
+    n = case.cfg.dataset.n_train + case.cfg.dataset.n_test
+    case.cfg.probe = dataclasses.replace(case.cfg.probe, rigid_share=1.0)
+    assert estimate_run(case, (ref, ref)).minutes["generate"] == pytest.approx(
+        rigid_push_minutes(n, 1.0, 1.0))
+
+
+def test_init_writes_the_recipe_and_run_trains_the_tracking_network_on_pushes(tmp_path):
+    """``init --recipe pushes`` writes its values (what the user reads in case.toml); ``run``
+    then solves rigid pushes, trains the one network the tracker uses, and Table 1 measures
+    it on its held-out pushes, with no refine stage."""
+    from biopsynav.cli import main
+    from biopsynav.config import save_config
+
+    case = tmp_path / "case"
+    assert main(["init", str(case), "--phantom", "--cell-size", "15", "--recipe", "pushes"]) == 0
+    cfg = load_config(case)
+    assert cfg.probe.rigid_share == 1.0 and cfg.refine.samples == 0
+    assert cfg.material.model == "neo-hookean-split-sri-inner"
+    cfg.dataset.n_train, cfg.dataset.n_test = 10, 4
+    cfg.network.iterations, cfg.network.val_interval = 6, 3
+    cfg.network.warmup_iterations, cfg.network.threads = 2, 1
+    cfg.evaluate.timed_predictions = 10
+    cfg.evaluate.max_lesions, cfg.evaluate.deformations_per_lesion = 1, 1
+    cfg.evaluate.reference_refinement = 1.0
+    save_config(case, cfg)
+    assert main(["run", str(case), "--workers", "1"]) == 0
+    summary = json.loads((case / "dataset_summary.json").read_text())
+    assert summary["rigid_pushes"] == summary["count"] == 14
+    assert summary["force_calibration"] is None
+    table1 = json.loads((case / "eval" / "table1.json").read_text())
+    assert table1["n_samples"] == 4 and table1["mean_e_mm"] > 0.0
+    assert not (case / "refine").exists()
+    assert (case / "report.html").is_file()
