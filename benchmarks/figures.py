@@ -177,6 +177,7 @@ TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
 UCD_TRUTH_CMD = ("python benchmarks/truth.py CASE --lesions 0 --reference "
                  "src/biopsynav/data/truths/ucdavis-homogeneous.json")
 TTM = "python benchmarks/time_to_model.py --case {}"
+TTM_CHAIN = TTM + " --recipe chain"
 PUSHES_CMD = "python benchmarks/pushes_only.py CASE --reference src/biopsynav/data/truths/{}.json"
 
 
@@ -198,25 +199,36 @@ def bf16_cells(d: dict) -> str:
 
 #: BENCHMARKS.md: (what, cell, target, paper)
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
-    ("`make demo` from nothing, phantom: whole pipeline",
-     Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")), "<= 15 min", "278 min (GPU)"),
-    ("the same, each stage", Cell("time-to-model-phantom", ttm_stages, TTM.format("phantom")),
-     "-", "-"),
+    ("`make demo` from nothing, phantom, the default recipe `pushes` (450 rigid pushes, one "
+     "network; AMD EPYC with AVX-512 BF16, no AMX): whole; each stage; Table 1 on its 50 "
+     "held-out rigid pushes; the TRE against the P2 truth, 10 / 20 / 30 mm",
+     Cell("time-to-model-phantom-pushes-avx512", ttm_summary,
+          TTM.format("phantom") + " --recipe pushes --tag avx512"), "<= 15 min", "-"),
+    ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (AMD EPYC): "
+     "whole; each stage; Table 1 on its held-out rigid pushes",
+     Cell("time-to-model-ucdavis-pushes-avx512", ttm_summary,
+          TTM.format("ucdavis") + " --recipe pushes --tag avx512"), "<= 15 min", "-"),
+    ("`demo --recipe chain` from nothing, phantom (force patches, case network, `[refine]`; "
+     "Intel Xeon with AMX-BF16): whole pipeline",
+     Cell("time-to-model-phantom", ttm_total, TTM_CHAIN.format("phantom")), "<= 15 min",
+     "278 min (GPU)"),
+    ("the same, each stage", Cell("time-to-model-phantom", ttm_stages,
+                                  TTM_CHAIN.format("phantom")), "-", "-"),
     ("the same: Table 1, mean / max e against its own FE teacher (200 held-out force patches)",
-     Cell("time-to-model-phantom", ttm_table1, TTM.format("phantom")), "<= 0.05 / 0.27 mm",
-     "0.052 / 0.266 mm"),
+     Cell("time-to-model-phantom", ttm_table1, TTM_CHAIN.format("phantom")),
+     "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
     ("the same: the tracking network's lesion TRE against the P2 truth, 10 / 20 / 30 mm",
-     Cell("time-to-model-phantom", ttm_tre, TTM.format("phantom")), "D10 <= 0.5, D30 <= 1.5 mm",
-     "-"),
+     Cell("time-to-model-phantom", ttm_tre, TTM_CHAIN.format("phantom")),
+     "D10 <= 0.5, D30 <= 1.5 mm", "-"),
     ("the same on an AMD EPYC with AVX-512 BF16 and no AMX (bf16 training): whole; each "
      "stage; Table 1; the TRE against the P2 truth, 10 / 20 / 30 mm",
-     Cell("time-to-model-phantom-avx512", ttm_summary, TTM.format("phantom") + " --tag avx512"),
-     "<= 15 min", "-"),
-    ("`run` from nothing, UC Davis of three tissues: whole pipeline",
-     Cell("time-to-model-ucdavis", ttm_total, TTM.format("ucdavis")), "<= 15 min", "-"),
-    ("the same, each stage", Cell("time-to-model-ucdavis", ttm_stages, TTM.format("ucdavis")),
-     "-", "-"),
-    ("the same: Table 1", Cell("time-to-model-ucdavis", ttm_table1, TTM.format("ucdavis")),
+     Cell("time-to-model-phantom-avx512", ttm_summary,
+          TTM_CHAIN.format("phantom") + " --tag avx512"), "<= 15 min", "-"),
+    ("`init --recipe chain` and `run` from nothing, UC Davis of three tissues: whole pipeline",
+     Cell("time-to-model-ucdavis", ttm_total, TTM_CHAIN.format("ucdavis")), "<= 15 min", "-"),
+    ("the same, each stage", Cell("time-to-model-ucdavis", ttm_stages,
+                                  TTM_CHAIN.format("ucdavis")), "-", "-"),
+    ("the same: Table 1", Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")),
      "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
     ("lesion TRE against the P2 truth, every phantom lesion, 10 / 20 / 30 mm: the network of "
      "today's defaults (the case `make demo` makes)",
@@ -328,15 +340,30 @@ def bench_block() -> str:
 
 #: README.md's headline: (what, phantom cell, UC Davis cell, paper)
 README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
-    ("from nothing to a served model, 2 cores (`make demo`; `run`)",
-     Cell("time-to-model-phantom", ttm_total, TTM.format("phantom")),
-     Cell("time-to-model-ucdavis", ttm_total, TTM.format("ucdavis")), "278 min with a GPU"),
-    ("Table 1: mean / max e against its own FE teacher",
-     Cell("time-to-model-phantom", ttm_table1, TTM.format("phantom")),
-     Cell("time-to-model-ucdavis", ttm_table1, TTM.format("ucdavis")), "0.052 / 0.266 mm"),
+    ("from nothing to a served model, 2 cores (`make demo`; `run`), the default recipe "
+     "`pushes` (AMD EPYC, no AMX)",
+     Cell("time-to-model-phantom-pushes-avx512", ttm_total,
+          TTM.format("phantom") + " --recipe pushes --tag avx512"),
+     Cell("time-to-model-ucdavis-pushes-avx512", ttm_total,
+          TTM.format("ucdavis") + " --recipe pushes --tag avx512"), "278 min with a GPU"),
+    ("the same, `--recipe chain` (force patches, case network, `[refine]`; Intel Xeon with "
+     "AMX-BF16)",
+     Cell("time-to-model-phantom", ttm_total, TTM_CHAIN.format("phantom")),
+     Cell("time-to-model-ucdavis", ttm_total, TTM_CHAIN.format("ucdavis")), "-"),
+    ("Table 1 of the default recipe: mean / max e of the tracking network against its FE "
+     "teacher, held-out rigid pushes up to 35 mm",
+     Cell("time-to-model-phantom-pushes-avx512", ttm_table1,
+          TTM.format("phantom") + " --recipe pushes --tag avx512"),
+     Cell("time-to-model-ucdavis-pushes-avx512", ttm_table1,
+          TTM.format("ucdavis") + " --recipe pushes --tag avx512"), "-"),
+    ("Table 1, `--recipe chain`: the case network on held-out force patches (the paper's test)",
+     Cell("time-to-model-phantom", ttm_table1, TTM_CHAIN.format("phantom")),
+     Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")), "0.052 / 0.266 mm"),
     ("lesion TRE against an independent FE (P2 tetrahedra), every lesion, 10 / 20 / 30 mm "
-     "pushes: the tracking network (UC Davis: the recipe before bf16 and batch 16)",
-     Cell("time-to-model-phantom", ttm_tre, TTM.format("phantom")),
+     "pushes: the tracking network (phantom: the default recipe; UC Davis: the chain before "
+     "bf16 and batch 16)",
+     Cell("time-to-model-phantom-pushes-avx512", ttm_tre,
+          TTM.format("phantom") + " --recipe pushes --tag avx512"),
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-"),
     ("the same: its FE teacher",
      Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),

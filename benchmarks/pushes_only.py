@@ -3,7 +3,7 @@ case network (docs/pipeline.md, "no force patches at all").
 
     python benchmarks/pushes_only.py CASE --reference TRUTH.json [--prior NAME]
                                      [--iterations 4000] [--batch 16] [--lr 2e-3]
-                                     [--seed 0] [--workdir DIR]
+                                     [--seed 0] [--train-samples N] [--workdir DIR]
 
 CASE is a case whose ``refine/dataset.zarr`` is complete (e.g. the one ``make demo`` or
 ``time_to_model.py --keep`` leaves) and of which ``truth.py`` takes the truth as it is (its
@@ -14,8 +14,9 @@ training on those pushes, from scratch or from the packaged prior ``--prior``, w
 compares that model with the stored P2 truth ``--reference`` over every lesion at 10 / 20 /
 30 mm. Run it alone on the machine.
 
-Writes ``benchmarks/results/pushes-only-<case name>[-<prior>][-seed<n>].json``; the last line reads
-``RESULT tre_d10_mm=... tre_d20_mm=... tre_d30_mm=... train_min=...``.
+``--train-samples N`` trains on the first N training pushes only (the held-out ones stay).
+Writes ``benchmarks/results/pushes-only-<case name>[-<prior>][-nN][-seed<n>].json``; the last
+line reads ``RESULT tre_d10_mm=... tre_d20_mm=... tre_d30_mm=... train_min=...``.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ def train_on_pushes(refine_dir: Path, args: argparse.Namespace) -> dict:
                             iterations=args.iterations, batch_size=args.batch,
                             learning_rate=args.lr, warmup_iterations=300, val_interval=500,
                             seed=args.seed)
-    train(case, settings=s, model_dir=refine_dir / "model")
+    train(case, settings=s, model_dir=refine_dir / "model", first_samples=args.train_samples)
     return json.loads((refine_dir / "model" / "meta.json").read_text())["training"]
 
 
@@ -81,6 +82,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--seed", type=int, default=0, help="[network] seed of the training")
+    p.add_argument("--train-samples", type=int, default=None,
+                   help="train on the first N training pushes only (default: all)")
     p.add_argument("--workdir", type=Path, default=None)
     return p
 
@@ -118,8 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     figures = {**tre, "train_min": training["train_time_s"] / 60,
                "held_out_mean_e_mm": training["best_val_e_mm"], "prior": args.prior,
                "iterations": args.iterations, "batch_size": args.batch,
-               "learning_rate": args.lr, "seed": args.seed, "rows": data["rows"]}
+               "learning_rate": args.lr, "seed": args.seed,
+               "train_samples": training.get("n_train"), "rows": data["rows"]}
     name = (args.case_dir.resolve().name + ("" if args.prior == "none" else f"-{args.prior}")
+            + (f"-n{args.train_samples}" if args.train_samples is not None else "")
             + (f"-seed{args.seed}" if args.seed else ""))
     write_result(f"pushes-only-{name}", figures)
     print(" ".join(["RESULT"] + [f"{k}={v:.3f}" for k, v in tre.items()]

@@ -4,7 +4,7 @@ reached.
     python benchmarks/time_to_model.py [--case phantom|ucdavis|ucdavis-homogeneous]
                                        [--workdir DIR] [--keep] [--no-truth]
                                        [--prior auto --iterations 4000]
-                                       [--recipe chain|pushes] [--tag TAG]
+                                       [--recipe pushes|chain] [--tag TAG]
 
 * ``phantom``: what ``make demo`` does (``biopsynav demo``: the built-in phantom, every
   default, Table 2 on 3 lesions);
@@ -49,7 +49,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from biopsynav.recipes import RECIPES
+from biopsynav.recipes import DEFAULT_RECIPE, RECIPES
 from figures import depth_means
 from resultfile import write_result
 from speedprobe import speed_probes
@@ -172,9 +172,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=None,
                    help="[network] iterations of the new case (default: the case's default); the "
                    "result file is then time-to-model-CASE[-prior]-itN")
-    p.add_argument("--recipe", default="chain", choices=sorted(RECIPES),
-                   help="the new case's training data (biopsynav.recipes); the result file is "
-                   "then time-to-model-CASE-RECIPE for another than chain")
+    p.add_argument("--recipe", default=DEFAULT_RECIPE, choices=sorted(RECIPES),
+                   help="the new case's training data (biopsynav.recipes; default "
+                   f"{DEFAULT_RECIPE}); the result file is time-to-model-CASE-RECIPE, "
+                   "time-to-model-CASE for chain (its name before recipes)")
     p.add_argument("--tag", default=None, help="appended to the result file's name (another "
                    "machine's run, say, that should not replace the reference's figures)")
     args = p.parse_args(argv)

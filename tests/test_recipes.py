@@ -27,15 +27,13 @@ def test_every_recipe_is_a_valid_case_toml_and_chain_is_the_defaults():
 
 def test_the_pushes_recipe_draws_the_chains_refine_pushes():
     """Its data set has the protocol of the chain's [refine] pushes (law, depths, tilts,
-    seed, counts), so what was measured of those pushes holds for it; and nothing else runs."""
+    seed), so a sample of either is the same push; and nothing else runs."""
     from biopsynav.dataset.store import protocol_dict
     from biopsynav.refine import refined_config
 
     pushes = config_from_dict(recipe_overrides("pushes"), "pushes")
     chain_refine = refined_config(CaseConfig())
-    assert (protocol_dict(pushes, pushes.dataset.n_train, pushes.dataset.n_test)
-            == protocol_dict(chain_refine, chain_refine.dataset.n_train,
-                             chain_refine.dataset.n_test))
+    assert protocol_dict(pushes, 1000, 20) == protocol_dict(chain_refine, 1000, 20)
     assert pushes.refine.samples == 0 and not pushes.probe.calibrate_force
     assert pushes.network.init_from == "" and pushes.network.prior == "none"
 
@@ -86,4 +84,4 @@ def test_init_writes_the_recipe_and_run_trains_the_tracking_network_on_pushes(tm
     table1 = json.loads((case / "eval" / "table1.json").read_text())
     assert table1["n_samples"] == 4 and table1["mean_e_mm"] > 0.0
     assert not (case / "refine").exists()
-    assert (case / "report.html").is_file()
+    assert "held-out samples are rigid-probe pushes" in (case / "report.md").read_text()

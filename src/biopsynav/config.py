@@ -481,8 +481,8 @@ class NetworkSection:
                                  "distance from the independent truth at 10-30 mm pushes as "
                                  "the 50,000 at batch 4, in half the time; 12,000 at batch 4 "
                                  "left the deep pushes 16 % further from it (docs/pipeline.md, "
-                                 "'The recipe'). From a prior (prior), 4,000 reach the same "
-                                 "mean held-out error, not its largest (docs/network.md, "
+                                 "'The chain's settings'). From a prior (prior), 4,000 reach the "
+                                 "same mean held-out error, not its largest (docs/network.md, "
                                  "'Starting from a prior'). The time on this machine: "
                                  "benchmarks/time_to_model.py.",
                           lo=1, hi=10**8)
@@ -652,7 +652,7 @@ class RefineSection:
     batch_size: int = opt(4, "Batch size of that training. 4: on the phantom, 4,000 "
                              "iterations at batch 16 (the same samples) left the tracking "
                              "network 17 % further from the independent truth at 30 mm pushes "
-                             "than 16,000 at batch 4 (docs/pipeline.md, 'The recipe'). A "
+                             "than 16,000 at batch 4 (docs/pipeline.md, 'The chain's settings'). A "
                              "[refine] table written before this key existed reads it as "
                              "[network] batch_size (as it trained).", lo=1, hi=1024)
 
@@ -1144,10 +1144,28 @@ def _drop_none(obj: Any) -> Any:
     return obj
 
 
+def recipe_lines() -> list[str]:
+    """Markdown lines naming the values each recipe (:mod:`biopsynav.recipes`) writes over the
+    defaults below."""
+    from .recipes import DEFAULT_RECIPE, RECIPES
+
+    lines = ["`init` and `demo` write a recipe's values over the defaults below into a new "
+             "case's case.toml (`--recipe`, `biopsynav.recipes`; docs/pipeline.md, "
+             "\"Recipes\"):", ""]
+    for recipe in RECIPES.values():
+        values = "; ".join(f"[{section}] " + ", ".join(f"{k} = {v!r}" for k, v in keys.items())
+                           for section, keys in recipe.overrides.items())
+        default = " (default)" if recipe.name == DEFAULT_RECIPE else ""
+        lines.append(f"- `{recipe.name}`{default}: {recipe.summary}."
+                     + (f" Sets {values}." if values else ""))
+    return [*lines, ""]
+
+
 def reference_markdown() -> str:
     """The case.toml reference (every key, default, range and meaning) as Markdown."""
     lines = ["# case.toml reference", "",
-             "Units: millimetres, newtons, megapascals (1 kPa = 1e-3 MPa), seconds.", ""]
+             "Units: millimetres, newtons, megapascals (1 kPa = 1e-3 MPa), seconds.", "",
+             *recipe_lines()]
     defaults = CaseConfig()
     for section, cls in SECTIONS.items():
         lines += [f"## [{section}]", "", "| key | default | allowed | meaning |",

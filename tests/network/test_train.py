@@ -57,6 +57,23 @@ def test_the_loss_curve_is_drawn_every_interval_and_when_the_training_stops(synt
     assert drawn == [1, 2, 2]  # at every validation, then when the run stopped
 
 
+def test_first_samples_trains_on_the_first_training_samples_only(synth_case, tmp_path):
+    """A data-size study: the model records how many samples taught it, and a checkpoint of
+    another count is not resumed."""
+    import json
+
+    from biopsynav.network.data import load_dataset
+
+    total = int(load_dataset(synth_case).train_idx.numel())
+    s = tiny_settings(iterations=4, val_interval=2)
+    train(synth_case, settings=s, model_dir=tmp_path, progress=False, first_samples=3)
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["training"]["n_train"] == 3 < total
+    summary = train(synth_case, settings=s, model_dir=tmp_path, progress=False)
+    assert json.loads((tmp_path / "meta.json").read_text())["training"]["n_train"] == total
+    assert summary.resumed_from is None or summary.resumed_from == 0
+
+
 def test_schedule_and_batches_are_pure_functions():
     s = tiny_settings(iterations=100, warmup_iterations=10, learning_rate=1.0)
     assert lr_at(0, s) == 0.1 and lr_at(9, s) == 1.0

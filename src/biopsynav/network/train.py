@@ -260,13 +260,16 @@ def validate(net: SurrogateNet, x: torch.Tensor, y: torch.Tensor, active: torch.
 def train(case: Case | str | Path, preset: str | None = None, iterations: int | None = None,
           device: str | None = None, *, settings: NetworkSection | None = None,
           dataset: str | Path | None = None, model_dir: str | Path | None = None,
-          progress: bool = True, stop_after: int | None = None) -> TrainSummary:
+          progress: bool = True, stop_after: int | None = None,
+          first_samples: int | None = None) -> TrainSummary:
     """Train (or resume training of) the surrogate of ``case`` (a loaded case, or its folder).
 
     ``settings`` is the [network] section (defaults when None); ``preset``, ``iterations`` and
     ``device`` override it. Data come from ``dataset`` (default ``CASE_DIR/dataset.zarr``) and
     files go to ``model_dir`` (default ``CASE_DIR/model``). ``stop_after`` stops after that many
     iterations in total, checkpoint written, as an interruption would (for tests).
+    ``first_samples`` trains on the first that many training samples of the complete data set
+    only (a study of how many samples a case needs; the held-out ones stay).
     """
     s = dataclasses.replace(settings or NetworkSection())
     if preset is not None:
@@ -286,6 +289,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
 
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
+    if first_samples is not None:
+        full.train_idx = full.train_idx[:first_samples]
     source = source_model(case_dir, s, spec, full)  # checked before the baselines' work
     prior, start_line = starting_point(case, s, spec, source)
     if progress:
@@ -342,6 +347,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
                               "seed": s.seed, "device": dev.type, "threads": threads,
                               "precision": "bf16" if runner.amp else "fp32",
                               "train_time_s": state["elapsed_s"],
+                              "n_train": int(full.train_idx.numel()),
                               # the baseline and projections of every sample, before the loop
                               "setup_s": float(baseline_meta.get("setup_s", 0.0)
                                                + baseline_meta.get("all_samples_s", 0.0)),
