@@ -226,7 +226,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     case = loaded_case(args)
     if args.reference is not None:  # this run only; case.toml keeps its own
         case.cfg.evaluate.reference = args.reference
-    evaluate_case(case, table2=not args.table1_only, measured=args.measured, poses=args.poses)
+    evaluate_case(case, table2=not args.table1_only, measured=args.measured, poses=args.poses,
+                  workers=args.workers)
     return 0
 
 
@@ -365,6 +366,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
                         "reference): fine_grid; p2, an independent tetrahedral FE; or stored, "
                         "that FE's answers computed once and kept")
+    p.add_argument("--workers", type=int, default=0, help="local processes that solve a "
+                   "fine-grid ground truth's pushes (default 0: one per core; 1: in this "
+                   "process)")
 
     p = add("track", cmd_track, "Track lesions along a CSV of probe poses.")
     p.add_argument("case_dir", type=Path)

@@ -30,13 +30,14 @@ def require_model(case: Case) -> None:
 
 def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | Path | None = None,
                   poses: str | Path | None = None, quick: bool = False,
-                  log: Callable[[str], None] = print) -> dict:
+                  log: Callable[[str], None] = print, workers: int = 0) -> dict:
     """Table 1, then Table 2 (by simulation, or from ``poses`` + ``measured`` CSVs).
 
     Writes ``CASE/eval/table1.json`` (+ PNGs, by :mod:`biopsynav.network.evaluate`),
     ``CASE/eval/table2.json`` and ``table2.md`` (simulation) or ``table2_measured.json`` and
     ``.md`` (user data), and prints the tables. ``quick`` evaluates a subset (3 lesions, a
-    1.5 times finer reference). Returns ``{"table1": ..., "table2": ...}`` (``table2``
+    1.5 times finer reference); ``workers``: local processes of a fine-grid ground truth
+    (0: one per core). Returns ``{"table1": ..., "table2": ...}`` (``table2``
     absent with ``table2=False``).
     """
     if (measured is None) != (poses is None):
@@ -59,7 +60,7 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
         result = evaluate_measured(case, poses, measured, log=log)
         out["table2"] = write_table2(case.dir, result, TABLE2_MEASURED, log)
     elif table2:
-        result = run_simulation(case, quick=quick, log=log)
+        result = run_simulation(case, quick=quick, log=log, workers=workers)
         out["table2"] = write_table2(case.dir, result, TABLE2, log)
     return out
 

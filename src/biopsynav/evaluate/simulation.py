@@ -88,8 +88,10 @@ def setup_for(case: Case, quick: bool) -> Setup:
 
 
 def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, quick: bool = False,
-                   log: Callable[[str], None] = print) -> dict:
+                   log: Callable[[str], None] = print, workers: int = 0) -> dict:
     """Table 2 by simulation of ``case`` (loaded, or its folder); returns the JSON-ready result.
+    A fine-grid ground truth is solved first in ``workers`` local processes (0: one per core;
+    1: in this process, push by push; :mod:`biopsynav.evaluate.parallel`).
 
     Keys: ``source`` ("simulation"), ``methods``, ``records`` (one per lesion, push and
     method: displacement_mm, bin, tre_mm or None with status and reason, time_ms),
@@ -108,13 +110,16 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     pushes = (f"{setup.pushes} pushes up to {setup.max_push_mm:g} mm"
               if getattr(reference, "push_depths", None) is None else "its pushes")
     log(f"Table 2: ground truth {reference.describe()}; {len(lesions)} lesions x {pushes}")
+    plans = [(li, place_case_probe(case, li)) for li in lesions]
+    plans = [(li, placement, _depths(reference, li, push_depths(k, setup.pushes,
+                                                                setup.max_push_mm)))
+             for k, (li, placement) in enumerate(plans)]
+    reference = solved_beforehand(reference, case, setup, settings, plans, workers, log)
     trackers = _method_trackers(case, methods, settings)
     records: list[Record] = []
     placements = []
-    for k, li in enumerate(lesions):
+    for li, placement, depths in plans:
         t_les = time.perf_counter()
-        placement = place_case_probe(case, li)
-        depths = _depths(reference, li, push_depths(k, setup.pushes, setup.max_push_mm))
         n_contact = _set_rest(placement, reference, trackers)
         placements.append({**placement.to_dict(), "n_contact": n_contact,
                            "push_depths_mm": depths.tolist()})
@@ -143,6 +148,29 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
 #: the tumour): nothing to push over or to track
 NO_LESIONS = ("the case has no lesions, so there is nothing to track: no push solved (Table 1 "
               "judges the network)")
+
+
+def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSettings,
+                      plans: list[tuple[int, Placement, np.ndarray]], workers: int,
+                      log: Callable[[str], None]):
+    """``reference`` with every push of ``plans`` ((lesion, placement, depths mm)) solved in
+    ``workers`` local processes when it is a fine grid and more than one worker is asked
+    (0: one per core); else ``reference`` itself, which then solves as it is asked."""
+    import os
+
+    from .parallel import solve_in_workers
+    from .references import GridReference
+
+    workers = workers or os.cpu_count() or 1
+    pushes = [(placement.pose, placement.pushed(float(d))) for _, placement, depths in plans
+              for d in depths]
+    if not isinstance(reference, GridReference) or workers < 2 or len(pushes) < 2:
+        return reference
+    start = time.perf_counter()
+    solved = solve_in_workers(reference, case, setup, settings, pushes, workers)
+    log(f"  ground truth: {len(pushes)} pushes solved in {workers} processes, "
+        f"{time.perf_counter() - start:.1f} s")
+    return solved
 
 
 def no_lesions_result(methods: Sequence[str], seconds: float) -> dict:
