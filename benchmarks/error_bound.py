@@ -36,10 +36,12 @@ QUANTILE = 0.95
 
 
 def rows_of(paths: list[Path]) -> np.ndarray:
-    """(n, 3): reference displacement |d| (mm), probe depth (mm), network TRE (mm)."""
+    """(n, 3): reference displacement |d| (mm), probe depth (mm), network TRE (mm), from
+    ``truth.py --out`` files or result files holding their rows (``pushes_only.py``)."""
     out = []
     for path in paths:
-        for r in json.loads(path.read_text())["rows"]:
+        data = json.loads(path.read_text())
+        for r in data["rows"] if "rows" in data else data["figures"]["rows"]:
             if r["status"].get("net") == "ok":
                 out.append((r["reference_mm"], r["depth_mm"], r["tre_mm"]["net"]))
     return np.array(out)

@@ -230,12 +230,17 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
                                   TTM_CHAIN.format("ucdavis")), "-", "-"),
     ("the same: Table 1", Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")),
      "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
-    ("lesion TRE against the P2 truth, every phantom lesion, 10 / 20 / 30 mm: the network of "
-     "today's defaults (the case `make demo` makes)",
+    ("lesion TRE against the P2 truth, every phantom lesion, 10 / 20 / 30 mm: the chain's "
+     "network of 2026-12-02 (`--recipe chain`)",
      Cell("phantom-default-truth", tre("net"), TRUTH_CMD), "D10 <= 0.5, D30 <= 1.5 mm", "-"),
     ("the same, one network trained on the demo's 1,000 rigid pushes alone (no force patches, "
      "no case network; from scratch, 4,000 iterations at batch 16); its training minutes",
      Cell("pushes-only-phantom", pushes_only, PUSHES_CMD.format("phantom")),
+     "D10 <= 0.5, D30 <= 1.5 mm", "-"),
+    ("the same, the default recipe's data: the first 400 of the AMD EPYC demo's pushes, "
+     "training seed 1 (seed 0 is the `pushes` demo's own network, the first row)",
+     Cell("pushes-only-phantom-n400-seed1", pushes_only,
+          PUSHES_CMD.format("phantom") + " --train-samples 400 --seed 1"),
      "D10 <= 0.5, D30 <= 1.5 mm", "-"),
     ("Table 1 of that case, mean / max e; one prediction, median / p99",
      Cell("train-and-predict", with_speed(lambda d: (
@@ -298,6 +303,13 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("the same breast: one network trained on 1,000 `[refine]` rigid pushes alone (as the "
      "phantom's above); its training minutes",
      Cell("pushes-only-ucdh", pushes_only, PUSHES_CMD.format("ucdavis-homogeneous")), "-", "-"),
+    ("the same breast, the default recipe's data: the first 400 of a second set of 1,000 "
+     "pushes, training seed 0",
+     Cell("pushes-only-ucdh2-n400", pushes_only,
+          PUSHES_CMD.format("ucdavis-homogeneous") + " --train-samples 400"), "-", "-"),
+    ("the same, training seed 1",
+     Cell("pushes-only-ucdh2-n400-seed1", pushes_only,
+          PUSHES_CMD.format("ucdavis-homogeneous") + " --train-samples 400 --seed 1"), "-", "-"),
     ("one FE solve, phantom grid, 3.0 N push: biopsynav / scikit-fem",
      Cell("fem-solve", with_speed(pair("fem_ms", "peer_ms", 0)),
           "python benchmarks/fem_solve.py"),

@@ -3,13 +3,14 @@
 ``bound = c + |d| (a + b p)`` mm, with ``d`` the lesion's predicted displacement from rest
 (mm) and ``p`` the probe's depth (mm: the mean displacement of the rest contact's points). A
 lesion that moves further errs further, and the share of its motion that is missed grows with
-the push. The coefficients are the 95 % quantile of the default pipeline's lesion errors
+the push. The coefficients are the 95 % quantile of the ``chain`` recipe's lesion errors
 against the independent P2 truth, fitted on the UC Davis breast and checked on the phantom,
 which took no part in the fit (``benchmarks/error_bound.py``, ``benchmarks/results/
 error-bound.json``; docs/tracker.md, "Error bound"). The bound is of the deformation model
 only: not of the image, the segmentation, the probe's calibration or its tracking. It holds
-for untilted pushes of the default pipeline inside the training envelope; out of it the
-tracker answers no position at all.
+for untilted pushes of that recipe inside the training envelope (on the default ``pushes``
+recipe's networks it covers 87-97 % of the truth errors, docs/pipeline.md "Recipes"); out of
+it the tracker answers no position at all.
 """
 
 from __future__ import annotations
