@@ -1,7 +1,8 @@
 """Table 2's fine-grid ground truth solved in local worker processes, before the methods run.
 
-Each push of the fine-grid reference (:class:`~biopsynav.evaluate.references.GridReference`)
-is solved from rest, so the pushes of every lesion are independent tasks: they run in
+Each push of the fine-grid reference (:class:`~biopsynav.evaluate.references.GridReference`,
+whose ``solves_from_rest`` says so) is solved from rest, so the pushes of every lesion are
+independent tasks: they run in
 ``workers`` spawned processes (:class:`~biopsynav.dataset.pool.WorkerProcesses`), each
 holding its own fine-grid FE model and factoring on one thread, the deepest pushes first
 (they cost the most, so the last tasks are short). A sparse factorisation gains less than
@@ -22,12 +23,11 @@ import numpy as np
 _REFERENCE: Any = None
 
 
-def init_reference(case: Any, setup: Any, settings: Any) -> None:
-    """Worker set-up: the fine-grid reference of ``case``, factoring on one thread."""
-    from .references import GridReference
-
+def init_reference(kind: type, case: Any, setup: Any, settings: Any) -> None:
+    """Worker set-up: a reference of class ``kind`` (the fine grid's) of ``case``, factoring
+    on one thread."""
     global _REFERENCE
-    _REFERENCE = GridReference(case, setup, dataclasses.replace(settings, threads=1))
+    _REFERENCE = kind(case, setup, dataclasses.replace(settings, threads=1))
 
 
 def solve_push(rest: np.ndarray, pose: np.ndarray) -> tuple[int, Any]:
@@ -78,7 +78,8 @@ def solve_in_workers(reference: Any, case: Any, setup: Any, settings: Any,
     depth = [float(np.linalg.norm(pose[:3, 3] - rest[:3, 3])) for rest, pose in pushes]
     order = np.argsort(depth)[::-1]
     answers: dict[bytes, tuple[int, Any]] = {}
-    with WorkerProcesses(workers, init_reference, (case, setup, settings)) as pool:
+    with WorkerProcesses(workers, init_reference, (type(reference), case, setup, settings)) \
+            as pool:
         futures = {pool.submit(solve_push, *pushes[i]): i for i in order}
         pending = list(futures)
         try:

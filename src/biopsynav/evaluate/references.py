@@ -33,6 +33,10 @@ from .p2 import probe_key
 class GridReference:
     """biopsynav's FE tracker on a finer grid (``fine_grid``)."""
 
+    #: each push is solved from rest, nothing carried from one to the next: the pushes may be
+    #: solved in any order and in other processes (:mod:`biopsynav.evaluate.parallel`)
+    solves_from_rest = True
+
     def __init__(self, case: Any, setup: Any, settings: Any) -> None:
         from ..tracker.core import fem_engine, finer_grid_spring_budget
         from .simulation import reference_case

@@ -154,17 +154,17 @@ def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSetti
                       plans: list[tuple[int, Placement, np.ndarray]], workers: int,
                       log: Callable[[str], None]):
     """``reference`` with every push of ``plans`` ((lesion, placement, depths mm)) solved in
-    ``workers`` local processes when it is a fine grid and more than one worker is asked
-    (0: one per core); else ``reference`` itself, which then solves as it is asked."""
+    ``workers`` local processes when it solves each push from rest (``solves_from_rest``: the
+    fine grid) and more than one worker is asked (0: one per core); else ``reference``
+    itself, which then solves as it is asked."""
     import os
 
     from .parallel import solve_in_workers
-    from .references import GridReference
 
     workers = workers or os.cpu_count() or 1
     pushes = [(placement.pose, placement.pushed(float(d))) for _, placement, depths in plans
               for d in depths]
-    if not isinstance(reference, GridReference) or workers < 2 or len(pushes) < 2:
+    if not getattr(reference, "solves_from_rest", False) or workers < 2 or len(pushes) < 2:
         return reference
     start = time.perf_counter()
     solved = solve_in_workers(reference, case, setup, settings, pushes, workers)
