@@ -350,24 +350,23 @@ def bench_block() -> str:
     return "\n".join(lines)
 
 
+def pushes_cells(render: Callable[[dict], str]) -> tuple[Cell, Cell]:
+    """The phantom's and UC Davis's cells of the default recipe's whole runs (AMD EPYC)."""
+    return tuple(Cell(f"time-to-model-{case}-pushes-avx512", render,
+                      TTM.format(case) + " --recipe pushes --tag avx512")
+                 for case in ("phantom", "ucdavis"))
+
+
 #: README.md's headline: (what, phantom cell, UC Davis cell, paper)
 README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
     ("from nothing to a served model, 2 cores (`make demo`; `run`), the default recipe "
-     "`pushes` (AMD EPYC, no AMX)",
-     Cell("time-to-model-phantom-pushes-avx512", ttm_total,
-          TTM.format("phantom") + " --recipe pushes --tag avx512"),
-     Cell("time-to-model-ucdavis-pushes-avx512", ttm_total,
-          TTM.format("ucdavis") + " --recipe pushes --tag avx512"), "278 min with a GPU"),
+     "`pushes` (AMD EPYC, no AMX)", *pushes_cells(ttm_total), "278 min with a GPU"),
     ("the same, `--recipe chain` (force patches, case network, `[refine]`; Intel Xeon with "
      "AMX-BF16)",
      Cell("time-to-model-phantom", ttm_total, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_total, TTM_CHAIN.format("ucdavis")), "-"),
     ("Table 1 of the default recipe: mean / max e of the tracking network against its FE "
-     "teacher, held-out rigid pushes up to 35 mm",
-     Cell("time-to-model-phantom-pushes-avx512", ttm_table1,
-          TTM.format("phantom") + " --recipe pushes --tag avx512"),
-     Cell("time-to-model-ucdavis-pushes-avx512", ttm_table1,
-          TTM.format("ucdavis") + " --recipe pushes --tag avx512"), "-"),
+     "teacher, held-out rigid pushes up to 35 mm", *pushes_cells(ttm_table1), "-"),
     ("Table 1, `--recipe chain`: the case network on held-out force patches (the paper's test)",
      Cell("time-to-model-phantom", ttm_table1, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")), "0.052 / 0.266 mm"),

@@ -27,13 +27,10 @@ sys.addaudithook(_count_case_toml_reads)
 
 def _small_settings(case: Path) -> None:
     from biopsynav.config import load_config, save_config
+    from tests.runs import small_run_settings
 
     cfg = load_config(case)
-    cfg.network.iterations, cfg.network.val_interval = 6, 3
-    cfg.network.warmup_iterations, cfg.network.threads = 2, 1
-    cfg.evaluate.timed_predictions = 10
-    cfg.evaluate.max_lesions, cfg.evaluate.deformations_per_lesion = 1, 1
-    cfg.evaluate.reference_refinement = 1.0
+    small_run_settings(cfg)
     save_config(case, cfg)
 
 

@@ -64,6 +64,7 @@ def test_init_writes_the_recipe_and_run_trains_the_tracking_network_on_pushes(tm
     it on its held-out pushes, with no refine stage."""
     from biopsynav.cli import main
     from biopsynav.config import save_config
+    from tests.runs import small_run_settings
 
     case = tmp_path / "case"
     assert main(["init", str(case), "--phantom", "--cell-size", "15", "--recipe", "pushes"]) == 0
@@ -71,11 +72,7 @@ def test_init_writes_the_recipe_and_run_trains_the_tracking_network_on_pushes(tm
     assert cfg.probe.rigid_share == 1.0 and cfg.refine.samples == 0
     assert cfg.material.model == "neo-hookean-split-sri-inner"
     cfg.dataset.n_train, cfg.dataset.n_test = 10, 4
-    cfg.network.iterations, cfg.network.val_interval = 6, 3
-    cfg.network.warmup_iterations, cfg.network.threads = 2, 1
-    cfg.evaluate.timed_predictions = 10
-    cfg.evaluate.max_lesions, cfg.evaluate.deformations_per_lesion = 1, 1
-    cfg.evaluate.reference_refinement = 1.0
+    small_run_settings(cfg)
     save_config(case, cfg)
     assert main(["run", str(case), "--workers", "1"]) == 0
     summary = json.loads((case / "dataset_summary.json").read_text())
