@@ -3,7 +3,8 @@
 Builds the phantom case (default grid, ~2,200 active cells) in a temporary folder, generates
 the same ``--samples`` samples (indices 0..n-1 of seed 0) with 1 and with 2 local workers,
 and prints samples per minute. The rate is the steady one, from the first to the last sample
-written (file times of the ``done`` chunks): pool start-up (process spawn, imports, first
+written (file times of the ``done`` chunks): the start-up before the first sample (the force
+calibration, about 1.5 min of it on the phantom, then the pool's spawn, imports and first
 factorisation) is reported apart and added once to the projection for 1,000 samples.
 
 Last line: ``RESULT per_min_1w=<..> per_min_2w=<..> minutes_1000=<..>``.
