@@ -192,8 +192,9 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
 def demo_overrides(recipe: str, quick: bool) -> dict:
     """The demo case's case.toml values: ``recipe``'s, then the full demo's (or ``quick``'s
     reduced sizes; a recipe without ``[refine]`` keeps it off)."""
-    values = merged(recipe_overrides(recipe), QUICK if quick else FULL_DEMO)
-    if recipe_overrides(recipe).get("refine", {}).get("samples") == 0:
+    chosen = recipe_overrides(recipe)
+    values = merged(chosen, QUICK if quick else FULL_DEMO)
+    if chosen.get("refine", {}).get("samples") == 0:
         values["refine"] = {"samples": 0}
     return values
 

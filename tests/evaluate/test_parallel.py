@@ -40,3 +40,15 @@ def test_the_ground_truth_in_two_processes_is_the_one_of_this_process(small_tabl
         return {k: v for k, v in result["reference"].items() if k != "description"}
 
     assert facts(shared) == facts(alone)
+
+
+def test_a_negative_worker_count_is_refused_before_any_work(coarse_phantom, capsys):
+    from biopsynav.cli import main
+
+    eval_dir = coarse_phantom.dir / "eval"
+    before = sorted(p.name for p in eval_dir.iterdir()) if eval_dir.is_dir() else []
+    assert main(["evaluate", str(coarse_phantom.dir), "--workers", "-2"]) == 2
+    err = capsys.readouterr().err
+    assert "--workers must be >= 0, got -2" in err and "Traceback" not in err
+    after = sorted(p.name for p in eval_dir.iterdir()) if eval_dir.is_dir() else []
+    assert after == before

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import biopsynav.network.train as T
-from biopsynav.errors import TrainingError
+from biopsynav.errors import InputError, TrainingError
 from biopsynav.network.data import load_dataset
 from biopsynav.network.train import CHECKPOINT, batch_indices, lr_at, train, use_bf16
 
@@ -72,6 +72,12 @@ def test_first_samples_trains_on_the_first_training_samples_only(synth_case, tmp
     summary = train(synth_case, settings=s, model_dir=tmp_path, progress=False)
     assert json.loads((tmp_path / "meta.json").read_text())["training"]["n_train"] == total
     assert summary.resumed_from is None or summary.resumed_from == 0
+    before = (tmp_path / "meta.json").read_bytes()
+    for bad in (0, -3):  # refused before any work; the model written stays
+        with pytest.raises(InputError, match="first_samples must be >= 1"):
+            train(synth_case, settings=s, model_dir=tmp_path, progress=False,
+                  first_samples=bad)
+    assert (tmp_path / "meta.json").read_bytes() == before
 
 
 def test_schedule_and_batches_are_pure_functions():

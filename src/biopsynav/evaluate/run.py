@@ -40,6 +40,8 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
     (0: one per core). Returns ``{"table1": ..., "table2": ...}`` (``table2``
     absent with ``table2=False``).
     """
+    if workers < 0:
+        raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
     if (measured is None) != (poses is None):
         raise InputError("--poses and --measured go together: the tracked probe poses and the "
                          "lesion positions measured in those frames", "evaluate")

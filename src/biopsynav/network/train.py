@@ -287,6 +287,8 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     if progress:
         print(precision_line(amp, dev), flush=True)
 
+    if first_samples is not None and first_samples < 1:
+        raise InputError(f"first_samples must be >= 1, got {first_samples}", "train")
     full = load_dataset(dataset if dataset is not None else case_dir)
     require_complete(full)
     if first_samples is not None:
