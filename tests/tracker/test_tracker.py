@@ -385,3 +385,49 @@ def test_track_says_when_a_case_has_no_lesions_to_write():
     assert "lesion positions" in with_lesions and "no lesions" not in with_lesions
     healthy = track_summary({"ok": 11}, 0, "out.csv")
     assert "no lesions" in healthy and "out.csv holds the header alone" in healthy
+
+
+def test_a_deeper_push_continues_from_the_last_equilibrium_to_the_answer_from_rest(coarse_case):
+    """With ``continuation`` a push further along the line of the last one starts at its load
+    factor from its equilibrium and lands where a solve from rest does; a push off that line
+    (tilted), or one over another rest pose, starts from rest."""
+    from biopsynav.fem import SolverSettings
+    from biopsynav.tracker.core import fem_engine
+
+    settings = SolverSettings.from_config(coarse_case.cfg.solver)
+    settings.constraint_tolerance_mm = 1e-4
+    from_rest = fem_engine(coarse_case, settings)
+    continuing = fem_engine(coarse_case, settings, continuation=True)
+    for tracker in (from_rest, continuing):
+        tracker.set_rest_pose(TOP)
+    for depth in (6.0, 12.0, 18.0):
+        a, b = from_rest.update(pushed(depth)), continuing.update(pushed(depth))
+        assert a.status == b.status == "ok", (a.reason, b.reason)
+        first_load = continuing.last_solve.log[0]["load"] - continuing.last_solve.log[0]["step"]
+        assert first_load == pytest.approx(0.0 if depth == 6.0 else (depth - 6.0) / depth)
+        for la, lb in zip(a.lesions, b.lesions, strict=True):
+            assert np.abs(la.center - lb.center).max() < 1e-4
+    tilted = pushed(24.0)
+    c, s = np.cos(0.1), np.sin(0.1)
+    tilted[:3, :3] = tilted[:3, :3] @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    assert continuing.update(tilted).status == "ok"
+    assert continuing.last_solve.log[0]["load"] == continuing.last_solve.log[0]["step"]
+    continuing.set_rest_pose(TOP)  # the same rest pose again: nothing kept
+    assert continuing.update(pushed(12.0)).status == "ok"
+    assert continuing.last_solve.log[0]["load"] == continuing.last_solve.log[0]["step"]
+
+
+def test_a_stiffer_spring_answer_is_not_continued_from(coarse_case):
+    """An answer of elastic contact's stiffer-spring fallback is of other loads: the next
+    deeper push starts from rest."""
+    from biopsynav.fem.solver import SolveReport
+    from biopsynav.tracker.core import fem_engine
+
+    tracker = fem_engine(coarse_case, None, continuation=True)
+    g = np.ones((4, 3))
+    state = (1.0, np.zeros(7))
+    tracker._keep_for_continuation(g, SolveReport(spring_factor=1.0, reached=state))
+    assert tracker._continuation_start(2.0 * g)[0] == pytest.approx(0.5)
+    assert tracker._continuation_start(0.5 * g) is None  # shallower: from rest
+    tracker._keep_for_continuation(g, SolveReport(spring_factor=4.0, reached=state))
+    assert tracker._continuation_start(2.0 * g) is None

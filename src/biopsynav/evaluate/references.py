@@ -8,6 +8,8 @@ A reference answers like a tracker (``set_rest_pose(pose) -> contact count``, ``
 * ``fine_grid``: biopsynav's own FE on a grid ``[evaluate] reference_refinement`` times finer,
   the same contact constraints. Cheap, but it shares the training FE's formulation: it shows
   the network's learning error and the grid's discretisation error, not the formulation's.
+  A lesion's deeper push continues from the equilibrium of the one before it (the same load
+  path as from rest, its first part solved once).
 * ``p2``: an independent FE (:mod:`biopsynav.evaluate.p2`: quadratic tetrahedra of a gmsh mesh
   of the same surface, refined under the probe, its own assembly and Newton), homogeneous
   neo-Hookean with the default tissue's E and nu, the chest-wall plane fixed, the skin under
@@ -33,9 +35,10 @@ from .p2 import probe_key
 class GridReference:
     """biopsynav's FE tracker on a finer grid (``fine_grid``)."""
 
-    #: each push is solved from rest, nothing carried from one to the next: the pushes may be
-    #: solved in any order and in other processes (:mod:`biopsynav.evaluate.parallel`)
-    solves_from_rest = True
+    #: nothing is carried from one rest pose to the next: each rest pose's pushes (a lesion's,
+    #: in the order asked: a deeper push continues from the last one's equilibrium) may be
+    #: solved in other processes (:mod:`biopsynav.evaluate.parallel`)
+    independent_rest_poses = True
 
     def __init__(self, case: Any, setup: Any, settings: Any) -> None:
         from ..tracker.core import fem_engine, finer_grid_spring_budget
@@ -46,7 +49,7 @@ class GridReference:
         self.check(case)
         self.fine = reference_case(case, setup.refinement)
         self.tracker = fem_engine(self.fine, finer_grid_spring_budget(settings, setup.refinement),
-                                  on_teacher=False)
+                                  on_teacher=False, continuation=True)
         self.refinement = setup.refinement
         self.build_s = time.perf_counter() - t0
 

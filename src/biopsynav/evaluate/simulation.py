@@ -154,22 +154,24 @@ def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSetti
                       plans: list[tuple[int, Placement, np.ndarray]], workers: int,
                       log: Callable[[str], None]):
     """``reference`` with every push of ``plans`` ((lesion, placement, depths mm)) solved in
-    ``workers`` local processes when it solves each push from rest (``solves_from_rest``: the
-    fine grid) and more than one worker is asked (0: one per core); else ``reference``
-    itself, which then solves as it is asked."""
+    ``workers`` local processes, each lesion's pushes in turn in one of them, when its rest
+    poses are independent (``independent_rest_poses``: the fine grid), more than one worker
+    is asked (0: one per core) and there is more than one lesion; else ``reference`` itself,
+    which then solves as it is asked."""
     import os
 
     from .parallel import solve_in_workers
 
     workers = workers or os.cpu_count() or 1
-    pushes = [(placement.pose, placement.pushed(float(d))) for _, placement, depths in plans
-              for d in depths]
-    if not getattr(reference, "solves_from_rest", False) or workers < 2 or len(pushes) < 2:
+    lesions = [(placement.pose, [placement.pushed(float(d)) for d in depths])
+               for _, placement, depths in plans]
+    if not getattr(reference, "independent_rest_poses", False) or workers < 2 \
+            or len(lesions) < 2:
         return reference
     start = time.perf_counter()
-    solved = solve_in_workers(reference, case, setup, settings, pushes, workers)
-    log(f"  ground truth: {len(pushes)} pushes solved in {workers} processes, "
-        f"{time.perf_counter() - start:.1f} s")
+    solved = solve_in_workers(reference, case, setup, settings, lesions, workers)
+    log(f"  ground truth: {sum(len(p) for _, p in lesions)} pushes of {len(lesions)} lesions "
+        f"solved in {workers} processes, {time.perf_counter() - start:.1f} s")
     return solved
 
 

@@ -230,13 +230,18 @@ class PardisoSolver:
         self.last_mode = "spd"
 
     def factor(self, data: np.ndarray, definite: bool = False) -> None:
-        try:
-            self._spd.factor(data)
-            self._active, self.last_mode = self._spd, "spd"
-            return
-        except FactorizationError:
-            if definite:
-                raise
+        """Cholesky, or LDL^T where that fails (not with ``definite``). After an LDL^T with
+        negative pivots the next matrix (a Newton iteration's, near the last) goes to LDL^T
+        at once, sparing a failing Cholesky; one with none sends the next to Cholesky again."""
+        if definite or not self.last_mode.startswith("indefinite") \
+                or self.last_mode == "indefinite(0 neg)":
+            try:
+                self._spd.factor(data)
+                self._active, self.last_mode = self._spd, "spd"
+                return
+            except FactorizationError:
+                if definite:
+                    raise
         if self._indefinite is None:
             self._indefinite = self._make_indefinite()
         self._indefinite.factor(data)

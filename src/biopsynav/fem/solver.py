@@ -34,6 +34,7 @@ ARMIJO = 1e-4
 MAX_BACKTRACKS = 6
 LS_TOLERANCE = 0.25  # accept a step once the energy slope drops to this fraction (Crisfield)
 UNSTABLE_EIGENVALUE = 1e-9  # a Jacobi-scaled tangent eigenvalue below minus this: unstable
+EIGEN_SHIFT = -1e-3  # the stability check's shift-invert point, just below zero (scaled)
 #: With ``indefinite_tangent = "shift"``: an increment (or a solve at its Newton budget) still
 #: converging, its last iteration cutting |R| by REUSE_AFTER or reusing its factors, gets up to
 #: this many iterations more (else a solve cut off one or two iterations short of its
@@ -264,21 +265,24 @@ class _NoDecrease(_IncrementFailed):
     """The line search found no step along a descent direction that lowers the energy."""
 
 
-def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None
-          ) -> tuple[np.ndarray, SolveReport]:
+def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None,
+          start: tuple[float, np.ndarray] | None = None) -> tuple[np.ndarray, SolveReport]:
     """Solve ``loads`` on ``model`` (see :func:`solve_once`); elastic contact that fails
     (within ``settings.first_attempt_budget`` iterations, where set) is solved again with
     stiffer springs (``settings.spring_fallback``, each with ``max_total_iterations``), and
     the report's ``spring_factor`` says which answered. Each stiffer-spring attempt starts
     from the furthest load factor an attempt before it converged at (its state the first
-    guess), not from rest. Raises the first SolverError when none does."""
+    guess), not from rest. ``start`` (load factor in (0, 1), free displacement (n_eq,) mm):
+    an equilibrium of these loads scaled by that factor, where the (first) attempt's load
+    stepping begins (``solve_once``'s ``resume_from``). Raises the first SolverError when
+    none does."""
     settings = settings or SolverSettings()
     if loads.prescribed_stiffness is None:
-        return solve_once(model, loads, settings)
+        return solve_once(model, loads, settings, start)
     try:
-        return solve_once(model, loads, first_attempt_settings(settings))
+        return solve_once(model, loads, first_attempt_settings(settings), start)
     except SolverError as first:
-        reached = first.reached
+        reached = _further(first.reached, start)
         for factor in settings.spring_fallback:
             start = reached if math.isfinite(factor) else None  # points met: from rest
             try:
@@ -683,7 +687,7 @@ def _final_checks(system: _System, settings: SolverSettings, report: SolveReport
     last = report.log[-1]["increment"] if report.log else 0
     modes = [e["mode"] for e in report.log if e["increment"] == last and e["mode"] != "reuse"]
     if modes and modes[-1].startswith(("indefinite", "shifted")):
-        lowest = lowest_scaled_eigenvalue(system, u)
+        lowest = lowest_scaled_eigenvalue(system, u, settings)
         report.lowest_scaled_eigenvalue = lowest
         if lowest < -UNSTABLE_EIGENVALUE:
             raise SolverError(f"the solve converged to an unstable equilibrium (tangent "
@@ -692,24 +696,36 @@ def _final_checks(system: _System, settings: SolverSettings, report: SolveReport
                               log=report.log)
 
 
-def lowest_scaled_eigenvalue(system: _System, u: np.ndarray) -> float:
+def lowest_scaled_eigenvalue(system: _System, u: np.ndarray,
+                             settings: SolverSettings | None = None) -> float:
     """The lowest eigenvalue of the Jacobi-scaled tangent ``D^-1/2 K D^-1/2`` at ``u`` (free
-    equations, penalty included), by shift-invert Lanczos just below zero.
+    equations, penalty included), by shift-invert Lanczos just below zero, the shifted matrix
+    factored by ``settings``' backend (Pardiso where installed; the upper triangle, the
+    model's pattern).
 
     Scaling keeps the inertia (Sylvester) and makes the answer independent of units and of the
     tiny stiffness of nodes in thinly cut cells. Used to confirm an instability when the
     factorisation reports negative pivots: on tangents conditioned as the penalty and thin
     cut cells make them (1e9 and beyond), a symmetric-indefinite factorisation with pivot
     perturbation can report a negative pivot of a positive definite matrix."""
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import eigsh
+    from scipy.sparse.linalg import LinearOperator, eigsh
 
     from .linsolve import full_matrix
 
+    settings = settings or SolverSettings()
+    m = system.model
     _, data, _, _ = system.evaluate(u, 1.0, tangent=True)
-    k = full_matrix(system.model.indptr, system.model.indices, data)
-    scale = sp.diags(1.0 / np.sqrt(np.abs(k.diagonal())))
-    vals = eigsh(scale @ k @ scale, k=1, sigma=-1e-3, which="LM", return_eigenvectors=False)
+    scale = 1.0 / np.sqrt(np.abs(data[m.diag_pos]))
+    rows = np.repeat(np.arange(m.n_eq), np.diff(m.indptr))
+    scaled = data * scale[rows] * scale[m.indices]
+    shifted = scaled.copy()
+    shifted[m.diag_pos] -= EIGEN_SHIFT
+    solver = make_solver(settings.backend, m.indptr, m.indices, settings.threads)
+    solver.factor(shifted)
+    n = m.n_eq
+    inverse = LinearOperator((n, n), matvec=lambda x: solver.solve(np.ravel(x)), dtype=float)
+    vals = eigsh(full_matrix(m.indptr, m.indices, scaled), k=1, sigma=EIGEN_SHIFT, which="LM",
+                 OPinv=inverse, return_eigenvectors=False)
     return float(vals[0])
 
 

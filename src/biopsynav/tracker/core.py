@@ -60,6 +60,9 @@ AT_REST_MM = 1e-6  # no contact point moved further: the rest pose (up to roundi
 PENETRATION_TOL_MM = 0.1  # FE engine: skin further behind the probe face is held on it
 CONTACT_ROUNDS = 4  # network engine: most predictions of the grown contact set
 FE_CONTACT_ROUNDS = 8  # FE engine: most solves of the active set (skin the face reaches)
+#: FE engine with ``continuation``: prescribed displacements within this share of their norm
+#: of a multiple of the last push's lie on its line (a push along the probe axis: rounding)
+CONTINUATION_TOLERANCE = 1e-9
 
 
 def as_pose(matrix: np.ndarray) -> np.ndarray:
@@ -124,11 +127,15 @@ class Tracker:
     """Lesion tracker of one case, backed by the U-Net (``engine="net"``) or the FE model."""
 
     def __init__(self, case: Case, engine: str, surrogate=None, fem_model=None,
-                 fem_settings=None, teacher=None) -> None:
+                 fem_settings=None, teacher=None, continuation: bool = False) -> None:
         """``teacher``: a refined :class:`~biopsynav.fem.teacher.Teacher` whose grid the FE
         engine solves on (``fem_model`` is its model), its answer fitted to the case grid;
-        None: the FE engine solves on the case grid."""
+        None: the FE engine solves on the case grid. ``continuation`` (FE engine): a push
+        further along the line of the last one over the same rest pose starts from that
+        push's equilibrium instead of from rest (:meth:`_continuation_start`)."""
         self.case = case
+        self.continuation = continuation
+        self._last_push: tuple[np.ndarray, np.ndarray] | None = None
         self._teacher = teacher
         self._fem_contact: Embedding | None = None  # contact points in the FE engine's grid
         self._fem_surface: Embedding | None = None
@@ -260,6 +267,7 @@ class Tracker:
     def _forget_contact_sets(self) -> None:
         """Drop everything built for the previous rest pose's contact set."""
         self._fem_rows = {}
+        self._last_push = None
         self._fem_contact = self._net = self._reach_emb = None
         self._input_op = None
         self._grown = {}
@@ -585,12 +593,37 @@ class Tracker:
             if springs is not None:
                 springs = np.concatenate([springs, self._springs(model, key, held.cells,
                                                                  touched)])
+        continuing = self.continuation and not on_case_grid and not len(touched)
         u, report = solve(model, Loads(
             prescribed_matrix=w, prescribed_displacement=g, prescribed_normals=normals,
-            prescribed_stiffness=springs), self._fem_settings)
+            prescribed_stiffness=springs), self._fem_settings,
+            self._continuation_start(g) if continuing else None)
+        if continuing:
+            self._keep_for_continuation(g, report)
         if not on_case_grid:
             self.last_solve = report
         return u
+
+    def _continuation_start(self, g: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """Where the solve of prescribed displacements ``g`` (n, 3) mm starts: when the last
+        kept push of this rest pose prescribed ``t g`` for some t in (0, 1) (the probe further
+        along the same line, as Table 2's deeper pushes are), at load factor t from its
+        equilibrium, (t, free displacement (n_eq,) mm): the same load path as from rest, its
+        first part already solved; else None (from rest)."""
+        if self._last_push is None or self._last_push[0].shape != g.shape:
+            return None
+        g_last, u_free = self._last_push
+        gg = float(np.sum(g * g))
+        t = float(np.sum(g_last * g)) / gg if gg > 0.0 else 0.0
+        on_line = np.linalg.norm(g_last - t * g) <= CONTINUATION_TOLERANCE * np.sqrt(gg)
+        return (t, u_free) if 0.0 < t < 1.0 and on_line else None
+
+    def _keep_for_continuation(self, g: np.ndarray, report) -> None:
+        """Keep a solve's prescribed displacements ``g`` (n, 3) mm and equilibrium for the
+        next push; only an answer of the springs as asked (a stiffer fallback's state is of
+        other loads)."""
+        as_asked = report.spring_factor in (None, 1.0) and report.reached is not None
+        self._last_push = (g.copy(), report.reached[1]) if as_asked else None
 
     def _moved_skin(self, u: np.ndarray) -> np.ndarray:
         """Every skin vertex (n_vertices, 3) mm moved by the displacement ``u``
@@ -764,11 +797,13 @@ def finer_grid_spring_budget(settings: SolverSettings | None, refinement: float
     return dataclasses.replace(settings, first_attempt_budget=budget)
 
 
-def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
+def fem_engine(case: Case, settings, on_teacher: bool = True,
+               continuation: bool = False) -> Tracker:
     """A tracker backed by the FE model with solver ``settings``: on the teacher's grid when
     ``on_teacher`` and the tracking model's teacher is refined (``[dataset] teacher_refine``
     > 1, or ``[refine]``: the FE that taught the network), else on ``case``'s own grid;
-    with that teacher's law either way (``[refine] material_model`` with ``[refine]``)."""
+    with that teacher's law either way (``[refine] material_model`` with ``[refine]``).
+    ``continuation``: see :class:`Tracker`."""
     from ..fem import FEModel
     from ..fem.teacher import build_teacher, teacher_refinement
     from ..refine import tracking_teacher_case
@@ -779,5 +814,6 @@ def fem_engine(case: Case, settings, on_teacher: bool = True) -> Tracker:
         teacher = build_teacher(taught_by)
         return Tracker(case, "fem", fem_model=teacher.model,
                        fem_settings=finer_grid_spring_budget(settings, refinement),
-                       teacher=teacher)
-    return Tracker(case, "fem", fem_model=FEModel.from_case(taught_by), fem_settings=settings)
+                       teacher=teacher, continuation=continuation)
+    return Tracker(case, "fem", fem_model=FEModel.from_case(taught_by), fem_settings=settings,
+                   continuation=continuation)
