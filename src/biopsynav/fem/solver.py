@@ -721,7 +721,10 @@ def lowest_scaled_eigenvalue(system: _System, u: np.ndarray,
     shifted = scaled.copy()
     shifted[m.diag_pos] -= EIGEN_SHIFT
     solver = make_solver(settings.backend, m.indptr, m.indices, settings.threads)
-    solver.factor(shifted)
+    try:
+        solver.factor(shifted)
+    except FactorizationError:  # singular: an eigenvalue at the shift itself
+        return EIGEN_SHIFT
     n = m.n_eq
     inverse = LinearOperator((n, n), matvec=lambda x: solver.solve(np.ravel(x)), dtype=float)
     vals = eigsh(full_matrix(m.indptr, m.indices, scaled), k=1, sigma=EIGEN_SHIFT, which="LM",
