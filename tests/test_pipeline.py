@@ -97,6 +97,35 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     assert 0.0 < probe_seconds(case) < 60.0
 
 
+def test_a_fine_grid_truth_is_expected_to_cost_its_solves(base_case):
+    """With the fine-grid truth the evaluation's estimate is the measured fine-grid run's,
+    scaled by the pushes and by the fine grid's cells^1.3; a stored truth keeps its own."""
+    import dataclasses
+
+    from biopsynav.case import Case
+    from biopsynav.runtime import (
+        FE_EXPONENT,
+        FINE_GRID_TABLE2,
+        evaluated_lesions,
+        evaluation_minutes,
+    )
+
+    case = Case.load(base_case)
+    minutes = []
+    for refinement in (1.5, 3.0):
+        case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, reference="fine_grid",
+                                                reference_refinement=refinement)
+        minutes.append(evaluation_minutes(case))
+    assert minutes[1] == pytest.approx(minutes[0] * 8.0 ** FE_EXPONENT)
+    lesions = evaluated_lesions(case)
+    cells = (case.grid.active_cells.sum() * 27.0 / (FINE_GRID_TABLE2["active_cells"] * 8.0))
+    assert minutes[1] == pytest.approx(
+        FINE_GRID_TABLE2["minutes"] * cells ** FE_EXPONENT * lesions
+        * case.cfg.evaluate.deformations_per_lesion / FINE_GRID_TABLE2["pushes"])
+    case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, reference="stored")
+    assert evaluation_minutes(case) != pytest.approx(minutes[1])
+
+
 def test_what_remains_is_rescaled_by_what_the_stages_took():
     """The data stage taking twice its estimate doubles the evaluation's FE solves ahead (not
     the rigid pushes); the training taking half halves the training ahead; a stage that was

@@ -15,7 +15,8 @@ the case and to this machine today, from three probes of ten U-Net training step
 * **training stages** scale with their iterations and with the probe on the case's own grid
   at the stage's batch and arithmetic (its step against the reference case's, batch 4 fp32);
 * evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
-  grid's cells^1.3) and the machine's speed.
+  grid's cells^1.3, from a run of a fine-grid truth, :data:`FINE_GRID_TABLE2`, or of the
+  reference run's for other truths) and the machine's speed.
 
 An estimate is a forecast: the run's stage table says what each stage took (docs/pipeline.md
 compares the two).
@@ -137,8 +138,27 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
                                                       cfg.refine.teacher_refine, slowness)
         minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
                                       / ref["refine_iterations"] * refine_step)
-    minutes["evaluate and report"] = m["evaluate and report"] * table2_work(case) * slowness
+    minutes["evaluate and report"] = evaluation_minutes(case) * slowness
     return Estimate(minutes, slowness)
+
+
+def evaluation_minutes(case) -> float:
+    """Expected minutes of ``evaluate`` and ``report`` of ``case`` on the reference machine:
+    with a fine-grid ground truth, :data:`FINE_GRID_TABLE2`'s run scaled by the pushes and
+    the fine grid's cells^1.3; else the reference run's (:func:`table2_work`)."""
+    ev, fine = case.cfg.evaluate, FINE_GRID_TABLE2
+    if ev.reference != "fine_grid":
+        return REFERENCE["minutes"]["evaluate and report"] * table2_work(case)
+    cells = (float(case.grid.active_cells.sum()) * ev.reference_refinement ** 3
+             / (fine["active_cells"] * fine["reference_refinement"] ** 3)) ** FE_EXPONENT
+    return fine["minutes"] * evaluated_lesions(case) * ev.deformations_per_lesion \
+        / fine["pushes"] * cells
+
+
+def evaluated_lesions(case) -> int:
+    """The lesions Table 2 evaluates: all, or ``[evaluate] max_lesions`` of them."""
+    n, most = len(case.anatomy.lesions), case.cfg.evaluate.max_lesions
+    return min(most, n) if most else n
 
 
 def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float) -> float:
@@ -147,6 +167,13 @@ def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float) ->
     ``slowness``."""
     return REFINE_PUSH_MINUTES * pushes / REFERENCE["samples"] * teacher_refine ** 3 * slowness
 
+
+#: Table 2 with the fine-grid ground truth (each lesion's pushes in turn, the lesions in two
+#: processes): ``time_to_model.py --case ucdavis`` (the ``pushes`` recipe), AMD EPYC,
+#: 2026-12-05: evaluation and report 5.36 min at the run's speed probe of 1.15x, 4.66 at the
+#: reference machine's speed; 5 lesions x 4 pushes on 1,920 active cells refined twice.
+FINE_GRID_TABLE2 = {"active_cells": 1920, "reference_refinement": 2.0, "pushes": 20,
+                    "minutes": 4.66}
 
 #: pushes per lesion of a stored truth (benchmarks/truth.py's 10, 20 and 30 mm)
 STORED_PUSHES = 3
@@ -158,8 +185,7 @@ def table2_work(case) -> float:
     cubed; a stored truth solves nothing, and the FE engine's solves on the case grid stand
     in for it)."""
     ref, e = REFERENCE, case.cfg.evaluate
-    n = len(case.anatomy.lesions)
-    lesions = min(e.max_lesions, n) if e.max_lesions else n
+    lesions = evaluated_lesions(case)
     stored = e.reference == "stored"  # no reference solve: the FE engine's on the case grid
     refinement = 1.0 if stored else e.reference_refinement
     pushes = STORED_PUSHES if stored else e.deformations_per_lesion

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zarr
 from dataset_helpers import edit_config, generate_through_local_cluster
-from test_generate import count_done, start_generate, wait_for_done
+from test_generate import samples_done, start_generate, wait_for_done
 
 from biopsynav.case import Case
 from biopsynav.config import load_config
@@ -105,7 +105,7 @@ def test_a_killed_run_resumes_to_the_same_samples(p2_fresh, p2_reference, tmp_pa
     wait_for_done(proc, p2_fresh, 1)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    at_kill = count_done(p2_fresh)
+    at_kill = samples_done(p2_fresh)
     assert at_kill < N, "the kill came too late to interrupt the run"
     summary = generate_case(p2_fresh, workers=2, progress=False)
     assert summary["computed_this_run"] == N - at_kill
