@@ -233,8 +233,9 @@ class PardisoSolver:
         """Cholesky, or LDL^T where that fails (not with ``definite``). After an LDL^T with
         negative pivots the next matrix (a Newton iteration's, near the last) goes to LDL^T
         at once, sparing a failing Cholesky; one with none sends the next to Cholesky again."""
-        if definite or not self.last_mode.startswith("indefinite") \
-                or self.last_mode == "indefinite(0 neg)":
+        after_negative = (self._active is self._indefinite
+                          and self._indefinite.negative_pivots > 0)
+        if definite or not after_negative:
             try:
                 self._spd.factor(data)
                 self._active, self.last_mode = self._spd, "spd"

@@ -244,11 +244,15 @@ def _upper_pattern(elem_eq: np.ndarray, n_eq: int) -> tuple[np.ndarray, np.ndarr
     return indptr, indices, np.ascontiguousarray(scatter)
 
 
+def upper_rows(model: FEModel) -> np.ndarray:
+    """The row (equation) of each entry of the upper CSR data, (nnz,)."""
+    return np.repeat(np.arange(model.n_eq, dtype=np.int64), np.diff(model.indptr))
+
+
 def find_positions(model: FEModel, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Positions in the upper CSR data of entries (rows <= cols); -1 where not in the pattern."""
     n = model.n_eq
-    row_of = np.repeat(np.arange(n, dtype=np.int64), np.diff(model.indptr))
-    keys = row_of * n + model.indices
+    keys = upper_rows(model) * n + model.indices
     query = rows * n + cols
     pos = np.searchsorted(keys, query)
     pos_c = np.minimum(pos, len(keys) - 1)

@@ -25,7 +25,7 @@ from . import kernels
 from .fictitious import fictitious_stiffness
 from .linsolve import FactorizationError, LinearSolver, make_solver
 from .loads import Loads, PreparedLoads, prepare_loads
-from .model import FEModel
+from .model import FEModel, upper_rows
 
 EASY_ITERATIONS = 4  # an increment converging within this many iterations doubles the next
 REUSE_AFTER = 0.1  # a full Newton iteration cutting |R| by this lets the next reuse its factors
@@ -716,8 +716,7 @@ def lowest_scaled_eigenvalue(system: _System, u: np.ndarray,
     m = system.model
     _, data, _, _ = system.evaluate(u, 1.0, tangent=True)
     scale = 1.0 / np.sqrt(np.abs(data[m.diag_pos]))
-    rows = np.repeat(np.arange(m.n_eq), np.diff(m.indptr))
-    scaled = data * scale[rows] * scale[m.indices]
+    scaled = data * scale[upper_rows(m)] * scale[m.indices]
     shifted = scaled.copy()
     shifted[m.diag_pos] -= EIGEN_SHIFT
     solver = make_solver(settings.backend, m.indptr, m.indices, settings.threads)
