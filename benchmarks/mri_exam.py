@@ -2,6 +2,7 @@
 
     python benchmarks/mri_exam.py --collection CLONE --exam 06 --side left
                                   [--workdir DIR] [--push-minutes 8] [--no-truth]
+                                  [--recipe NAME] [--tag TAG]
 
 ``CLONE``: a local copy of the GitHub repository ``acpelicano/breast_models_repository``
 (Pelicano et al., 3 T prone breast MRI models; a git clone, or a folder of ``Exam_NN``
@@ -14,8 +15,8 @@ hand):
 1. unpacks ``Exam_NN``'s simple label map (labels -4 benign, -3 malignant, -2 skin, -1
    muscle, 1 fat) to ``DIR/Exam_NN/Label_map_simple.mha``;
 2. ``biopsynav init DIR/eNN-SIDE --labelmap MAP --breast-labels 1,-2 --lesion-labels -3,-4
-   --chest-labels -1 --tissue-labels 1=fat,-2=skin --side SIDE`` (the tumour labels the map
-   holds), and what it modelled;
+   --chest-labels -1 --tissue-labels 1=fat,-2=skin --side SIDE [--recipe NAME]`` (the tumour
+   labels the map holds; the default recipe unless ``--recipe``), and what it modelled;
 3. ``biopsynav run`` with every default, each stage timed;
 4. the tumours' motion under pushes of exactly 10, 20 and 30 mm from Table 2's placement by
    the network and by the FE engine (the network's teacher), and their distance;
@@ -23,7 +24,7 @@ hand):
    FE engine against the P2 tetrahedral truth, each reference push bounded by
    ``--push-minutes``.
 
-Run it alone on the machine. Writes ``benchmarks/results/mri-exam-NN-SIDE.json``; the last
+Run it alone on the machine. Writes ``benchmarks/results/mri-exam-NN-SIDE[-TAG].json``; the last
 line reads ``RESULT volume_ml=... total_min=... table1_mean_mm=... net_d30_mm=...
 fem_d30_mm=... bound_covered=k/n`` (nan where not measured). ``--case DIR`` takes a case of
 that exam and side that ``run`` already finished: steps 4 and 5 and the figures, without
@@ -181,8 +182,9 @@ def from_label_map(args: argparse.Namespace) -> tuple[Path, float, dict, float]:
     if case_dir.exists():
         sys.exit(f"mri_exam: {case_dir} exists; the benchmark starts from the label map")
     t = time.perf_counter()
+    recipe = ["--recipe", args.recipe] if args.recipe else []
     print(cli("init", str(case_dir), "--labelmap", str(label_map), *LABEL_FLAGS,
-              *lesion_flag(label_map), "--side", args.side).stdout.strip())
+              *lesion_flag(label_map), "--side", args.side, *recipe).stdout.strip())
     init_s = time.perf_counter() - t
     start = time.perf_counter()
     timings = run_case(case_dir)["timings_s"]
@@ -197,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workdir", type=Path, default=None)
     p.add_argument("--push-minutes", type=float, default=8.0)
     p.add_argument("--no-truth", action="store_true")
+    p.add_argument("--recipe", default=None, help="init's --recipe (default: init's default)")
+    p.add_argument("--tag", default=None, help="a suffix of the result file's name")
     p.add_argument("--case", type=Path, default=None,
                    help="a case of this exam and side that `run` finished: its tumours' motion "
                         "and figures only (no stage times)")
@@ -228,7 +232,8 @@ def main(argv: list[str] | None = None) -> int:
                "table2_placements": table2["placements"],
                "table2_tables": table2["tables"], "tumour_motion": motion,
                "model_motion": models}
-    write_result(f"mri-exam-{args.exam}-{args.side}", figures)
+    tag = f"-{args.tag}" if args.tag else ""
+    write_result(f"mri-exam-{args.exam}-{args.side}{tag}", figures)
     print(f"RESULT volume_ml={info['modelled']['breast_volume_ml']:.0f} "
           f"total_min={total_min:.1f} table1_mean_mm={table1['mean_e_mm']:.4f} "
           f"net_d30_mm={d30['net']:.2f} fem_d30_mm={d30['fem']:.2f} "

@@ -67,12 +67,16 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     import dataclasses
 
     from biopsynav.case import Case
-    from biopsynav.runtime import REFERENCE, REFINE_PUSH_MINUTES, estimate_run, probe_seconds
+    from biopsynav.runtime import (REFERENCE, REFINE_PUSH_MINUTES, TRAINING_STEP_FACTOR,
+                                   estimate_run, probe_seconds)
 
     case = Case.load(base_case)
     ref = REFERENCE["probe_s"]
     same = estimate_run(case, (ref, ref))
     assert same.slowness == pytest.approx(1.0)
+    # a training: its iterations at the probe's step, times what an iteration costs beyond it
+    assert same.minutes["train"] == pytest.approx(
+        case.cfg.network.iterations * ref * TRAINING_STEP_FACTOR / 60.0)
     slow = estimate_run(case, (2.0 * ref, 2.0 * ref))
     assert slow.slowness == pytest.approx(2.0)
     assert slow.total == pytest.approx(2.0 * same.total)

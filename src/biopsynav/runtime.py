@@ -12,8 +12,9 @@ the case and to this machine today, from three probes of ten U-Net training step
   median of five breasts (:data:`REFINE_PUSH_MINUTES`): their cost is set by the share of
   deep pushes that need the 4x-spring fallback, which neither the cells nor the data stage
   predict;
-* **training stages** scale with their iterations and with the probe on the case's own grid
-  at the stage's batch and arithmetic (its step against the reference case's, batch 4 fp32);
+* **training stages**: their iterations times the probe's step on the case's own grid at the
+  stage's batch and arithmetic, times :data:`TRAINING_STEP_FACTOR` (what a training
+  iteration costs beyond the bare step: data, validation, the best weights' checks);
 * evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
   grid's cells^1.3, from a run of a fine-grid truth, :data:`FINE_GRID_TABLE2`, or of the
   reference run's for other truths) and the machine's speed.
@@ -36,10 +37,9 @@ FE_EXPONENT = 1.3
 #: outputs' times. ``probe_s``: :func:`probe_seconds` on that case, the median of 12 probes
 #: in three processes just after (0.017-0.022 s; the VM's speed moves by that much).
 REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041, "batch": 4,
-             "samples": 1000, "iterations": 50000, "refine_iterations": 16000,
-             "table2_pushes": 8, "reference_refinement": 2.0,
-             "minutes": {"generate": 2.68, "train": 29.6, "refine training": 6.43,
-                         "evaluate and report": 3.47}}  # its pushes: REFINE_PUSH_MINUTES
+             "samples": 1000, "table2_pushes": 8, "reference_refinement": 2.0,
+             "minutes": {"generate": 2.68, "evaluate and report": 3.47}}
+# its pushes: REFINE_PUSH_MINUTES; its trainings: TRAINING_STEP_FACTOR
 PROBE_STEPS = 10  # steps timed after one warm-up; their median
 #: Minutes of 1,000 default ``[refine]`` rigid pushes on the 2-core machine: the median of
 #: five breasts with ``[probe] max_chest_compression``, each alone, 2026-12-03
@@ -47,6 +47,14 @@ PROBE_STEPS = 10  # steps timed after one warm-up; their median
 #: 13 right 4.6 on 2,524, 05 right 7.2 on 3,529, 05 left 6.5 on 3,656, 06 right 6.7 on
 #: 4,068; docs/dataset.md). Not scaled by the cells: they do not predict it.
 REFINE_PUSH_MINUTES = 6.7
+#: Seconds of a training iteration over :func:`probe_seconds`'s step at the same batch, grid
+#: and arithmetic, at the day's speed: the median of five trainings, AMD EPYC, bf16,
+#: 2026-12-04/05 (batch 16: the ``pushes`` runs of the phantom 1.12, UC Davis 1.23 and MRI
+#: exam 13 right 1.23, the ``chain`` run's case network 1.29; batch 4: its refine training
+#: 1.24), the probe taken on an idle machine on 2026-12-05 and rescaled by each run's own
+#: speed probe. The reference run's batch-4 fp32 training of 2026-12-02 took 1.87 times its
+#: probe (code since made leaner).
+TRAINING_STEP_FACTOR = 1.23
 
 
 @dataclass
@@ -124,22 +132,26 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
         if case.cfg.refine.samples and case.cfg.refine.batch_size != case.cfg.network.batch_size:
             probes += (probe_seconds(case, batch=case.cfg.refine.batch_size),)
     slowness = probes[0] / ref["probe_s"]
-    # each training's step against the reference case's
-    step, refine_step = (p / ref["probe_s"] for p in (probes[1], probes[-1]))
+    step, refine_step = probes[1], probes[-1]  # seconds of each training's step today
     cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
     cfg, m = case.cfg, ref["minutes"]
     samples = cfg.dataset.n_train + cfg.dataset.n_test
     rigid = cfg.probe.rigid_share * samples  # rigid pushes cost what [refine]'s do
     minutes = {"generate": (m["generate"] * (samples - rigid) / ref["samples"] * cells * slowness
                             + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, slowness)),
-               "train": m["train"] * cfg.network.iterations / ref["iterations"] * step}
+               "train": training_minutes(cfg.network.iterations, step)}
     if cfg.refine.samples:
         minutes["refine pushes"] = rigid_push_minutes(cfg.refine.samples,
                                                       cfg.refine.teacher_refine, slowness)
-        minutes["refine training"] = (m["refine training"] * cfg.refine.iterations
-                                      / ref["refine_iterations"] * refine_step)
+        minutes["refine training"] = training_minutes(cfg.refine.iterations, refine_step)
     minutes["evaluate and report"] = evaluation_minutes(case) * slowness
     return Estimate(minutes, slowness)
+
+
+def training_minutes(iterations: int, step_s: float) -> float:
+    """Expected minutes of ``iterations`` training iterations whose bare step (the probe's)
+    takes ``step_s`` seconds today."""
+    return iterations * step_s * TRAINING_STEP_FACTOR / 60.0
 
 
 def evaluation_minutes(case) -> float:
