@@ -1,6 +1,6 @@
 """Fit each lesion's 95 % error bound on truth comparisons and check it on a case left out.
 
-    python benchmarks/error_bound.py [--fit FILE ...] [--check FILE ...]
+    python benchmarks/error_bound.py [--fit FILE ...] [--check FILE ...] [--result-name NAME]
 
 The bound (``biopsynav.tracker.bound``) is ``c + |d| (a + b p)`` mm: ``d`` the lesion's
 predicted displacement from rest (mm), ``p`` the probe's depth (mm; the mean displacement of
@@ -15,8 +15,10 @@ bound's mean over the mean TRE (asked: at most 3); the same is then done the oth
 The rows carry the true displacement, not the network's; the network's |d| is within its TRE
 of it, so both the fit and the check take the least it can be, ``max(|d_true| - TRE, 0)``.
 
-Writes ``benchmarks/results/error-bound.json``; the last line reads ``RESULT c=... a=... b=...
-coverage=... worst_ratio=...``.
+Each ``--check`` file's own coverage is printed and kept too (one network each: a check over
+several networks of other recipes or seeds). Writes ``benchmarks/results/error-bound.json``
+(or ``NAME.json``); the last line reads ``RESULT c=... a=... b=... coverage=...
+worst_ratio=...``.
 """
 
 from __future__ import annotations
@@ -88,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                             RESULTS / "ucdavis-default-mixed-seed1-d30-all-truth.json"])
     p.add_argument("--check", type=Path, nargs="+",
                    default=[RESULTS / "phantom-default-mixed-d30-all-truth.json"])
+    p.add_argument("--result-name", default="error-bound")
     args = p.parse_args(argv)
     fit_rows, check_rows = rows_of(args.fit), rows_of(args.check)
     coef = fit(fit_rows)
@@ -100,11 +103,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: coverage {c['coverage']:.0%} of {c['n']}; " + "; ".join(
             f"{d} mm: bound {v['mean_bound_mm']:.2f} / TRE {v['mean_tre_mm']:.2f} = "
             f"{v['ratio']:.1f}x, {v['covered']}" for d, v in c["by_depth"].items()))
+    per_file = {f.name: check(coef, rows_of([f])) for f in args.check}
+    for name, c in per_file.items():
+        print(f"  {name}: {int(round(c['coverage'] * c['n']))} of {c['n']} within the bound")
     worst = max(v["ratio"] for v in left_out["by_depth"].values())
-    write_result("error-bound", {"c": float(coef[0]), "a": float(coef[1]), "b": float(coef[2]),
+    write_result(args.result_name, {"c": float(coef[0]), "a": float(coef[1]), "b": float(coef[2]),
                                  "coverage": left_out["coverage"], "worst_ratio": worst},
                  fit=[f.name for f in args.fit], check=[f.name for f in args.check],
-                 on_fit=on_fit, left_out=left_out, other_way_round=reverse)
+                 on_fit=on_fit, left_out=left_out, other_way_round=reverse,
+                 per_check_file={k: {"coverage": v["coverage"], "n": v["n"]}
+                                 for k, v in per_file.items()})
     print(f"RESULT c={coef[0]:.4f} a={coef[1]:.5f} b={coef[2]:.6f} "
           f"coverage={left_out['coverage']:.3f} "
           f"worst_ratio={worst:.2f}")

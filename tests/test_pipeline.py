@@ -67,8 +67,13 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     import dataclasses
 
     from biopsynav.case import Case
-    from biopsynav.runtime import (REFERENCE, REFINE_PUSH_MINUTES, TRAINING_STEP_FACTOR,
-                                   estimate_run, probe_seconds)
+    from biopsynav.runtime import (
+        REFERENCE,
+        REFINE_PUSH_MINUTES,
+        TRAINING_STEP_FACTOR,
+        estimate_run,
+        probe_seconds,
+    )
 
     case = Case.load(base_case)
     ref = REFERENCE["probe_s"]

@@ -556,10 +556,11 @@ class NetworkSection:
                              "([dataset] teacher_refine). '' (default): from scratch.")
     runtime: str = opt("auto", "Inference runtime of the exported model: 'torchscript' "
                                "(frozen, optimize_for_inference, fp32), 'openvino' (fp32 "
-                               "forced), 'openvino-bf16' (bfloat16 on a CPU with AMX-BF16: "
-                               "a tracker update about 40 % faster on the larger MRI breasts, "
-                               "lesions within 0.011 mm of fp32's) or 'auto' (the fastest "
-                               "installed: openvino-bf16 on AMX, else openvino, else "
+                               "forced), 'openvino-bf16' (bfloat16 on a CPU with AMX-BF16 "
+                               "or AVX-512 BF16: a tracker update 30-45 % faster on the "
+                               "larger MRI breasts, lesions within 0.02 mm of fp32's) or "
+                               "'auto' (the fastest installed: openvino-bf16 on a CPU with "
+                               "bf16 arithmetic, else openvino, else "
                                "torchscript; docs/network.md 'Inference runtimes'). Table 1 "
                                "is measured with the runtime and arithmetic chosen.",
                        choices=runtime_choices)

@@ -53,13 +53,13 @@ def test_exported_matches_eager(trained, runtime):
 
 
 def test_the_bf16_runtime_predicts_like_fp32(trained):
-    """On a CPU with AMX-BF16, OpenVINO in bfloat16 predicts within 1 % of the largest
+    """On a CPU with bf16 arithmetic, OpenVINO in bfloat16 predicts within 1 % of the largest
     output of OpenVINO in fp32 (bf16 keeps 8 bits of mantissa), says so in ``precision``,
     and keeps inactive nodes at exactly zero."""
     from biopsynav.inference.runtimes import openvino_bf16_available
 
     if not openvino_bf16_available():
-        pytest.skip("no AMX-BF16 on this CPU, or openvino not installed")
+        pytest.skip("no AMX-BF16 or AVX-512 BF16 on this CPU, or openvino not installed")
     case, _ = trained
     data = load_dataset(case)
     fp32 = Surrogate.load(case / "model", FINGERPRINT, runtime="openvino", warmup=1)
@@ -71,22 +71,22 @@ def test_the_bf16_runtime_predicts_like_fp32(trained):
     assert np.all(low[:, :, ~data.active.numpy()] == 0)
 
 
-@pytest.mark.parametrize("amx", [False, True])
-def test_auto_takes_bf16_only_where_the_cpu_has_amx(monkeypatch, amx):
+@pytest.mark.parametrize("unit", [None, "AVX-512 BF16", "AMX-BF16 tiles"])
+def test_auto_takes_bf16_only_where_the_cpu_has_bf16_arithmetic(monkeypatch, unit):
     import biopsynav.inference.runtimes as R
 
     if not R.openvino_available():
         pytest.skip("openvino not installed")
-    monkeypatch.setattr(R, "cpu_has_amx_bf16", lambda: amx)
-    assert R.resolve_runtime("auto").name == ("openvino-bf16" if amx else "openvino")
+    monkeypatch.setattr(R, "cpu_bf16_unit", lambda: unit)
+    assert R.resolve_runtime("auto").name == ("openvino-bf16" if unit else "openvino")
 
 
-def test_bf16_asked_for_on_a_cpu_without_amx_says_what_it_needs(monkeypatch):
+def test_bf16_asked_for_on_a_cpu_without_bf16_says_what_it_needs(monkeypatch):
     import biopsynav.inference.runtimes as R
 
-    monkeypatch.setattr(R, "cpu_has_amx_bf16", lambda: False)
+    monkeypatch.setattr(R, "cpu_bf16_unit", lambda: None)
     with pytest.raises(InputError, match="not available here: it needs the openvino package "
-                                         "and a CPU with AMX-BF16"):
+                                         "and a CPU with AMX-BF16 or AVX-512 BF16"):
         R.resolve_runtime("openvino-bf16")
 
 

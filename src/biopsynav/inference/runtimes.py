@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..layout import ONNX, TORCHSCRIPT
-from ..threads import cpu_has_amx_bf16
+from ..threads import cpu_bf16_unit
 
 if TYPE_CHECKING:
     import torch
@@ -150,18 +150,19 @@ class OpenVinoRunner:
 
 
 class OpenVinoBf16Runner(OpenVinoRunner):
-    """OpenVINO on the CPU in bfloat16: its layers on the AMX-BF16 tiles, accumulating in
-    fp32; input and output fp32 (what it costs in accuracy and buys in time: docs/network.md,
-    "Inference runtimes")."""
+    """OpenVINO on the CPU in bfloat16: its layers on the AMX-BF16 tiles or in AVX-512 BF16
+    dot products, accumulating in fp32; input and output fp32 (what it costs in accuracy and
+    buys in time: docs/network.md, "Inference runtimes")."""
 
     name = "openvino-bf16"
     precision = "bf16"
 
 
 def openvino_bf16_available() -> bool:
-    """Whether OpenVINO imports and the CPU has AMX-BF16 tiles (elsewhere bf16 is emulated
-    or slower than fp32)."""
-    return cpu_has_amx_bf16() and openvino_available()
+    """Whether OpenVINO imports and the CPU has bf16 arithmetic: AMX-BF16 tiles or AVX-512
+    BF16 (:func:`~biopsynav.threads.cpu_bf16_unit`; elsewhere bf16 is emulated, slower than
+    fp32)."""
+    return cpu_bf16_unit() is not None and openvino_available()
 
 
 def openvino_available() -> bool:
@@ -179,7 +180,8 @@ register_runtime(RuntimeSpec("openvino", ONNX, OpenVinoRunner, openvino_availabl
                              own_threads=True, auto_rank=1, needs="the openvino package"))
 register_runtime(RuntimeSpec("openvino-bf16", ONNX, OpenVinoBf16Runner, openvino_bf16_available,
                              own_threads=True, auto_rank=2,
-                             needs="the openvino package and a CPU with AMX-BF16"))
+                             needs="the openvino package and a CPU with AMX-BF16 or "
+                                   "AVX-512 BF16"))
 
 
 def load_torchscript(path: str | Path) -> torch.jit.ScriptModule:
