@@ -75,15 +75,26 @@ def test_a_script_without_the_main_guard_gets_an_error_not_a_hang(base_case, tmp
 
 
 def test_a_closed_pool_leaves_no_files(tmp_path):
-    """The set-up file and the workers' start marks live in a folder that close() removes."""
+    """Building the pool starts nothing and writes nothing; its first task writes the set-up
+    file and the workers' start marks in a folder that close() removes."""
     from biopsynav.dataset import pool
 
     processes = pool.WorkerProcesses(1, _nothing, ())
-    folder = processes.folder
+    assert processes.folder is None and processes.processes() == []
     try:
         assert processes.submit(_pid).result(timeout=120) > 0
+        folder = processes.folder
+        assert (folder / pool.SETUP_FILE).is_file()
         assert len(list(folder.glob("started-*"))) == 1
         processes.check_started()  # a worker started: nothing to say
     finally:
         processes.close()
     assert not folder.exists()
+
+
+def test_a_pool_closed_before_any_task_is_a_no_op():
+    from biopsynav.dataset import pool
+
+    processes = pool.WorkerProcesses(2, _nothing, ())
+    processes.close()
+    assert processes.folder is None and processes.processes() == []

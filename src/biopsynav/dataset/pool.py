@@ -5,7 +5,8 @@ OpenMP thread each (``SINGLE_THREAD_ENV``: a solve gives the same bits whatever 
 workers), each ending itself when the main process dies, that notices a worker which died
 without any future saying so and can be rebuilt after a crash. What a worker holds is set
 up once per process by the ``setup`` function it is given (the case's FE model, for
-instance); tasks are plain functions of that process's state.
+instance); tasks are plain functions of that process's state. Building one starts nothing:
+the set-up file and the processes come with the first task.
 
 The set-up and its arguments travel through a file, not through the pipe that starts each
 process: CPython's spawn writes a new process's start data to a pipe whose read end it keeps
@@ -44,38 +45,44 @@ NEVER_STARTED = ("the worker processes died while starting, before their set-up:
                  "worker imports the main script again, so a script that calls this with "
                  "workers > 0 needs its calls under `if __name__ == \"__main__\":` (Python's "
                  "own message is printed above); or run with workers = 0")
+SETUP_FILE = "setup.pickle"  # in a pool's folder: the set-up function and its arguments
 
 
 class WorkerProcesses:
     """``workers`` spawned processes (0: one per core), each running ``setup(*setup_args)``
-    once after its thread limits and watchdog are in place."""
+    once after its thread limits and watchdog are in place. Nothing starts until the first
+    task: then the folder of the set-up file and the pool (:attr:`pool`)."""
 
     def __init__(self, workers: int, setup: Callable, setup_args: tuple) -> None:
         self.workers = workers or os.cpu_count() or 1
         threads = max(1, (os.cpu_count() or 1) // self.workers)
         self.env = {**SINGLE_THREAD_ENV, "NUMBA_NUM_THREADS": str(threads)}
-        self.folder = Path(tempfile.mkdtemp(prefix="biopsynav-workers-"))
-        self.setup_file = self.folder / "setup.pickle"
-        try:
-            with open(self.setup_file, "wb") as f:
-                pickle.dump((setup, setup_args), f, protocol=pickle.HIGHEST_PROTOCOL)
-        except BaseException:
-            shutil.rmtree(self.folder, ignore_errors=True)
-            raise
-        self.pool = self._new_pool()
+        self.setup = (setup, setup_args)
+        self.folder: Path | None = None  # the set-up file and start marks, once started
+        self._pool: ProcessPoolExecutor | None = None
+
+    @property
+    def pool(self) -> ProcessPoolExecutor:
+        """The executor; its first use writes the set-up file and starts it."""
+        if self._pool is None:
+            if self.folder is None:
+                self.folder = _setup_folder(self.setup)
+            self._pool = self._new_pool()
+        return self._pool
 
     def _new_pool(self) -> ProcessPoolExecutor:
         import multiprocessing
 
+        setup_file = str(self.folder / SETUP_FILE)
         with _env(self.env):  # spawned children inherit it before importing MKL
             return ProcessPoolExecutor(self.workers, multiprocessing.get_context("spawn"),
                                        initializer=start_worker,
-                                       initargs=(self.env, os.getpid(), str(self.setup_file)))
+                                       initargs=(self.env, os.getpid(), setup_file))
 
     def check_started(self) -> None:
         """InputError (:data:`NEVER_STARTED`) when no worker process of this pool has ever
         started: a broken pool then has a cause that restarting it will not cure."""
-        if not any(self.folder.glob("started-*")):
+        if self.folder is None or not any(self.folder.glob("started-*")):
             raise InputError(NEVER_STARTED, "worker processes") from None
 
     def submit(self, task: Callable, *args: Any) -> Future:
@@ -99,39 +106,57 @@ class WorkerProcesses:
         return [proc.pid for proc in self.processes() if proc.exitcode is not None]
 
     def processes(self) -> list:
-        """The pool's worker processes (none once the executor has let them go)."""
-        return list((getattr(self.pool, "_processes", None) or {}).values())
+        """The pool's worker processes (none before it started or once the executor has let
+        them go)."""
+        return list((getattr(self._pool, "_processes", None) or {}).values())
 
     def restart(self) -> None:
         """Replace a broken pool (a worker died) by a fresh one; InputError when no worker
         had ever started (:meth:`check_started`)."""
         self.check_started()
-        self._kill_processes()
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        self.pool = self._new_pool()
+        self._stop(wait=False)
+        self._pool = self._new_pool()
 
-    def _kill_processes(self) -> None:
-        """Kill every worker, then release the executor's thread that reads their results."""
+    def _stop(self, wait: bool) -> None:
+        """Kill every worker, release the executor's thread that reads their results and shut
+        the executor down (nothing to do before it started)."""
+        if self._pool is None:
+            return
         processes = self.processes()
         for proc in processes:
             if proc.is_alive():
                 proc.kill()
         for proc in processes:
             proc.join(WORKER_WATCH_S)
-        _release_result_reader(self.pool)
+        _release_result_reader(self._pool)
+        self._pool.shutdown(wait=wait, cancel_futures=True)
+        self._pool = None
 
     def close(self) -> None:
         """Stop every worker at once: tasks in flight are lost by design, nothing waits on
-        them."""
-        self._kill_processes()
-        self.pool.shutdown(wait=True, cancel_futures=True)
-        shutil.rmtree(self.folder, ignore_errors=True)
+        them. The set-up folder goes with them."""
+        self._stop(wait=True)
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
 
     def __enter__(self) -> WorkerProcesses:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _setup_folder(setup: tuple[Callable, tuple]) -> Path:
+    """A new temporary folder holding ``setup`` (function, arguments) pickled as
+    :data:`SETUP_FILE`; nothing is left behind when the pickling fails."""
+    folder = Path(tempfile.mkdtemp(prefix="biopsynav-workers-"))
+    try:
+        with open(folder / SETUP_FILE, "wb") as f:
+            pickle.dump(setup, f, protocol=pickle.HIGHEST_PROTOCOL)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return folder
 
 
 def _release_result_reader(pool: ProcessPoolExecutor) -> None:

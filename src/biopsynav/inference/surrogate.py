@@ -3,8 +3,8 @@
 ``Surrogate.load(model_dir, expected_fingerprint)`` refuses a model trained for another anatomy
 or grid (FingerprintError), checks the exported file against its checksum, picks the runtime
 (:mod:`~biopsynav.inference.runtimes`: TorchScript, OpenVINO in fp32, or OpenVINO in bf16 on
-a CPU with AMX-BF16 or AVX-512 BF16; ``precision`` says which), sets the thread count and warms the runtime
-up, so that :meth:`Surrogate.predict` does nothing but the forward pass.
+a CPU with AMX-BF16 or AVX-512 BF16; ``precision`` says which), sets the thread count and
+warms the runtime up, so that :meth:`Surrogate.predict` does nothing but the forward pass.
 
 When the model was trained on top of the linear-elastic baseline (``meta.json`` ``baseline``
 ``kind = linear-elastic``), the exported network is the residual net and ``predict`` returns
