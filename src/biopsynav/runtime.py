@@ -53,7 +53,7 @@ REFINE_PUSH_MINUTES = 6.7
 #: exam 13 right 1.23, the ``chain`` run's case network 1.29; batch 4: its refine training
 #: 1.24), the probe taken on an idle machine on 2026-12-05 and rescaled by each run's own
 #: speed probe. The reference run's batch-4 fp32 training of 2026-12-02 took 1.87 times its
-#: probe (code since made leaner).
+#: probe (fp32 at batch 4, and the code of that day; not measured apart).
 TRAINING_STEP_FACTOR = 1.23
 
 
