@@ -296,7 +296,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "shallower than the uniform 0-35 mm, so a low estimate)",
      Cell("p2-teacher-phantom", with_speed(p2_teacher_cost),
           "python benchmarks/p2_teacher.py --samples 4"), "-", "-"),
-    ("UC Davis (one material), every lesion: the network (defaults of 2026-11-30)",
+    ("UC Davis (one material), every lesion: the tracking network of a fresh case of the "
+     "default recipe `pushes` (`time_to_model.py --case ucdavis-homogeneous --recipe pushes`, "
+     "its Table 2 stopped, below; then this command on its case)",
+     Cell("ucdavis-pushes-default-truth", tre("net"), UCD_TRUTH_CMD),
+     "D10 <= 0.209, D30 <= 1.44 mm", "-"),
+    ("the same breast: the chain's network (defaults of 2026-11-30)",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
     ("the same: its FE teacher",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-", "-"),
@@ -371,11 +376,10 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
      Cell("time-to-model-phantom", ttm_table1, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")), "0.052 / 0.266 mm"),
     ("lesion TRE against an independent FE (P2 tetrahedra), every lesion, 10 / 20 / 30 mm "
-     "pushes: the tracking network (phantom: the default recipe; UC Davis: the chain before "
-     "bf16 and batch 16)",
+     "pushes: the tracking network of the default recipe (UC Davis as one material)",
      Cell("time-to-model-phantom-pushes-avx512", ttm_tre,
           TTM.format("phantom") + " --recipe pushes --tag avx512"),
-     Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-"),
+     Cell("ucdavis-pushes-default-truth", tre("net"), UCD_TRUTH_CMD), "-"),
     ("the same: its FE teacher",
      Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),
      Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-"),

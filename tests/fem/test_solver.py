@@ -748,3 +748,23 @@ def test_the_protocol_names_the_indefinite_tangent_only_when_it_is_shift():
     shift = protocol_dict(cfg, 8, 2)
     assert shift["solver"]["indefinite_tangent"] == "shift"
     assert protocol_fingerprint(ldlt) != protocol_fingerprint(shift)
+
+
+def test_a_continued_solve_that_fails_is_solved_again_from_rest(monkeypatch):
+    """``solve(start=...)``: the continued attempt has at most CONTINUED_BUDGET iterations;
+    when it fails, the solve starts again from rest with the caller's settings (a limit point
+    on the continued path must not cost the whole budget and every fallback)."""
+    calls = []
+    answer = (np.zeros((1, 3)), solver_module.SolveReport())
+
+    def fake_solve_once(model, loads, settings, resume_from=None):
+        calls.append((resume_from is not None, settings.max_total_iterations))
+        if resume_from is not None:
+            raise SolverError("no convergence on the continued path", "fem.solve")
+        return answer
+
+    monkeypatch.setattr(solver_module, "solve_once", fake_solve_once)
+    settings = SolverSettings(max_total_iterations=500)
+    loads = Loads(prescribed_matrix=sp.csr_matrix((3, 3)), prescribed_displacement=np.zeros((1, 3)))
+    assert solve(None, loads, settings, start=(0.5, np.zeros(3))) is answer
+    assert calls == [(True, solver_module.CONTINUED_BUDGET), (False, 500)]

@@ -34,6 +34,12 @@ ARMIJO = 1e-4
 MAX_BACKTRACKS = 6
 LS_TOLERANCE = 0.25  # accept a step once the energy slope drops to this fraction (Crisfield)
 UNSTABLE_EIGENVALUE = 1e-9  # a Jacobi-scaled tangent eigenvalue below minus this: unstable
+#: Newton iterations a solve continued from an equilibrium of its loads scaled down may take
+#: before it is solved again from rest: a continued solve that converges does so quickly (a
+#: 31.4 mm push of UC Davis from its 21.4 mm equilibrium in 22), one that meets a limit
+#: point on its path does not (UC Davis as one material: 430 s and no answer, where the
+#: same push from rest converged in 26 s; docs/experiments.md)
+CONTINUED_BUDGET = 40
 EIGEN_SHIFT = -1e-3  # the stability check's shift-invert point, just below zero (scaled)
 #: With ``indefinite_tangent = "shift"``: an increment (or a solve at its Newton budget) still
 #: converging, its last iteration cutting |R| by REUSE_AFTER or reusing its factors, gets up to
@@ -274,15 +280,22 @@ def solve(model: FEModel, loads: Loads, settings: SolverSettings | None = None,
     from the furthest load factor an attempt before it converged at (its state the first
     guess), not from rest. ``start`` (load factor in (0, 1), free displacement (n_eq,) mm):
     an equilibrium of these loads scaled by that factor, where the (first) attempt's load
-    stepping begins (``solve_once``'s ``resume_from``). Raises the first SolverError when
-    none does."""
+    stepping begins (``solve_once``'s ``resume_from``), within :data:`CONTINUED_BUDGET`
+    Newton iterations; when that attempt fails, the whole solve is done again from rest (the
+    path from a continued state can end at a limit point that a solve from rest steps over
+    onto another branch). Raises the first SolverError when none does."""
     settings = settings or SolverSettings()
+    if start is not None:
+        try:
+            return solve_once(model, loads, continued_settings(settings), start)
+        except SolverError:
+            return solve(model, loads, settings)
     if loads.prescribed_stiffness is None:
-        return solve_once(model, loads, settings, start)
+        return solve_once(model, loads, settings)
     try:
-        return solve_once(model, loads, first_attempt_settings(settings), start)
+        return solve_once(model, loads, first_attempt_settings(settings))
     except SolverError as first:
-        reached = _further(first.reached, start)
+        reached = first.reached
         for factor in settings.spring_fallback:
             start = reached if math.isfinite(factor) else None  # points met: from rest
             try:
@@ -300,6 +313,13 @@ def _further(a: tuple | None, b: tuple | None) -> tuple | None:
     if a is None or b is None:
         return a if b is None else b
     return a if a[0] >= b[0] else b
+
+
+def continued_settings(settings: SolverSettings) -> SolverSettings:
+    """``settings`` with the Newton budget of a solve continued from an equilibrium of the
+    same loads scaled down: at most :data:`CONTINUED_BUDGET` iterations."""
+    budgets = [b for b in (settings.max_total_iterations, CONTINUED_BUDGET) if b > 0]
+    return dataclasses.replace(settings, max_total_iterations=min(budgets))
 
 
 def first_attempt_settings(settings: SolverSettings) -> SolverSettings:
