@@ -168,9 +168,11 @@ def evaluation_minutes(case) -> float:
 
 
 def evaluated_lesions(case) -> int:
-    """The lesions Table 2 evaluates: all, or ``[evaluate] max_lesions`` of them."""
-    n, most = len(case.anatomy.lesions), case.cfg.evaluate.max_lesions
-    return min(most, n) if most else n
+    """How many lesions Table 2 evaluates (:func:`~biopsynav.evaluate.simulation.
+    select_lesions`: all, or ``[evaluate] max_lesions`` of them)."""
+    from .evaluate.simulation import select_lesions
+
+    return len(select_lesions(len(case.anatomy.lesions), case.cfg.evaluate.max_lesions))
 
 
 def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float) -> float:

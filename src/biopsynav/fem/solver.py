@@ -318,14 +318,19 @@ def _further(a: tuple | None, b: tuple | None) -> tuple | None:
 def continued_settings(settings: SolverSettings) -> SolverSettings:
     """``settings`` with the Newton budget of a solve continued from an equilibrium of the
     same loads scaled down: at most :data:`CONTINUED_BUDGET` iterations."""
-    budgets = [b for b in (settings.max_total_iterations, CONTINUED_BUDGET) if b > 0]
-    return dataclasses.replace(settings, max_total_iterations=min(budgets))
+    return _within_budgets(settings, CONTINUED_BUDGET)
 
 
 def first_attempt_settings(settings: SolverSettings) -> SolverSettings:
     """``settings`` with the Newton budget of elastic contact's first attempt: the smaller
     of ``first_attempt_budget`` and ``max_total_iterations`` where they are set (> 0)."""
-    budgets = [b for b in (settings.first_attempt_budget, settings.max_total_iterations) if b > 0]
+    return _within_budgets(settings, settings.first_attempt_budget)
+
+
+def _within_budgets(settings: SolverSettings, budget: int) -> SolverSettings:
+    """``settings`` whose ``max_total_iterations`` is the smaller of it and ``budget``, of
+    those set (> 0; 0 where neither is: no budget)."""
+    budgets = [b for b in (budget, settings.max_total_iterations) if b > 0]
     return dataclasses.replace(settings, max_total_iterations=min(budgets, default=0))
 
 
