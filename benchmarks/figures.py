@@ -204,6 +204,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "held-out rigid pushes; the TRE against the P2 truth, 10 / 20 / 30 mm",
      Cell("time-to-model-phantom-pushes-avx512", ttm_summary,
           TTM.format("phantom") + " --recipe pushes --tag avx512"), "<= 15 min", "-"),
+    ("the same network: the paper's Table 1, mean / max e on 200 force patches (the paper's "
+     "data) solved by its own teacher's law",
+     Cell("table1-patches-phantom-pushes", lambda d: (
+         f"{fmt(d['figures']['mean_e_mm'], 4)} / {fmt(d['figures']['max_e_mm'], 3)} mm"),
+          "python benchmarks/table1_patches.py CASE --result-name table1-patches-phantom-pushes"),
+     "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
     ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (AMD EPYC): "
      "whole; each stage; Table 1 on its held-out rigid pushes",
      Cell("time-to-model-ucdavis-pushes-avx512", ttm_summary,

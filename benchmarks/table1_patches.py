@@ -1,0 +1,91 @@
+"""The paper's Table 1 of any case's tracking network: its error on the paper's force patches,
+solved by its own teacher's law.
+
+    python benchmarks/table1_patches.py CASE [--samples 200] [--workdir DIR] [--keep]
+                                        [--result-name NAME]
+
+A `pushes` case (the default recipe) holds out rigid pushes, so its own Table 1 is not the
+paper's protocol. This copies CASE's anatomy, grid, inputs and configuration into a scratch
+case, sets the paper's training data there (force patches: ``[probe] rigid_share`` and
+``calibrate_force`` at the configuration's defaults, which are the `chain` recipe's) and keeps
+every other setting of CASE, the material law above all (the network's own teacher), then
+``biopsynav generate`` solves ``--samples`` held-out force patches (and one training sample,
+unused) and :func:`biopsynav.network.evaluate.evaluate` measures CASE's model on them with the
+deployed runtime, projected onto the contact where the model projects. Run it alone.
+
+Writes ``benchmarks/results/table1-patches-<case name>.json`` (or ``NAME.json``); the last line
+reads ``RESULT mean_e_mm=... max_e_mm=... samples=...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from pushes_only import copy_case_files
+from resultfile import write_result
+
+
+def patches_config(case_dir: Path, out: Path, samples: int) -> None:
+    """``out/case.toml``: ``case_dir``'s configuration with the paper's force patches as its
+    data (the configuration's defaults of ``[probe] rigid_share`` and ``calibrate_force``), one
+    training sample and ``samples`` held out."""
+    from biopsynav.config import CaseConfig, load_config, save_config
+
+    cfg, defaults = load_config(case_dir), CaseConfig().probe
+    cfg.probe.rigid_share = defaults.rigid_share
+    cfg.probe.calibrate_force = defaults.calibrate_force
+    cfg.dataset.n_train, cfg.dataset.n_test = 1, samples
+    save_config(out, cfg)
+
+
+def measure(case_dir: Path, work: Path, samples: int) -> dict:
+    """Table 1 of ``case_dir``'s model on ``samples`` force patches solved in ``work/case``."""
+    from biopsynav.case import Case
+    from biopsynav.network.evaluate import evaluate
+
+    out = work / "case"
+    out.mkdir(parents=True)
+    copy_case_files(case_dir, out)
+    patches_config(case_dir, out, samples)
+    subprocess.run([sys.executable, "-m", "biopsynav.cli", "generate", str(out)], check=True)
+    home = Case.load(case_dir)
+    model = home.paths.model
+    fingerprint = json.loads((model / "meta.json").read_text())["fingerprint"]
+    return evaluate(model, out / "dataset.zarr", out / "eval", fingerprint, case=home)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("case", type=Path)
+    p.add_argument("--samples", type=int, default=200)
+    p.add_argument("--workdir", type=Path, default=None)
+    p.add_argument("--keep", action="store_true", help="keep the scratch case")
+    p.add_argument("--result-name", default=None)
+    args = p.parse_args(argv)
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="table1-patches-"))
+    try:
+        r = measure(args.case.resolve(), work, args.samples)
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    name = args.result_name or f"table1-patches-{args.case.resolve().name}"
+    figures = {k: r[k] for k in ("mean_e_mm", "std_e_mm", "max_e_mm", "n_samples",
+                                 "max_disp_mm", "contact_projection", "runtime", "precision",
+                                 "inverted_samples")}
+    write_result(name, figures, case=str(args.case))
+    print(f"Table 1 on {r['n_samples']} force patches of the case's own law: mean e "
+          f"{r['mean_e_mm']:.4f} mm, max e {r['max_e_mm']:.3f} mm (largest nodal displacement "
+          f"{r['max_disp_mm']:.1f} mm)")
+    print(f"RESULT mean_e_mm={r['mean_e_mm']:.4f} max_e_mm={r['max_e_mm']:.4f} "
+          f"samples={r['n_samples']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
