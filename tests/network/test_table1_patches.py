@@ -1,0 +1,27 @@
+"""benchmarks/table1_patches.py: the paper's force patches for a case's own teacher."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from biopsynav.config import CaseConfig, config_from_dict, load_config, save_config
+from biopsynav.recipes import recipe_overrides
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+def test_the_scratch_case_draws_force_patches_with_the_case_s_own_law(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import table1_patches
+
+    case, out = tmp_path / "case", tmp_path / "out"
+    case.mkdir(), out.mkdir()
+    save_config(case, config_from_dict(recipe_overrides("pushes")))
+    table1_patches.patches_config(case, out, 120)
+    pushes, patches, defaults = load_config(case), load_config(out), CaseConfig()
+    assert pushes.probe.rigid_share == 1.0 and not pushes.probe.calibrate_force
+    assert patches.probe.rigid_share == defaults.probe.rigid_share == 0.0
+    assert patches.probe.calibrate_force == defaults.probe.calibrate_force
+    assert (patches.dataset.n_train, patches.dataset.n_test) == (1, 120)
+    assert patches.material.model == pushes.material.model == "neo-hookean-split-sri-inner"
+    assert patches.grid == pushes.grid and patches.dataset.seed == pushes.dataset.seed
