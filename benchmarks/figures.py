@@ -317,11 +317,13 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "shallower than the uniform 0-35 mm, so a low estimate)",
      Cell("p2-teacher-phantom", with_speed(p2_teacher_cost),
           "python benchmarks/p2_teacher.py --samples 4"), "-", "-"),
-    ("UC Davis (one material), every lesion: the tracking network of a fresh case of the "
-     "default recipe `pushes` (`time_to_model.py --case ucdavis-homogeneous --recipe pushes`, "
-     "its Table 2 stopped, below; then this command on its case)",
-     Cell("ucdavis-pushes-default-truth", tre("net"), UCD_TRUTH_CMD),
-     "D10 <= 0.209, D30 <= 1.44 mm", "-"),
+    ("`run` from nothing, UC Davis as one material, the default recipe `pushes` (AMD EPYC; "
+     "Table 2 against the shipped P2 truth, `examples/ucdavis_breast3/homogeneous.toml`): "
+     "whole; each stage; Table 1 on its held-out rigid pushes; the tracking network's TRE "
+     "against the P2 truth over every lesion, 10 / 20 / 30 mm",
+     Cell("time-to-model-ucdavis-homogeneous-pushes-avx512", ttm_summary,
+          TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag avx512"),
+     "<= 15 min; D10 <= 0.209, D30 <= 1.44 mm", "-"),
     ("the same breast: the chain's network (defaults of 2026-11-30)",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
     ("the same: its FE teacher",
@@ -400,7 +402,8 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
      "pushes: the tracking network of the default recipe (UC Davis as one material)",
      Cell("time-to-model-phantom-pushes-avx512", ttm_tre,
           TTM.format("phantom") + " --recipe pushes --tag avx512"),
-     Cell("ucdavis-pushes-default-truth", tre("net"), UCD_TRUTH_CMD), "-"),
+     Cell("time-to-model-ucdavis-homogeneous-pushes-avx512", ttm_tre,
+          TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag avx512"), "-"),
     ("the same: its FE teacher",
      Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),
      Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-"),
