@@ -71,3 +71,26 @@ def test_a_pose_it_does_not_hold_is_not_answered(phantom):
     ref = StoredTruth(phantom, None, None)
     ref.set_rest_pose(np.eye(4))
     assert not ref.update(np.eye(4)).reliable
+
+
+def test_the_ucdavis_example_of_one_material_finds_its_shipped_truth(tmp_path, ucdavis_dir):
+    """`init` of the UC Davis breast with examples/ucdavis_breast3/homogeneous.toml (as its
+    comment says) gives a case whose Table 2 is the shipped truth of that breast, every
+    lesion: a change to the anatomy, the material or the probe that the truth's key holds
+    fails here, not at the end of a user's run."""
+    from pathlib import Path
+
+    from biopsynav.case import Case
+    from biopsynav.cli import main
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "ucdavis_breast3"
+    case_dir = tmp_path / "ucd-h"
+    assert main(["init", str(case_dir), "--surface", str(ucdavis_dir / "volmesh3.vtk"),
+                 "--tissue-labels", "1=fat,2=fat,3=fat", "--lesions",
+                 str(example / "lesions.csv"), "--config",
+                 str(example / "homogeneous.toml")]) == 0
+    case = Case.load(case_dir)
+    assert (case.cfg.evaluate.reference, case.cfg.evaluate.max_lesions) == ("stored", 0)
+    path, data = find_truth(case)
+    assert path.name == "ucdavis-homogeneous.json"
+    assert sorted(map(int, data["lesions"])) == list(range(len(case.anatomy.lesions)))
