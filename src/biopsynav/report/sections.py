@@ -197,7 +197,8 @@ def rigid_table1_blocks(cfg: CaseConfig) -> list:
                  f"to {_num(cfg.probe.max_push_mm)} mm, law {law}), not the paper's force "
                  "patches: this is the network the tracker uses, against its own FE teacher, "
                  "on deeper pushes than the paper's test set, so its errors are larger than "
-                 "the paper's column (docs/pipeline.md, \"Recipes\").")]
+                 "the paper's column (docs/pipeline.md, \"Recipes\"). Its error on the "
+                 "paper's force patches: `python benchmarks/table1_patches.py CASE`.")]
 
 
 def refined_table1_blocks(case_dir: Path, cfg: CaseConfig) -> list:
