@@ -1,5 +1,5 @@
-"""The paper's Table 1 of any case's tracking network: its error on the paper's force patches,
-solved by its own teacher's law.
+"""The paper's Table 1 of a case's network (``CASE/model``): its error on the paper's force
+patches, solved by its own teacher's law.
 
     python benchmarks/table1_patches.py CASE [--samples 200] [--workdir DIR] [--keep]
                                         [--result-name NAME]
@@ -10,7 +10,7 @@ case, sets the paper's training data there (force patches: ``[probe] rigid_share
 ``calibrate_force`` at the configuration's defaults, which are the `chain` recipe's) and keeps
 every other setting of CASE, the material law above all (the network's own teacher), then
 ``biopsynav generate`` solves ``--samples`` held-out force patches (and one training sample,
-unused) and :func:`biopsynav.network.evaluate.evaluate` measures CASE's model on them with the
+unused) and :func:`biopsynav.network.evaluate.evaluate` measures ``CASE/model`` on them with the
 deployed runtime, projected onto the contact where the model projects. Run it alone.
 
 Writes ``benchmarks/results/table1-patches-<case name>.json`` (or ``NAME.json``); the last line
@@ -54,10 +54,11 @@ def measure(case_dir: Path, work: Path, samples: int) -> dict:
     copy_case_files(case_dir, out)
     patches_config(case_dir, out, samples)
     subprocess.run([sys.executable, "-m", "biopsynav.cli", "generate", str(out)], check=True)
-    home = Case.load(case_dir)
-    model = home.paths.model
+    model = Case.load(case_dir).paths.model
     fingerprint = json.loads((model / "meta.json").read_text())["fingerprint"]
-    return evaluate(model, out / "dataset.zarr", out / "eval", fingerprint, case=home)
+    # the scratch case: its configuration drew the patches (a projecting model redraws them)
+    return evaluate(model, out / "dataset.zarr", out / "eval", fingerprint,
+                    case=Case.load(out))
 
 
 def main(argv: list[str] | None = None) -> int:
