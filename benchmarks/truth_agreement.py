@@ -32,10 +32,11 @@ with the E and nu of the case's default tissue. Answered by:
 
 Printed per lesion and depth: each answer's lesion displacement |u| (mm) and the distance
 between displacement vectors: p2 against NGSolve p2 (the two codes on one discretisation),
-NGSolve p2 against its higher orders (p convergence), p2 against p2 on each finer mesh (h
-convergence), and, with ``--stored`` (a truth file of
-``truth.py``: the probe a rigid body on which reached skin slides), the stored truth against
-p2 glued (what the probe body changes: the contact model). Writes
+NGSolve p2 against its higher orders (p convergence), p2 against p2 on each finer mesh and
+each finer mesh against the one before it in ``--h-fine``'s order (h convergence), and, with
+``--stored`` (a truth file of ``truth.py``: the probe a rigid body on which reached skin
+slides), the stored truth against p2 glued (what the probe body changes: the contact model).
+Writes
 ``benchmarks/results/truth-agreement-<case>.json``; the last line reads ``RESULT
 codes_max_mm=... p_max_mm=... h_max_mm=... contact_max_mm=...`` (the largest of each
 distance; nan where not asked).
@@ -169,14 +170,24 @@ def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
             if order != 2 and 2 in ng:
                 row[f"p{order}_mm"] = distance(ng[2]["displacement"][k],
                                                ng[order]["displacement"][k])
+        coarser = None  # the answer of the mesh before, for the step of each refinement
         for fine, answers in (finer or {}).items():
             row[f"p2_h{fine:g}"] = answers[k]
             row[f"h{fine:g}_mm"] = distance(p2[k], answers[k])
+            if coarser is not None:
+                row[f"{step_key(coarser[0], fine)}"] = distance(coarser[1][k], answers[k])
+            coarser = (fine, answers)
         stored_k = body[body_depths.index(depth)] if depth in body_depths else None
         row["probe_body"] = stored_k
         row["contact_mm"] = distance(stored_k, p2[k])
         rows.append(row)
     return rows
+
+
+def step_key(coarser: float, fine: float) -> str:
+    """The row key of the distance between the P2 answers on two successive finer meshes (their
+    sizes near the probe, mm): how far one more refinement moves the lesion."""
+    return f"h{coarser:g}-h{fine:g}_mm"
 
 
 def failed_text(facts: dict) -> str:
@@ -195,15 +206,17 @@ def num_text(v) -> str:
 def print_rows(rows: list[dict], orders: list[int], fines: list[float] = ()) -> None:
     """The table: |u| of each answer and the distances, mm."""
     higher = [o for o in orders if o != 2]
+    steps = list(zip(fines[:-1], fines[1:], strict=True))  # successive refinements
     head = (["lesion", "depth", "|u| p2", *[f"|u| ng p{o}" for o in orders], "p2-ng"]
             + [f"ng p2-p{o}" for o in higher] + [f"p2-h{f:g}" for f in fines]
-            + ["|u| body", "body-glued"])
+            + [f"h{a:g}-h{b:g}" for a, b in steps] + ["|u| body", "body-glued"])
     print("  ".join(f"{h:>9}" for h in head))
     for r in rows:
         cells = ([str(r["lesion"]), f"{r['depth_mm']:g}", norm_text(r["p2"])]
                  + [norm_text(r.get(f"ngsolve_p{o}")) for o in orders] + [num_text(r["codes_mm"])]
                  + [num_text(r.get(f"p{o}_mm")) for o in higher]
                  + [num_text(r.get(f"h{f:g}_mm")) for f in fines]
+                 + [num_text(r.get(step_key(a, b))) for a, b in steps]
                  + [norm_text(r["probe_body"]), num_text(r["contact_mm"])])
         print("  ".join(f"{c:>9}" for c in cells), flush=True)
 

@@ -72,3 +72,17 @@ def test_a_refinement_that_is_not_finer_is_refused_before_any_solve(sizes, tmp_p
                               "--out", str(out), "--no-result-file"])
     assert stop.value.code == 2 and "--h-fine" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_each_refinement_step_is_measured_against_the_mesh_before_it(monkeypatch):
+    """With several --h-fine sizes a row holds each finer answer against the 4 mm one and
+    against the mesh before it: how far one more refinement moves the lesion."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import truth_agreement
+
+    p2 = [[1.0, 0.0, 0.0]]
+    finer = {2.8: [[1.0, 0.3, 0.0]], 2.0: [[1.0, 0.3, 0.4]]}
+    (row,) = truth_agreement.lesion_rows(0, [10.0], p2, {}, {}, finer)
+    assert row["h2.8_mm"] == pytest.approx(0.3) and row["h2_mm"] == pytest.approx(0.5)
+    assert row[truth_agreement.step_key(2.8, 2.0)] == pytest.approx(0.4)
+    assert truth_agreement.step_key(2.8, 2.0) == "h2.8-h2_mm"
