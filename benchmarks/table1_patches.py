@@ -10,8 +10,9 @@ case, sets the paper's training data there (force patches: ``[probe] rigid_share
 ``calibrate_force`` at the configuration's defaults, which are the `chain` recipe's) and keeps
 every other setting of CASE, the material law above all (the network's own teacher), then
 ``biopsynav generate`` solves ``--samples`` held-out force patches (and one training sample,
-unused) and :func:`biopsynav.network.evaluate.evaluate` measures ``CASE/model`` on them with the
-deployed runtime, projected onto the contact where the model projects. Run it alone.
+unused) and ``CASE/model``, copied there, is measured on them as ``biopsynav evaluate`` measures
+Table 1 (the deployed runtime, projected onto the contact where the model projects). Run it
+alone.
 
 Writes ``benchmarks/results/table1-patches-<case name>.json`` (or ``NAME.json``); the last line
 reads ``RESULT mean_e_mm=... max_e_mm=... samples=...``.
@@ -20,13 +21,13 @@ reads ``RESULT mean_e_mm=... max_e_mm=... samples=...``.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+from biopsynav.layout import CasePaths
 from pushes_only import copy_case_files
 from resultfile import write_result
 
@@ -45,20 +46,19 @@ def patches_config(case_dir: Path, out: Path, samples: int) -> None:
 
 
 def measure(case_dir: Path, work: Path, samples: int) -> dict:
-    """Table 1 of ``case_dir``'s model on ``samples`` force patches solved in ``work/case``."""
-    from biopsynav.case import Case
-    from biopsynav.network.evaluate import evaluate
+    """Table 1 of ``case_dir``'s model on ``samples`` force patches solved in ``work/case``:
+    the model copied into that scratch case, whose configuration drew the patches (a
+    projecting model redraws its contacts from it), and evaluated there as ``evaluate`` does
+    (:func:`biopsynav.network.evaluate.evaluate_network_case`)."""
+    from biopsynav.network.evaluate import evaluate_network_case
 
     out = work / "case"
     out.mkdir(parents=True)
     copy_case_files(case_dir, out)
     patches_config(case_dir, out, samples)
     subprocess.run([sys.executable, "-m", "biopsynav.cli", "generate", str(out)], check=True)
-    model = Case.load(case_dir).paths.model
-    fingerprint = json.loads((model / "meta.json").read_text())["fingerprint"]
-    # the scratch case: its configuration drew the patches (a projecting model redraws them)
-    return evaluate(model, out / "dataset.zarr", out / "eval", fingerprint,
-                    case=Case.load(out))
+    shutil.copytree(CasePaths(case_dir).model, CasePaths(out).model)
+    return evaluate_network_case(out)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,6 +69,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--keep", action="store_true", help="keep the scratch case")
     p.add_argument("--result-name", default=None)
     args = p.parse_args(argv)
+    if args.samples < 1:
+        p.error(f"--samples {args.samples}: at least 1 held-out force patch")
+    if not CasePaths(args.case).model_meta.is_file():
+        p.error(f"{args.case}: no trained model ({CasePaths(args.case).model_meta}) to "
+                "measure; `biopsynav train` it first")
     work = args.workdir or Path(tempfile.mkdtemp(prefix="table1-patches-"))
     try:
         r = measure(args.case.resolve(), work, args.samples)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from biopsynav.config import CaseConfig, config_from_dict, load_config, save_config
 from biopsynav.recipes import recipe_overrides
 
@@ -25,3 +27,17 @@ def test_the_scratch_case_draws_force_patches_with_the_case_s_own_law(tmp_path, 
     assert (patches.dataset.n_train, patches.dataset.n_test) == (1, 120)
     assert patches.material.model == pushes.material.model == "neo-hookean-split-sri-inner"
     assert patches.grid == pushes.grid and patches.dataset.seed == pushes.dataset.seed
+
+
+def test_a_case_without_a_model_or_no_samples_is_refused_before_any_work(tmp_path, capsys,
+                                                                          monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import table1_patches
+
+    (tmp_path / "case").mkdir()
+    for args, words in (([str(tmp_path / "case")], "no trained model"),
+                        ([str(tmp_path / "case"), "--samples", "0"], "at least 1")):
+        with pytest.raises(SystemExit) as exc:
+            table1_patches.main([*args, "--workdir", str(tmp_path / "work")])
+        assert exc.value.code == 2 and words in capsys.readouterr().err
+    assert not (tmp_path / "work").exists()
