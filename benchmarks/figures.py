@@ -206,6 +206,32 @@ def bf16_cells(d: dict) -> str:
             f"{' '.join(d['machine']['cpu_flags']) or 'none'}")
 
 
+def ttm_kinds(data: dict) -> str:
+    """Table 1 of a whole run of both kinds of held-out sample (the ``pushes-patches`` recipe): the
+    force patches' and the rigid pushes' mean / max e and counts."""
+    f = data["figures"]
+    return "; ".join(
+        f"{words} {fmt(f[f'table1_{kind}_mean_e_mm'], 4)} / "
+        f"{fmt(f[f'table1_{kind}_max_e_mm'], 3)} mm ({f[f'table1_{kind}_samples']})"
+        for kind, words in (("force_patches", "force patches"), ("rigid_pushes", "rigid pushes")))
+
+
+def mixed_summary(data: dict) -> str:
+    """A whole run of the ``pushes-patches`` recipe in one cell: its minutes, each stage, Table 1 of
+    each kind and the TRE."""
+    return (f"{ttm_total(data)}; {ttm_stages(data)}; Table 1 {ttm_kinds(data)}; "
+            f"TRE {ttm_tre(data)}")
+
+
+MIXED_TAG = "amx"
+
+
+def mixed_cell(case: str, render: Callable[[dict], str]) -> Cell:
+    """The ``pushes-patches`` recipe's whole run of ``case`` (Intel Xeon with AMX-BF16)."""
+    return Cell(f"time-to-model-{case}-pushes-patches-{MIXED_TAG}", render,
+                TTM.format(case) + f" --recipe pushes-patches --tag {MIXED_TAG}")
+
+
 def table1_cell(d: dict) -> str:
     """Mean / max e of a ``table1_patches.py`` result."""
     return f"{fmt(d['figures']['mean_e_mm'], 4)} / {fmt(d['figures']['max_e_mm'], 3)} mm"
@@ -231,6 +257,23 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("table1-patches-ucdavis-pushes", table1_cell,
           "python benchmarks/table1_patches.py CASE --result-name table1-patches-ucdavis-pushes"),
      "-", "-"),
+    ("`demo --recipe pushes-patches` from nothing, phantom (about 370 rigid pushes and 310 force "
+     "patches of one law, one network; Intel Xeon with AMX-BF16): whole; each stage; Table 1 "
+     "on its held-out force patches and rigid pushes; the TRE against the P2 truth, 10 / 20 "
+     "/ 30 mm", mixed_cell("phantom", mixed_summary), "<= 15 min", "-"),
+    ("the same network: the paper's Table 1, mean / max e on 200 force patches (the paper's "
+     "data) solved by its own teacher's law",
+     Cell("table1-patches-phantom-pushes-patches", table1_cell,
+          "python benchmarks/table1_patches.py CASE --result-name "
+          "table1-patches-phantom-pushes-patches"),
+     "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
+    ("`run --recipe pushes-patches` from nothing, UC Davis of three tissues (the same machine): "
+     "whole; each stage; Table 1 of each kind", mixed_cell("ucdavis", mixed_summary),
+     "<= 15 min", "-"),
+    ("`run --recipe pushes-patches` from nothing, UC Davis as one material (Table 2 against the P2 "
+     "truth): whole; each stage; Table 1 of each kind; the TRE against the P2 truth, 10 / 20 "
+     "/ 30 mm", mixed_cell("ucdavis-homogeneous", mixed_summary),
+     "<= 15 min; D10 <= 0.209, D30 <= 1.44 mm", "-"),
     ("`demo --recipe chain` from nothing, phantom (force patches, case network, `[refine]`; "
      "Intel Xeon with AMX-BF16): whole pipeline",
      Cell("time-to-model-phantom", ttm_total, TTM_CHAIN.format("phantom")), "<= 15 min",
@@ -397,12 +440,18 @@ def pushes_cells(render: Callable[[dict], str]) -> tuple[Cell, Cell]:
 README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
     ("from nothing to a served model, 2 cores (`make demo`; `run`), the default recipe "
      "`pushes` (AMD EPYC, no AMX)", *pushes_cells(ttm_total), "278 min with a GPU"),
+    ("the same, `--recipe pushes-patches` (rigid pushes and force patches; Intel Xeon with "
+     "AMX-BF16)",
+     mixed_cell("phantom", ttm_total), mixed_cell("ucdavis", ttm_total), "-"),
     ("the same, `--recipe chain` (force patches, case network, `[refine]`; Intel Xeon with "
      "AMX-BF16)",
      Cell("time-to-model-phantom", ttm_total, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_total, TTM_CHAIN.format("ucdavis")), "-"),
     ("Table 1 of the default recipe: mean / max e of the tracking network against its FE "
      "teacher, held-out rigid pushes up to 35 mm", *pushes_cells(ttm_table1), "-"),
+    ("Table 1, `--recipe pushes-patches`: the tracking network on its held-out force patches (the "
+     "paper's test) and rigid pushes", mixed_cell("phantom", ttm_kinds),
+     mixed_cell("ucdavis", ttm_kinds), "0.052 / 0.266 mm (force patches)"),
     ("Table 1, `--recipe chain`: the case network on held-out force patches (the paper's test)",
      Cell("time-to-model-phantom", ttm_table1, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")), "0.052 / 0.266 mm"),
@@ -418,6 +467,8 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
     ("the same: no deformation (rigid)",
      Cell("phantom-default-mixed-d30-all-truth", tre("rigid"), TRUTH_CMD),
      Cell("ucdavis-default-mixed-d30-all-truth", tre("rigid"), UCD_TRUTH_CMD), "-"),
+    ("the tracking network of `--recipe pushes-patches`, the same truth",
+     mixed_cell("phantom", ttm_tre), mixed_cell("ucdavis-homogeneous", ttm_tre), "-"),
     ("tracker update, median / p99",
      Cell("tracking-latency", pair("update_p50_ms", "update_p99_ms"),
           "python benchmarks/tracking_latency.py CASE"), None, "3.14 ms per prediction (GPU)"),

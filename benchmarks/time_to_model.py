@@ -4,7 +4,7 @@ reached.
     python benchmarks/time_to_model.py [--case phantom|ucdavis|ucdavis-homogeneous]
                                        [--workdir DIR] [--keep] [--no-truth]
                                        [--prior auto --iterations 4000]
-                                       [--recipe pushes|chain] [--tag TAG]
+                                       [--recipe pushes|pushes-patches|chain] [--tag TAG]
 
 * ``phantom``: what ``make demo`` does (``biopsynav demo``: the built-in phantom, every
   default, Table 2 on 3 lesions);
@@ -28,8 +28,10 @@ its TRE is not measured; its time and Table 1 are.
 
 ``--recipe`` chooses the new case's training data (:mod:`biopsynav.recipes`; ``init
 --recipe``, ``demo --recipe``): with ``pushes`` Table 1 is the tracking network on its
-held-out rigid pushes. ``--prior`` and ``--iterations`` set ``[network]`` in the new case
-(docs/network.md, "Starting from a prior"); the result is then
+held-out rigid pushes; with ``pushes-patches`` on its held-out pushes and force patches, each kind's
+figures recorded too (``table1_force_patches_mean_e_mm``, ...). ``--prior`` and
+``--iterations`` set ``[network]`` in the new case (docs/network.md, "Starting from a
+prior"); the result is then
 ``time-to-model-<case>[-<recipe>]-prior.json`` (``-itN`` added with ``--iterations N``).
 
 Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
@@ -138,6 +140,14 @@ def net_against_truth(case_dir: Path, truth: Path) -> dict:
         return json.loads(out.read_text())
 
 
+def kind_table1(table1: dict) -> dict:
+    """Table 1 of each kind of held-out sample of a data set of both (the ``pushes-patches``
+    recipe): ``table1_<kind>_mean_e_mm``, ``_max_e_mm`` and ``_samples``; {} for one kind."""
+    return {f"table1_{kind}_{key}": v[key if key != "samples" else "n_samples"]
+            for kind, v in table1.get("by_kind", {}).items()
+            for key in ("mean_e_mm", "max_e_mm", "samples")}
+
+
 def truth_tre(kind: str, case_dir: Path) -> dict:
     """The tracking network's TRE against the stored P2 truth, mean per depth (mm); {} where
     none is stored for this case."""
@@ -200,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), "recipe": args.recipe,
-               "table1_samples": table1.get("n_samples"), **tre}
+               "table1_samples": table1.get("n_samples"), **kind_table1(table1), **tre}
     name = result_name(args.case + ("" if args.recipe == "chain" else f"-{args.recipe}"),
                        args.prior, args.iterations)
     write_result(name + (f"-{args.tag}" if args.tag else ""), figures,

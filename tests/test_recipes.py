@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from biopsynav.config import CaseConfig, config_from_dict, load_config
@@ -36,6 +37,29 @@ def test_the_pushes_recipe_draws_the_chains_refine_pushes():
     assert protocol_dict(pushes, 1000, 20) == protocol_dict(chain_refine, 1000, 20)
     assert pushes.refine.samples == 0 and not pushes.probe.calibrate_force
     assert pushes.network.init_from == "" and pushes.network.prior == "none"
+
+
+def test_the_pushes_patches_recipe_draws_the_pushes_recipes_pushes_among_force_patches(base_case):
+    """One law for both kinds (the pushes'); its rigid samples are the pushes recipe's samples
+    of the same index, its force patches calibrated per breast; nothing else runs."""
+    from biopsynav.case import Case
+    from biopsynav.probe import is_rigid_sample, push_for_sample
+
+    mixed = config_from_dict(recipe_overrides("pushes-patches"), "pushes-patches")
+    pushes = config_from_dict(recipe_overrides("pushes"), "pushes")
+    assert 0.0 < mixed.probe.rigid_share < 1.0 and mixed.probe.calibrate_force
+    assert mixed.material == pushes.material and mixed.refine.samples == 0
+    assert mixed.network == pushes.network
+    anatomy, seed = Case.load(base_case).anatomy, mixed.dataset.seed
+    kinds = [is_rigid_sample(mixed.probe, seed, i) for i in range(20)]
+    assert 0 < sum(kinds) < 20
+    for index in (i for i, rigid in enumerate(kinds) if rigid):
+        a = push_for_sample(anatomy, mixed.probe, seed, index, 0)
+        b = push_for_sample(anatomy, pushes.probe, seed, index, 0)
+        assert a.vertex == b.vertex and a.push_mm == b.push_mm > 0.0
+        np.testing.assert_array_equal(a.direction, b.direction)
+    patch = push_for_sample(anatomy, mixed.probe, seed, kinds.index(False), 0)
+    assert patch.push_mm == 0.0 and patch.force_n > 0.0
 
 
 def test_quick_demo_keeps_the_recipes_choice_of_refine():
@@ -82,3 +106,34 @@ def test_init_writes_the_recipe_and_run_trains_the_tracking_network_on_pushes(tm
     assert table1["n_samples"] == 4 and table1["mean_e_mm"] > 0.0
     assert not (case / "refine").exists()
     assert "held-out samples are rigid-probe pushes" in (case / "report.md").read_text()
+
+
+def test_a_pushes_patches_run_measures_each_kind_of_held_out_sample(tmp_path):
+    """``init --recipe pushes-patches`` then ``run``: one data set of rigid pushes and calibrated
+    force patches, one network, and Table 1 over both and for each kind (table1.json, the
+    report)."""
+    from biopsynav.cli import main
+    from biopsynav.config import save_config
+    from tests.runs import small_run_settings
+
+    case = tmp_path / "case"
+    assert main(["init", str(case), "--phantom", "--cell-size", "15",
+                 "--recipe", "pushes-patches"]) == 0
+    cfg = load_config(case)
+    cfg.dataset.n_train, cfg.dataset.n_test = 10, 8
+    cfg.probe.calibration_pushes = 4
+    small_run_settings(cfg)
+    save_config(case, cfg)
+    assert main(["run", str(case), "--workers", "1"]) == 0
+    summary = json.loads((case / "dataset_summary.json").read_text())
+    assert 0 < summary["rigid_pushes"] < summary["count"] == 18
+    assert summary["force_calibration"]["pushes"] == 4
+    table1 = json.loads((case / "eval" / "table1.json").read_text())
+    kinds = table1["by_kind"]
+    assert set(kinds) == {"force_patches", "rigid_pushes"}, kinds
+    assert sum(k["n_samples"] for k in kinds.values()) == table1["n_samples"] == 8
+    e = np.array(table1["e_per_sample_mm"])
+    assert min(k["mean_e_mm"] for k in kinds.values()) >= e.min() > 0.0
+    report = (case / "report.md").read_text()
+    assert "force patches (the paper's test set): mean / max e" in report
+    assert "held-out samples are of two kinds" in report

@@ -480,8 +480,9 @@ class NetworkSection:
                                  "learning_rate 2e-3: Table 1 and the tracking network's "
                                  "distance from the independent truth at 10-30 mm pushes as "
                                  "the 50,000 at batch 4, in half the time; 12,000 at batch 4 "
-                                 "left the deep pushes 16 % further from it (docs/pipeline.md, "
-                                 "'Settings of the chain'). From a prior (prior), 4,000 reach the "
+                                 "left the deep pushes 16 % further from it "
+                                 "(docs/experiments.md, 'Cost and settings of the chain'). "
+                                 "From a prior (prior), 4,000 reach the "
                                  "same mean held-out error, not its largest (docs/network.md, "
                                  "'Starting from a prior'). The time on this machine: "
                                  "benchmarks/time_to_model.py.",
@@ -653,9 +654,10 @@ class RefineSection:
     batch_size: int = opt(4, "Batch size of that training. 4: on the phantom, 4,000 "
                              "iterations at batch 16 (the same samples) left the tracking "
                              "network 17 % further from the independent truth at 30 mm pushes "
-                             "than 16,000 at batch 4 (docs/pipeline.md, 'Settings of the "
-                             "chain'). A [refine] table written before this key existed reads "
-                             "it as [network] batch_size (as it trained).", lo=1, hi=1024)
+                             "than 16,000 at batch 4 (docs/experiments.md, 'Cost and "
+                             "settings of the chain'). A [refine] table written before this "
+                             "key existed reads it as [network] batch_size (as it trained).",
+                          lo=1, hi=1024)
 
 
 @dataclass

@@ -278,12 +278,18 @@ RIGID_STREAM = 7
 def is_rigid_sample(probe: ProbeSection, seed: int, index: int) -> bool:
     """Whether sample ``index`` is a rigid-probe push (``[probe] rigid_share``): decided once
     per sample, whatever its attempt, so failed rigid draws are redrawn as rigid ones."""
-    if probe.rigid_share <= 0.0:
+    return is_rigid_draw(probe.rigid_share, seed, index)
+
+
+def is_rigid_draw(rigid_share: float, seed: int, index: int) -> bool:
+    """Whether sample ``index`` of a data set drawn with ``seed`` and ``rigid_share`` (the
+    share of rigid-probe pushes, 0-1) is a rigid push (:func:`is_rigid_sample`)."""
+    if rigid_share <= 0.0:
         return False
-    if probe.rigid_share >= 1.0:
+    if rigid_share >= 1.0:
         return True
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0, RIGID_STREAM]))
-    return bool(rng.uniform() < probe.rigid_share)
+    return bool(rng.uniform() < rigid_share)
 
 
 #: The stream that decides whether a sample is centred near a lesion, and which
@@ -504,6 +510,6 @@ def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: st
 __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",
            "MIN_NORMAL_COSINE", "ProbePush", "centres_near_lesion", "check_lesion_share",
            "contact_input", "contact_input_operator", "draw_push", "eligible_centers",
-           "is_rigid_sample", "lesion_for_sample", "nodal_forces", "pinned_skin",
+           "is_rigid_draw", "is_rigid_sample", "lesion_for_sample", "nodal_forces", "pinned_skin",
            "probe_frame", "probe_patch", "push_for_sample", "sample_rng", "skin_under_face",
            "tangent_basis", "tilted_direction"]

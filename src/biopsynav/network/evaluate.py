@@ -110,6 +110,9 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
     result = error_summary(e)
+    rigid = held_out_rigid(data)
+    if rigid is not None:
+        result["by_kind"] = kind_figures(e, rigid)
     result.update(time_predictions(sur, x, n_timing, contacts))
     result.update({"contact_projection": contacts is not None,
                    "mean_e_unprojected_mm": float(e_plain.mean()),
@@ -134,6 +137,35 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
              spacing_mm or meta.get("spacing_mm") or 1.0)
     write_json_atomic(Path(out_dir) / TABLE1_FILE, result)
     return result
+
+
+def held_out_rigid(data: Dataset) -> np.ndarray | None:
+    """Which held-out samples of a data set of both kinds (``[probe] rigid_share`` between 0
+    and 1) are rigid-probe pushes, (n_test,) bool; None for a data set of one kind."""
+    from ..dataset.store import recorded_probe_value
+    from ..probe import is_rigid_draw
+
+    protocol = data.attrs.get("protocol") or {}
+    share = float(recorded_probe_value(protocol, "rigid_share"))
+    seed = (protocol.get("dataset") or {}).get("seed")
+    if not 0.0 < share < 1.0 or seed is None:
+        return None
+    return np.array([is_rigid_draw(share, int(seed), int(i)) for i in data.test_idx], bool)
+
+
+#: Table 1's kinds of held-out sample in a data set of both (``by_kind`` in table1.json)
+KIND_LABELS = {"force_patches": "force patches (the paper's test set)",
+               "rigid_pushes": "rigid-probe pushes (the tracker's)"}
+
+
+def kind_figures(e: np.ndarray, rigid: np.ndarray) -> dict:
+    """Mean, std and max e (mm) and count of each kind's held-out samples; ``e`` (n,) mm,
+    ``rigid`` (n,) bool (:func:`held_out_rigid`). A kind with no sample is left out."""
+    out = {}
+    for kind, mask in (("force_patches", ~rigid), ("rigid_pushes", rigid)):
+        if mask.any():
+            out[kind] = {k: v for k, v in error_summary(e[mask]).items() if k != "worst_index"}
+    return out
 
 
 def inverted_cell_figures(case: Case, pred: np.ndarray, target: np.ndarray) -> dict:
@@ -182,7 +214,10 @@ def format_table1(r: dict) -> str:
             f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes"
             + (f" | {r['inverted_samples']} predictions invert a cell (at most "
                f"{r['inverted_cells_max']}; FE {r['inverted_samples_fe']})"
-               if "inverted_samples" in r else ""))
+               if "inverted_samples" in r else "")
+            + "".join(f" | {KIND_LABELS[k]}: mean e {v['mean_e_mm']:.4f} mm, max e "
+                      f"{v['max_e_mm']:.4f} mm ({v['n_samples']})"
+                      for k, v in r.get("by_kind", {}).items()))
 
 
 def evaluate_network_case(case: Case | str | Path) -> dict:

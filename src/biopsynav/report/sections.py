@@ -171,6 +171,7 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
                      f"{t1['inverted_samples']} of {_num(t1.get('n_samples'))}, at most "
                      f"{t1['inverted_cells_max']} cells ({t1['inverted_samples_fe']})",
                      "not reported"])
+    rows += kind_table1_rows(t1)
     s.blocks.append(GridTable(["", "this case", "the paper"], rows))
     s.blocks += rigid_table1_blocks(cfg) + refined_table1_blocks(case_dir, cfg)
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
@@ -186,13 +187,35 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
     return s
 
 
+def kind_table1_rows(t1: dict) -> list[list[str]]:
+    """Table 1 rows of each kind of held-out sample in a data set of both (``by_kind``, the
+    ``pushes-patches`` recipe): mean / max e and count, the paper's column beside the force
+    patches."""
+    from ..network.evaluate import KIND_LABELS
+
+    p = PAPER_TABLE1
+    paper = {"force_patches": f"{_num(p['mean_e_mm'])} / {_num(p['max_e_mm'])} "
+                              f"({_num(p['n_test'])})"}
+    return [[f"{KIND_LABELS[kind]}: mean / max e (mm) (samples)",
+             f"{_num(v.get('mean_e_mm'))} / {_num(v.get('max_e_mm'))} ({_num(v.get('n_samples'))})",
+             paper.get(kind, "-")]
+            for kind, v in (t1.get("by_kind") or {}).items()]
+
+
 def rigid_table1_blocks(cfg: CaseConfig) -> list:
     """A note, for a case whose samples are all rigid-probe pushes (the ``pushes`` recipe,
     :mod:`biopsynav.recipes`), that its Table 1 measures the tracking network on held-out
-    rigid pushes, not the paper's force patches; none otherwise."""
+    rigid pushes, not the paper's force patches; for one of both kinds (``pushes-patches``),
+    that the table's last rows split them; none for force patches alone."""
+    law = law_words(cfg.material.model, cfg.material.fictitious_stiffness)
+    if 0.0 < cfg.probe.rigid_share < 1.0:
+        return [Note("The held-out samples are of two kinds, drawn as the training's (law "
+                     f"{law}): rigid-probe pushes up to {_num(cfg.probe.max_push_mm)} mm, as "
+                     "the tracker meets them, and the paper's force patches; the table's last "
+                     "rows give each kind's error, the force patches' beside the paper's "
+                     "(docs/pipeline.md, \"Recipes\").")]
     if cfg.probe.rigid_share < 1.0:
         return []
-    law = law_words(cfg.material.model, cfg.material.fictitious_stiffness)
     return [Note("The held-out samples are rigid-probe pushes, as the tracker meets them (up "
                  f"to {_num(cfg.probe.max_push_mm)} mm, law {law}), not the paper's force "
                  "patches: this is the network the tracker uses, against its own FE teacher, "
