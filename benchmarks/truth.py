@@ -39,7 +39,9 @@ in the table); a method that does not answer a push with a reference counts agai
 ``answered``. The reference's figures are kept in ``--reference`` (default
 ``CASE/../<case>-p2.json``) after every lesion and reused when the case's anatomy, material,
 depths and reference mesh are the same: a stopped run resumes there, and a second model of the
-same case is compared without solving the reference again. Within a lesion, the depths solved
+same case is compared without solving the reference again; a file that holds a truth of
+another key is kept and the run refused, naming what differs (``--replace-reference`` solves
+over it). Within a lesion, the depths solved
 so far and the model's state are kept beside it (``<reference>.p2-lesion<index>.partial.npz``,
 removed once every depth of the lesion is answered), so a run stopped at 30 mm continues from
 its 20 mm answer. ``--push-minutes`` bounds each reference push: one still solving after that
@@ -106,8 +108,11 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
                         args.quadrature_degree)}
 
 
-def load_reference(path: Path, key: dict) -> dict:
-    """The stored reference figures by lesion index (str) when ``path`` holds the same key."""
+def load_reference(path: Path, key: dict, replace: bool = False) -> dict:
+    """The stored reference figures by lesion index (str) when ``path`` holds the same key;
+    {} when there is none, or (``replace``) when it holds another one, which the run's
+    answers then replace. Without ``replace`` a file of another key is kept and the run
+    refused (SystemExit naming what differs): a truth is hours of solves."""
     if not path.is_file():
         return {}
     try:
@@ -116,8 +121,13 @@ def load_reference(path: Path, key: dict) -> dict:
         raise SystemExit(f"{path}: not a readable reference file ({exc}); move it away or "
                          "give another --reference") from None
     if stored.get("key") != key:
-        print(f"{path}: another anatomy, material, depth list or reference mesh; solving the "
-              "reference again", flush=True)
+        other = (stored.get("key") or {}) if isinstance(stored.get("key"), dict) else {}
+        differs = ", ".join(k for k, v in key.items() if other.get(k) != v) or "its key"
+        if not replace:
+            raise SystemExit(f"{path}: a truth of another {differs} than asked; kept. Give "
+                             "another --reference for this one, or --replace-reference to "
+                             "solve it over this file")
+        print(f"{path}: another {differs}; solving the reference again over it", flush=True)
         return {}
     return stored.get("lesions", {})
 
@@ -173,7 +183,7 @@ def run(args) -> dict:
               "case's grid mixes tissues of other materials", flush=True)
     key = reference_key(case, e_mpa, nu, args)
     ref_path = args.reference or args.case_dir.resolve().parent / f"{args.case_dir.name}-p2.json"
-    stored = load_reference(ref_path, key)
+    stored = load_reference(ref_path, key, args.replace_reference)
     lesions = chosen_lesions(case, args.lesions, args.lesion_ids)
     placements = {li: place_case_probe(case, li) for li in lesions}
     for li in lesions:
@@ -259,6 +269,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--lesion-ids", default=None,
                    help="ids of the lesions evaluated, e.g. 2,3,7 (instead of --lesions): "
                         "adds chosen lesions to a stored reference")
+    p.add_argument("--replace-reference", action="store_true",
+                   help="solve the reference again over a --reference file that holds a truth "
+                        "of another anatomy, material, depth list, mesh or probe (refused "
+                        "without it)")
     p.add_argument("--depths", type=float, nargs="+", default=[10.0, 20.0, 30.0],
                    help="push depths, mm")
     add_reference_arguments(p, fine_mm=4.0)

@@ -86,3 +86,21 @@ def test_an_unknown_method_is_refused_naming_the_choices(coarse_phantom, truth, 
     # the choices named, not only the wrong value ("net" alone is inside "nett")
     assert "--methods" in err and "'nett'" in err
     assert all(f"'{m}'" in err for m in ("net", "fem", "rigid"))
+
+
+def test_a_stored_truth_of_other_depths_is_kept_and_the_run_refused(coarse_phantom, truth,
+                                                                   tmp_path, monkeypatch):
+    """Asked at other depths than the stored truth holds, truth.py neither solves nor writes
+    over it (hours of solves) unless told to, and says what differs."""
+    monkeypatch.setattr(truth, "tet_pushes", _no_reference_solve)
+    ref = tmp_path / "ref.json"
+    _stored_reference(truth, coarse_phantom, ref, 3.0, [0.0, 0.0, -2.0])
+    before = ref.read_bytes()
+    argv = [str(coarse_phantom.dir), "--lesions", "1", "--depths", "4", "--reference", str(ref),
+            "--methods", "rigid"]
+    with pytest.raises(SystemExit) as exc:
+        truth.main(argv)
+    assert "depths_mm" in str(exc.value) and "--replace-reference" in str(exc.value)
+    assert ref.read_bytes() == before
+    with pytest.raises(AssertionError, match="not reused"):  # told to: it solves over it
+        truth.main([*argv, "--replace-reference"])
