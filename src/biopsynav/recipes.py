@@ -68,22 +68,21 @@ def merged(*layers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
+#: The ``pushes`` recipe's values; ``pushes-patches`` is them with force patches among the pushes
+PUSHES = {"probe": {"rigid_share": 1.0, "calibrate_force": False},
+          "material": {"model": "neo-hookean-split-sri-inner"},
+          "dataset": {"n_train": 400, "n_test": 50},
+          "network": {"iterations": 4000},
+          "refine": {"samples": 0}}
+
 register_recipe(Recipe(
     "pushes", "450 rigid-probe pushes alone teach the tracking network (no force patches, no "
-              "case network)",
-    {"probe": {"rigid_share": 1.0, "calibrate_force": False},
-     "material": {"model": "neo-hookean-split-sri-inner"},
-     "dataset": {"n_train": 400, "n_test": 50},
-     "network": {"iterations": 4000},
-     "refine": {"samples": 0}}))
+              "case network)", PUSHES))
 register_recipe(Recipe(
     "pushes-patches", "about 370 rigid-probe pushes and 310 force patches of one law teach one "
                       "tracking network (the paper's Table 1 on its patches; no case network)",
-    {"probe": {"rigid_share": 0.55, "calibrate_force": True},
-     "material": {"model": "neo-hookean-split-sri-inner"},
-     "dataset": {"n_train": 600, "n_test": 80},
-     "network": {"iterations": 4000},
-     "refine": {"samples": 0}}))
+    merged(PUSHES, {"probe": {"rigid_share": 0.55, "calibrate_force": True},
+                    "dataset": {"n_train": 600, "n_test": 80}})))
 register_recipe(Recipe(
     "chain", "force patches teach a case network (the paper's Table 1), then 1,000 rigid "
              "pushes train it further ([refine]): the configuration's defaults"))
