@@ -40,25 +40,32 @@ def test_the_pushes_recipe_draws_the_chains_refine_pushes():
 
 
 def test_the_pushes_patches_recipe_draws_the_pushes_recipes_pushes_among_force_patches(base_case):
-    """One law for both kinds (the pushes'); its rigid samples are the pushes recipe's samples
-    of the same index, its force patches calibrated per breast; nothing else runs."""
+    """One law for both kinds (the pushes'); its training and held-out rigid pushes are the
+    pushes recipe's, in order; its force patches calibrated per breast; nothing else runs."""
     from biopsynav.case import Case
-    from biopsynav.probe import is_rigid_sample, push_for_sample
+    from biopsynav.probe import is_rigid_sample, push_for_sample, rigid_count
 
     mixed = config_from_dict(recipe_overrides("pushes-patches"), "pushes-patches")
     pushes = config_from_dict(recipe_overrides("pushes"), "pushes")
     assert 0.0 < mixed.probe.rigid_share < 1.0 and mixed.probe.calibrate_force
     assert mixed.material == pushes.material and mixed.refine.samples == 0
     assert mixed.network == pushes.network
+    n_train, total = mixed.dataset.n_train, mixed.dataset.n_train + mixed.dataset.n_test
+    assert rigid_count(mixed.probe.rigid_share, n_train) == pushes.dataset.n_train
+    assert rigid_count(mixed.probe.rigid_share, total) == \
+        pushes.dataset.n_train + pushes.dataset.n_test
     anatomy, seed = Case.load(base_case).anatomy, mixed.dataset.seed
-    kinds = [is_rigid_sample(mixed.probe, seed, i) for i in range(20)]
-    assert 0 < sum(kinds) < 20
-    for index in (i for i, rigid in enumerate(kinds) if rigid):
+    rigid = [i for i in range(n_train - 8, n_train + 8) if is_rigid_sample(mixed.probe, i)]
+    numbers = [rigid_count(mixed.probe.rigid_share, i) for i in rigid]
+    assert numbers == list(range(numbers[0], numbers[0] + len(rigid)))
+    for index, number in zip(rigid, numbers, strict=True):  # around the train/held-out boundary
         a = push_for_sample(anatomy, mixed.probe, seed, index, 0)
-        b = push_for_sample(anatomy, pushes.probe, seed, index, 0)
+        b = push_for_sample(anatomy, pushes.probe, seed, number, 0)
         assert a.vertex == b.vertex and a.push_mm == b.push_mm > 0.0
+        assert (index < n_train) == (number < pushes.dataset.n_train)
         np.testing.assert_array_equal(a.direction, b.direction)
-    patch = push_for_sample(anatomy, mixed.probe, seed, kinds.index(False), 0)
+    patch = next(i for i in range(n_train - 8, n_train) if not is_rigid_sample(mixed.probe, i))
+    patch = push_for_sample(anatomy, mixed.probe, seed, patch, 0)
     assert patch.push_mm == 0.0 and patch.force_n > 0.0
 
 

@@ -333,7 +333,9 @@ class ProbeSection:
                                   "max_push_mm] (less by max_chest_compression) along a "
                                   "direction tilted as the force is, held "
                                   "by [tracker] fem_contact constraints (docs/dataset.md). 0: "
-                                  "the paper's force patches only; 1: rigid pushes only.",
+                                  "the paper's force patches only; 1: rigid pushes only; "
+                                  "between, the kinds interleave evenly (any first n samples "
+                                  "hold floor(n rigid_share) rigid pushes).",
                              lo=0.0, hi=1.0)
     lesion_share: float = opt(0.0, "Share of the training samples centred near a lesion "
                                    "instead of anywhere on the skin: a lesion drawn uniformly, "

@@ -29,9 +29,11 @@ distribution cut at that place's depth limit (a uniform draw below a bound that 
 cut is, given that it falls below the cut, uniform below it).
 
 With ``[probe] rigid_share`` > 0 that share of the samples is a rigid-probe push instead
-(docs/dataset.md): contact points within ``contact_tolerance_mm`` of the face plane (the
-tracker's rest contact), avoiding skin in cells anchored to the chest wall; the direction
-tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
+(docs/dataset.md), interleaved at fixed places (:func:`is_rigid_draw`: any first ``n`` samples
+hold ``floor(n * rigid_share)`` of them), so that a data set's training and held-out parts
+hold known numbers of each kind. Contact points within ``contact_tolerance_mm`` of the face
+plane (the tracker's rest contact), avoiding skin in cells anchored to the chest wall; the
+direction tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
 ``[0, max_push_mm]`` along it (prescribed, no force), shorter where that would press the
 tissue in front of the chest wall by more than ``max_chest_compression``
 (:func:`deepest_rigid_push`).
@@ -42,8 +44,12 @@ over the lesion, and pushes there move the lesions most, which uniform centres o
 skin rarely do.
 
 Random numbers: one ``numpy.random.Generator`` per draw, seeded by
-``SeedSequence([seed, sample_index, attempt])``, so a sample never depends on which worker
-made it, in which order, or how many draws other samples needed.
+``SeedSequence([seed, draw_index, attempt])``, so a sample never depends on which worker
+made it, in which order, or how many draws other samples needed. The draw index is the
+sample's index in a data set of one kind; in a data set of both (:func:`draw_index`) a rigid
+push's is its number among the rigid pushes, so that its ``k``-th rigid push is the ``k``-th
+push of a data set of rigid pushes alone (the same seed), and a force patch's its number
+among the force patches plus :data:`PATCH_DRAWS` (draws of their own).
 """
 
 from __future__ import annotations
@@ -270,26 +276,43 @@ def deepest_rigid_push(anatomy: Anatomy, probe: ProbeSection, contact: np.ndarra
     return min(float(probe.max_push_mm), allowed / towards)
 
 
-#: The stream that decides a sample's kind (``SeedSequence([seed, index, 0, RIGID_STREAM])``):
-#: apart from the draws themselves, so the force patches of ``rigid_share = 0`` are unchanged.
-RIGID_STREAM = 7
+def is_rigid_sample(probe: ProbeSection, index: int) -> bool:
+    """Whether sample ``index`` is a rigid-probe push (``[probe] rigid_share``): fixed by its
+    place, whatever its attempt, so failed rigid draws are redrawn as rigid ones."""
+    return is_rigid_draw(probe.rigid_share, index)
 
 
-def is_rigid_sample(probe: ProbeSection, seed: int, index: int) -> bool:
-    """Whether sample ``index`` is a rigid-probe push (``[probe] rigid_share``): decided once
-    per sample, whatever its attempt, so failed rigid draws are redrawn as rigid ones."""
-    return is_rigid_draw(probe.rigid_share, seed, index)
-
-
-def is_rigid_draw(rigid_share: float, seed: int, index: int) -> bool:
-    """Whether sample ``index`` of a data set drawn with ``seed`` and ``rigid_share`` (the
-    share of rigid-probe pushes, 0-1) is a rigid push (:func:`is_rigid_sample`)."""
+def rigid_count(rigid_share: float, n: int) -> int:
+    """How many of a data set's first ``n`` samples are rigid pushes: ``floor(n *
+    rigid_share)`` (``rigid_share``: the share of rigid pushes, 0-1)."""
     if rigid_share <= 0.0:
-        return False
+        return 0
     if rigid_share >= 1.0:
-        return True
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 0, RIGID_STREAM]))
-    return bool(rng.uniform() < rigid_share)
+        return int(n)
+    return int(np.floor(int(n) * rigid_share + 1e-9))  # 0.55 * 20 is 11, not 10.999...
+
+
+def is_rigid_draw(rigid_share: float, index: int) -> bool:
+    """Whether sample ``index`` of a data set with ``rigid_share`` (0-1) is a rigid push: the
+    samples where :func:`rigid_count` steps up, spread evenly over the data set."""
+    return rigid_count(rigid_share, index + 1) > rigid_count(rigid_share, index)
+
+
+#: Where a force patch's draw indices start in a data set of both kinds (:func:`draw_index`):
+#: far from the rigid pushes', whose random streams they would otherwise share.
+PATCH_DRAWS = 2 ** 36
+
+
+def draw_index(rigid_share: float, index: int) -> int:
+    """The index that seeds sample ``index``'s random streams: ``index`` itself in a data set
+    of one kind; in one of both, a rigid push's number among the rigid pushes, a force
+    patch's number among the force patches plus :data:`PATCH_DRAWS`."""
+    if rigid_share <= 0.0 or rigid_share >= 1.0:
+        return int(index)
+    rigid_before = rigid_count(rigid_share, index)
+    if is_rigid_draw(rigid_share, index):
+        return rigid_before
+    return PATCH_DRAWS + int(index) - rigid_before
 
 
 #: The stream that decides whether a sample is centred near a lesion, and which
@@ -308,7 +331,7 @@ def check_lesion_share(anatomy: Anatomy, probe: ProbeSection) -> None:
 
 def lesion_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int
                       ) -> int | None:
-    """The lesion (index into ``anatomy.lesions``) near which sample ``index`` is centred
+    """The lesion (index into ``anatomy.lesions``) near which draw ``index`` is centred
     (``[probe] lesion_share``, each lesion alike), None when it is centred anywhere; decided
     once per sample, whatever its attempt."""
     if probe.lesion_share <= 0.0 or not anatomy.lesions:
@@ -332,15 +355,23 @@ def centres_near_lesion(anatomy: Anatomy, centers: np.ndarray, lesion: int,
 
 def push_for_sample(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int,
                     attempt: int, centers: np.ndarray | None = None,
-                    rigid: bool | None = None, pinned: np.ndarray | None = None,
-                    training: bool = False) -> ProbePush:
-    """The push of sample ``index``, draw ``attempt`` (deterministic); ``rigid``: its kind
-    (None: :func:`is_rigid_sample`); ``pinned``: see :func:`draw_push`; ``training``: a
-    training sample, whose force follows ``[probe] train_force_exponent`` and
-    ``train_force_scale``. A sample :func:`lesion_for_sample` puts near a lesion is centred
-    among :func:`centres_near_lesion`, or anywhere when no patch there can be drawn."""
-    if rigid is None:
-        rigid = is_rigid_sample(probe, seed, index)
+                    pinned: np.ndarray | None = None, training: bool = False) -> ProbePush:
+    """The push of data-set sample ``index``, draw ``attempt`` (deterministic): its kind from
+    :func:`is_rigid_sample`, its random streams from :func:`draw_index`; the rest as
+    :func:`push_for_draw`."""
+    return push_for_draw(anatomy, probe, seed, draw_index(probe.rigid_share, index), attempt,
+                         centers, is_rigid_sample(probe, index), pinned, training)
+
+
+def push_for_draw(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int, attempt: int,
+                  centers: np.ndarray | None = None, rigid: bool = False,
+                  pinned: np.ndarray | None = None, training: bool = False) -> ProbePush:
+    """The push of draw index ``index`` (:func:`draw_index`), draw ``attempt``
+    (deterministic); ``rigid``: a rigid push, else a force patch; ``pinned``: see
+    :func:`draw_push`; ``training``: a training sample, whose force follows ``[probe]
+    train_force_exponent`` and ``train_force_scale``. A draw :func:`lesion_for_sample` puts
+    near a lesion is centred among :func:`centres_near_lesion`, or anywhere when no patch
+    there can be drawn."""
     if centers is None:
         centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
     exponent, scale = ((probe.train_force_exponent, probe.train_force_scale) if training
@@ -367,7 +398,8 @@ def weaker_push(push: ProbePush, probe: ProbeSection, seed: int, index: int, red
     """Redraw ``redraw`` (1, 2, ...) of sample ``index``'s too-deep training ``push``: the same
     place and direction, its force (N) times ``v^train_force_exponent``, ``v`` uniform in
     [0, 1] (its ``u`` times ``v``; module docstring)."""
-    stream = [int(seed), int(index), int(push.attempt), WEAKER_FORCE_STREAM, int(redraw)]
+    draw = draw_index(probe.rigid_share, index)
+    stream = [int(seed), draw, int(push.attempt), WEAKER_FORCE_STREAM, int(redraw)]
     v = np.random.default_rng(np.random.SeedSequence(stream)).uniform(0.0, 1.0)
     return replace(push, force_n=push.force_n * v ** probe.train_force_exponent)
 
@@ -510,6 +542,7 @@ def contact_input(contact_matrix: sp.csr_matrix, contact_u: np.ndarray, kind: st
 __all__ = ["CONTACT_INPUTS", "ContactInputOperator", "ELASTIC_REGULARISATION",
            "MIN_NORMAL_COSINE", "ProbePush", "centres_near_lesion", "check_lesion_share",
            "contact_input", "contact_input_operator", "draw_push", "eligible_centers",
-           "is_rigid_draw", "is_rigid_sample", "lesion_for_sample", "nodal_forces", "pinned_skin",
-           "probe_frame", "probe_patch", "push_for_sample", "sample_rng", "skin_under_face",
+           "PATCH_DRAWS", "draw_index", "is_rigid_draw", "is_rigid_sample", "lesion_for_sample",
+           "nodal_forces", "pinned_skin", "probe_frame", "probe_patch", "push_for_draw",
+           "push_for_sample", "rigid_count", "sample_rng", "skin_under_face",
            "tangent_basis", "tilted_direction"]

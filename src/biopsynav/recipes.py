@@ -12,13 +12,13 @@ there like any setting). Registered in :data:`RECIPES` (:func:`register_recipe`)
   teacher on those held-out pushes, not the paper's force patches. Measured against the
   independent P2 truth as near as the chain at 10 / 20 / 30 mm pushes, in about a third of
   the time (docs/pipeline.md, "Recipes");
-* ``pushes-patches``: about 370 rigid-probe pushes and 310 force patches, solved by one law (the
-  pushes'), teach one tracking network from scratch (``[probe] rigid_share`` 0.55, the force
-  calibrated per breast, no case network, ``[refine] samples = 0``); 600 trained on for
-  4,000 iterations at batch 16, 80 held out, Table 1 reported over both and for each kind
-  (its force patches are the paper's protocol). It meets the paper's Table 1 on the
-  phantom in a run as short as ``pushes``', but lies further from the truth at 30 mm on UC
-  Davis (docs/pipeline.md, "Recipes");
+* ``pushes-patches``: the ``pushes`` recipe's 450 rigid-probe pushes, the very same (same
+  draws, 400 trained on, 50 held out), and 270 force patches among them (240 trained on, 30
+  held out), solved by one law (the pushes'), teach one tracking network from scratch
+  (``[probe] rigid_share`` 0.625, the force calibrated per breast, no case network,
+  ``[refine] samples = 0``; 4,000 iterations at batch 16). Table 1 is reported over both
+  and for each kind (its force patches are the paper's protocol) (docs/pipeline.md,
+  "Recipes");
 * ``chain``: the configuration's defaults, the paper's force patches teaching a case network
   (the paper's Table 1), then ``[refine]``'s 1,000 rigid pushes training it further.
 """
@@ -79,10 +79,11 @@ register_recipe(Recipe(
     "pushes", "450 rigid-probe pushes alone teach the tracking network (no force patches, no "
               "case network)", PUSHES))
 register_recipe(Recipe(
-    "pushes-patches", "about 370 rigid-probe pushes and 310 force patches of one law teach one "
-                      "tracking network (the paper's Table 1 on its patches; no case network)",
-    merged(PUSHES, {"probe": {"rigid_share": 0.55, "calibrate_force": True},
-                    "dataset": {"n_train": 600, "n_test": 80}})))
+    "pushes-patches", "the pushes recipe's 450 rigid-probe pushes and 270 force patches of "
+                      "their law teach one tracking network (the paper's Table 1 on its "
+                      "patches; no case network)",
+    merged(PUSHES, {"probe": {"rigid_share": 0.625, "calibrate_force": True},
+                    "dataset": {"n_train": 640, "n_test": 80}})))
 register_recipe(Recipe(
     "chain", "force patches teach a case network (the paper's Table 1), then 1,000 rigid "
              "pushes train it further ([refine]): the configuration's defaults"))

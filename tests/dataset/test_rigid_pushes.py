@@ -53,8 +53,7 @@ def mixed(base_case, tmp_path_factory):
 
 
 def rigid_indices(case: Case) -> list[int]:
-    probe, seed = case.cfg.probe, case.cfg.dataset.seed
-    return [i for i in range(N_TRAIN + N_TEST) if is_rigid_sample(probe, seed, i)]
+    return [i for i in range(N_TRAIN + N_TEST) if is_rigid_sample(case.cfg.probe, i)]
 
 
 def test_a_rigid_sample_moves_its_contact_with_the_face(mixed):
@@ -101,21 +100,30 @@ def test_a_rigid_sample_moves_its_contact_with_the_face(mixed):
         np.testing.assert_allclose(inputs[:, :3], expected[:, :3], atol=1e-4)
 
 
-def test_the_kind_is_fixed_per_sample_and_a_share_of_zero_is_the_old_protocol(base_case):
+def test_the_kinds_interleave_at_fixed_places_and_one_kind_keeps_its_protocol(base_case):
+    """Any first n samples hold floor(n share) rigid pushes; a mixed set's k-th rigid push is
+    push k of rigid pushes alone, its force patches draws of their own; a share of 0 or 1
+    fingerprints as before mixed sets existed."""
     case = Case.load(base_case)
     probe = case.cfg.probe
     centers = eligible_centers(case.anatomy, probe.min_chest_distance_mm)
-    before = [push_for_sample(case.anatomy, probe, 0, i, 0, centers) for i in range(6)]
+    patches = [push_for_sample(case.anatomy, probe, 0, i, 0, centers) for i in range(6)]
     fp_before = protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST))
-    assert not any(p.rigid for p in before)
-    probe.rigid_share = 0.5
-    kinds = [is_rigid_sample(probe, 0, i) for i in range(200)]
-    assert 60 < sum(kinds) < 140
-    assert all(is_rigid_sample(probe, 0, i) == kinds[i] for i in range(200))
-    for i in range(6):  # a force patch of a mixed set is the force patch of before
-        push = push_for_sample(case.anatomy, probe, 0, i, 0, centers)
-        if not push.rigid:
-            assert push.vertex == before[i].vertex and push.force_n == before[i].force_n
+    assert not any(p.rigid for p in patches)
+    probe.rigid_share = 1.0
+    pushes = [push_for_sample(case.anatomy, probe, 0, i, 0, centers) for i in range(6)]
+    probe.rigid_share = 0.4
+    kinds = [is_rigid_sample(probe, i) for i in range(200)]
+    assert all(sum(kinds[:n]) == int(0.4 * n + 1e-9) for n in range(201))
+    mixed = [push_for_sample(case.anatomy, probe, 0, i, 0, centers) for i in range(15)]
+    rigid = [p for p in mixed if p.rigid]
+    assert [p.rigid for p in mixed] == kinds[:15] and len(rigid) == 6
+    for a, b in zip(rigid, pushes, strict=True):
+        assert a.vertex == b.vertex and a.push_mm == b.push_mm
+    own = [p for p in mixed if not p.rigid][:6]  # not the force patches of share 0
+    same = [a.vertex == b.vertex and a.force_n == b.force_n
+            for a, b in zip(own, patches, strict=True)]
+    assert sum(same) < 3
     assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) != fp_before
     probe.rigid_share = 0.0
     assert protocol_fingerprint(protocol_dict(case.cfg, N_TRAIN, N_TEST)) == fp_before

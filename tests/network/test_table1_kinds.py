@@ -26,7 +26,7 @@ def dataset_with(protocol: dict, test_idx: range) -> Dataset:
 def test_held_out_samples_are_classed_as_generation_drew_them():
     protocol = {"probe": {"rigid_share": 0.55}, "dataset": {"seed": 3}}
     rigid = held_out_rigid(dataset_with(protocol, range(600, 680)))
-    drawn = [is_rigid_sample(ProbeSection(rigid_share=0.55), 3, i) for i in range(600, 680)]
+    drawn = [is_rigid_sample(ProbeSection(rigid_share=0.55), i) for i in range(600, 680)]
     assert rigid.tolist() == drawn
     assert 0 < rigid.sum() < rigid.size  # both kinds among 80
 

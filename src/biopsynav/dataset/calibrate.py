@@ -223,12 +223,12 @@ def push_contacts(skin: Any, pushes: list) -> list:
 
 def calibration_pushes(case: Any) -> list:
     """The calibration's probe pushes (their force magnitudes unused)."""
-    from ..probe import eligible_centers, push_for_sample
+    from ..probe import eligible_centers, push_for_draw
 
     cfg = case.cfg
     centers = eligible_centers(case.anatomy, cfg.probe.min_chest_distance_mm)
-    return [push_for_sample(case.anatomy, cfg.probe, cfg.dataset.seed, CALIBRATION_INDEX + i,
-                            0, centers, rigid=False) for i in range(cfg.probe.calibration_pushes)]
+    return [push_for_draw(case.anatomy, cfg.probe, cfg.dataset.seed, CALIBRATION_INDEX + i,
+                          0, centers, rigid=False) for i in range(cfg.probe.calibration_pushes)]
 
 
 def quantile_depth(depths: np.ndarray) -> float:

@@ -72,7 +72,7 @@ def push_is_role_free(cfg: CaseConfig, index: int) -> bool:
     """Whether sample ``index``'s push is the same as a training and as a held-out sample: a
     rigid push, or a force patch under the held-out force law."""
     probe = cfg.probe
-    if is_rigid_sample(probe, cfg.dataset.seed, index):
+    if is_rigid_sample(probe, index):
         return True
     return (probe.train_force_exponent == 1.0 and probe.train_force_scale == 1.0
             and probe.too_deep_redraw == "elsewhere")

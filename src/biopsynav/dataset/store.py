@@ -118,7 +118,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
     push is rigid; without ``lesion_reach_mm`` when no push is centred near a lesion; never
     ``calibration_pushes``: the calibration it found is recorded in the
-    data set), and the seed, sizes, Newton budget and contact input of [dataset].
+    data set), and the seed, sizes, Newton budget and contact input of [dataset] (with
+    :data:`MIXED_DRAWS` for a data set of both kinds).
     """
     solver = cfg.section_dict("solver")
     for key in ("backend", "threads"):
@@ -148,7 +149,18 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
                         "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,
                         "contact_input": cfg.dataset.contact_input,
-                        **teacher_protocol(cfg), **checks}}
+                        **mixed_draws(cfg), **teacher_protocol(cfg), **checks}}
+
+
+#: How a data set of both kinds places and draws them (:func:`biopsynav.probe.draw_index`);
+#: such data sets made before it (kinds by chance, streams by sample index) have no such key.
+MIXED_DRAWS = "interleaved-numbered-by-kind"
+
+
+def mixed_draws(cfg: CaseConfig) -> dict:
+    """The protocol's ``mixed_draws`` (:data:`MIXED_DRAWS`) for a data set of both kinds
+    (``[probe] rigid_share`` between 0 and 1), nothing for one of one kind."""
+    return {"mixed_draws": MIXED_DRAWS} if 0.0 < cfg.probe.rigid_share < 1.0 else {}
 
 
 #: How a refined teacher's solutions reach the case grid: a least-squares fit that holds the

@@ -145,12 +145,10 @@ def held_out_rigid(data: Dataset) -> np.ndarray | None:
     from ..dataset.store import recorded_probe_value
     from ..probe import is_rigid_draw
 
-    protocol = data.attrs.get("protocol") or {}
-    share = float(recorded_probe_value(protocol, "rigid_share"))
-    seed = (protocol.get("dataset") or {}).get("seed")
-    if not 0.0 < share < 1.0 or seed is None:
+    share = float(recorded_probe_value(data.attrs.get("protocol") or {}, "rigid_share"))
+    if not 0.0 < share < 1.0:
         return None
-    return np.array([is_rigid_draw(share, int(seed), int(i)) for i in data.test_idx], bool)
+    return np.array([is_rigid_draw(share, int(i)) for i in data.test_idx], bool)
 
 
 #: Table 1's kinds of held-out sample in a data set of both (``by_kind`` in table1.json)
