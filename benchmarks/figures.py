@@ -257,8 +257,9 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("table1-patches-ucdavis-pushes", table1_cell,
           "python benchmarks/table1_patches.py CASE --result-name table1-patches-ucdavis-pushes"),
      "-", "-"),
-    ("`demo --recipe pushes-patches` from nothing, phantom (about 370 rigid pushes and 310 force "
-     "patches of one law, one network; Intel Xeon with AMX-BF16): whole; each stage; Table 1 "
+    ("`demo --recipe pushes-patches` from nothing, phantom (the `pushes` recipe's 450 rigid "
+     "pushes and 270 force patches of their law, one network; Intel Xeon with AMX-BF16): "
+     "whole; each stage; Table 1 "
      "on its held-out force patches and rigid pushes; the TRE against the P2 truth, 10 / 20 "
      "/ 30 mm", mixed_cell("phantom", mixed_summary), "<= 15 min", "-"),
     ("the same network: the paper's Table 1, mean / max e on 200 force patches (the paper's "
