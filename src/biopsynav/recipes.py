@@ -17,7 +17,9 @@ there like any setting). Registered in :data:`RECIPES` (:func:`register_recipe`)
   held out), solved by one law (the pushes'), teach one tracking network from scratch
   (``[probe] rigid_share`` 0.625, the force calibrated per breast, no case network,
   ``[refine] samples = 0``; 4,000 iterations at batch 16). Table 1 is reported over both
-  and for each kind (its force patches are the paper's protocol) (docs/pipeline.md,
+  and for each kind (its force patches are the paper's protocol). Its network errs less
+  than half as much as ``pushes``' on the paper's force patches, without reaching the
+  paper's Table 1, and lies further from the truth at 30 mm on UC Davis (docs/pipeline.md,
   "Recipes");
 * ``chain``: the configuration's defaults, the paper's force patches teaching a case network
   (the paper's Table 1), then ``[refine]``'s 1,000 rigid pushes training it further.
@@ -80,8 +82,8 @@ register_recipe(Recipe(
               "case network)", PUSHES))
 register_recipe(Recipe(
     "pushes-patches", "the pushes recipe's 450 rigid-probe pushes and 270 force patches of "
-                      "their law teach one tracking network (the paper's Table 1 on its "
-                      "patches; no case network)",
+                      "their law teach one tracking network (Table 1 also on its patches, "
+                      "the paper's protocol; no case network)",
     merged(PUSHES, {"probe": {"rigid_share": 0.625, "calibrate_force": True},
                     "dataset": {"n_train": 640, "n_test": 80}})))
 register_recipe(Recipe(

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from biopsynav.config import ProbeSection
 from biopsynav.network.data import Dataset
 from biopsynav.network.evaluate import held_out_rigid, kind_figures
 from biopsynav.probe import is_rigid_sample
@@ -24,11 +23,23 @@ def dataset_with(protocol: dict, test_idx: range) -> Dataset:
 
 
 def test_held_out_samples_are_classed_as_generation_drew_them():
+    from biopsynav.config import config_from_dict
+    from biopsynav.dataset.store import protocol_dict
+    from biopsynav.recipes import recipe_overrides
+
+    cfg = config_from_dict(recipe_overrides("pushes-patches"), "pushes-patches")
+    protocol = protocol_dict(cfg, cfg.dataset.n_train, cfg.dataset.n_test)
+    held_out = range(cfg.dataset.n_train, cfg.dataset.n_train + cfg.dataset.n_test)
+    rigid = held_out_rigid(dataset_with(protocol, held_out))
+    assert rigid.tolist() == [is_rigid_sample(cfg.probe, i) for i in held_out]
+    assert int(rigid.sum()) == 50 and rigid.size == 80  # the pushes recipe's 50 held out
+
+
+def test_a_mixed_set_of_kinds_drawn_by_chance_is_not_split():
+    """Data sets of both kinds made before the kinds were placed (no ``mixed_draws``) are
+    reported over both together, never split by the wrong rule."""
     protocol = {"probe": {"rigid_share": 0.55}, "dataset": {"seed": 3}}
-    rigid = held_out_rigid(dataset_with(protocol, range(600, 680)))
-    drawn = [is_rigid_sample(ProbeSection(rigid_share=0.55), i) for i in range(600, 680)]
-    assert rigid.tolist() == drawn
-    assert 0 < rigid.sum() < rigid.size  # both kinds among 80
+    assert held_out_rigid(dataset_with(protocol, range(600, 680))) is None
 
 
 def test_a_data_set_of_one_kind_has_no_split():

@@ -141,12 +141,15 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
 
 def held_out_rigid(data: Dataset) -> np.ndarray | None:
     """Which held-out samples of a data set of both kinds (``[probe] rigid_share`` between 0
-    and 1) are rigid-probe pushes, (n_test,) bool; None for a data set of one kind."""
+    and 1) are rigid-probe pushes, (n_test,) bool; None for a data set of one kind, and for
+    one of both made before the kinds were placed (no ``mixed_draws`` in its protocol: its
+    kinds were drawn by chance, and Table 1 is then reported over both together)."""
     from ..dataset.store import recorded_probe_value
     from ..probe import is_rigid_draw
 
-    share = float(recorded_probe_value(data.attrs.get("protocol") or {}, "rigid_share"))
-    if not 0.0 < share < 1.0:
+    protocol = data.attrs.get("protocol") or {}
+    share = float(recorded_probe_value(protocol, "rigid_share"))
+    if not 0.0 < share < 1.0 or "mixed_draws" not in (protocol.get("dataset") or {}):
         return None
     return np.array([is_rigid_draw(share, int(i)) for i in data.test_idx], bool)
 
