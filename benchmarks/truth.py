@@ -121,7 +121,7 @@ def load_reference(path: Path, key: dict, replace: bool = False) -> dict:
         raise SystemExit(f"{path}: not a readable reference file ({exc}); move it away or "
                          "give another --reference") from None
     if stored.get("key") != key:
-        other = (stored.get("key") or {}) if isinstance(stored.get("key"), dict) else {}
+        other = stored.get("key") if isinstance(stored.get("key"), dict) else {}
         differs = ", ".join(k for k, v in key.items() if other.get(k) != v) or "its key"
         if not replace:
             raise SystemExit(f"{path}: a truth of another {differs} than asked; kept. Give "

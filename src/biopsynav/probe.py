@@ -309,10 +309,10 @@ def draw_index(rigid_share: float, index: int) -> int:
     patch's number among the force patches plus :data:`PATCH_DRAWS`."""
     if rigid_share <= 0.0 or rigid_share >= 1.0:
         return int(index)
-    rigid_before = rigid_count(rigid_share, index)
-    if is_rigid_draw(rigid_share, index):
-        return rigid_before
-    return PATCH_DRAWS + int(index) - rigid_before
+    before = rigid_count(rigid_share, index)
+    if rigid_count(rigid_share, index + 1) > before:  # a rigid push (is_rigid_draw)
+        return before
+    return PATCH_DRAWS + int(index) - before
 
 
 #: The stream that decides whether a sample is centred near a lesion, and which

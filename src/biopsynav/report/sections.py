@@ -173,7 +173,7 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
                      "not reported"])
     rows += kind_table1_rows(t1)
     s.blocks.append(GridTable(["", "this case", "the paper"], rows))
-    s.blocks += rigid_table1_blocks(cfg) + refined_table1_blocks(case_dir, cfg)
+    s.blocks += rigid_table1_blocks(cfg, t1) + refined_table1_blocks(case_dir, cfg)
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
                                        "samples."),
                ("largest_deformation.png", "Figure 4(a): prediction (network) against FE on "
@@ -202,13 +202,14 @@ def kind_table1_rows(t1: dict) -> list[list[str]]:
             for kind, v in (t1.get("by_kind") or {}).items()]
 
 
-def rigid_table1_blocks(cfg: CaseConfig) -> list:
+def rigid_table1_blocks(cfg: CaseConfig, t1: dict) -> list:
     """A note, for a case whose samples are all rigid-probe pushes (the ``pushes`` recipe,
-    :mod:`biopsynav.recipes`), that its Table 1 measures the tracking network on held-out
-    rigid pushes, not the paper's force patches; for one of both kinds (``pushes-patches``),
-    that the table's last rows split them; none for force patches alone."""
+    :mod:`biopsynav.recipes`), that its Table 1 (``t1``, table1.json) measures the tracking
+    network on held-out rigid pushes, not the paper's force patches; for one of both kinds
+    (``pushes-patches``) whose Table 1 splits them (``by_kind``), that the table's last rows
+    do; none otherwise."""
     law = law_words(cfg.material.model, cfg.material.fictitious_stiffness)
-    if 0.0 < cfg.probe.rigid_share < 1.0:
+    if t1.get("by_kind"):
         return [Note("The held-out samples are of two kinds, drawn as the training's (law "
                      f"{law}): rigid-probe pushes up to {_num(cfg.probe.max_push_mm)} mm, as "
                      "the tracker meets them, and the paper's force patches; the table's last "
