@@ -1,24 +1,29 @@
 """Fit each lesion's 95 % error bound on truth comparisons and check it on a case left out.
 
-    python benchmarks/error_bound.py [--fit FILE ...] [--check FILE ...] [--result-name NAME]
+    python benchmarks/error_bound.py [--fit FILE ...] [--check FILE ...] [--weight 0.5]
+                                     [--result-name NAME]
 
-The bound (``biopsynav.tracker.bound``) is ``c + |d| (a + b p)`` mm: ``d`` the lesion's
-predicted displacement from rest (mm), ``p`` the probe's depth (mm; the mean displacement of
-the contact points, as the tracker and Table 2 measure it). A lesion that moves further errs
-further, and the share of its motion that is missed grows with the push (the teacher's contact
-error, docs/fem.md "Limits"). ``c`` (mm), ``a`` and ``b`` minimise the 95 % pinball loss of
-the tracking network's TRE over the rows of the ``--fit`` files (``benchmarks/truth.py
---out`` comparisons of the default pipeline against the P2 truth; by default UC Davis, two
-training seeds). The ``--check`` files (by default the phantom), which take no part in the
-fit, give the coverage (share of TREs within their bound; asked: 90-97 %) and, per depth, the
-bound's mean over the mean TRE (asked: at most 3); the same is then done the other way round.
-The rows carry the true displacement, not the network's; the network's |d| is within its TRE
-of it, so both the fit and the check take the least it can be, ``max(|d_true| - TRE, 0)``.
+The bound (``biopsynav.tracker.bound``) is ``c + |d| (a + b p + k r)`` mm: ``d`` the lesion's
+displacement from rest as the network predicts it (mm), ``p`` the probe's depth (mm), ``r``
+the lesion's relative miss against its own FE teacher in the model's lesion self-check
+(``biopsynav.evaluate.lesion_check``: pushes of 15 / 25 / 35 mm, none at the truth's depths),
+``k`` the check's weight (``--weight``). Given ``k``, ``a`` and ``b`` (both >= 0) are those of
+a grid whose bound, with ``c`` the 95 % quantile of what is left of the TREs of the ``--fit``
+rows, is the least on average: the tightest bound that holds 95 % of the fitted TREs. The same
+fit with ``k = 0`` gives the coefficients of a model without a current check.
 
-Each ``--check`` file's own coverage is printed and kept too (one network each: a check over
-several networks of other recipes or seeds). Writes ``benchmarks/results/error-bound.json``
-(or ``NAME.json``); the last line reads ``RESULT c=... a=... b=... coverage=...
-worst_ratio=...``.
+The rows are ``benchmarks/truth.py CASE --lesions 0 --methods net --reference TRUTH --out
+FILE`` comparisons of tracking networks with the stored P2 truth: every lesion at 10 / 20 /
+30 mm, with the network's lesion displacement and self-check (``truth.py`` makes the check
+where the model has none). By default the fit is UC Davis one material and the check the
+phantom (``bound-rows-*.json`` under ``benchmarks/results/``; which networks, in each file's
+``note``), so the check is on a breast that took no part in the fit; the same is then done
+the other way round, and for each weight of a scan, so that the weight's choice shows. The
+check gives the coverage (share of TREs within their bound; asked: 90-97 %) and, per depth,
+the bound's mean over the mean TRE (asked: at most 3).
+
+Writes ``benchmarks/results/error-bound.json`` (or ``NAME.json``); the last line reads
+``RESULT c=... a=... b=... weight=... coverage=... worst_ratio=... unchecked_coverage=...``.
 """
 
 from __future__ import annotations
@@ -29,50 +34,61 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import minimize
 
 from resultfile import write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 QUANTILE = 0.95
+A_GRID = np.linspace(0.0, 0.1, 41)  # a, per |d|
+B_GRID = np.linspace(0.0, 0.006, 31)  # b, per |d| and mm of push
+WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # the scan of the check's weight k
+FIT_FILES = ["bound-rows-ucdavis-homogeneous-pushes.json",
+             "bound-rows-ucdavis-homogeneous-pushes-patches.json",
+             "bound-rows-ucdavis-homogeneous-pushes-patches-seed1.json",
+             "bound-rows-ucdavis-homogeneous-mixed055.json"]
+CHECK_FILES = ["bound-rows-phantom-pushes.json", "bound-rows-phantom-pushes-patches.json",
+               "bound-rows-phantom-pushes-patches-seed1.json",
+               "bound-rows-phantom-pushes-patches-it8000.json",
+               "bound-rows-phantom-mixed055.json", "bound-rows-phantom-pushes-patches-055.json"]
 
 
 def rows_of(paths: list[Path]) -> np.ndarray:
-    """(n, 3): reference displacement |d| (mm), probe depth (mm), network TRE (mm), from
-    ``truth.py --out`` files or result files holding their rows (``pushes_only.py``)."""
+    """(n, 4): the network's lesion displacement |d| (mm), probe depth (mm), TRE (mm) and the
+    lesion's relative miss, from ``truth.py --out`` files; SystemExit naming a file whose
+    rows lack the self-check (made before it)."""
     out = []
     for path in paths:
         data = json.loads(path.read_text())
         for r in data["rows"] if "rows" in data else data["figures"]["rows"]:
-            if r["status"].get("net") == "ok":
-                out.append((r["reference_mm"], r["depth_mm"], r["tre_mm"]["net"]))
-    return np.array(out)
+            if r.get("status", {}).get("net") != "ok":
+                continue
+            if "relative_miss" not in r:
+                raise SystemExit(f"{path}: rows without the lesion self-check; make them again "
+                                 "with benchmarks/truth.py --methods net --out")
+            out.append((r["moved_mm"]["net"], r["depth_mm"], r["tre_mm"]["net"],
+                        r["relative_miss"]))
+    return np.array(out, dtype=np.float64).reshape(-1, 4)
 
 
-def bound(coef: np.ndarray, disp: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """c + |d| (a + b p), mm, for coef = (c, a, b)."""
-    return coef[0] + disp * (coef[1] + coef[2] * depth)
+def bound(coef: tuple[float, float, float], k: float, rows: np.ndarray) -> np.ndarray:
+    """c + |d| (a + b p + k r), mm, for coef = (c, a, b)."""
+    c, a, b = coef
+    return c + rows[:, 0] * (a + b * rows[:, 1] + k * rows[:, 3])
 
 
-def least_displacement(rows: np.ndarray) -> np.ndarray:
-    """The least the network's |d| can be: the true one less the TRE (mm)."""
-    return np.maximum(rows[:, 0] - rows[:, 2], 0.0)
+def fit(rows: np.ndarray, k: float) -> tuple[float, float, float]:
+    """(c, a, b) of the least mean bound holding :data:`QUANTILE` of ``rows``' TREs, with
+    the check's weight ``k``: ``a``, ``b`` over the grid, ``c`` >= 0 the quantile of the rest."""
+    a, b = np.meshgrid(A_GRID, B_GRID, indexing="ij")
+    slope = rows[:, 0] * (a[..., None] + b[..., None] * rows[:, 1] + k * rows[:, 3])
+    c = np.maximum(np.quantile(rows[:, 2] - slope, QUANTILE, axis=-1), 0.0)
+    i, j = np.unravel_index(np.argmin(c + slope.mean(axis=-1)), c.shape)
+    return float(c[i, j]), float(A_GRID[i]), float(B_GRID[j])
 
 
-def pinball(coef: np.ndarray, rows: np.ndarray) -> float:
-    r = rows[:, 2] - bound(coef, least_displacement(rows), rows[:, 1])
-    return float(np.mean(np.maximum(QUANTILE * r, (QUANTILE - 1) * r)))
-
-
-def fit(rows: np.ndarray) -> np.ndarray:
-    """(c, a, b) of the 95 % quantile (Nelder-Mead on the pinball loss)."""
-    return minimize(pinball, np.array([0.1, 0.05, 0.0]), args=(rows,), method="Nelder-Mead",
-                    options={"xatol": 1e-7, "fatol": 1e-10, "maxiter": 8000}).x
-
-
-def check(coef: np.ndarray, rows: np.ndarray) -> dict:
+def check(coef: tuple[float, float, float], k: float, rows: np.ndarray) -> dict:
     """Coverage and, per depth, the mean bound over the mean TRE."""
-    b = bound(coef, least_displacement(rows), rows[:, 1])
+    b = bound(coef, k, rows)
     by_depth = {}
     for depth in np.unique(rows[:, 1]):
         at = rows[:, 1] == depth
@@ -80,42 +96,65 @@ def check(coef: np.ndarray, rows: np.ndarray) -> dict:
                                   "mean_bound_mm": float(b[at].mean()),
                                   "ratio": float(b[at].mean() / rows[at, 2].mean()),
                                   "covered": f"{int((rows[at, 2] <= b[at]).sum())}/{at.sum()}"}
-    return {"coverage": float((rows[:, 2] <= b).mean()), "n": len(rows), "by_depth": by_depth}
+    return {"coverage": float((rows[:, 2] <= b).mean()), "n": len(rows), "by_depth": by_depth,
+            "worst_ratio": max(v["ratio"] for v in by_depth.values())}
+
+
+def both_ways(fit_rows: np.ndarray, check_rows: np.ndarray, k: float) -> dict:
+    """Fitted on one breast, checked on the other, and the other way round, at weight k."""
+    coef, reverse = fit(fit_rows, k), fit(check_rows, k)
+    return {"coef": coef, "on_fit": check(coef, k, fit_rows),
+            "left_out": check(coef, k, check_rows),
+            "other_way_round": check(reverse, k, fit_rows)}
+
+
+def print_fit(name: str, k: float, ways: dict) -> None:
+    c, a, b = ways["coef"]
+    print(f"{name}: bound = {c:.4f} + |d| ({a:.4f} + {b:.5f} p + {k:g} r)")
+    for label in ("on_fit", "left_out", "other_way_round"):
+        v = ways[label]
+        print(f"  {label.replace('_', ' ')}: coverage {v['coverage']:.0%} of {v['n']}; " +
+              "; ".join(f"{d} mm: bound {x['mean_bound_mm']:.2f} / TRE {x['mean_tre_mm']:.2f}"
+                        f" = {x['ratio']:.1f}x, {x['covered']}"
+                        for d, x in v["by_depth"].items()))
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--fit", type=Path, nargs="+",
-                   default=[RESULTS / "ucdavis-default-mixed-d30-all-truth.json",
-                            RESULTS / "ucdavis-default-mixed-seed1-d30-all-truth.json"])
-    p.add_argument("--check", type=Path, nargs="+",
-                   default=[RESULTS / "phantom-default-mixed-d30-all-truth.json"])
+    p.add_argument("--fit", type=Path, nargs="+", default=[RESULTS / f for f in FIT_FILES])
+    p.add_argument("--check", type=Path, nargs="+", default=[RESULTS / f for f in CHECK_FILES])
+    p.add_argument("--weight", type=float, default=0.5, help="k, the self-check's weight")
     p.add_argument("--result-name", default="error-bound")
     args = p.parse_args(argv)
     fit_rows, check_rows = rows_of(args.fit), rows_of(args.check)
-    coef = fit(fit_rows)
-    on_fit, left_out = check(coef, fit_rows), check(coef, check_rows)
-    # the other way round: fitted on the checked case, checked on the fitted one
-    reverse = check(fit(check_rows), fit_rows)
-    print(f"bound = {coef[0]:.4f} + |d| ({coef[1]:.5f} + {coef[2]:.6f} p)   fitted on "
-          f"{len(fit_rows)} pushes")
-    for name, c in (("fit", on_fit), ("left out", left_out), ("the other way round", reverse)):
-        print(f"{name}: coverage {c['coverage']:.0%} of {c['n']}; " + "; ".join(
-            f"{d} mm: bound {v['mean_bound_mm']:.2f} / TRE {v['mean_tre_mm']:.2f} = "
-            f"{v['ratio']:.1f}x, {v['covered']}" for d, v in c["by_depth"].items()))
-    per_file = {f.name: check(coef, rows_of([f])) for f in args.check}
+    checked, unchecked = (both_ways(fit_rows, check_rows, k) for k in (args.weight, 0.0))
+    print_fit("with the lesion self-check", args.weight, checked)
+    print_fit("without it", 0.0, unchecked)
+    scan = {f"{k:g}": {way: both_ways(fit_rows, check_rows, k)[way]["coverage"]
+                       for way in ("left_out", "other_way_round")} for k in WEIGHTS}
+    print("the weight k: coverage left out / the other way round: " + "; ".join(
+        f"{k}: {v['left_out']:.0%} / {v['other_way_round']:.0%}" for k, v in scan.items()))
+    per_file = {f.name: check(checked["coef"], args.weight, rows_of([f])) for f in args.check}
     for name, c in per_file.items():
         print(f"  {name}: {int(round(c['coverage'] * c['n']))} of {c['n']} within the bound")
-    worst = max(v["ratio"] for v in left_out["by_depth"].values())
-    write_result(args.result_name, {"c": float(coef[0]), "a": float(coef[1]), "b": float(coef[2]),
-                                 "coverage": left_out["coverage"], "worst_ratio": worst},
+    (c, a, b), (uc, ua, ub) = checked["coef"], unchecked["coef"]
+    left, u_left = checked["left_out"], unchecked["left_out"]
+    write_result(args.result_name,
+                 {"c": c, "a": a, "b": b, "weight": args.weight,
+                  "coverage": left["coverage"], "worst_ratio": left["worst_ratio"],
+                  "unchecked_c": uc, "unchecked_a": ua, "unchecked_b": ub,
+                  "unchecked_coverage": u_left["coverage"],
+                  "unchecked_worst_ratio": u_left["worst_ratio"],
+                  "other_way_round_coverage": checked["other_way_round"]["coverage"],
+                  "unchecked_other_way_round_coverage":
+                      unchecked["other_way_round"]["coverage"]},
                  fit=[f.name for f in args.fit], check=[f.name for f in args.check],
-                 on_fit=on_fit, left_out=left_out, other_way_round=reverse,
+                 checked=checked, unchecked=unchecked, weight_scan=scan,
                  per_check_file={k: {"coverage": v["coverage"], "n": v["n"]}
                                  for k, v in per_file.items()})
-    print(f"RESULT c={coef[0]:.4f} a={coef[1]:.5f} b={coef[2]:.6f} "
-          f"coverage={left_out['coverage']:.3f} "
-          f"worst_ratio={worst:.2f}")
+    print(f"RESULT c={c:.4f} a={a:.4f} b={b:.5f} weight={args.weight:g} "
+          f"coverage={left['coverage']:.3f} worst_ratio={left['worst_ratio']:.2f} "
+          f"unchecked_coverage={u_left['coverage']:.3f}")
     return 0
 
 

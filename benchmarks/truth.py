@@ -133,11 +133,17 @@ def load_reference(path: Path, key: dict, replace: bool = False) -> dict:
 
 
 def method_trackers(case: Case, methods: tuple[str, ...] = METHODS) -> dict[str, Tracker]:
-    """The trackers of ``methods`` that predict: the network tracker (``net``) and the FE
-    tracker (``fem``, Table 2's solver settings) of ``case``."""
+    """The trackers of ``methods`` that predict: the network tracker (``net``; its lesion
+    self-check made first where the model has none current, as ``biopsynav evaluate`` makes
+    it) and the FE tracker (``fem``, Table 2's solver settings) of ``case``."""
     trackers: dict[str, Tracker] = {}
     if "net" in methods:
         trackers["net"] = Tracker.load(case, engine="net")
+        if trackers["net"].lesion_check is None:  # its bounds are judged too
+            from biopsynav.evaluate.lesion_check import run_lesion_check
+
+            run_lesion_check(case)
+            trackers["net"] = Tracker.load(case, engine="net")
     if "fem" in methods:
         trackers["fem"] = fem_engine(case, evaluation_solver_settings(case))
     return trackers
@@ -146,7 +152,9 @@ def method_trackers(case: Case, methods: tuple[str, ...] = METHODS) -> dict[str,
 def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
                 depths: list[float], truth: list) -> list[dict]:
     """One row per depth: the reference displacement, the rigid assumption's and each
-    tracker's TRE (None: no answer, with its status), where one was given its reason
+    tracker's TRE (None: no answer, with its status), each answer's lesion displacement
+    (``moved_mm``) and 95 % bound (``bound_mm``), the network's lesion self-check at that
+    depth (``relative_miss``, :mod:`biopsynav.tracker.bound`), where one was given its reason
     (``reason``) and the FE answer's ``fem_spring_factor`` (1: the springs as asked; 4, inf:
     elastic contact's fallbacks) for lesion index ``li``."""
     rows = []
@@ -166,6 +174,12 @@ def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
             row["tre_mm"][name] = (float(np.linalg.norm(res.lesions[li].displacement
                                                         - np.asarray(true_disp)))
                                    if res.reliable else None)
+            if res.reliable:
+                row.setdefault("moved_mm", {})[name] = float(
+                    np.linalg.norm(res.lesions[li].displacement))
+                row.setdefault("bound_mm", {})[name] = float(res.lesions[li].bound_mm)
+            if name == "net" and tr.lesion_check is not None:
+                row["relative_miss"] = float(tr.lesion_check.relative_at(depth)[li])
             if res.reason:
                 row.setdefault("reason", {})[name] = res.reason
             if name == "fem" and tr.last_solve is not None:

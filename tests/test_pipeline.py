@@ -68,10 +68,13 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
 
     from biopsynav.case import Case
     from biopsynav.runtime import (
+        FE_EXPONENT,
+        LESION_CHECK,
         REFERENCE,
         REFINE_PUSH_MINUTES,
         TRAINING_STEP_FACTOR,
         estimate_run,
+        lesion_check_minutes,
         probe_seconds,
     )
 
@@ -100,8 +103,13 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     assert double.minutes["evaluate and report"] == same.minutes["evaluate and report"]
     case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, deformations_per_lesion=2
                                             * case.cfg.evaluate.deformations_per_lesion)
+    # Table 2's solves double; each lesion's self-check stays: its lesions and cells^1.3
+    check = lesion_check_minutes(case)
+    assert check == pytest.approx(
+        LESION_CHECK["minutes"] * len(case.anatomy.lesions) / LESION_CHECK["lesions"]
+        * (case.grid.active_cells.sum() / LESION_CHECK["active_cells"]) ** FE_EXPONENT)
     assert estimate_run(case, (ref, ref)).minutes["evaluate and report"] == pytest.approx(
-        2.0 * same.minutes["evaluate and report"])
+        2.0 * same.minutes["evaluate and report"] - check)
     assert "expected on this machine today: about" in same.line()
     assert 0.0 < probe_seconds(case) < 60.0
 

@@ -27,6 +27,7 @@ CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
 TORCHSCRIPT = "model.ts"
 ONNX = "model.onnx"
+LESION_CHECK = "lesion_check.json"  # in the tracking model's folder: each lesion's self-check
 LOSS_CURVE = "loss_curve.png"
 EVAL_DIR = "eval"
 TABLE1_FILE = "table1.json"

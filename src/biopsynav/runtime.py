@@ -17,7 +17,8 @@ the case and to this machine today, from three probes of ten U-Net training step
   iteration costs beyond the bare step: data, validation, the best weights' checks);
 * evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
   grid's cells^1.3, from a run of a fine-grid truth, :data:`FINE_GRID_TABLE2`, or of the
-  reference run's for other truths) and the machine's speed.
+  reference run's for other truths) and the machine's speed, plus each lesion's self-check
+  (:data:`LESION_CHECK`, by the lesions and the teacher grid's cells^1.3).
 
 An estimate is a forecast: the run's stage table says what each stage took (docs/pipeline.md
 compares the two).
@@ -144,7 +145,8 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
         minutes["refine pushes"] = rigid_push_minutes(cfg.refine.samples,
                                                       cfg.refine.teacher_refine, slowness)
         minutes["refine training"] = training_minutes(cfg.refine.iterations, refine_step)
-    minutes["evaluate and report"] = evaluation_minutes(case) * slowness
+    minutes["evaluate and report"] = (evaluation_minutes(case)
+                                      + lesion_check_minutes(case)) * slowness
     return Estimate(minutes, slowness)
 
 
@@ -165,6 +167,23 @@ def evaluation_minutes(case) -> float:
              / (fine["active_cells"] * fine["reference_refinement"] ** 3)) ** FE_EXPONENT
     return fine["minutes"] * evaluated_lesions(case) * ev.deformations_per_lesion \
         / fine["pushes"] * cells
+
+
+#: each lesion's self-check (:mod:`biopsynav.evaluate.lesion_check`, three pushes of 15-35 mm
+#: on the teacher's grid in two processes): the phantom's default model (10 lesions, 2,225
+#: active cells), alone, Intel Xeon, 2026-12-06: 73 s at a speed probe of 0.91x, 1.35 min at
+#: the reference machine's speed
+LESION_CHECK = {"active_cells": 2225, "lesions": 10, "minutes": 1.35}
+
+
+def lesion_check_minutes(case) -> float:
+    """Expected minutes of the lesion self-check of ``case`` on the reference machine:
+    :data:`LESION_CHECK` scaled by the lesions and the teacher grid's cells^1.3."""
+    cfg = case.cfg
+    refine = cfg.refine.teacher_refine if cfg.refine.samples else cfg.dataset.teacher_refine
+    cells = (float(case.grid.active_cells.sum()) * refine ** 3
+             / LESION_CHECK["active_cells"]) ** FE_EXPONENT
+    return LESION_CHECK["minutes"] * len(case.anatomy.lesions) / LESION_CHECK["lesions"] * cells
 
 
 def evaluated_lesions(case) -> int:

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 from biopsynav.igtl.replies import bounds_messages, point_message, rest_slots
-from biopsynav.tracker.bound import COEFFICIENTS, error_bound_mm
+from biopsynav.inference.model_files import meta_checksum
+from biopsynav.layout import LESION_CHECK
+from biopsynav.tracker.bound import (
+    CHECK_FORMAT,
+    CHECK_WEIGHT,
+    COEFFICIENTS,
+    UNCHECKED_COEFFICIENTS,
+    LesionCheck,
+    error_bound_mm,
+)
 from biopsynav.tracker.csvtrack import lesions_csv
 from biopsynav.tracker.result import LesionResult, TrackingResult
 
@@ -21,13 +30,18 @@ def test_the_coefficients_are_those_the_benchmark_fitted():
     """The tracker's bound is the one benchmarks/error_bound.py fitted and checked: a refit
     that is not carried into the code (or a hand edit) fails here."""
     fitted = json.loads(RESULT_FILE.read_text())["figures"]
-    assert COEFFICIENTS == pytest.approx((fitted["c"], fitted["a"], fitted["b"]), rel=1e-3)
+    assert COEFFICIENTS == pytest.approx((fitted["c"], fitted["a"], fitted["b"]), rel=1e-3,
+                                         abs=1e-6)
+    assert UNCHECKED_COEFFICIENTS == pytest.approx(
+        (fitted["unchecked_c"], fitted["unchecked_a"], fitted["unchecked_b"]), rel=1e-3,
+        abs=1e-6)
+    assert CHECK_WEIGHT == fitted["weight"]
 
 
 def test_the_bound_grows_with_the_lesions_motion_and_the_push():
     d = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 5.0], [3.0, 4.0, 0.0], [0.0, 12.0, 0.0]])
     at10, at30 = error_bound_mm(d, 10.0), error_bound_mm(d, 30.0)
-    c, a, b = COEFFICIENTS
+    c, a, b = UNCHECKED_COEFFICIENTS
     assert at10[0] == 0.0  # nothing moved: the rest pose
     assert at10[1] == pytest.approx(c + 5.0 * (a + 10.0 * b))
     assert at10[1] == at10[2]  # by the size of the motion, not its direction
@@ -51,3 +65,56 @@ def test_the_bound_reaches_track_csv_and_openigtlink():
     refused = TrackingResult([LesionResult(1, nan, nan, "out_of_envelope")], "out_of_envelope")
     assert bounds_messages(refused) == [] and math.isnan(refused.lesions[0].bound_mm)
     assert lesions_csv([(8, refused)]).splitlines()[1].split(",")[5] == "nan"
+
+
+def test_a_lesion_the_network_missed_gets_a_wider_bound():
+    """The self-check's relative miss widens the bound by k |d| r; a lesion without a check
+    (NaN) is bounded by the unchecked coefficients."""
+    d = np.array([[0.0, 0.0, 10.0]] * 3)
+    bounds = error_bound_mm(d, 20.0, np.array([0.0, 0.2, np.nan]))
+    c, a, b = COEFFICIENTS
+    assert bounds[0] == pytest.approx(c + 10.0 * (a + 20.0 * b))
+    assert bounds[1] == pytest.approx(bounds[0] + CHECK_WEIGHT * 10.0 * 0.2)
+    assert bounds[2] == pytest.approx(error_bound_mm(d[:1], 20.0)[0])
+    assert error_bound_mm(np.zeros((1, 3)), 20.0, np.array([0.5]))[0] == 0.0  # at rest
+
+
+def _write_check(folder: Path, meta: dict, lesions: dict, depths=(15.0, 25.0, 35.0)) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / LESION_CHECK).write_text(json.dumps(
+        {"format": CHECK_FORMAT, "model_checksum": meta_checksum(meta),
+         "depths_mm": list(depths), "lesions": lesions}))
+
+
+def test_a_check_is_read_interpolated_and_held_beyond_its_depths(tmp_path):
+    meta = {"fingerprint": "abc", "node_shape": [3, 3, 3]}
+    _write_check(tmp_path, meta, {"1": {"relative": [0.1, 0.3, 0.2]},
+                                  "2": {"relative": [None, 0.4, None]},
+                                  "3": {"relative": [None, None, None]}})
+    check = LesionCheck.load(tmp_path, meta, [1, 2, 3, 4])  # lesion 4: not in the check
+    assert check is not None
+    assert check.relative_at(20.0)[:2] == pytest.approx([0.2, 0.4])
+    assert check.relative_at(5.0)[0] == pytest.approx(0.1)  # held below the first depth
+    assert check.relative_at(50.0)[0] == pytest.approx(0.2)  # ... and beyond the last
+    assert np.isnan(check.relative_at(20.0)[2:]).all()
+
+
+@pytest.mark.parametrize("damage", ["stale", "format", "garbage", "not_json", "depths"])
+def test_a_stale_or_damaged_check_is_not_used(tmp_path, damage):
+    """A model trained again (another meta.json), another layout or a damaged file: the
+    tracker bounds without the check rather than with the wrong one."""
+    meta = {"fingerprint": "abc"}
+    _write_check(tmp_path, {"fingerprint": "other"} if damage == "stale" else meta,
+                 {"1": {"relative": [0.1, 0.2, 0.3]}},
+                 depths=(25.0, 15.0, 35.0) if damage == "depths" else (15.0, 25.0, 35.0))
+    path = tmp_path / LESION_CHECK
+    if damage == "format":
+        path.write_text(path.read_text().replace(f'"format": {CHECK_FORMAT}', '"format": 99'))
+    elif damage == "garbage":
+        path.write_text(json.dumps({"format": CHECK_FORMAT,
+                                    "model_checksum": meta_checksum(meta),
+                                    "depths_mm": "x", "lesions": []}))
+    elif damage == "not_json":
+        path.write_bytes(b"\x00{")
+    assert LesionCheck.load(tmp_path, meta, [1]) is None
+    assert LesionCheck.load(tmp_path / "absent", meta, [1]) is None

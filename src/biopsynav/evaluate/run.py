@@ -31,14 +31,16 @@ def require_model(case: Case) -> None:
 def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | Path | None = None,
                   poses: str | Path | None = None, quick: bool = False,
                   log: Callable[[str], None] = print, workers: int = 0) -> dict:
-    """Table 1, then Table 2 (by simulation, or from ``poses`` + ``measured`` CSVs).
+    """Table 1, each lesion's self-check (:mod:`~biopsynav.evaluate.lesion_check`, with Table
+    2), then Table 2 (by simulation, or from ``poses`` + ``measured`` CSVs).
 
     Writes ``CASE/eval/table1.json`` (+ PNGs, by :mod:`biopsynav.network.evaluate`),
     ``CASE/eval/table2.json`` and ``table2.md`` (simulation) or ``table2_measured.json`` and
-    ``.md`` (user data), and prints the tables. ``quick`` evaluates a subset (3 lesions, a
+    ``.md`` (user data), ``lesion_check.json`` in the tracking model's folder (with Table
+    2), and prints the tables. ``quick`` evaluates a subset (3 lesions, a
     1.5 times finer reference); ``workers``: local processes of a fine-grid ground truth
-    (0: one per core). Returns ``{"table1": ..., "table2": ...}`` (``table2``
-    absent with ``table2=False``).
+    (0: one per core). Returns ``{"table1": ..., "lesion_check": ..., "table2": ...}``
+    (the last two absent with ``table2=False``, the check for a case without lesions).
     """
     if workers < 0:
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
@@ -58,6 +60,10 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
         out["table1_refined"] = table1_case(fine_case(case))
         log("Table 1 of the model trained further on the fine teacher (its held-out fine "
             "pushes, refine/eval): " + format_table1(out["table1_refined"]))
+    if table2 and case.anatomy.lesions:  # before Table 2, whose bounds it widens
+        from .lesion_check import run_lesion_check
+
+        out["lesion_check"] = run_lesion_check(case, workers, log=log)
     if measured is not None:
         result = evaluate_measured(case, poses, measured, log=log)
         out["table2"] = write_table2(case.dir, result, TABLE2_MEASURED, log)

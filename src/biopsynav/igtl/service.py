@@ -138,7 +138,9 @@ def service_tracker(case: Case | str | Path, cfg: IgtlSection | None = None) -> 
     case = as_case(case)
     cfg = case.cfg.igtl if cfg is None else cfg
     threads = cfg.inference_threads and min(cfg.inference_threads, os.cpu_count() or 1)
-    return Tracker.load(case, threads=threads)
+    tracker = Tracker.load(case, threads=threads)
+    log.info("95 %% bounds: %s", tracker.bound_basis)
+    return tracker
 
 
 __all__ = ["configure_logging", "install_signal_handlers", "run_service", "serve",

@@ -50,7 +50,7 @@ def build_sections(case_dir: Path, case: Case | None = None) -> tuple[str, list]
     fig_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     title = f"biopsynav report: {cfg.case.name} ({stamp})"
-    sections = [table1_section(case_dir, cfg), table2_section(case_dir, fig_dir),
+    sections = [table1_section(case_dir, cfg), table2_section(case_dir, fig_dir, cfg),
                 timing_section(case_dir, fig_dir), convergence_section(case_dir),
                 stages_section(case_dir),
                 case_section(case_dir, cfg, case), dataset_section(case_dir),

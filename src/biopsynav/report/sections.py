@@ -22,6 +22,7 @@ from ..layout import (
     DATASET_PLOT,
     DATASET_SUMMARY,
     FACTS_FILE,
+    LESION_CHECK,
     LOSS_CURVE,
     META,
     REPORT_FILES,
@@ -54,7 +55,8 @@ def read_stage_json(path: Path) -> dict | None:
 _WRITER = {TABLE1_FILE: "`biopsynav evaluate`", f"{TABLE2}.json": "`biopsynav evaluate`",
            META: "`biopsynav train`", DATASET_SUMMARY: "`biopsynav generate`",
            FACTS_FILE: "`biopsynav init --overwrite`",
-           CONVERGENCE_FILE: "`python benchmarks/convergence.py CASE`"}
+           CONVERGENCE_FILE: "`python benchmarks/convergence.py CASE`",
+           LESION_CHECK: "`biopsynav evaluate`"}
 
 
 def _num(v, fmt: str = ".4g") -> str:
@@ -250,8 +252,9 @@ def refine_teacher_words(cfg: CaseConfig) -> str:
     return f"law {law_words(r.material_model, r.fictitious_stiffness)}"
 
 
-def table2_section(case_dir: Path, fig_dir: Path) -> Section:
-    """Table 2 by simulation and, when present, from measured data; three methods each."""
+def table2_section(case_dir: Path, fig_dir: Path, cfg: CaseConfig | None = None) -> Section:
+    """Table 2 by simulation and, when present, from measured data; three methods each; then
+    the tracking model's lesion self-check (of ``cfg``'s tracking model), when made."""
     s = Section("Table 2: target registration error per lesion and probe displacement")
     found = False
     for stem, title in ((TABLE2, "by simulation"), (TABLE2_MEASURED, "from measured data")):
@@ -262,7 +265,35 @@ def table2_section(case_dir: Path, fig_dir: Path) -> Section:
         s.blocks += table2_blocks(result, title, fig_dir / f"{stem}.png")
     if not found:
         s.blocks.append(not_run("evaluate", case_dir, "Table 2"))
+    if cfg is not None:
+        s.blocks += lesion_check_blocks(tracking_model_dir(case_dir, cfg) / LESION_CHECK)
     return s
+
+
+def tracking_model_dir(case_dir: Path, cfg: CaseConfig) -> Path:
+    """The folder of the model the tracker uses (:attr:`biopsynav.case.Case.tracking_model`)."""
+    paths = CasePaths(case_dir)
+    return CasePaths(paths.refine).model if cfg.refine.samples else paths.model
+
+
+def lesion_check_blocks(path: Path) -> list:
+    """The lesion self-check's table: each lesion's share of its motion the network missed
+    against its teacher at each check depth; nothing when it was not made."""
+    check = read_stage_json(path)
+    if check is None:
+        return []
+    try:
+        depths = [float(d) for d in check["depths_mm"]]
+        rows = [[str(i)] + ["-" if r is None else f"{100 * float(r):.0f} %"
+                            for r in v["relative"]] for i, v in check["lesions"].items()]
+    except (KeyError, TypeError, ValueError, AttributeError):
+        raise InputError("damaged: not a lesion check; rebuild it with `biopsynav evaluate`",
+                         str(path)) from None
+    return [Para("Each lesion's self-check (the tracking network against its own FE teacher, "
+                 "the probe pushed over the lesion; no truth takes part): the share of the "
+                 "lesion's motion the network missed. It widens that lesion's 95 % bound "
+                 "(docs/tracker.md, \"Error bound\")."),
+            GridTable(["lesion"] + [f"{d:g} mm" for d in depths], rows)]
 
 
 def table2_blocks(result: dict, title: str, png: Path) -> list:

@@ -1,29 +1,115 @@
 """Each lesion's 95 % error bound: how far from the answer the true position may lie.
 
-``bound = c + |d| (a + b p)`` mm, with ``d`` the lesion's predicted displacement from rest
-(mm) and ``p`` the probe's depth (mm: the mean displacement of the rest contact's points). A
-lesion that moves further errs further, and the share of its motion that is missed grows with
-the push. The coefficients are the 95 % quantile of the ``chain`` recipe's lesion errors
-against the independent P2 truth, fitted on the UC Davis breast and checked on the phantom,
-which took no part in the fit (``benchmarks/error_bound.py``, ``benchmarks/results/
-error-bound.json``; docs/tracker.md, "Error bound"). The bound is of the deformation model
-only: not of the image, the segmentation, the probe's calibration or its tracking. It holds
-for untilted pushes of that recipe inside the training envelope (on the default ``pushes``
-recipe's networks it covers 88 % of the phantom's truth errors and 91 % of UC Davis's,
-docs/tracker.md "Error bound"); out of it the tracker answers no position at all.
+``bound = c + |d| (a + b p + k r)`` mm, with ``d`` the lesion's predicted displacement from rest
+(mm), ``p`` the probe's depth (mm: the mean displacement of the rest contact's points) and ``r``
+the lesion's *relative miss* at that depth: the share of its motion the network missed against
+its own FE teacher in the lesion's self-check (``biopsynav evaluate``;
+:mod:`biopsynav.evaluate.lesion_check`, interpolated between the check's depths and held
+beyond them). A lesion that moves further errs further, the share of its motion that is
+missed grows with the push (the teacher's contact error, docs/fem.md "Limits"), and a lesion
+the network learnt badly from its teacher errs further still. ``k`` is :data:`CHECK_WEIGHT`.
+
+Both coefficient sets are the 95 % quantile of tracking networks' lesion errors against the
+independent P2 truth, fitted on the UC Davis breast and checked on the phantom, which took no
+part in the fit (``benchmarks/error_bound.py``, ``benchmarks/results/error-bound.json``;
+docs/tracker.md, "Error bound"). A model without a current self-check (trained again since,
+or never evaluated) is bounded by :data:`UNCHECKED_COEFFICIENTS`, fitted on the same errors
+without the term. The bound is of the deformation model only: not of the image, the
+segmentation, the probe's calibration or its tracking; out of the training envelope the
+tracker answers no position at all.
 """
 
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
-#: (c mm, a, b per mm) of ``c + |d| (a + b p)``, as benchmarks/error_bound.py fitted them
-COEFFICIENTS = (0.1491, 0.02824, 0.002883)
+from ..layout import LESION_CHECK
+
+#: (c mm, a, b per mm) with the self-check's term, as benchmarks/error_bound.py fitted them
+COEFFICIENTS = (0.0874, 0.0200, 0.00220)
+#: (c mm, a, b per mm) of a model without a current self-check (the same fit, k = 0)
+UNCHECKED_COEFFICIENTS = (0.1038, 0.0025, 0.00400)
+#: k: the weight of the self-check's relative miss (benchmarks/error_bound.py --weight)
+CHECK_WEIGHT = 0.5
+#: the layout of lesion_check.json this module reads
+CHECK_FORMAT = 1
 
 
-def error_bound_mm(displacement: np.ndarray, probe_depth_mm: float) -> np.ndarray:
+def error_bound_mm(displacement: np.ndarray, probe_depth_mm: float,
+                   relative_miss: np.ndarray | None = None) -> np.ndarray:
     """The 95 % bound (n,) mm of lesions moved by ``displacement`` (n, 3) mm at a push of
-    ``probe_depth_mm``; 0 for a lesion that has not moved (the rest pose)."""
-    c, a, b = COEFFICIENTS
+    ``probe_depth_mm``, each with its self-check's ``relative_miss`` (n,) at that depth (NaN
+    or None: no check, :data:`UNCHECKED_COEFFICIENTS`); 0 for a lesion that has not moved
+    (the rest pose)."""
     size = np.linalg.norm(np.asarray(displacement, dtype=np.float64).reshape(-1, 3), axis=1)
-    return np.where(size > 0.0, c + size * (a + b * max(float(probe_depth_mm), 0.0)), 0.0)
+    p = max(float(probe_depth_mm), 0.0)
+    miss = (np.full(len(size), np.nan) if relative_miss is None
+            else np.asarray(relative_miss, dtype=np.float64).reshape(-1))
+    checked = np.isfinite(miss)
+    c, a, b = np.where(checked[:, None], COEFFICIENTS, UNCHECKED_COEFFICIENTS).T
+    bound = c + size * (a + b * p + CHECK_WEIGHT * np.where(checked, miss, 0.0))
+    return np.where(size > 0.0, bound, 0.0)
+
+
+@dataclass(frozen=True)
+class LesionCheck:
+    """A model's lesion self-check, read from its folder: ``depths_mm`` (m,) and each lesion's
+    relative miss ``relative`` (n_lesions, m) at them, in the tracker's lesion order; a depth
+    neither engine answered is filled from the lesion's others, a lesion with none is NaN."""
+
+    depths_mm: np.ndarray
+    relative: np.ndarray
+
+    @staticmethod
+    def checksum_of(meta: dict) -> str:
+        """The model identity a check is bound to: its ``meta.json`` checksum."""
+        from ..inference.model_files import meta_checksum
+
+        return meta_checksum(meta)
+
+    @classmethod
+    def load(cls, model_dir: Path, meta: dict, lesion_ids: list[int]) -> LesionCheck | None:
+        """The check of the model in ``model_dir`` (``meta``: its meta.json) for the lesions
+        ``lesion_ids``; None when there is none, it is of another model (trained again since),
+        of another layout or unreadable (the tracker then says its bounds lack it)."""
+        try:
+            data = json.loads((Path(model_dir) / LESION_CHECK).read_text())
+            if data.get("format") != CHECK_FORMAT \
+                    or data.get("model_checksum") != cls.checksum_of(meta):
+                return None
+            depths = np.asarray(data["depths_mm"], dtype=np.float64).reshape(-1)
+            rows = [filled(depths, data["lesions"].get(str(i), {}).get("relative"))
+                    for i in lesion_ids]
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            return None
+        if len(depths) == 0 or np.any(np.diff(depths) <= 0):
+            return None
+        return cls(depths, np.array(rows, dtype=np.float64).reshape(len(lesion_ids), -1))
+
+    def relative_at(self, probe_depth_mm: float) -> np.ndarray:
+        """Each lesion's relative miss (n_lesions,) at ``probe_depth_mm``: linear between the
+        check's depths, held beyond them."""
+        if len(self.depths_mm) == 1:
+            return self.relative[:, 0]
+        p = float(np.clip(probe_depth_mm, self.depths_mm[0], self.depths_mm[-1]))
+        hi = int(np.clip(np.searchsorted(self.depths_mm, p), 1, len(self.depths_mm) - 1))
+        lo = hi - 1
+        span = self.depths_mm[hi] - self.depths_mm[lo]
+        w = 0.0 if span <= 0.0 else (p - self.depths_mm[lo]) / span
+        return (1.0 - w) * self.relative[:, lo] + w * self.relative[:, hi]
+
+
+def filled(depths: np.ndarray, relative: list | None) -> np.ndarray:
+    """``relative`` (m,) at ``depths`` with unanswered depths (None) interpolated from the
+    answered ones (held beyond them); all NaN when none was answered."""
+    given = list(relative or [])[:len(depths)]
+    values = np.array([np.nan if r is None else float(r) for r in given]
+                      + [np.nan] * (len(depths) - len(given)), dtype=np.float64)
+    ok = np.isfinite(values) & (values >= 0.0)
+    if not ok.any():
+        return np.full(len(depths), np.nan)
+    return np.interp(depths, depths[ok], values[ok])

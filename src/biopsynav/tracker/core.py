@@ -41,7 +41,7 @@ from ..probe import (
     towards_chest,
 )
 from . import result as st
-from .bound import error_bound_mm
+from .bound import LesionCheck, error_bound_mm
 from .contactset import (
     MAX_GROWN_SETS,
     NetContactSet,
@@ -176,6 +176,10 @@ class Tracker:
         self.max_compression = float(env.get("max_chest_compression", 0.0))
         self._chest_mm = np.inf  # the rest contact's distance to the chest wall, mm
         self.envelope_margin = case.cfg.tracker.envelope_margin
+        # the network's lesion self-check that widens each bound (None: none, or stale)
+        self.lesion_check = (None if surrogate is None else
+                             LesionCheck.load(surrogate.model_dir, surrogate.meta,
+                                              self._lesion_ids))
 
     def _lesion_embedding(self) -> tuple[np.ndarray, Embedding]:
         """The points read off the displacement field: lesion centres first, then the vertices
@@ -208,6 +212,23 @@ class Tracker:
         if engine == "fem":
             return fem_engine(case, fem_solver_settings(case))
         raise InputError(f"unknown engine {engine!r}; use net or fem", "tracker")
+
+    @property
+    def bound_basis(self) -> str:
+        """What each lesion's ``bound_mm`` rests on, in words (:mod:`.bound`)."""
+        if self.engine != "net":
+            return "the network's bound without a lesion self-check (the FE engine)"
+        if self.lesion_check is None:
+            return ("without the lesion self-check (none current or readable for this model: "
+                    "`biopsynav evaluate CASE` makes it), so a lesion the network learnt badly "
+                    "is not told apart")
+        return "widened by each lesion's self-check against the network's teacher"
+
+    @property
+    def surrogate(self):
+        """The network engine's model (:class:`~biopsynav.inference.surrogate.Surrogate`);
+        None for the FE engine."""
+        return self._surrogate
 
     @property
     def has_rest_pose(self) -> bool:
@@ -741,7 +762,8 @@ class Tracker:
         ``depth_mm``: centres, their 95 % bounds and, when ``disp`` covers them, the mesh
         vertices."""
         n = len(self._lesion_ids)
-        bounds = error_bound_mm(disp[:n], depth_mm)
+        check = None if self.lesion_check is None else self.lesion_check.relative_at(depth_mm)
+        bounds = error_bound_mm(disp[:n], depth_mm, check)
         if len(disp) == n:
             return [LesionResult(i, c + d, d, status, bound_mm=float(b)) for i, c, d, b in
                     zip(self._lesion_ids, self._lesion_centres, disp, bounds, strict=True)]

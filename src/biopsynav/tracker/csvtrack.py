@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import io
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -87,15 +88,17 @@ def lesions_csv(tracked: list[tuple]) -> str:
 
 
 def track_csv(case: Case | str | Path, poses: str | Path, out: str | Path,
-              engine: str = "net") -> dict[str, int]:
+              engine: str = "net", log: Callable[[str], None] = print) -> dict[str, int]:
     """Track all poses of ``poses`` with the tracker of ``case`` (loaded, or its folder);
-    write ``out``; return the number of poses per status."""
+    write ``out``; return the number of poses per status. ``log`` is told what the bounds
+    rest on (:attr:`Tracker.bound_basis`)."""
     from ..fileio import check_output_path
     from .core import Tracker
 
     check_output_path(out, "--out")
     rows = read_poses(poses)
     tracker = Tracker.load(case, engine=engine)
+    log(f"95 % bounds: {tracker.bound_basis}")
     tracked = track_rows(tracker, rows)
     write_text_atomic(out, lesions_csv(tracked))
     return dict(Counter(result.status for _, result in tracked))
