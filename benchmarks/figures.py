@@ -240,22 +240,25 @@ def table1_cell(d: dict) -> str:
 #: BENCHMARKS.md: (what, cell, target, paper)
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("`make demo` from nothing, phantom, the default recipe `pushes` (450 rigid pushes, one "
-     "network; AMD EPYC with AVX-512 BF16, no AMX): whole; each stage; Table 1 on its 50 "
-     "held-out rigid pushes; the TRE against the P2 truth, 10 / 20 / 30 mm",
-     Cell("time-to-model-phantom-pushes-avx512", ttm_summary,
-          TTM.format("phantom") + " --recipe pushes --tag avx512"), "<= 15 min", "-"),
+     "network; Intel Xeon with AMX-BF16; the evaluation with each lesion's self-check): whole; "
+     "each stage; Table 1 on its 50 held-out rigid pushes; the TRE against the P2 truth, "
+     "10 / 20 / 30 mm",
+     Cell("time-to-model-phantom-pushes-amx", ttm_summary,
+          TTM.format("phantom") + " --recipe pushes --tag amx"), "<= 15 min", "-"),
     ("the same network: the paper's Table 1, mean / max e on 200 force patches (the paper's "
      "data) solved by its own teacher's law",
-     Cell("table1-patches-phantom-pushes", table1_cell,
-          "python benchmarks/table1_patches.py CASE --result-name table1-patches-phantom-pushes"),
+     Cell("table1-patches-phantom-pushes-amx", table1_cell,
+          "python benchmarks/table1_patches.py CASE --result-name "
+          "table1-patches-phantom-pushes-amx"),
      "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
-    ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (AMD EPYC): "
+    ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (Intel Xeon): "
      "whole; each stage; Table 1 on its held-out rigid pushes",
-     Cell("time-to-model-ucdavis-pushes-avx512", ttm_summary,
-          TTM.format("ucdavis") + " --recipe pushes --tag avx512"), "<= 15 min", "-"),
+     Cell("time-to-model-ucdavis-pushes-amx", ttm_summary,
+          TTM.format("ucdavis") + " --recipe pushes --tag amx"), "<= 15 min", "-"),
     ("the same network: the paper's Table 1 on 200 force patches of its own teacher's law",
-     Cell("table1-patches-ucdavis-pushes", table1_cell,
-          "python benchmarks/table1_patches.py CASE --result-name table1-patches-ucdavis-pushes"),
+     Cell("table1-patches-ucdavis-pushes-amx", table1_cell,
+          "python benchmarks/table1_patches.py CASE --result-name "
+          "table1-patches-ucdavis-pushes-amx"),
      "-", "-"),
     ("`demo --recipe pushes-patches` from nothing, phantom (the `pushes` recipe's 450 rigid "
      "pushes and 270 force patches of their law, one network; Intel Xeon with AMX-BF16): "
@@ -369,12 +372,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "shallower than the uniform 0-35 mm, so a low estimate)",
      Cell("p2-teacher-phantom", with_speed(p2_teacher_cost),
           "python benchmarks/p2_teacher.py --samples 4"), "-", "-"),
-    ("`run` from nothing, UC Davis as one material, the default recipe `pushes` (AMD EPYC; "
+    ("`run` from nothing, UC Davis as one material, the default recipe `pushes` (Intel Xeon; "
      "Table 2 against the shipped P2 truth, `examples/ucdavis_breast3/homogeneous.toml`): "
      "whole; each stage; Table 1 on its held-out rigid pushes; the tracking network's TRE "
      "against the P2 truth over every lesion, 10 / 20 / 30 mm",
-     Cell("time-to-model-ucdavis-homogeneous-pushes-avx512", ttm_summary,
-          TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag avx512"),
+     Cell("time-to-model-ucdavis-homogeneous-pushes-amx", ttm_summary,
+          TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag amx"),
      "<= 15 min; D10 <= 0.209, D30 <= 1.44 mm", "-"),
     ("the same breast: the chain's network (defaults of 2026-11-30)",
      Cell("ucdavis-default-mixed-d30-all-truth", tre("net"), UCD_TRUTH_CMD), "-", "-"),
@@ -435,16 +438,16 @@ def bench_block() -> str:
 
 
 def pushes_cells(render: Callable[[dict], str]) -> tuple[Cell, Cell]:
-    """The phantom's and UC Davis's cells of the default recipe's whole runs (AMD EPYC)."""
-    return tuple(Cell(f"time-to-model-{case}-pushes-avx512", render,
-                      TTM.format(case) + " --recipe pushes --tag avx512")
+    """The phantom's and UC Davis's cells of the default recipe's whole runs (Intel Xeon)."""
+    return tuple(Cell(f"time-to-model-{case}-pushes-amx", render,
+                      TTM.format(case) + " --recipe pushes --tag amx")
                  for case in ("phantom", "ucdavis"))
 
 
 #: README.md's headline: (what, phantom cell, UC Davis cell, paper)
 README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
     ("from nothing to a served model, 2 cores (`make demo`; `run`), the default recipe "
-     "`pushes` (AMD EPYC, no AMX)", *pushes_cells(ttm_total), "278 min with a GPU"),
+     "`pushes` (Intel Xeon with AMX-BF16)", *pushes_cells(ttm_total), "278 min with a GPU"),
     ("the same, `--recipe pushes-patches` (rigid pushes and force patches; Intel Xeon with "
      "AMX-BF16)",
      mixed_cell("phantom", ttm_total), mixed_cell("ucdavis", ttm_total), "-"),
@@ -462,10 +465,10 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
      Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")), "0.052 / 0.266 mm"),
     ("lesion TRE against an independent FE (P2 tetrahedra), every lesion, 10 / 20 / 30 mm "
      "pushes: the tracking network of the default recipe (UC Davis as one material)",
-     Cell("time-to-model-phantom-pushes-avx512", ttm_tre,
-          TTM.format("phantom") + " --recipe pushes --tag avx512"),
-     Cell("time-to-model-ucdavis-homogeneous-pushes-avx512", ttm_tre,
-          TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag avx512"), "-"),
+     Cell("time-to-model-phantom-pushes-amx", ttm_tre,
+          TTM.format("phantom") + " --recipe pushes --tag amx"),
+     Cell("time-to-model-ucdavis-homogeneous-pushes-amx", ttm_tre,
+          TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag amx"), "-"),
     ("the same: its FE teacher",
      Cell("phantom-default-mixed-d30-all-truth", tre("fem"), TRUTH_CMD),
      Cell("ucdavis-default-mixed-d30-all-truth", tre("fem"), UCD_TRUTH_CMD), "-"),

@@ -356,9 +356,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
                    "cores)")
 
-    p = add("evaluate", cmd_evaluate, "The paper's Table 1 and Table 2.")
+    p = add("evaluate", cmd_evaluate,
+            "The paper's Table 1, each lesion's self-check (its 95 % bound) and Table 2.")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--table1-only", action="store_true", help="skip Table 2")
+    p.add_argument("--table1-only", action="store_true",
+                   help="skip Table 2 and the lesion self-check")
     p.add_argument("--poses", type=Path, help="poses CSV of a measured experiment")
     p.add_argument("--measured", type=Path, help="measured lesion positions CSV "
                    "(frame,lesion_id,x,y,z) for Table 2 from user data")

@@ -136,9 +136,9 @@ def refine_stage(case: Case, workers: int) -> dict:
 
 
 def evaluation_stage(case: Case, quick: bool, workers: int) -> None:
-    """Stage 4: Table 1 and Table 2 when they are missing or older than the model (the
-    tracking model: ``refine/model`` with ``[refine] samples > 0``); a fine-grid ground truth
-    solved in ``workers`` local processes."""
+    """Stage 4: Table 1, each lesion's self-check and Table 2 when they are missing or older
+    than the model (the tracking model: ``refine/model`` with ``[refine] samples > 0``); a
+    fine-grid ground truth and the self-check solved in ``workers`` local processes."""
     if _stale(case.paths.table2(), case.paths.model_meta, _refined_meta(case)):
         from .evaluate import evaluate_case
 
@@ -181,8 +181,8 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     timed(3, "network training", "network training", training_stage, case)
     timed(4, "training further on rigid pushes ([refine])", "refine", refine_stage, case,
           workers)
-    timed(5, "evaluation (Table 1 and Table 2)", "evaluation", evaluation_stage, case, quick,
-          workers)
+    timed(5, "evaluation (Table 1, lesion self-check, Table 2)", "evaluation",
+          evaluation_stage, case, quick, workers)
     paths = timed(6, "report", "report", write_report, case)
     print(f"\n{stage_table(timings)}", flush=True)
     return {"report": [str(p) for p in paths], "timings_s": timings, "dataset": data_summary,
