@@ -282,6 +282,12 @@ def is_rigid_sample(probe: ProbeSection, index: int) -> bool:
     return is_rigid_draw(probe.rigid_share, index)
 
 
+def both_kinds(rigid_share: float) -> bool:
+    """Whether a data set of ``rigid_share`` (0-1) holds both kinds of sample: rigid pushes and
+    force patches."""
+    return 0.0 < rigid_share < 1.0
+
+
 def rigid_count(rigid_share: float, n: int) -> int:
     """How many of a data set's first ``n`` samples are rigid pushes: ``floor(n *
     rigid_share)`` (``rigid_share``: the share of rigid pushes, 0-1)."""
@@ -307,7 +313,7 @@ def draw_index(rigid_share: float, index: int) -> int:
     """The index that seeds sample ``index``'s random streams: ``index`` itself in a data set
     of one kind; in one of both, a rigid push's number among the rigid pushes, a force
     patch's number among the force patches plus :data:`PATCH_DRAWS`."""
-    if rigid_share <= 0.0 or rigid_share >= 1.0:
+    if not both_kinds(rigid_share):
         return int(index)
     before = rigid_count(rigid_share, index)
     if rigid_count(rigid_share, index + 1) > before:  # a rigid push (is_rigid_draw)

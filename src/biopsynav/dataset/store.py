@@ -160,7 +160,9 @@ MIXED_DRAWS = "interleaved-numbered-by-kind"
 def mixed_draws(cfg: CaseConfig) -> dict:
     """The protocol's ``mixed_draws`` (:data:`MIXED_DRAWS`) for a data set of both kinds
     (``[probe] rigid_share`` between 0 and 1), nothing for one of one kind."""
-    return {"mixed_draws": MIXED_DRAWS} if 0.0 < cfg.probe.rigid_share < 1.0 else {}
+    from ..probe import both_kinds
+
+    return {"mixed_draws": MIXED_DRAWS} if both_kinds(cfg.probe.rigid_share) else {}
 
 
 #: How a refined teacher's solutions reach the case grid: a least-squares fit that holds the

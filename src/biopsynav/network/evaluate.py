@@ -145,11 +145,11 @@ def held_out_rigid(data: Dataset) -> np.ndarray | None:
     one of both made before the kinds were placed (no ``mixed_draws`` in its protocol: its
     kinds were drawn by chance, and Table 1 is then reported over both together)."""
     from ..dataset.store import recorded_probe_value
-    from ..probe import is_rigid_draw
+    from ..probe import both_kinds, is_rigid_draw
 
     protocol = data.attrs.get("protocol") or {}
     share = float(recorded_probe_value(protocol, "rigid_share"))
-    if not 0.0 < share < 1.0 or "mixed_draws" not in (protocol.get("dataset") or {}):
+    if not both_kinds(share) or "mixed_draws" not in (protocol.get("dataset") or {}):
         return None
     return np.array([is_rigid_draw(share, int(i)) for i in data.test_idx], bool)
 
