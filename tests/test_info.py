@@ -22,6 +22,8 @@ def test_info_names_the_teacher(trained_case):
     text = format_summary(s)  # the FE engine's contact and the [refine] stage (off here)
     assert "contact   elastic: each contact point on a spring of beta E A / h, beta 14" in text
     assert "refine    off" in text
+    # evaluated with --table1-only: no lesion self-check, and info says the bounds lack it
+    assert "bounds    95 % bounds without the lesion self-check" in text
 
 
 def test_info_names_the_refine_teacher_and_its_contact():

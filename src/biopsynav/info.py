@@ -56,6 +56,7 @@ def case_summary(case: Case | str | Path) -> dict:
         "warnings": list(facts.get("warnings", [])),
         "stages": case.stages_done(),
         "model_teacher": model_teacher(case),
+        "bounds": bound_words(case),
         "fe_contact": contact_words(case.cfg),
         "refine": refine_words(case.cfg),
         "fingerprint": case.fingerprint()[:16],
@@ -89,6 +90,21 @@ def refine_words(cfg) -> str:
 def law_words(law: str | None, fictitious: float) -> str:
     """A material law's name with its ``fictitious_stiffness`` when not 0."""
     return f"{law} (fictitious stiffness {fictitious:g})" if fictitious else f"{law}"
+
+
+def bound_words(case: Case) -> str:
+    """What the tracking model's 95 % bounds rest on (:func:`biopsynav.tracker.bound.
+    basis_words`); empty when there is no tracking model yet."""
+    from .tracker.bound import LesionCheck, basis_words
+
+    try:
+        model_dir = case.tracking_model
+    except InputError:
+        return ""
+    meta = read_json(model_dir / META, "retrain with `biopsynav train CASE`", missing_ok=True)
+    if not meta:
+        return ""
+    return basis_words(LesionCheck.load(model_dir, meta, [les.id for les in case.anatomy.lesions]))
 
 
 def model_teacher(case: Case) -> str:
@@ -202,6 +218,8 @@ def format_summary(s: dict) -> str:
     lines.append(f"  refine    {s['refine']}")
     if s.get("model_teacher"):
         lines.append(f"  teacher   {s['model_teacher']}")
+    if s.get("bounds"):
+        lines.append(f"  bounds    95 % bounds {s['bounds']}")
     return "\n".join(lines)
 
 

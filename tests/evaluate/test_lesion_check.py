@@ -52,6 +52,9 @@ def test_the_tracker_widens_its_bounds_by_the_check(checked):
     case, check = checked
     tracker = Tracker.load(case, engine="net")
     assert tracker.lesion_check is not None and "self-check" in tracker.bound_basis
+    from biopsynav.info import case_summary
+
+    assert case_summary(case.dir)["bounds"].startswith("widened by each lesion's self-check")
     li = next(i for i, les in enumerate(case.anatomy.lesions)
               if check["lesions"][str(les.id)]["status"][-1] == "ok")
     placement = place_case_probe(case, li)

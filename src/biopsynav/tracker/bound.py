@@ -103,6 +103,15 @@ class LesionCheck:
         return (1.0 - w) * self.relative[:, lo] + w * self.relative[:, hi]
 
 
+def basis_words(check: LesionCheck | None) -> str:
+    """What a network's 95 % bounds rest on, in words: with or without its lesion check."""
+    if check is None:
+        return ("without the lesion self-check (none current or readable for this model: "
+                "`biopsynav evaluate CASE` makes it), so a lesion the network learnt badly is "
+                "not told apart")
+    return "widened by each lesion's self-check against the network's teacher"
+
+
 def filled(depths: np.ndarray, relative: list | None) -> np.ndarray:
     """``relative`` (m,) at ``depths`` with unanswered depths (None) interpolated from the
     answered ones (held beyond them); all NaN when none was answered."""

@@ -41,7 +41,7 @@ from ..probe import (
     towards_chest,
 )
 from . import result as st
-from .bound import LesionCheck, error_bound_mm
+from .bound import LesionCheck, basis_words, error_bound_mm
 from .contactset import (
     MAX_GROWN_SETS,
     NetContactSet,
@@ -218,11 +218,7 @@ class Tracker:
         """What each lesion's ``bound_mm`` rests on, in words (:mod:`.bound`)."""
         if self.engine != "net":
             return "the network's bound without a lesion self-check (the FE engine)"
-        if self.lesion_check is None:
-            return ("without the lesion self-check (none current or readable for this model: "
-                    "`biopsynav evaluate CASE` makes it), so a lesion the network learnt badly "
-                    "is not told apart")
-        return "widened by each lesion's self-check against the network's teacher"
+        return basis_words(self.lesion_check)
 
     @property
     def surrogate(self):
