@@ -25,7 +25,11 @@ elements folded over at a node (``TetReference.tangled``: skin bent round the pr
 said so; ``--tet-rim`` refines the mesh there, ``--progress`` logs the load steps. Nothing of
 it was used to train or choose the model. The methods:
 
-* ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run;
+* ``net``: ``Tracker.load(case, engine="net")``, what ``biopsynav track`` and ``serve`` run
+  (its lesion self-check, ``biopsynav.evaluate.lesion_check``, is made first and written
+  beside the model where none is current, so that ``--out``'s rows carry each answer's 95 %
+  bound as the tracker gives it and the check's relative miss: ``benchmarks/error_bound.py``
+  fits on them);
 * ``fem``: the FE engine as ``Tracker.load(case, engine="fem")`` builds it, on the grid and
   with the law of the tracking model's teacher (``[refine] teacher_refine`` and
   ``material_model`` when ``[refine] samples`` > 0, else ``[dataset] teacher_refine`` and
