@@ -97,6 +97,7 @@ def test_a_check_is_read_interpolated_and_held_beyond_its_depths(tmp_path):
     assert check.relative_at(5.0)[0] == pytest.approx(0.1)  # held below the first depth
     assert check.relative_at(50.0)[0] == pytest.approx(0.2)  # ... and beyond the last
     assert np.isnan(check.relative_at(20.0)[2:]).all()
+    assert LesionCheck.load(tmp_path, meta, []).relative_at(20.0).shape == (0,)  # no lesions
 
 
 @pytest.mark.parametrize("damage", ["stale", "format", "garbage", "not_json", "depths"])

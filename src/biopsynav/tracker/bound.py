@@ -88,7 +88,8 @@ class LesionCheck:
             return None
         if len(depths) == 0 or np.any(np.diff(depths) <= 0):
             return None
-        return cls(depths, np.array(rows, dtype=np.float64).reshape(len(lesion_ids), -1))
+        return cls(depths, np.array(rows, dtype=np.float64).reshape(len(lesion_ids),
+                                                                    len(depths)))
 
     def relative_at(self, probe_depth_mm: float) -> np.ndarray:
         """Each lesion's relative miss (n_lesions,) at ``probe_depth_mm``: linear between the
