@@ -49,7 +49,8 @@ FIT_FILES = ["bound-rows-ucdavis-homogeneous-pushes.json",
 CHECK_FILES = ["bound-rows-phantom-pushes.json", "bound-rows-phantom-pushes-patches.json",
                "bound-rows-phantom-pushes-patches-seed1.json",
                "bound-rows-phantom-pushes-patches-it8000.json",
-               "bound-rows-phantom-mixed055.json", "bound-rows-phantom-pushes-patches-055.json"]
+               "bound-rows-phantom-mixed055.json", "bound-rows-phantom-pushes-patches-055.json",
+               "bound-rows-phantom-chain.json"]
 
 
 def rows_of(paths: list[Path]) -> np.ndarray:

@@ -406,7 +406,7 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("tracking-latency", with_speed(pair("rtt_p50_ms", "rtt_p99_ms")),
           "python benchmarks/tracking_latency.py CASE"), "<= 5 / 10 ms", "-"),
     ("each lesion's 95 % error bound with its self-check against the network's teacher, "
-     "fitted on UC Davis (4 networks): share of the phantom's TREs within it (6 networks); "
+     "fitted on UC Davis (4 networks): share of the phantom's TREs within it (7 networks); "
      "worst ratio of mean bound to mean TRE over 10 / 20 / 30 mm; the same bound without "
      "the self-check",
      Cell("error-bound", lambda d: (f"{d['figures']['coverage']:.0%}; "
