@@ -92,5 +92,7 @@ def test_the_check_in_two_worker_processes_matches_one(checked, tmp_path):
         got = again["lesions"][lesion_id]
         assert got["status"] == lesion["status"]
         assert [m is None for m in got["miss_mm"]] == [m is None for m in lesion["miss_mm"]]
+        # the same pushes and engines (the FE factoring on another thread count): the same
+        # answers to far below the check's millimetres
         assert np.allclose([m for m in got["miss_mm"] if m is not None],
-                           [m for m in lesion["miss_mm"] if m is not None], atol=1e-6)
+                           [m for m in lesion["miss_mm"] if m is not None], atol=1e-4)
