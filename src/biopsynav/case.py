@@ -74,14 +74,12 @@ class Case:
         """The model folder the tracker uses: the one trained further on the fine teacher's
         pushes (``CASE_DIR/refine/model``) when ``[refine] samples > 0``, else ``model``.
         InputError when that model has not been trained yet."""
-        if not self.cfg.refine.samples:
-            return self.paths.model
-        refined = CasePaths(self.paths.refine)
-        if not refined.model_meta.is_file():
+        model = self.paths.tracking_model(bool(self.cfg.refine.samples))
+        if self.cfg.refine.samples and not (model / META).is_file():
             raise InputError("[refine] samples > 0 but the model trained on the fine teacher's "
                              "pushes is missing: run `biopsynav refine CASE` (or `biopsynav run "
-                             "CASE`)", str(refined.model))
-        return refined.model
+                             "CASE`)", str(model))
+        return model
 
     def stages_done(self) -> dict[str, bool]:
         """Which pipeline outputs exist in the folder."""

@@ -92,6 +92,11 @@ class CasePaths:
         (``[refine] samples > 0``): a case of its own, same anatomy and grid."""
         return self.dir / REFINE_DIR
 
+    def tracking_model(self, refined: bool) -> Path:
+        """The folder of the model the tracker uses: ``refine/model`` when ``refined``
+        (``[refine] samples > 0``), else ``model``."""
+        return CasePaths(self.refine).model if refined else self.model
+
     @property
     def eval(self) -> Path:
         return self.dir / EVAL_DIR

@@ -266,14 +266,9 @@ def table2_section(case_dir: Path, fig_dir: Path, cfg: CaseConfig | None = None)
     if not found:
         s.blocks.append(not_run("evaluate", case_dir, "Table 2"))
     if cfg is not None:
-        s.blocks += lesion_check_blocks(tracking_model_dir(case_dir, cfg) / LESION_CHECK)
+        model = CasePaths(case_dir).tracking_model(bool(cfg.refine.samples))
+        s.blocks += lesion_check_blocks(model / LESION_CHECK)
     return s
-
-
-def tracking_model_dir(case_dir: Path, cfg: CaseConfig) -> Path:
-    """The folder of the model the tracker uses (:attr:`biopsynav.case.Case.tracking_model`)."""
-    paths = CasePaths(case_dir)
-    return CasePaths(paths.refine).model if cfg.refine.samples else paths.model
 
 
 def lesion_check_blocks(path: Path) -> list:
