@@ -26,6 +26,7 @@ import numpy as np
 
 from ..case import Case
 from ..fileio import write_json_atomic
+from ..inference.model_files import read_meta
 from ..layout import LESION_CHECK
 from ..tracker.bound import CHECK_FORMAT, LesionCheck
 from ..tracker.core import Tracker, fem_engine
@@ -51,21 +52,22 @@ def run_lesion_check(case: Case, workers: int = 0, log: Callable[[str], None] = 
     import os
 
     start = time.perf_counter()
-    net = Tracker.load(case, engine="net")
+    model_dir = case.tracking_model
+    meta = read_meta(model_dir)  # checked here: the workers load the model themselves
     indices = list(range(len(case.anatomy.lesions)))
     workers = min(workers or os.cpu_count() or 1, len(indices))
     if workers > 1:
         checks = checks_in_workers(case, indices, workers, depths_mm)
     else:
-        engines = (case, net, fem_engine(case, evaluation_solver_settings(case)))
+        engines = (case, Tracker.load(case, engine="net"),
+                   fem_engine(case, evaluation_solver_settings(case)))
         checks = [lesion_pushes(*engines, li, depths_mm) for li in indices]
-    result = {"format": CHECK_FORMAT,
-              "model_checksum": LesionCheck.checksum_of(net.surrogate.meta),
+    result = {"format": CHECK_FORMAT, "model_checksum": LesionCheck.checksum_of(meta),
               "depths_mm": [float(d) for d in depths_mm],
               "lesions": {str(case.anatomy.lesions[li].id): c
                           for li, c in zip(indices, checks, strict=True)},
               "seconds": time.perf_counter() - start}
-    write_json_atomic(net.surrogate.model_dir / LESION_CHECK, result)
+    write_json_atomic(model_dir / LESION_CHECK, result)
     log(check_line(result))
     return result
 
