@@ -128,11 +128,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--result-name", default="error-bound")
     args = p.parse_args(argv)
     fit_rows, check_rows = rows_of(args.fit), rows_of(args.check)
-    checked, unchecked = (both_ways(fit_rows, check_rows, k) for k in (args.weight, 0.0))
+    fits = {k: both_ways(fit_rows, check_rows, k)
+            for k in dict.fromkeys((args.weight, 0.0, *WEIGHTS))}
+    checked, unchecked = fits[args.weight], fits[0.0]
     print_fit("with the lesion self-check", args.weight, checked)
     print_fit("without it", 0.0, unchecked)
-    scan = {f"{k:g}": {way: both_ways(fit_rows, check_rows, k)[way]["coverage"]
-                       for way in ("left_out", "other_way_round")} for k in WEIGHTS}
+    scan = {f"{k:g}": {way: fits[k][way]["coverage"] for way in ("left_out", "other_way_round")}
+            for k in WEIGHTS}
     print("the weight k: coverage left out / the other way round: " + "; ".join(
         f"{k}: {v['left_out']:.0%} / {v['other_way_round']:.0%}" for k, v in scan.items()))
     per_file = {f.name: check(checked["coef"], args.weight, rows_of([f])) for f in args.check}
