@@ -119,3 +119,18 @@ def test_a_stale_or_damaged_check_is_not_used(tmp_path, damage):
         path.write_bytes(b"\x00{")
     assert LesionCheck.load(tmp_path, meta, [1]) is None
     assert LesionCheck.load(tmp_path / "absent", meta, [1]) is None
+
+
+@pytest.mark.parametrize("content", [b"\x00{", b'{"depths_mm": "x", "lesions": []}', b"[1, 2]"])
+def test_the_report_names_a_damaged_check(tmp_path, content):
+    """The report shows the check's table; a damaged file is named, with the command that
+    writes it again, never a traceback."""
+    from biopsynav.errors import InputError
+    from biopsynav.report.sections import lesion_check_blocks
+
+    path = tmp_path / LESION_CHECK
+    assert lesion_check_blocks(path) == []  # not made: nothing shown
+    path.write_bytes(content)
+    with pytest.raises(InputError) as err:
+        lesion_check_blocks(path)
+    assert LESION_CHECK in str(err.value) and "biopsynav evaluate" in str(err.value)
