@@ -4,7 +4,7 @@
 
     python benchmarks/truth_agreement.py [CASE] [--lesion-ids 1,5] [--depths 10 20 30]
                                          [--tet-size 10] [--tet-fine 4] [--orders 2 3]
-                                         [--h-fine 2.8 2]
+                                         [--h-fine 2.8 2] [--rim 1] [--rim-fine 0.5]
                                          [--quadrature-degree 5] [--intorder 5]
                                          [--stored src/biopsynav/data/truths/phantom.json]
                                          [--push-minutes 20] [--out FILE]
@@ -28,17 +28,23 @@ with the E and nu of the case's default tissue. Answered by:
   ``--orders`` with no order leaves NGSolve out;
 * ``p2 hF``: biopsynav's P2 on a mesh refined near the probe, ``F`` mm within 35 mm of it
   for each F of ``--h-fine`` (h refinement: how far the P2 answer is from converged in the
-  mesh size where the probe deforms the tissue most).
+  mesh size where the probe deforms the tissue most);
+* ``p2 rR``: biopsynav's P2 with tetrahedra of ``R`` mm along the edge of the probe face at
+  rest for each R of ``--rim-fine`` (rim refinement: the glued skin is the skin vertices
+  under the face, so its outline, and with it the held area, is as coarse as the mesh
+  there; ``--rim`` gives every mesh, the first one's and ``--h-fine``'s, a rim of that
+  size).
 
 Printed per lesion and depth: each answer's lesion displacement |u| (mm) and the distance
 between displacement vectors: p2 against NGSolve p2 (the two codes on one discretisation),
 NGSolve p2 against its higher orders (p convergence), p2 against p2 on each finer mesh and
-each finer mesh against the one before it in ``--h-fine``'s order (h convergence), and, with
+each finer mesh against the one before it in ``--h-fine``'s (or ``--rim-fine``'s) order (h
+and rim convergence), and, with
 ``--stored`` (a truth file of ``truth.py``: the probe a rigid body on which reached skin
 slides), the stored truth against p2 glued (what the probe body changes: the contact model).
 Writes
 ``benchmarks/results/truth-agreement-<case>.json``; the last line reads ``RESULT
-codes_max_mm=... p_max_mm=... h_max_mm=... contact_max_mm=...`` (the largest of each
+codes_max_mm=... p_max_mm=... h_max_mm=... rim_max_mm=... contact_max_mm=...`` (the largest of each
 distance; nan where not asked).
 """
 
@@ -70,19 +76,22 @@ def load_case(case_dir: Path | None, scratch: Path):
 
 
 def glued_model(case, e_mpa: float, nu: float, placement, args,
-                fine_mm: float | None = None) -> SimpleNamespace:
+                fine_mm: float | None = None, rim_mm: float | None = None) -> SimpleNamespace:
     """biopsynav's P2 model meshed for ``placement`` and the glued face's node sets, taken
     alike by both codes: the skin vertices the face touches at rest (the tracker's rule) and
     the edge midpoints between two of them (a rigid translation's quadratic trace); the chest
     wall's vertices and the midpoints between two of them. ``fine_mm``: the tetrahedra near
-    the probe (default ``--tet-fine``)."""
-    from biopsynav.evaluate.p2 import EDGES, TetReference
+    the probe (default ``--tet-fine``), ``rim_mm`` those along the face's edge at rest
+    (default ``--rim``; 0: no rim)."""
+    from biopsynav.evaluate.p2 import EDGES, TetReference, rim_at
 
     probe = case.cfg.probe
     ref = TetReference.build(case.anatomy, args.tet_size, e_mpa, nu,
                              fine_at=placement.pose[:3, 3],
                              fine_mm=args.tet_fine if fine_mm is None else fine_mm,
-                             quadrature_degree=args.quadrature_degree)
+                             quadrature_degree=args.quadrature_degree,
+                             rim=rim_at(placement.pose, probe.footprint,
+                                        args.rim if rim_mm is None else rim_mm))
     n_vertices = int(ref.corners.max()) + 1
     touched = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
     held = touched[touched < n_vertices]
@@ -156,9 +165,10 @@ def stored_truth(path: Path | None, case) -> dict:
 
 
 def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
-                stored: dict, finer: dict[float, list] | None = None) -> list[dict]:
+                stored: dict, finer: dict[str, list] | None = None) -> list[dict]:
     """One row per depth of lesion index ``li``: every answer's |u| and the distances
-    (``finer``: the P2 answers on each finer mesh, by its size near the probe, mm)."""
+    (``finer``: the P2 answers on each finer mesh, by its label of :func:`refinements`; each
+    also against the one before it of its kind)."""
     rows = []
     body = stored.get(str(li), {}).get("displacement", [None] * len(depths))
     body_depths = stored.get(str(li), {}).get("depths_mm", depths)
@@ -171,12 +181,12 @@ def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
                 row[f"p{order}_mm"] = distance(ng[2]["displacement"][k],
                                                ng[order]["displacement"][k])
         coarser = None  # the answer of the mesh before, for the step of each refinement
-        for fine, answers in (finer or {}).items():
-            row[f"p2_h{fine:g}"] = answers[k]
-            row[f"h{fine:g}_mm"] = distance(p2[k], answers[k])
-            if coarser is not None:
-                row[f"{step_key(coarser[0], fine)}"] = distance(coarser[1][k], answers[k])
-            coarser = (fine, answers)
+        for label, answers in (finer or {}).items():
+            row[f"p2_{label}"] = answers[k]
+            row[f"{label}_mm"] = distance(p2[k], answers[k])
+            if coarser is not None and coarser[0][0] == label[0]:
+                row[step_key(coarser[0], label)] = distance(coarser[1][k], answers[k])
+            coarser = (label, answers)
         stored_k = body[body_depths.index(depth)] if depth in body_depths else None
         row["probe_body"] = stored_k
         row["contact_mm"] = distance(stored_k, p2[k])
@@ -184,10 +194,20 @@ def lesion_rows(li: int, depths: list[float], p2: list, ng: dict[int, dict],
     return rows
 
 
-def step_key(coarser: float, fine: float) -> str:
-    """The row key of the distance between the P2 answers on two successive finer meshes (their
-    sizes near the probe, mm): how far one more refinement moves the lesion."""
-    return f"h{coarser:g}-h{fine:g}_mm"
+def step_key(coarser: str, fine: str) -> str:
+    """The row key of the distance between the P2 answers on two successive finer meshes of
+    one kind (their labels, :func:`refinements`): how far one more refinement moves the
+    lesion."""
+    return f"{coarser}-{fine}_mm"
+
+
+def refinements(args) -> dict[str, tuple[float, float]]:
+    """The finer meshes asked for, label -> (tetrahedron size near the probe, along the face's
+    edge) mm, in order: ``hF`` for each F of ``--h-fine`` (with ``--rim``), then ``rR`` for
+    each R of ``--rim-fine`` (with ``--tet-fine``)."""
+    out = {f"h{f:g}": (f, args.rim) for f in args.h_fine}
+    out.update({f"r{r:g}": (args.tet_fine, r) for r in args.rim_fine})
+    return out
 
 
 def failed_text(facts: dict) -> str:
@@ -203,19 +223,21 @@ def num_text(v) -> str:
     return "-" if v is None else f"{v:6.3f}"
 
 
-def print_rows(rows: list[dict], orders: list[int], fines: list[float] = ()) -> None:
-    """The table: |u| of each answer and the distances, mm."""
+def print_rows(rows: list[dict], orders: list[int], labels: list[str] = ()) -> None:
+    """The table: |u| of each answer and the distances, mm (``labels``: the finer meshes',
+    :func:`refinements`)."""
     higher = [o for o in orders if o != 2]
-    steps = list(zip(fines[:-1], fines[1:], strict=True))  # successive refinements
+    steps = [(a, b) for a, b in zip(labels[:-1], labels[1:], strict=True)
+             if a[0] == b[0]]  # successive refinements of one kind
     head = (["lesion", "depth", "|u| p2", *[f"|u| ng p{o}" for o in orders], "p2-ng"]
-            + [f"ng p2-p{o}" for o in higher] + [f"p2-h{f:g}" for f in fines]
-            + [f"h{a:g}-h{b:g}" for a, b in steps] + ["|u| body", "body-glued"])
+            + [f"ng p2-p{o}" for o in higher] + [f"p2-{f}" for f in labels]
+            + [f"{a}-{b}" for a, b in steps] + ["|u| body", "body-glued"])
     print("  ".join(f"{h:>9}" for h in head))
     for r in rows:
         cells = ([str(r["lesion"]), f"{r['depth_mm']:g}", norm_text(r["p2"])]
                  + [norm_text(r.get(f"ngsolve_p{o}")) for o in orders] + [num_text(r["codes_mm"])]
                  + [num_text(r.get(f"p{o}_mm")) for o in higher]
-                 + [num_text(r.get(f"h{f:g}_mm")) for f in fines]
+                 + [num_text(r.get(f"{f}_mm")) for f in labels]
                  + [num_text(r.get(step_key(a, b))) for a, b in steps]
                  + [norm_text(r["probe_body"]), num_text(r["contact_mm"])])
         print("  ".join(f"{c:>9}" for c in cells), flush=True)
@@ -254,6 +276,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="biopsynav's P2 again with tetrahedra of these sizes within 35 mm of "
                         "the probe, mm (h refinement; each below --tet-fine)")
     add_quadrature_argument(p)
+    p.add_argument("--rim", type=non_negative_mm, default=0.0,
+                   help="tetrahedra of this size (mm) along the face's edge at rest in the "
+                        "first mesh and those of --h-fine (0: none)")
+    p.add_argument("--rim-fine", type=non_negative_mm, nargs="*", default=[],
+                   help="further meshes of --tet-fine near the probe with tetrahedra of each "
+                        "of these sizes along the face's edge, mm (rim refinement; each below "
+                        "--rim when it is set)")
     p.add_argument("--intorder", type=rule_degree, default=5,
                    help="degree of NGSolve's quadrature rule (2 or more)")
     p.add_argument("--push-minutes", type=float, default=0.0,
@@ -269,6 +298,9 @@ def main(argv: list[str] | None = None) -> int:
     if not all(0 < f < args.tet_fine for f in args.h_fine):
         p.error(f"--h-fine: each size above 0 and below --tet-fine ({args.tet_fine:g} mm): a "
                 "finer mesh")
+    if not all(0 < r and (args.rim == 0 or r < args.rim) for r in args.rim_fine):
+        p.error(f"--rim-fine: each size above 0 (and below --rim, {args.rim:g} mm, when set): "
+                "a finer rim")
     sys.stdout.reconfigure(line_buffering=True)
     with tempfile.TemporaryDirectory(prefix="agree-") as scratch:  # the phantom, if made
         case, name = load_case(args.case_dir, Path(scratch))
@@ -292,33 +324,36 @@ def agree(case, name: str, args) -> int:
         ng = {o: ngsolve_glued(model, e_mpa, nu, placement, lesion, args.depths, o,
                                args.intorder)
               for o in args.orders}
-        finer = {fine: p2_glued(glued_model(case, e_mpa, nu, placement, args, fine),
-                                placement, lesion, args.depths, args)
-                 for fine in args.h_fine}  # size near the probe -> (answers, facts)
+        finer = {label: p2_glued(glued_model(case, e_mpa, nu, placement, args, fine, rim),
+                                 placement, lesion, args.depths, args)
+                 for label, (fine, rim) in refinements(args).items()}  # -> (answers, facts)
         facts[str(li)] = {"p2": p2_facts,
-                          **{f"p2_h{fine:g}": f for fine, (_, f) in finer.items()},
+                          **{f"p2_{label}": f for label, (_, f) in finer.items()},
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
                              for o, a in ng.items()}}
         parts = ([f"P2 {p2_facts['dofs']} dofs {p2_facts['seconds']:.0f} s"
                   + failed_text(p2_facts)]
                  + [f"NGSolve p{o} {a['dofs']} dofs {a['seconds']:.0f} s" + failed_text(a)
                     for o, a in ng.items()]
-                 + [f"P2 {f['dofs']} dofs, {fine:g} mm near the probe, {f['seconds']:.0f} s"
-                    + failed_text(f)
-                    for fine, (_, f) in finer.items()])
+                 + [f"P2 {f['dofs']} dofs, mesh {label}, {f['seconds']:.0f} s" + failed_text(f)
+                    for label, (_, f) in finer.items()])
         print(f"lesion {li} (id {case.anatomy.lesions[li].id}): " + "; ".join(parts),
               flush=True)
         rows += lesion_rows(li, args.depths, p2, ng, stored,
-                            {fine: answers for fine, (answers, _) in finer.items()})
-    print_rows(rows, args.orders, args.h_fine)
+                            {label: answers for label, (answers, _) in finer.items()})
+    labels = list(refinements(args))
+    print_rows(rows, args.orders, labels)
     higher = [o for o in args.orders if o != 2]
     figures = {"codes_max_mm": largest(rows, "codes_mm"),
                "p_max_mm": max((largest(rows, f"p{o}_mm") for o in higher), default=float("nan")),
-               "h_max_mm": max((largest(rows, f"h{f:g}_mm") for f in args.h_fine),
+               "h_max_mm": max((largest(rows, f"{f}_mm") for f in labels if f[0] == "h"),
                                default=float("nan")),
+               "rim_max_mm": max((largest(rows, f"{f}_mm") for f in labels if f[0] == "r"),
+                                 default=float("nan")),
                "contact_max_mm": largest(rows, "contact_mm"),
                "E_mpa": e_mpa, "nu": nu, "tet_size_mm": args.tet_size,
-               "tet_fine_mm": args.tet_fine, "h_fine_mm": args.h_fine,
+               "tet_fine_mm": args.tet_fine, "h_fine_mm": args.h_fine, "rim_mm": args.rim,
+               "rim_fine_mm": args.rim_fine,
                "quadrature_degree": args.quadrature_degree,
                "intorder": args.intorder, "rows": rows, "facts": facts}
     if args.out:
@@ -326,7 +361,8 @@ def agree(case, name: str, args) -> int:
     if not args.no_result_file:
         write_result(args.result_name or f"truth-agreement-{name}", figures)
     print(f"RESULT codes_max_mm={figures['codes_max_mm']:.4f} p_max_mm={figures['p_max_mm']:.4f}"
-          f" h_max_mm={figures['h_max_mm']:.4f} contact_max_mm={figures['contact_max_mm']:.4f}")
+          f" h_max_mm={figures['h_max_mm']:.4f} rim_max_mm={figures['rim_max_mm']:.4f}"
+          f" contact_max_mm={figures['contact_max_mm']:.4f}")
     return 0
 
 

@@ -40,37 +40,45 @@ def test_the_p2_truth_and_ngsolve_agree_on_one_mesh(tmp_path):
 
 
 def test_h_refinement_of_the_p2_truth_alone(tmp_path):
-    """``--orders`` with none and ``--h-fine``: biopsynav's P2 alone, on the coarse mesh and
-    on one refined near the probe; the refinement moves the lesion (a discretisation error
-    that can be told), by less than the push moves it, and the result line names it."""
+    """``--orders`` with none, ``--h-fine`` and ``--rim-fine``: biopsynav's P2 alone, on the
+    coarse mesh, on one refined near the probe and on one refined along the face's edge; each
+    refinement moves the lesion (a discretisation error that can be told), by less than the
+    push moves it, and the result line names both."""
     out = tmp_path / "h.json"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "truth_agreement.py"), "--lesion-ids", "1",
          "--depths", "6", "--tet-size", "20", "--tet-fine", "12", "--orders", "--h-fine", "8",
-         "--out", str(out), "--no-result-file"],
+         "--rim-fine", "6", "--out", str(out), "--no-result-file"],
         capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     figures = json.loads(out.read_text())
     (row,) = figures["rows"]
     moved = sum(c * c for c in row["p2"]) ** 0.5
     assert 1e-4 < row["h8_mm"] < 0.5 * moved, (row["h8_mm"], moved)
+    assert 1e-4 < row["r6_mm"] < 0.5 * moved, (row["r6_mm"], moved)
     assert figures["h_max_mm"] == row["h8_mm"] and row["codes_mm"] is None
+    assert figures["rim_max_mm"] == row["r6_mm"] and "h8-r6_mm" not in row
     assert "ngsolve_p2" not in row
     assert f"h_max_mm={row['h8_mm']:.4f}" in proc.stdout.splitlines()[-1]
+    assert f"rim_max_mm={row['r6_mm']:.4f}" in proc.stdout.splitlines()[-1]
 
 
-@pytest.mark.parametrize("sizes", [["12"], ["0"], ["x"]])
-def test_a_refinement_that_is_not_finer_is_refused_before_any_solve(sizes, tmp_path, capsys):
-    """An ``--h-fine`` size no finer than ``--tet-fine`` (or not a size) stops the script with
-    one line naming the option, before a case is made or a file written."""
+@pytest.mark.parametrize("option, sizes", [("--h-fine", ["12"]), ("--h-fine", ["0"]),
+                                           ("--h-fine", ["x"]), ("--rim-fine", ["0"]),
+                                           ("--rim-fine", ["3", "--rim", "2"])])
+def test_a_refinement_that_is_not_finer_is_refused_before_any_solve(option, sizes, tmp_path,
+                                                                      capsys):
+    """An ``--h-fine`` size no finer than ``--tet-fine``, a ``--rim-fine`` size no finer
+    than ``--rim`` (or not a size) stops the script with one line naming the option, before
+    a case is made or a file written."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import truth_agreement
 
     out = tmp_path / "h.json"
     with pytest.raises(SystemExit) as stop:
-        truth_agreement.main(["--tet-fine", "12", "--orders", "--h-fine", *sizes,
+        truth_agreement.main(["--tet-fine", "12", "--orders", option, *sizes,
                               "--out", str(out), "--no-result-file"])
-    assert stop.value.code == 2 and "--h-fine" in capsys.readouterr().err
+    assert stop.value.code == 2 and option in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -81,8 +89,10 @@ def test_each_refinement_step_is_measured_against_the_mesh_before_it(monkeypatch
     import truth_agreement
 
     p2 = [[1.0, 0.0, 0.0]]
-    finer = {2.8: [[1.0, 0.3, 0.0]], 2.0: [[1.0, 0.3, 0.4]]}
+    finer = {"h2.8": [[1.0, 0.3, 0.0]], "h2": [[1.0, 0.3, 0.4]], "r1": [[1.0, 0.0, 0.2]]}
     (row,) = truth_agreement.lesion_rows(0, [10.0], p2, {}, {}, finer)
     assert row["h2.8_mm"] == pytest.approx(0.3) and row["h2_mm"] == pytest.approx(0.5)
-    assert row[truth_agreement.step_key(2.8, 2.0)] == pytest.approx(0.4)
-    assert truth_agreement.step_key(2.8, 2.0) == "h2.8-h2_mm"
+    assert row[truth_agreement.step_key("h2.8", "h2")] == pytest.approx(0.4)
+    assert truth_agreement.step_key("h2.8", "h2") == "h2.8-h2_mm"
+    # a rim refinement is measured against the first mesh, not against the last h mesh
+    assert row["r1_mm"] == pytest.approx(0.2) and "h2-r1_mm" not in row
