@@ -360,6 +360,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           + between_answers("p2_h2.8", "p2_h2")(d), AGREE_CMD + " --orders --h-fine 2.8 2.0 "
           "--depths 10 20 --push-minutes 60 --result-name truth-agreement-phantom-h2"),
      "<= 0.1 mm", "-"),
+    ("the same with tetrahedra of 1 mm along the face's edge at rest in every mesh (the glued "
+     "outline resolved: 428 held nodes on 4 mm, 456 on 2.8 mm), 10 mm: 4 mm against 2.8 mm "
+     "(the h refinement); the 1 mm rim against 0.5 mm (273,288 unknowns; the rim refinement)",
+     Cell("truth-agreement-phantom-rim-d10", per_depth("h2.8_mm", "r0.5_mm"), AGREE_CMD
+          + " --orders --depths 10 --rim 1 --h-fine 2.8 --rim-fine 0.5 --push-minutes 40 "
+          "--result-name truth-agreement-phantom-rim-d10"), "<= 0.1 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
      Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
