@@ -831,8 +831,11 @@ class EvaluateSection:
                                     "on it) or 'slip' (all of it slides without friction, as "
                                     "on ultrasound gel).", choices=P2_FRICTIONS)
     p2_rim_mm: float = opt(0.0, "P2 reference: tetrahedron size along the edge of the probe "
-                                "face at rest, where the skin bends round it (0: no finer rim; "
-                                "docs/experiments.md, 'What stops the truth at 30 mm').",
+                                "face at rest: the outline of the skin held at rest, which "
+                                "otherwise follows the mesh (0: no finer rim, the shipped "
+                                "truths'; 1: converged to 0.1 mm at 10 mm on the phantom, "
+                                "twice the unknowns; docs/evaluation.md, 'The truth "
+                                "against a second FE code').",
                            lo=0.0, hi=100.0)
     p2_edge_radius_mm: float = opt(0.0, "P2 reference: the probe a rigid body whose face's "
                                         "edges are rounded by this radius, mm, with sides "
