@@ -315,6 +315,7 @@ def agree(case, name: str, args) -> int:
     e_mpa, nu = default_tissue_material(case)
     stored = stored_truth(args.stored, case)
     rows, facts = [], {}
+    meshes = refinements(args)  # label -> (size near the probe, rim) mm
     where = None if args.case_dir else "the built-in phantom"
     for li in chosen_lesions(case, 1, args.lesion_ids, where):  # no ids: the first lesion
         placement = place_case_probe(case, li)
@@ -326,7 +327,7 @@ def agree(case, name: str, args) -> int:
               for o in args.orders}
         finer = {label: p2_glued(glued_model(case, e_mpa, nu, placement, args, fine, rim),
                                  placement, lesion, args.depths, args)
-                 for label, (fine, rim) in refinements(args).items()}  # -> (answers, facts)
+                 for label, (fine, rim) in meshes.items()}  # -> (answers, facts)
         facts[str(li)] = {"p2": p2_facts,
                           **{f"p2_{label}": f for label, (_, f) in finer.items()},
                           **{f"ngsolve_p{o}": {k: v for k, v in a.items() if k != "displacement"}
@@ -341,7 +342,7 @@ def agree(case, name: str, args) -> int:
               flush=True)
         rows += lesion_rows(li, args.depths, p2, ng, stored,
                             {label: answers for label, (answers, _) in finer.items()})
-    labels = list(refinements(args))
+    labels = list(meshes)
     print_rows(rows, args.orders, labels)
     higher = [o for o in args.orders if o != 2]
     figures = {"codes_max_mm": largest(rows, "codes_mm"),
