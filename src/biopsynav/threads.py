@@ -94,8 +94,29 @@ def _own_ticks() -> int | None:
 def set_threads(threads: int) -> int:
     """Use ``threads`` intra-op CPU threads (0: :func:`auto_threads`); returns the count."""
     n = threads if threads > 0 else auto_threads()
-    torch.set_num_threads(n)
+    set_torch_threads(n)
     return n
+
+
+def set_torch_threads(n: int) -> None:
+    """``torch.set_num_threads(n)`` that a later numba kernel cannot undo.
+
+    numba's OpenMP thread pool, launched by the process's first parallel kernel (the FE
+    assembly), sets the OpenMP thread count that PyTorch reads to numba's own (every core):
+    a training set to one thread beside a busy core then ran on two, many times slower
+    (docs/network.md, "Training"). The pool is started first, so the count set here stays.
+    """
+    launch_numba_pool()
+    torch.set_num_threads(n)
+
+
+@functools.cache
+def launch_numba_pool() -> None:
+    """Start numba's thread pool now (once per process), so that its start cannot change
+    the OpenMP thread count set after it."""
+    import numba
+
+    numba.get_num_threads()
 
 
 @contextmanager
@@ -110,6 +131,7 @@ def one_thread() -> Iterator[None]:
     torch_threads = torch.get_num_threads()
     # the pools' state is saved before torch's change (torch.set_num_threads also sets the MKL
     # pool) and restored after torch's restore, so each pool ends as it was on entry
+    launch_numba_pool()  # a pool started in the block would set the count restored below
     with threadpool_limits(limits=1):
         torch.set_num_threads(1)
         try:

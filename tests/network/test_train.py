@@ -184,6 +184,39 @@ def test_auto_threads_sees_a_busy_core():
     assert 1 <= threads <= max(1, cores - 1 + (cores == 1))
 
 
+THREADS_AFTER_FE = """
+import sys, numba, torch
+from biopsynav.fem.solver import compile_kernels
+from biopsynav.threads import set_threads
+torch.get_num_threads()  # torch's own pool started, as in a run that has used torch
+if sys.argv[1] == "set_threads":
+    set_threads(1)
+else:
+    torch.set_num_threads(1)
+compile_kernels()  # the process's first parallel numba kernel: one FE solve
+print(torch.get_num_threads(), numba.threading_layer())
+"""
+
+
+def threads_after_fe_kernels(how: str) -> tuple[int, str]:
+    """(torch's thread count, numba's threading layer) in a fresh process that set one
+    thread ``how`` ('set_threads' or 'torch') and then ran the FE kernels."""
+    out = subprocess.run([sys.executable, "-c", THREADS_AFTER_FE, how], capture_output=True,
+                         text=True, timeout=300, check=True).stdout.split()
+    return int(out[-2]), out[-1]
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="needs 2 cores")
+def test_one_training_thread_stays_one_after_the_fe_kernels_start_their_pool():
+    """numba's OpenMP pool, started by the first FE kernel, sets the OpenMP thread count
+    that PyTorch reads to every core (the hazard, shown on torch's own setter); a count set
+    by ``set_threads`` survives it (a training beside a busy core ran 25 times slower)."""
+    raw, layer = threads_after_fe_kernels("torch")
+    if layer == "omp":
+        assert raw > 1, raw  # the hazard that set_threads guards against
+    assert threads_after_fe_kernels("set_threads")[0] == 1
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
 def test_auto_threads_does_not_count_its_own_process():
     """A thread of this process spinning while the cores are sampled is this process's

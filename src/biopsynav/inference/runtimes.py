@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..layout import ONNX, TORCHSCRIPT
-from ..threads import cpu_bf16_unit
+from ..threads import cpu_bf16_unit, set_torch_threads
 
 if TYPE_CHECKING:
     import torch
@@ -83,9 +83,8 @@ class TorchScriptRunner:
     def __init__(self, path: Path, threads: int) -> None:
         import torch
 
-
         self._torch = torch
-        torch.set_num_threads(threads)
+        set_torch_threads(threads)
         try:
             self.module = load_torchscript(path)
         except RuntimeError as exc:

@@ -19,14 +19,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
-import torch
 
 from ..contact.baseline import LinearElasticBaseline
 from ..contact.lesions import PointOperator, point_operator
 from ..contact.projection import ContactProjection
 from ..errors import InputError
 from ..probe import ContactInputOperator
-from ..threads import auto_threads
+from ..threads import auto_threads, set_torch_threads
 from .model_files import check_file, check_fingerprint, read_meta
 from .runtimes import Runner, openvino_available, resolve_runtime  # noqa: F401  (re-exported)
 
@@ -89,7 +88,7 @@ class Surrogate:
             # the baseline's small BLAS calls run in torch's pool; beside a runtime with its
             # own pool one torch thread is faster (two spinning pools fight for the cores:
             # measured 3.6 ms against 5.0 ms per prediction on 2 cores, docs/network.md)
-            torch.set_num_threads(1 if spec.own_threads else n)
+            set_torch_threads(1 if spec.own_threads else n)
         sur = cls(runner, meta, model_dir, baseline)
         sur.warm_up(warmup)
         return sur
