@@ -79,14 +79,19 @@ def test_quick_demo_keeps_the_recipes_choice_of_refine():
 
 def test_the_estimate_prices_a_data_set_of_rigid_pushes_as_rigid_pushes(base_case):
     from biopsynav.case import Case
-    from biopsynav.runtime import REFERENCE, estimate_run, rigid_push_minutes
+    from biopsynav.runtime import (
+        REFERENCE,
+        estimate_run,
+        push_minutes_per_1000,
+        rigid_push_minutes,
+    )
 
     case = Case.load(base_case)
     ref = REFERENCE["probe_s"]
     n = case.cfg.dataset.n_train + case.cfg.dataset.n_test
     case.cfg.probe = dataclasses.replace(case.cfg.probe, rigid_share=1.0)
     assert estimate_run(case, (ref, ref)).minutes["generate"] == pytest.approx(
-        rigid_push_minutes(n, 1.0, 1.0))
+        rigid_push_minutes(n, 1.0, 1.0, push_minutes_per_1000(case)))
 
 
 def test_init_writes_the_recipe_and_run_trains_the_tracking_network_on_pushes(tmp_path):

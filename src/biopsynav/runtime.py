@@ -7,11 +7,12 @@ the case and to this machine today, from three probes of ten U-Net training step
 * **the machine's speed today**: the probe on the reference case's grid against the reference
   run's own probe, so that a slow day of a shared VM lengthens the estimate;
 * **FE stages**: ``generate`` scales with its samples and with the active cells (a solve
-  costs about ``cells^1.3``), times the machine's speed; the rigid pushes of ``[refine]``
-  with their samples and the teacher's refinement cubed, times the machine's speed, from the
-  median of five breasts (:data:`REFINE_PUSH_MINUTES`): their cost is set by the share of
-  deep pushes that need the 4x-spring fallback, which neither the cells nor the data stage
-  predict;
+  costs about ``cells^1.3``), times the machine's speed; rigid pushes (of the data set or of
+  ``[refine]``) with their count and the teacher's refinement cubed, times the machine's
+  speed, from the median of five breasts (:data:`REFINE_PUSH_MINUTES`), or the built-in
+  phantom's own measured cost (:data:`PHANTOM_PUSH_MINUTES`): their cost is set by the
+  share of deep pushes that need the 4x-spring fallback, which neither the cells nor the
+  data stage predict;
 * **training stages**: their iterations times the probe's step on the case's own grid at the
   stage's batch and arithmetic, times :data:`TRAINING_STEP_FACTOR` (what a training
   iteration costs beyond the bare step: data, validation, the best weights' checks);
@@ -48,6 +49,12 @@ PROBE_STEPS = 10  # steps timed after one warm-up; their median
 #: 13 right 4.6 on 2,524, 05 right 7.2 on 3,529, 05 left 6.5 on 3,656, 06 right 6.7 on
 #: 4,068; docs/dataset.md). Not scaled by the cells: they do not predict it.
 REFINE_PUSH_MINUTES = 6.7
+#: The same for the built-in phantom, a fixed anatomy whose own cost is measured: the
+#: ``pushes`` demo's 450 rigid pushes took 5.47 min at a speed probe of 0.86x (Intel Xeon,
+#: alone, 2026-12-06; ``time-to-model-phantom-pushes-amx.json``, its data set's summary):
+#: 14.1 min per 1,000 at the reference machine's speed. Its steep flank makes deep pushes
+#: that need the 4x springs.
+PHANTOM_PUSH_MINUTES = 14.1
 #: Seconds of a training iteration over :func:`probe_seconds`'s step at the same batch, grid
 #: and arithmetic, at the day's speed: the median of five trainings, AMD EPYC, bf16,
 #: 2026-12-04/05 (batch 16: the ``pushes`` runs of the phantom 1.12, UC Davis 1.23 and MRI
@@ -137,13 +144,16 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
     cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
     cfg, m = case.cfg, ref["minutes"]
     samples = cfg.dataset.n_train + cfg.dataset.n_test
+    per_1000 = push_minutes_per_1000(case)
     rigid = cfg.probe.rigid_share * samples  # rigid pushes cost what [refine]'s do
     minutes = {"generate": (m["generate"] * (samples - rigid) / ref["samples"] * cells * slowness
-                            + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, slowness)),
+                            + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, slowness,
+                                                 per_1000)),
                "train": training_minutes(cfg.network.iterations, step)}
     if cfg.refine.samples:
         minutes["refine pushes"] = rigid_push_minutes(cfg.refine.samples,
-                                                      cfg.refine.teacher_refine, slowness)
+                                                      cfg.refine.teacher_refine, slowness,
+                                                      per_1000)
         minutes["refine training"] = training_minutes(cfg.refine.iterations, refine_step)
     minutes["evaluate and report"] = (evaluation_minutes(case)
                                       + lesion_check_minutes(case)) * slowness
@@ -194,11 +204,21 @@ def evaluated_lesions(case) -> int:
     return len(select_lesions(len(case.anatomy.lesions), case.cfg.evaluate.max_lesions))
 
 
-def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float) -> float:
+def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float,
+                       per_1000: float = REFINE_PUSH_MINUTES) -> float:
     """Expected minutes of ``pushes`` rigid-probe pushes on cells ``teacher_refine`` times
-    smaller than the case grid's (:data:`REFINE_PUSH_MINUTES`), at the machine's
+    smaller than the case grid's, ``per_1000`` minutes per 1,000 on the case grid at the
+    reference machine's speed (:func:`push_minutes_per_1000`), at the machine's
     ``slowness``."""
-    return REFINE_PUSH_MINUTES * pushes / REFERENCE["samples"] * teacher_refine ** 3 * slowness
+    return per_1000 * pushes / REFERENCE["samples"] * teacher_refine ** 3 * slowness
+
+
+def push_minutes_per_1000(case) -> float:
+    """Minutes of 1,000 rigid pushes of ``case`` at the reference machine's speed: the
+    built-in phantom's own (:data:`PHANTOM_PUSH_MINUTES`), else the breasts' median
+    (:data:`REFINE_PUSH_MINUTES`)."""
+    phantom = case.cfg.anatomy.source == "phantom"
+    return PHANTOM_PUSH_MINUTES if phantom else REFINE_PUSH_MINUTES
 
 
 #: Table 2 with the fine-grid ground truth (each lesion's pushes in turn, the lesions in two
