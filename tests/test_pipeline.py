@@ -70,6 +70,7 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     from biopsynav.runtime import (
         FE_EXPONENT,
         LESION_CHECK,
+        PHANTOM_ACTIVE_CELLS,
         PHANTOM_PUSH_MINUTES,
         REFERENCE,
         REFINE_PUSH_MINUTES,
@@ -100,14 +101,17 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     for samples in (500, 1000):  # the rigid pushes: their count, not the cells
         case.cfg.refine = dataclasses.replace(case.cfg.refine, samples=samples)
         pushes.append(estimate_run(case, (ref, ref)).minutes["refine pushes"])
-    # the built-in phantom at its own measured cost, any other anatomy at the breasts' median
-    per_1000 = PHANTOM_PUSH_MINUTES if case.cfg.anatomy.source == "phantom" \
-        else REFINE_PUSH_MINUTES
+    # the built-in phantom at its own measured cost (by its cells^1.3), any other anatomy at
+    # the breasts' median
+    phantom = PHANTOM_PUSH_MINUTES * (case.grid.active_cells.sum() / PHANTOM_ACTIVE_CELLS) \
+        ** FE_EXPONENT
+    is_phantom = case.cfg.anatomy.source == "phantom"
+    per_1000 = phantom if is_phantom else REFINE_PUSH_MINUTES
     assert pushes == pytest.approx([0.5 * per_1000, per_1000])
-    case.cfg.anatomy = dataclasses.replace(
-        case.cfg.anatomy, source="labelmap" if case.cfg.anatomy.source == "phantom" else "phantom")
+    case.cfg.anatomy = dataclasses.replace(case.cfg.anatomy,
+                                           source="labelmap" if is_phantom else "phantom")
     other = estimate_run(case, (ref, ref)).minutes["refine pushes"]
-    assert other == pytest.approx(PHANTOM_PUSH_MINUTES + REFINE_PUSH_MINUTES - per_1000)
+    assert other == pytest.approx(phantom + REFINE_PUSH_MINUTES - per_1000)
     assert double.minutes["evaluate and report"] == same.minutes["evaluate and report"]
     case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, deformations_per_lesion=2
                                             * case.cfg.evaluate.deformations_per_lesion)

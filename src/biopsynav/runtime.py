@@ -52,9 +52,10 @@ REFINE_PUSH_MINUTES = 6.7
 #: The same for the built-in phantom, a fixed anatomy whose own cost is measured: the
 #: ``pushes`` demo's 450 rigid pushes took 5.47 min at a speed probe of 0.86x (Intel Xeon,
 #: alone, 2026-12-06; ``time-to-model-phantom-pushes-amx.json``, its data set's summary):
-#: 14.1 min per 1,000 at the reference machine's speed. Its steep flank makes deep pushes
-#: that need the 4x springs.
+#: 14.1 min per 1,000 at the reference machine's speed, on its 2,225 active cells of 7.3 mm.
+#: Its steep flank makes deep pushes that need the 4x springs.
 PHANTOM_PUSH_MINUTES = 14.1
+PHANTOM_ACTIVE_CELLS = 2225
 #: Seconds of a training iteration over :func:`probe_seconds`'s step at the same batch, grid
 #: and arithmetic, at the day's speed: the median of five trainings, AMD EPYC, bf16,
 #: 2026-12-04/05 (batch 16: the ``pushes`` runs of the phantom 1.12, UC Davis 1.23 and MRI
@@ -215,10 +216,13 @@ def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float,
 
 def push_minutes_per_1000(case) -> float:
     """Minutes of 1,000 rigid pushes of ``case`` at the reference machine's speed: the
-    built-in phantom's own (:data:`PHANTOM_PUSH_MINUTES`), else the breasts' median
+    built-in phantom's own (:data:`PHANTOM_PUSH_MINUTES`, scaled by its grid's active
+    cells^1.3: the same anatomy on other cells), else the breasts' median
     (:data:`REFINE_PUSH_MINUTES`)."""
-    phantom = case.cfg.anatomy.source == "phantom"
-    return PHANTOM_PUSH_MINUTES if phantom else REFINE_PUSH_MINUTES
+    if case.cfg.anatomy.source != "phantom":
+        return REFINE_PUSH_MINUTES
+    cells = float(case.grid.active_cells.sum()) / PHANTOM_ACTIVE_CELLS
+    return PHANTOM_PUSH_MINUTES * cells ** FE_EXPONENT
 
 
 #: Table 2 with the fine-grid ground truth (each lesion's pushes in turn, the lesions in two
