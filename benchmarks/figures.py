@@ -366,6 +366,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("truth-agreement-phantom-rim-d10", per_depth("h2.8_mm", "r0.5_mm"), AGREE_CMD
           + " --orders --depths 10 --rim 1 --h-fine 2.8 --rim-fine 0.5 --push-minutes 40 "
           "--result-name truth-agreement-phantom-rim-d10"), "<= 0.1 mm", "-"),
+    ("the same 1 mm rim mesh (4 mm near the probe, 106,518 unknowns), 10 mm: between the two "
+     "codes (NGSolve's P2 on the same tetrahedra, the same held nodes)",
+     Cell("truth-agreement-phantom-rim-ng-d10", per_depth("codes_mm"), AGREE_CMD
+          + " --depths 10 --rim 1 --orders 2 --result-name truth-agreement-phantom-rim-ng-d10"),
+     "<= 0.2 mm at 30 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
      Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
