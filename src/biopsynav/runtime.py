@@ -184,7 +184,7 @@ def evaluation_minutes(case) -> float:
 #: on the teacher's grid in two processes): the phantom's default model (10 lesions, 2,225
 #: active cells), alone, Intel Xeon, 2026-12-06: 73 s at a speed probe of 0.91x, 1.35 min at
 #: the reference machine's speed
-LESION_CHECK = {"active_cells": 2225, "lesions": 10, "minutes": 1.35}
+LESION_CHECK = {"active_cells": PHANTOM_ACTIVE_CELLS, "lesions": 10, "minutes": 1.35}
 
 
 def lesion_check_minutes(case) -> float:
@@ -206,7 +206,7 @@ def evaluated_lesions(case) -> int:
 
 
 def rigid_push_minutes(pushes: float, teacher_refine: float, slowness: float,
-                       per_1000: float = REFINE_PUSH_MINUTES) -> float:
+                       per_1000: float) -> float:
     """Expected minutes of ``pushes`` rigid-probe pushes on cells ``teacher_refine`` times
     smaller than the case grid's, ``per_1000`` minutes per 1,000 on the case grid at the
     reference machine's speed (:func:`push_minutes_per_1000`), at the machine's
