@@ -371,6 +371,18 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("truth-agreement-phantom-rim-ng-d10", per_depth("codes_mm"), AGREE_CMD
           + " --depths 10 --rim 1 --orders 2 --result-name truth-agreement-phantom-rim-ng-d10"),
      "<= 0.2 mm at 30 mm", "-"),
+    ("the truth's own contact model (the probe body, a sticking face) with its edges rounded "
+     "by 2.5 mm, phantom lesion 1, 10 mm: a 2 mm rim against 1 mm (62,598 and 106,518 "
+     "unknowns; 20 mm answered by the 2 mm rim alone, 30 mm by neither); the stored truth "
+     "(sharp edges, no rim) against the 1 mm rim's answer",
+     Cell("truth-refinement-phantom-edge25-stick",
+          lambda d: "; ".join(depth_series(d["figures"]["rows"], k) + " mm" for k in
+                              ("step_rim2_rim1_mm", "stored_truth_to_finest_mm")),
+          "python benchmarks/truth.py CASE --lesion-ids 1 --depths 10 20 30 --edge-radius 2.5 "
+          "--tet-rim R --reference-only --reference rimR.json (R = 2, 1); python "
+          "benchmarks/truth_refinement.py rim2=rim2.json rim1=rim1.json --stored "
+          "src/biopsynav/data/truths/phantom.json --result-name "
+          "truth-refinement-phantom-edge25-stick"), "<= 0.1 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
      Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
