@@ -383,6 +383,17 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "benchmarks/truth_refinement.py rim2=rim2.json rim1=rim1.json --stored "
           "src/biopsynav/data/truths/phantom.json --result-name "
           "truth-refinement-phantom-edge25-stick"), "<= 0.1 mm", "-"),
+    ("the same rounded-edge truth without a rim, phantom lesion 1, at the depths both answer: "
+     "4 mm tetrahedra near the probe (55,446 unknowns) against 2.8 mm (112,761; the h "
+     "refinement); the stored truth (sharp edges, 4 mm) against the 2.8 mm answer",
+     Cell("truth-refinement-phantom-edge25-norim",
+          lambda d: "; ".join(depth_series(d["figures"]["rows"], k) + " mm" for k in
+                              ("step_f4_f28_mm", "stored_truth_to_finest_mm")),
+          "python benchmarks/truth.py CASE --lesion-ids 1 --depths 10 20 30 --edge-radius 2.5 "
+          "--tet-fine F --reference-only --reference fF.json (F = 4, 2.8); python "
+          "benchmarks/truth_refinement.py f4=f4.json f28=f28.json --stored "
+          "src/biopsynav/data/truths/phantom.json --result-name "
+          "truth-refinement-phantom-edge25-norim"), "<= 0.1 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
      Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
