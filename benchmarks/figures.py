@@ -376,8 +376,7 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "unknowns; 20 mm answered by the 2 mm rim alone, 30 mm by neither); the stored truth "
      "(sharp edges, no rim) against the 1 mm rim's answer",
      Cell("truth-refinement-phantom-edge25-stick",
-          lambda d: "; ".join(depth_series(d["figures"]["rows"], k) + " mm" for k in
-                              ("step_rim2_rim1_mm", "stored_truth_to_finest_mm")),
+          per_depth("step_rim2_rim1_mm", "stored_truth_to_finest_mm"),
           "python benchmarks/truth.py CASE --lesion-ids 1 --depths 10 20 30 --edge-radius 2.5 "
           "--tet-rim R --reference-only --reference rimR.json (R = 2, 1); python "
           "benchmarks/truth_refinement.py rim2=rim2.json rim1=rim1.json --stored "
@@ -387,8 +386,7 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "4 mm tetrahedra near the probe (55,446 unknowns) against 2.8 mm (112,761; the h "
      "refinement); the stored truth (sharp edges, 4 mm) against the 2.8 mm answer",
      Cell("truth-refinement-phantom-edge25-norim",
-          lambda d: "; ".join(depth_series(d["figures"]["rows"], k) + " mm" for k in
-                              ("step_f4_f28_mm", "stored_truth_to_finest_mm")),
+          per_depth("step_f4_f28_mm", "stored_truth_to_finest_mm"),
           "python benchmarks/truth.py CASE --lesion-ids 1 --depths 10 20 30 --edge-radius 2.5 "
           "--tet-fine F --reference-only --reference fF.json (F = 4, 2.8); python "
           "benchmarks/truth_refinement.py f4=f4.json f28=f28.json --stored "
