@@ -53,3 +53,9 @@ def write_result(name: str, figures: dict, **extra) -> Path:
     os.replace(tmp, path)
     print(f"result file: {path.relative_to(RESULTS.parent.parent)}", flush=True)
     return path
+
+
+def result_line(figures: dict, keys: tuple[str, ...], digits: int = 4) -> str:
+    """A benchmark's last line: ``RESULT key=value ...`` of ``figures``' ``keys`` (floats to
+    ``digits`` decimals)."""
+    return "RESULT " + " ".join(f"{k}={figures[k]:.{digits}f}" for k in keys)

@@ -61,7 +61,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from convergence import add_quadrature_argument, chosen_lesions, non_negative_mm
-from resultfile import write_result
+from resultfile import result_line, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -361,9 +361,8 @@ def agree(case, name: str, args) -> int:
         args.out.write_text(json.dumps(figures, indent=1))
     if not args.no_result_file:
         write_result(args.result_name or f"truth-agreement-{name}", figures)
-    print(f"RESULT codes_max_mm={figures['codes_max_mm']:.4f} p_max_mm={figures['p_max_mm']:.4f}"
-          f" h_max_mm={figures['h_max_mm']:.4f} rim_max_mm={figures['rim_max_mm']:.4f}"
-          f" contact_max_mm={figures['contact_max_mm']:.4f}")
+    print(result_line(figures, ("codes_max_mm", "p_max_mm", "h_max_mm", "rim_max_mm",
+                                "contact_max_mm")))
     return 0
 
 

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from resultfile import write_result
+from resultfile import result_line, write_result
 
 #: Keys of a reference's ``key`` that must match for two files to answer one problem
 SAME_PROBLEM = ("anatomy", "E_mpa", "nu", "footprint")
@@ -156,9 +156,7 @@ def main(argv: list[str] | None = None) -> int:
                "stored": str(args.stored) if args.stored else None, "rows": rows}
     if not args.no_result_file:
         write_result(args.result_name or f"truth-refinement-{labels[0]}-{labels[-1]}", figures)
-    print(f"RESULT step_max_mm={figures['step_max_mm']:.4f} "
-          f"finest_max_mm={figures['finest_max_mm']:.4f} "
-          f"stored_max_mm={figures['stored_max_mm']:.4f}")
+    print(result_line(figures, ("step_max_mm", "finest_max_mm", "stored_max_mm")))
     return 0
 
 
