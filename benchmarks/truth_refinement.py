@@ -137,12 +137,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--result-name", default=None)
     p.add_argument("--no-result-file", action="store_true")
     args = p.parse_args(argv)
-    files = {label: read_reference(path) for label, path in args.files}
-    if len(files) < 2:
+    labels = [label for label, _ in args.files]
+    if len(labels) < 2 or len(set(labels)) < len(labels):
         p.error("give two or more LABEL=FILE, coarse to fine, with distinct labels")
-    check_same_problem(files)
+    files = {label: read_reference(path) for label, path in args.files}
     stored = read_reference(args.stored) if args.stored else None
-    labels = list(files)
+    check_same_problem({**files, **({"--stored": stored} if stored else {})})
     rows = rows_of(files, stored)
     if not rows:
         raise SystemExit("no lesion and depth answered by every file")

@@ -62,3 +62,13 @@ def test_a_file_that_is_no_reference_is_named(tmp_path, refinement):
     bad.write_text("{}")
     with pytest.raises(SystemExit, match="bad.json: not a truth.py reference file"):
         refinement.main([f"a={a}", f"b={bad}", "--no-result-file"])
+
+
+def test_a_stored_truth_of_another_problem_and_repeated_labels_are_refused(tmp_path, refinement):
+    a = _reference(tmp_path / "a.json", {"0": [[1, 0, 0], [2, 0, 0]]}, 2.0)
+    b = _reference(tmp_path / "b.json", {"0": [[1, 0, 0], [2, 0, 0]]}, 1.0)
+    other = _reference(tmp_path / "other.json", {"0": [[1, 0, 0], [2, 0, 0]]}, 0.0, nu=0.49)
+    with pytest.raises(SystemExit, match="--stored and a differ in 'nu'"):
+        refinement.main([f"a={a}", f"b={b}", "--stored", str(other), "--no-result-file"])
+    with pytest.raises(SystemExit):  # argparse's error: one file would be lost
+        refinement.main([f"a={a}", f"a={b}", f"c={b}", "--no-result-file"])
