@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from resultfile import result_line, write_result
+from truth_agreement import distance, largest
 
 #: Keys of a reference's ``key`` that must match for two files to answer one problem
 SAME_PROBLEM = ("anatomy", "E_mpa", "nu", "footprint")
@@ -83,14 +84,10 @@ def answers(data: dict) -> dict[tuple[str, float], np.ndarray]:
     return out
 
 
-def distance(a: np.ndarray | None, b: np.ndarray | None) -> float:
-    """|a - b| (mm), nan when either is missing."""
-    return float("nan") if a is None or b is None else float(np.linalg.norm(a - b))
-
-
 def rows_of(files: dict[str, dict], stored: dict | None) -> list[dict]:
     """One row per (lesion, depth) that every file answered: |u| of each file, each file's
-    distance to the one before and to the last, the stored truth's to the last."""
+    distance to the one before and to the last, the stored truth's to the last (None
+    where it has no answer there)."""
     labels = list(files)
     solved = {label: answers(data) for label, data in files.items()}
     common = sorted(set.intersection(*(set(s) for s in solved.values())),
@@ -110,12 +107,6 @@ def rows_of(files: dict[str, dict], stored: dict | None) -> list[dict]:
     return rows
 
 
-def largest(rows: list[dict], keys: list[str]) -> float:
-    """The largest finite value of ``keys`` over ``rows``; nan when none."""
-    vals = [r[k] for r in rows for k in keys if np.isfinite(r.get(k, float("nan")))]
-    return max(vals) if vals else float("nan")
-
-
 def print_rows(rows: list[dict], labels: list[str]) -> None:
     """The table: lesion, depth, each |u|, each step, the stored truth's distance."""
     steps = [f"step_{a}_{b}_mm" for a, b in pairwise(labels)]
@@ -125,7 +116,8 @@ def print_rows(rows: list[dict], labels: list[str]) -> None:
     for r in rows:
         vals = ([r["lesion"], r["depth_mm"]] + [r[f"u_{label}_mm"] for label in labels]
                 + [r[k] for k in steps] + [r["stored_truth_to_finest_mm"]])
-        print(" ".join(f"{v:>12.3f}" if isinstance(v, float) else f"{v:>12}" for v in vals))
+        print(" ".join(f"{v:>12.3f}" if isinstance(v, float) else f"{'-' if v is None else v:>12}"
+                       for v in vals))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,9 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         raise SystemExit("no lesion and depth answered by every file")
     print_rows(rows, labels)
-    figures = {"step_max_mm": largest(rows, [f"step_{labels[-2]}_{labels[-1]}_mm"]),
-               "finest_max_mm": largest(rows, [f"finest_{label}_mm" for label in labels[:-1]]),
-               "stored_max_mm": largest(rows, ["stored_truth_to_finest_mm"]),
+    figures = {"step_max_mm": largest(rows, f"step_{labels[-2]}_{labels[-1]}_mm"),
+               "finest_max_mm": max(largest(rows, f"finest_{label}_mm")
+                                    for label in labels[:-1]),
+               "stored_max_mm": largest(rows, "stored_truth_to_finest_mm"),
                "files": {label: {"path": str(path),
                                  **{k: files[label]["key"].get(k) for k in RESOLUTION}}
                          for label, path in args.files},
