@@ -72,3 +72,10 @@ def test_a_stored_truth_of_another_problem_and_repeated_labels_are_refused(tmp_p
         refinement.main([f"a={a}", f"b={b}", "--stored", str(other), "--no-result-file"])
     with pytest.raises(SystemExit):  # argparse's error: one file would be lost
         refinement.main([f"a={a}", f"a={b}", f"c={b}", "--no-result-file"])
+
+
+def test_a_file_without_its_label_is_refused_naming_the_form(tmp_path, refinement, capsys):
+    a = _reference(tmp_path / "a.json", {"0": [[1, 0, 0], [2, 0, 0]]}, 2.0)
+    with pytest.raises(SystemExit):
+        refinement.main([f"a={a}", str(a), "--no-result-file"])
+    assert "expected LABEL=FILE" in capsys.readouterr().err
