@@ -19,7 +19,6 @@ import tomli_w
 import tomllib
 
 from .contact.constraints import contact_constraint_names
-from .designs import design_names
 from .errors import InputError
 from .fileio import write_text_atomic
 from .footprint import Footprint, footprint_names, make_footprint
@@ -298,16 +297,6 @@ class ProbeSection:
                                             "the default keeps the former protocol "
                                             "(docs/dataset.md, protocol step 6).",
                                choices=("elsewhere", "same-place"))
-    train_design: str = opt("random", "How the training force patches draw their place, "
-                                      "angle, tilt and force (biopsynav.designs registry): "
-                                      "'random', independent draws (the paper's protocol); "
-                                      "'sobol', the first attempt of training patch k takes "
-                                      "point k of a scrambled Sobol sequence (its centre along "
-                                      "a Hilbert curve through the skin), each patch as likely "
-                                      "as a random one but the set spread evenly over their "
-                                      "joint range. Held-out patches and rigid pushes are "
-                                      "always random (docs/dataset.md).",
-                            choices=design_names)
     calibrate_force: bool = opt(True, "Before generation, set the data set's force range "
                                       "for the breast at hand: f_max_n is searched (from the "
                                       "value above) until 90 % of calibration_pushes "

@@ -62,7 +62,6 @@ import scipy.sparse as sp
 
 from .anatomy.model import Anatomy
 from .config import ProbeSection
-from .designs import TRAIN_DESIGNS, hilbert_order
 from .errors import InputError
 from .footprint import Footprint, as_footprint
 
@@ -189,26 +188,6 @@ def eligible_centers(anatomy: Anatomy, min_chest_distance_mm: float) -> np.ndarr
     return found
 
 
-def designed_centre(anatomy: Anatomy, centers: np.ndarray, u: float) -> int:
-    """The centre vertex that the designed number ``u`` (0-1) picks: the ``floor(u n)``-th of
-    the ``n`` vertices ``centers`` along a Hilbert curve through their positions
-    (:func:`biopsynav.designs.hilbert_order`), so near numbers pick near places and each
-    vertex is as likely as under a random draw."""
-    along = np.asarray(centers)[hilbert_order(anatomy.vertices[np.asarray(centers)])]
-    return int(along[min(int(u * len(along)), len(along) - 1)])
-
-
-def patch_design(probe: ProbeSection, seed: int, index: int, attempt: int, rigid: bool,
-                 training: bool) -> np.ndarray | None:
-    """The designed numbers (:mod:`biopsynav.designs`, ``[probe] train_design``) of draw index
-    ``index`` (:func:`draw_index`), draw ``attempt``: a training force patch's first attempt
-    only (its number among the force patches picks the design's point), None for the rest."""
-    if rigid or not training or attempt != 0:
-        return None
-    number = index - PATCH_DRAWS if index >= PATCH_DRAWS else index
-    return TRAIN_DESIGNS[probe.train_design](seed, number)
-
-
 def tilted_direction(normal: np.ndarray, tilt_rad: float, axis_angle_rad: float) -> np.ndarray:
     """``-normal`` rotated by ``tilt_rad`` about the tangent axis at ``axis_angle_rad`` in the
     plane of :func:`tangent_basis`; a unit vector (3,) with ``d . normal = -cos(tilt)``."""
@@ -227,8 +206,7 @@ def sample_rng(seed: int, index: int, attempt: int) -> np.random.Generator:
 def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
               centers: np.ndarray | None = None, attempt: int = 0,
               rigid: bool = False, pinned: np.ndarray | None = None,
-              force_exponent: float = 1.0, force_scale: float = 1.0,
-              design: np.ndarray | None = None) -> ProbePush:
+              force_exponent: float = 1.0, force_scale: float = 1.0) -> ProbePush:
     """One random push following the protocol (module docstring); ``rigid``: a rigid-probe
     push instead (contact within ``contact_tolerance_mm`` of the face, tilt within
     ``rigid_max_tilt_deg``, a depth uniform in ``[0, deepest_rigid_push]`` instead of the force; a
@@ -239,20 +217,14 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
     force or depth) is part of the protocol: changing it changes every sample.
     ``force_exponent``, ``force_scale``: the force (N) is ``force_scale f_max_n
     u^force_exponent`` (1, 1: uniform in ``[0, f_max_n]``; the same random numbers whatever
-    they are, so the patch and tilt do not depend on them). ``design``: the five uniform
-    numbers of a designed draw (:mod:`biopsynav.designs`: centre along the Hilbert curve,
-    angle, tilt axis, tilt, force), used instead of ``rng``'s (whose draws are then taken only
-    for a redrawn patch); None: every number from ``rng``.
+    they are, so the patch and tilt do not depend on them).
     """
     if centers is None:
         centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
     tol = probe.contact_tolerance_mm if rigid else probe.depth_tolerance_mm
-    for tries in range(MAX_PATCH_DRAWS):
-        if design is not None and tries == 0:
-            vertex, angle = designed_centre(anatomy, centers, design[0]), np.pi * design[1]
-        else:
-            vertex = int(centers[rng.integers(len(centers))])
-            angle = rng.uniform(0.0, np.pi)  # a footprint is symmetric under a half turn
+    for _ in range(MAX_PATCH_DRAWS):
+        vertex = int(centers[rng.integers(len(centers))])
+        angle = rng.uniform(0.0, np.pi)  # a footprint is symmetric under a half turn
         normal = anatomy.normals[vertex] / np.linalg.norm(anatomy.normals[vertex])
         long_axis, short_axis = probe_frame(normal, angle)
         contact = probe_patch(anatomy, vertex, long_axis, probe.footprint, tol)
@@ -266,12 +238,13 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
                          "footprint" + (" (a rigid push also avoids skin in grid cells anchored "
                                         "to the chest wall)" if rigid else ""),
                          "[probe] min_contact_points")
-    u = design[2:] if design is not None else rng.uniform(0.0, 1.0, 3)
+    axis_angle = rng.uniform(0.0, 2.0 * np.pi)
     max_tilt = probe.rigid_max_tilt_deg if rigid else probe.max_tilt_deg
-    tilt = np.radians(-max_tilt + 2.0 * max_tilt * u[1])  # as rng.uniform(-max, max)
-    direction = tilted_direction(normal, tilt, 2.0 * np.pi * u[0])
-    amount = float(deepest_rigid_push(anatomy, probe, contact, direction) * u[2] if rigid
-                   else force_scale * probe.f_max_n * u[2] ** force_exponent)
+    tilt = np.radians(rng.uniform(-max_tilt, max_tilt))
+    direction = tilted_direction(normal, tilt, axis_angle)
+    amount = float(rng.uniform(0.0, deepest_rigid_push(anatomy, probe, contact, direction))
+                   if rigid else
+                   force_scale * probe.f_max_n * rng.uniform(0.0, 1.0) ** force_exponent)
     return ProbePush(vertex, anatomy.vertices[vertex].copy(), normal, long_axis, short_axis,
                      contact, direction,
                      float(np.degrees(tilt)), 0.0 if rigid else amount, attempt,
@@ -402,25 +375,23 @@ def push_for_draw(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int, 
     """The push of draw index ``index`` (:func:`draw_index`), draw ``attempt``
     (deterministic); ``rigid``: a rigid push, else a force patch; ``pinned``: see
     :func:`draw_push`; ``training``: a training sample, whose force follows ``[probe]
-    train_force_exponent`` and ``train_force_scale`` and, for a force patch's first attempt,
-    whose numbers ``[probe] train_design`` may set (:func:`patch_design`). A draw
-    :func:`lesion_for_sample` puts near a lesion is centred among
-    :func:`centres_near_lesion`, or anywhere when no patch there can be drawn."""
+    train_force_exponent`` and ``train_force_scale``. A draw :func:`lesion_for_sample` puts
+    near a lesion is centred among :func:`centres_near_lesion`, or anywhere when no patch
+    there can be drawn."""
     if centers is None:
         centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
     exponent, scale = ((probe.train_force_exponent, probe.train_force_scale) if training
                        else (1.0, 1.0))
-    design = patch_design(probe, seed, index, attempt, rigid, training)
     lesion = lesion_for_sample(anatomy, probe, seed, index)
     if lesion is not None:
         near = centres_near_lesion(anatomy, centers, lesion, probe.lesion_reach_mm)
         try:
             return draw_push(anatomy, probe, sample_rng(seed, index, attempt), near, attempt,
-                             rigid, pinned, exponent, scale, design)
+                             rigid, pinned, exponent, scale)
         except InputError:  # every patch near it holds pinned skin or too few points
             pass
     return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt, rigid,
-                     pinned, exponent, scale, design)
+                     pinned, exponent, scale)
 
 
 #: The stream of a training push's same-place redraws

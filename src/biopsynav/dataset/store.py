@@ -76,13 +76,13 @@ def dataset_path(case_dir: str | Path) -> Path:
 #: pushes alone (``rigid_share = 1``, as a ``[refine]`` data set), which a new force range
 #: or its calibration then leaves valid.
 FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "too_deep_redraw",
-                    "calibrate_force", "max_tilt_deg", "depth_tolerance_mm", "train_design")
+                    "calibrate_force", "max_tilt_deg", "depth_tolerance_mm")
 
 #: [probe] values that a protocol leaves out, being what every data set had before the key
 #: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
 FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "shape": "rectangle",
                        "rigid_share": 0.0, "too_deep_redraw": "elsewhere", "lesion_share": 0.0,
-                       "max_chest_compression": 0.0, "train_design": "random"}
+                       "max_chest_compression": 0.0}
 
 
 #: [solver] keys added after data sets were made, with the behaviour those data sets had: a key
