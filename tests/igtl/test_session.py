@@ -71,6 +71,41 @@ def test_reply_order_point_first_then_transforms_then_lesion_models():
     np.testing.assert_allclose(mesh.points.mean(axis=0), CENTERS[0], atol=1e-5)
 
 
+class BoundedTracker(RigidLesionTracker):
+    """The rigid stand-in with a 95 % bound of 0.5 mm times the lesion's place in the list."""
+
+    def update(self, T, with_surface=False, lesion_surfaces=True):
+        result = super().update(T, with_surface, lesion_surfaces)
+        for i, lesion in enumerate(result.lesions):
+            lesion.bound_mm = 0.5 * (i + 1)
+        return result
+
+
+def test_each_lesion_model_comes_with_its_95_percent_shell():
+    session, _ = make_session(BoundedTracker(CENTERS))
+    session.add_peer("slicer")
+    batches = sent(session.on_messages(session.add_peer("plus", True), [pose(np.eye(4))]))
+    models = {m.device: m.body for m in batches[2]}
+    assert list(models) == [f"Lesion{i}" for i in (1, 2, 3)] + \
+        [f"Lesion{i}Bound" for i in (1, 2, 3)]
+    for i in (1, 2, 3):
+        lesion, shell = models[f"Lesion{i}"], models[f"Lesion{i}Bound"]
+        np.testing.assert_array_equal(shell.triangles, lesion.triangles)
+        np.testing.assert_allclose(np.linalg.norm(shell.points - lesion.points, axis=1),
+                                   0.5 * i, atol=1e-3)
+        radius = np.linalg.norm(lesion.points - CENTERS[i - 1], axis=1)
+        np.testing.assert_allclose(np.linalg.norm(shell.points - CENTERS[i - 1], axis=1),
+                                   radius + 0.5 * i, atol=1e-3)  # outwards, on a sphere
+
+
+def test_no_shell_without_a_bound():
+    """The stand-in tracker has no bound (NaN): lesion models alone, as before bounds."""
+    session, _ = make_session()
+    session.add_peer("slicer")
+    batches = sent(session.on_messages(session.add_peer("plus", True), [pose(np.eye(4))]))
+    assert not [m for b in batches for m in b if m.device.endswith("Bound")]
+
+
 def test_lesion_models_follow_the_push_at_their_own_rate():
     session, clock = make_session(lesion_model_rate_hz=10.0)
     session.add_peer("slicer")

@@ -95,6 +95,7 @@ def test_serve_streams_every_message_type_to_the_cpp_library(trained_case, cpp_b
     for name in lesions:
         assert counts[f"TRANSFORM {name}ToReference"] > 1000
         assert counts[f"POLYDATA {name}"] > 10 * STREAM_S / 2  # 20 Hz, reliable poses only
+        assert counts[f"POLYDATA {name}Bound"] == counts[f"POLYDATA {name}"]  # its 95 % shell
     assert counts["POLYDATA BreastSkin"] > STREAM_S  # 2 Hz
     assert {"ok", "probe_not_tracked", "no_rest_pose: tracker connection lost"} <= \
         set(got["statuses"])

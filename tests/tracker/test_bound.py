@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from biopsynav.igtl.replies import bounds_messages, point_message, rest_slots
+from biopsynav.igtl.replies import bounds_messages, offset_surface, point_message, rest_slots
 from biopsynav.inference.model_files import meta_checksum
 from biopsynav.layout import LESION_CHECK
 from biopsynav.tracker.bound import (
@@ -65,6 +65,19 @@ def test_the_bound_reaches_track_csv_and_openigtlink():
     refused = TrackingResult([LesionResult(1, nan, nan, "out_of_envelope")], "out_of_envelope")
     assert bounds_messages(refused) == [] and math.isnan(refused.lesions[0].bound_mm)
     assert lesions_csv([(8, refused)]).splitlines()[1].split(",")[5] == "nan"
+
+
+def test_the_shell_is_the_surface_pushed_out_whichever_way_its_faces_wind():
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=4.0)
+    v, f = np.asarray(sphere.vertices) + [1.0, 2.0, 3.0], np.asarray(sphere.faces)
+    for faces in (f, f[:, ::-1]):
+        shell = offset_surface(v, faces, 1.5)
+        np.testing.assert_allclose(np.linalg.norm(shell - v, axis=1), 1.5, rtol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(shell - [1.0, 2.0, 3.0], axis=1), 5.5,
+                                   rtol=1e-4)  # outwards: vertex normals nearly radial
+    np.testing.assert_array_equal(offset_surface(v, f, 0.0), v)  # at rest: the surface
 
 
 def test_a_lesion_the_network_missed_gets_a_wider_bound():

@@ -6,8 +6,10 @@
   position before any), so a client that matches points by index never mixes lesions up.
 * ``TRANSFORM`` ``Lesion<id>ToReference`` per lesion (identity rotation, translation = predicted
   centre, mm), for reliable results only: a model under it stays at its last reliable place.
-* ``POLYDATA`` ``Lesion<id>``: the lesion's surface mesh where the prediction moved it, and
-  ``BreastSkin``: the deformed skin, decimated (both at their own rates, reliable results only).
+* ``POLYDATA`` ``Lesion<id>``: the lesion's surface mesh where the prediction moved it;
+  ``Lesion<id>Bound``: that surface pushed out by the lesion's 95 % bound, the shell the lesion
+  lies within at 95 % (with the lesion surfaces, where the bound is known); and
+  ``BreastSkin``: the deformed skin, decimated (each at its rate, reliable results only).
 * ``STRING`` ``TrackingStatus``: ``"<status>: <reason>"``.
 
 With header version 2 every message carries the metadata ``TrackingStatus`` (the status), the
@@ -50,6 +52,11 @@ def lesion_point_name(lesion_id: int) -> str:
 def lesion_transform_name(lesion_id: int) -> str:
     """Device name of a lesion's TRANSFORM (at most 20 bytes: ids up to 999)."""
     return f"Lesion{lesion_id}ToReference"
+
+
+def bound_model_name(lesion_id: int) -> str:
+    """Device name of a lesion's 95 % shell (POLYDATA, :func:`bound_model_messages`)."""
+    return f"Lesion{lesion_id}Bound"
 
 
 def _finite_centre(lesion) -> tuple[int, np.ndarray] | None:
@@ -153,6 +160,43 @@ def lesion_model_messages(result: TrackingResult, faces: dict[int, np.ndarray],
     return out
 
 
+def bound_model_messages(result: TrackingResult, faces: dict[int, np.ndarray],
+                         timestamp: float | None = None) -> list[Outgoing]:
+    """One POLYDATA ``Lesion<id>Bound`` per lesion with a finite moved surface, known faces and
+    a finite 95 % bound (``bound_mm``): the surface pushed out by the bound
+    (:func:`offset_surface`). The bound is the lesion centre's, so a lesion moved anywhere
+    within it stays inside the shell (for a convex lesion, to the offset's facets); ids too
+    long for a device name are skipped."""
+    out = []
+    for lesion in result.lesions or []:
+        lesion_id = getattr(lesion, "id", None)
+        surface, tri = getattr(lesion, "surface", None), faces.get(lesion_id)
+        bound = float(getattr(lesion, "bound_mm", math.nan))
+        if surface is None or tri is None or not math.isfinite(bound) \
+                or not np.all(np.isfinite(surface)):
+            continue
+        name = bound_model_name(lesion_id)
+        if len(name) <= DEVICE_NAME_BYTES:
+            out.append(mesh_message(name, offset_surface(surface, tri, bound), tri, result,
+                                    timestamp))
+    return out
+
+
+def offset_surface(vertices: np.ndarray, faces: np.ndarray, distance_mm: float) -> np.ndarray:
+    """(k, 3) mm: the closed triangle surface ``vertices`` (k, 3) mm, ``faces`` (m, 3), each
+    vertex moved outwards by ``distance_mm`` along its area-weighted normal (outwards: the side
+    the faces' winding encloses, whichever way they wind)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces)]
+    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length: 2 x area
+    normals = np.zeros_like(v)
+    np.add.at(normals, np.asarray(faces).ravel(), np.repeat(face_normals, 3, axis=0))
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    enclosed = float(np.einsum("ij,ij->", tri[:, 0], face_normals))  # 6 x signed volume
+    return v + (distance_mm if enclosed >= 0 else -distance_mm) * normals
+
+
 def mesh_message(device: str, vertices: np.ndarray, faces: np.ndarray, result: TrackingResult,
                  timestamp: float | None = None) -> Outgoing:
     """A POLYDATA triangle mesh (vertices (k, 3) mm, faces (m, 3))."""
@@ -213,6 +257,7 @@ def rest_slots(tracker) -> LesionSlots:
     return slots
 
 
-__all__ = ["LesionSlots", "error_result", "lesion_model_messages", "mesh_message",
+__all__ = ["LesionSlots", "bound_model_messages", "bound_model_name", "error_result",
+           "lesion_model_messages", "mesh_message", "offset_surface",
            "point_message", "rest_slots", "status_message", "status_text", "transform_messages",
            "bounds_messages", "bounds_text", "BOUNDS_DEVICE"]

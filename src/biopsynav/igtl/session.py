@@ -46,6 +46,7 @@ from . import commands
 from .protocol import Message, Outgoing
 from .replies import (
     SKIN_DEVICE,
+    bound_model_messages,
     bounds_messages,
     bounds_text,
     error_result,
@@ -321,9 +322,11 @@ class IgtlSession:
 
     def _models(self, result: TrackingResult, models: dict[str, bool],
                 timestamp: float) -> Iterator[Batch]:
-        """The lesion and skin POLYDATA that were due (computed by the same update)."""
+        """The lesion (with their 95 % shells) and skin POLYDATA that were due (computed by the
+        same update)."""
         if models.get("lesion_surfaces"):
-            msgs = lesion_model_messages(result, self._lesion_faces, timestamp)
+            msgs = (lesion_model_messages(result, self._lesion_faces, timestamp)
+                    + bound_model_messages(result, self._lesion_faces, timestamp))
             self.stats.models_sent += len(msgs)
             yield None, msgs
         if models.get("with_surface") and result.surface is not None:
