@@ -23,6 +23,7 @@ def case_summary(case: Case | str | Path) -> dict:
     a, g = case.anatomy, case.grid
     facts = read_json(case.paths.facts, "rebuild the case with `biopsynav "
                       "init CASE --overwrite`", missing_ok=True) or {}
+    tracking = tracking_meta(case)
     return {
         "case": case.cfg.case.name,
         "case_dir": str(case.dir),
@@ -55,8 +56,8 @@ def case_summary(case: Case | str | Path) -> dict:
         "modelled": {k: facts[k] for k in MODELLED_KEYS if k in facts},
         "warnings": list(facts.get("warnings", [])),
         "stages": case.stages_done(),
-        "model_teacher": model_teacher(case),
-        "bounds": bound_words(case),
+        "model_teacher": model_teacher(case, tracking),
+        "bounds": bound_words(case, tracking),
         "fe_contact": contact_words(case.cfg),
         "refine": refine_words(case.cfg),
         "fingerprint": case.fingerprint()[:16],
@@ -92,33 +93,41 @@ def law_words(law: str | None, fictitious: float) -> str:
     return f"{law} (fictitious stiffness {fictitious:g})" if fictitious else f"{law}"
 
 
-def bound_words(case: Case) -> str:
+def tracking_meta(case: Case) -> tuple[Path, dict | None, bool]:
+    """The meta.json of the model the tracker uses (``refine/model`` with ``[refine] samples >
+    0``, else the case's), read once: its path, its content (None when there is none) and
+    whether it is that model's (False: ``[refine]`` has not trained it yet, and the case's
+    model stands in)."""
+    try:
+        meta_path, current = case.tracking_model / META, True
+    except InputError:
+        meta_path, current = case.paths.model_meta, False
+    return meta_path, read_json(meta_path, "retrain with `biopsynav train CASE`",
+                                missing_ok=True), current
+
+
+def bound_words(case: Case, tracking: tuple[Path, dict | None, bool] | None = None) -> str:
     """What the tracking model's 95 % bounds rest on (:func:`biopsynav.tracker.bound.
-    basis_words`); empty when there is no tracking model yet."""
+    basis_words`); empty when there is no tracking model yet. ``tracking``:
+    :func:`tracking_meta` of ``case``, when the caller has it."""
     from .tracker.bound import LesionCheck, basis_words
 
-    try:
-        model_dir = case.tracking_model
-    except InputError:
+    meta_path, meta, current = tracking or tracking_meta(case)
+    if not meta or not current:
         return ""
-    meta = read_json(model_dir / META, "retrain with `biopsynav train CASE`", missing_ok=True)
-    if not meta:
-        return ""
-    return basis_words(LesionCheck.load(model_dir, meta, [les.id for les in case.anatomy.lesions]))
+    return basis_words(LesionCheck.load(meta_path.parent, meta,
+                                        [les.id for les in case.anatomy.lesions]))
 
 
-def model_teacher(case: Case) -> str:
+def model_teacher(case: Case, tracking: tuple[Path, dict | None, bool] | None = None) -> str:
     """What taught the case's trained model, in words; empty when there is no model. Models
     written before the teacher was recorded load as they are: they were taught by the case
     grid's FE with force patches, the only teacher of their time. With ``[refine] samples >
     0`` the model the tracker uses is the one trained further on the fine teacher's pushes
-    (``refine/model``); until it exists, the case's model with a note."""
-    pending = ""
-    try:
-        meta_path = case.tracking_model / META
-    except InputError:
-        meta_path, pending = case.paths.model_meta, " ([refine]: not trained further yet)"
-    meta = read_json(meta_path, "retrain with `biopsynav train CASE`", missing_ok=True)
+    (``refine/model``); until it exists, the case's model with a note. ``tracking``:
+    :func:`tracking_meta` of ``case``, when the caller has it."""
+    meta_path, meta, current = tracking or tracking_meta(case)
+    pending = "" if current else " ([refine]: not trained further yet)"
     if not meta:
         return ""
     t = meta.get("teacher")
