@@ -157,6 +157,30 @@ def between_answers(a: str, b: str) -> Callable[[dict], str]:
     return render
 
 
+def every_lesion_cmd(truth: str, name: str) -> str:
+    """The commands of a rounded-edge truth's refinement over every lesion at 10 mm, against
+    the stored truth ``truth`` (its file name in ``src/biopsynav/data/truths``)."""
+    return ("python benchmarks/truth.py CASE --lesions 0 --depths 10 20 --edge-radius 2.5 "
+            "--reference-only --reference f4.json; the same with --depths 10 --tet-rim 2 "
+            "--reference rim2.json; python benchmarks/truth_refinement.py f4=f4.json "
+            f"rim2=rim2.json --stored src/biopsynav/data/truths/{truth}.json --result-name "
+            f"{name}")
+
+
+def lesion_range(*keys: str) -> Callable[[dict], str]:
+    """Renderer of a truth-refinement result of many lesions: each of ``keys``' smallest and
+    largest distance over the lesions, per depth (``lo-hi / lo-hi mm``), the keys apart by
+    semicolons."""
+    def over_lesions(rows: list[dict], key: str) -> str:
+        depths = sorted({r["depth_mm"] for r in rows})
+        spans = []
+        for depth in depths:
+            vals = [r[key] for r in rows if r["depth_mm"] == depth and r[key] is not None]
+            spans.append(f"{fmt(min(vals), 3)}-{fmt(max(vals), 3)}" if vals else "n/a")
+        return " / ".join(spans) + " mm"
+    return lambda data: "; ".join(over_lesions(data["figures"]["rows"], k) for k in keys)
+
+
 def per_lesion_depth(*keys: str) -> Callable[[dict], str]:
     """Renderer of a truth-agreement result of several lesions: per lesion (numbered from 1),
     each of ``keys``' distances per depth, mm."""
@@ -392,6 +416,19 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "benchmarks/truth_refinement.py f4=f4.json f28=f28.json --stored "
           "src/biopsynav/data/truths/phantom.json --result-name "
           "truth-refinement-phantom-edge25-norim"), "<= 0.1 mm", "-"),
+    ("the rounded-edge truth (the probe body, a sticking face, edges rounded by 2.5 mm) at "
+     "every phantom lesion (10), 10 mm: 4 mm tetrahedra near the probe (no rim) against a 2 mm "
+     "rim (smallest-largest over the lesions); the stored truth (sharp edges, 4 mm) against the "
+     "rim's answer",
+     Cell("truth-refinement-phantom-every-lesion-d10",
+          lesion_range("step_f4_rim2_mm", "stored_truth_to_finest_mm"),
+          every_lesion_cmd("phantom", "truth-refinement-phantom-every-lesion-d10")),
+     "<= 0.1 mm", "-"),
+    ("the same at every UC Davis lesion (5; one material)",
+     Cell("truth-refinement-ucdavis-every-lesion-d10",
+          lesion_range("step_f4_rim2_mm", "stored_truth_to_finest_mm"),
+          every_lesion_cmd("ucdavis-homogeneous", "truth-refinement-ucdavis-every-lesion-d10")),
+     "<= 0.1 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
      Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
