@@ -189,8 +189,9 @@ def offset_surface(vertices: np.ndarray, faces: np.ndarray, distance_mm: float) 
     v = np.asarray(vertices, dtype=np.float64)
     tri = v[np.asarray(faces)]
     face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length: 2 x area
-    normals = np.zeros_like(v)
-    np.add.at(normals, np.asarray(faces).ravel(), np.repeat(face_normals, 3, axis=0))
+    corners, spread = np.asarray(faces).ravel(), np.repeat(face_normals, 3, axis=0)
+    normals = np.stack([np.bincount(corners, spread[:, k], minlength=len(v))
+                        for k in range(3)], axis=1)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     enclosed = float(np.einsum("ij,ij->", tri[:, 0], face_normals))  # 6 x signed volume
