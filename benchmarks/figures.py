@@ -167,6 +167,15 @@ def every_lesion_cmd(truth: str, name: str) -> str:
             f"{name}")
 
 
+def h_lesions_cmd(ids: str, truth: str, name: str) -> str:
+    """The commands of a rounded-edge truth's h refinement (4 against 2.8 mm tetrahedra near
+    the probe) at lesions ``ids``, against the stored truth ``truth``."""
+    return (f"python benchmarks/truth.py CASE --lesion-ids {ids} --depths 10 20 --edge-radius "
+            "2.5 --tet-fine F --push-minutes 30 --reference-only --reference fF.json (F = 4, "
+            "2.8); python benchmarks/truth_refinement.py f4=f4.json f28=f28.json --stored "
+            f"src/biopsynav/data/truths/{truth}.json --result-name {name}")
+
+
 def lesion_range(*keys: str) -> Callable[[dict], str]:
     """Renderer of a truth-refinement result of many lesions: each of ``keys``' smallest and
     largest distance over the lesions, per depth (``lo-hi / lo-hi mm``), the keys apart by
@@ -428,6 +437,19 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("truth-refinement-ucdavis-every-lesion-d10",
           lesion_range("step_f4_rim2_mm", "stored_truth_to_finest_mm"),
           every_lesion_cmd("ucdavis-homogeneous", "truth-refinement-ucdavis-every-lesion-d10")),
+     "<= 0.1 mm", "-"),
+    ("the same rounded-edge truth without a rim, two more lesions a breast at 10 / 20 mm "
+     "(smallest-largest): 4 mm tetrahedra near the probe against 2.8 mm (the h refinement); "
+     "the stored truth against the 2.8 mm answer; phantom lesions 4 and 8",
+     Cell("truth-refinement-phantom-edge25-h-lesions",
+          lesion_range("step_f4_f28_mm", "stored_truth_to_finest_mm"),
+          h_lesions_cmd("4,8", "phantom", "truth-refinement-phantom-edge25-h-lesions")),
+     "<= 0.1 mm", "-"),
+    ("the same, UC Davis lesions 3 and 4",
+     Cell("truth-refinement-ucdavis-edge25-h-lesions",
+          lesion_range("step_f4_f28_mm", "stored_truth_to_finest_mm"),
+          h_lesions_cmd("3,4", "ucdavis-homogeneous",
+                        "truth-refinement-ucdavis-edge25-h-lesions")),
      "<= 0.1 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
