@@ -146,18 +146,20 @@ def transform_messages(result: TrackingResult, timestamp: float | None = None
     return out
 
 
+def _moved_surfaces(result: TrackingResult, faces: dict[int, np.ndarray]):
+    """(lesion, moved surface (k, 3) mm, faces (m, 3)) of each lesion of ``result`` with a
+    finite moved surface and known faces."""
+    for lesion in result.lesions or []:
+        surface, tri = getattr(lesion, "surface", None), faces.get(getattr(lesion, "id", None))
+        if surface is not None and tri is not None and np.all(np.isfinite(surface)):
+            yield lesion, surface, tri
+
+
 def lesion_model_messages(result: TrackingResult, faces: dict[int, np.ndarray],
                           timestamp: float | None = None) -> list[Outgoing]:
     """One POLYDATA ``Lesion<id>`` per lesion with a finite moved surface and known faces."""
-    out = []
-    for lesion in result.lesions or []:
-        lesion_id = getattr(lesion, "id", None)
-        surface = getattr(lesion, "surface", None)
-        tri = faces.get(lesion_id)
-        if surface is None or tri is None or not np.all(np.isfinite(surface)):
-            continue
-        out.append(mesh_message(lesion_point_name(lesion_id), surface, tri, result, timestamp))
-    return out
+    return [mesh_message(lesion_point_name(lesion.id), surface, tri, result, timestamp)
+            for lesion, surface, tri in _moved_surfaces(result, faces)]
 
 
 def bound_model_messages(result: TrackingResult, faces: dict[int, np.ndarray],
@@ -168,15 +170,10 @@ def bound_model_messages(result: TrackingResult, faces: dict[int, np.ndarray],
     within it stays inside the shell (for a convex lesion, to the offset's facets); ids too
     long for a device name are skipped."""
     out = []
-    for lesion in result.lesions or []:
-        lesion_id = getattr(lesion, "id", None)
-        surface, tri = getattr(lesion, "surface", None), faces.get(lesion_id)
+    for lesion, surface, tri in _moved_surfaces(result, faces):
         bound = float(getattr(lesion, "bound_mm", math.nan))
-        if surface is None or tri is None or not math.isfinite(bound) \
-                or not np.all(np.isfinite(surface)):
-            continue
-        name = bound_model_name(lesion_id)
-        if len(name) <= DEVICE_NAME_BYTES:
+        name = bound_model_name(lesion.id)
+        if math.isfinite(bound) and len(name) <= DEVICE_NAME_BYTES:
             out.append(mesh_message(name, offset_surface(surface, tri, bound), tri, result,
                                     timestamp))
     return out
@@ -186,10 +183,10 @@ def offset_surface(vertices: np.ndarray, faces: np.ndarray, distance_mm: float) 
     """(k, 3) mm: the closed triangle surface ``vertices`` (k, 3) mm, ``faces`` (m, 3), each
     vertex moved outwards by ``distance_mm`` along its area-weighted normal (outwards: the side
     the faces' winding encloses, whichever way they wind)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    tri = v[np.asarray(faces)]
+    v, faces = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
+    tri = v[faces]
     face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length: 2 x area
-    corners, spread = np.asarray(faces).ravel(), np.repeat(face_normals, 3, axis=0)
+    corners, spread = faces.ravel(), np.repeat(face_normals, 3, axis=0)
     normals = np.stack([np.bincount(corners, spread[:, k], minlength=len(v))
                         for k in range(3)], axis=1)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
