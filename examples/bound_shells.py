@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 
 
-def served_models(case_dir: Path, lesion: int, depth_mm: float) -> dict:
+def served_models(case_dir, lesion: int, depth_mm: float) -> dict:
     """device name -> (points (k, 3) mm, triangles (m, 3)) of every POLYDATA the service sends
-    for the push, decoded from its packed messages."""
+    for the push, decoded from its packed messages; ``case_dir``: the case's folder or the
+    loaded case."""
     import pyigtl
 
     from biopsynav.case import as_case
@@ -107,13 +108,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--depth", type=float, default=20.0)
     p.add_argument("--out", type=Path, default=Path("shells.png"))
     args = p.parse_args(argv)
-    models = served_models(args.case_dir, args.lesion, args.depth)
+    from biopsynav.case import as_case
+    from biopsynav.errors import BiopsynavError
+
+    if not np.isfinite(args.depth):
+        p.error(f"--depth {args.depth}: a push depth in mm")
+    try:
+        case = as_case(args.case_dir)
+        if not 0 <= args.lesion < len(case.anatomy.lesions):
+            p.error(f"--lesion {args.lesion}: {args.case_dir} has lesions 0 to "
+                    f"{len(case.anatomy.lesions) - 1} (an index into its lesion list)")
+        models = served_models(case, args.lesion, args.depth)
+    except BiopsynavError as exc:
+        print(f"bound_shells.py: error: {exc}", file=sys.stderr)
+        return 2
     if not any(name.endswith("Bound") for name in models):
         print("no 95 % shell was sent (no bound for this push)", file=sys.stderr)
         return 1
-    from biopsynav.case import as_case
-
-    focus = f"Lesion{as_case(args.case_dir).anatomy.lesions[args.lesion].id}"
+    focus = f"Lesion{case.anatomy.lesions[args.lesion].id}"
     draw(models, focus, args.out, f"{args.case_dir.name}: what `serve` sends for a "
                                   f"{args.depth:g} mm push over {focus}; red: the lesions, "
                                   "blue: their 95 % shells (Lesion<id>Bound)")

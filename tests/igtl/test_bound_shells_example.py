@@ -6,6 +6,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "bound_shells.py"
 
@@ -34,3 +35,15 @@ def test_a_push_sends_every_lesion_in_a_shell_and_the_picture_is_drawn(trained_c
     png = tmp_path / "shells.png"
     assert example.main([str(trained_case), "--depth", "8", "--out", str(png)]) == 0
     assert png.stat().st_size > 10_000
+
+
+def test_a_bad_case_lesion_or_depth_is_one_line_naming_it(trained_case, tmp_path, capsys):
+    example = load_example()
+    png = tmp_path / "shells.png"
+    assert example.main([str(tmp_path / "nowhere"), "--out", str(png)]) == 2
+    assert "bound_shells.py: error:" in capsys.readouterr().err
+    for bad, says in ((["--lesion", "99"], "--lesion 99"), (["--depth", "nan"], "--depth nan")):
+        with pytest.raises(SystemExit):
+            example.main([str(trained_case), *bad, "--out", str(png)])
+        assert says in capsys.readouterr().err
+    assert not png.exists()
