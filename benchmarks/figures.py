@@ -433,6 +433,17 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           lesion_range("step_f4_rim2_mm", "stored_truth_to_finest_mm"),
           every_lesion_cmd("phantom", "truth-refinement-phantom-every-lesion-d10")),
      "<= 0.1 mm", "-"),
+    ("the next step at the two phantom lesions whose step to the 2 mm rim exceeded 0.1 mm "
+     "(lesions 9 and 10), 10 mm: the 2 mm rim against a 1 mm rim; the stored truth against the "
+     "1 mm rim's answer",
+     Cell("truth-refinement-phantom-lesions-9-10-rim1-d10",
+          lesion_range("step_rim2_rim1_mm", "stored_truth_to_finest_mm"),
+          "python benchmarks/truth.py CASE --lesion-ids 9,10 --depths 10 --edge-radius 2.5 "
+          "--tet-rim 1 --reference-only --reference rim1.json; python "
+          "benchmarks/truth_refinement.py f4=f4.json rim2=rim2.json rim1=rim1.json --stored "
+          "src/biopsynav/data/truths/phantom.json --result-name "
+          "truth-refinement-phantom-lesions-9-10-rim1-d10"),
+     "<= 0.1 mm", "-"),
     ("the same at every UC Davis lesion (5; one material)",
      Cell("truth-refinement-ucdavis-every-lesion-d10",
           lesion_range("step_f4_rim2_mm", "stored_truth_to_finest_mm"),
