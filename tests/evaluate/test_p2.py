@@ -15,7 +15,9 @@ import trimesh
 from biopsynav.evaluate.p2 import (
     TetReference,
     _barycentric_gradients,
+    MAX_SURFACE_TRIANGLES,
     element_quadrature,
+    meshable_surface,
     p2_nodes,
     shape_gradients,
     shape_values,
@@ -458,6 +460,30 @@ def test_meshing_leaves_sigpipe_ignored():
     points, tets = tet_mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces), 10.0)
     assert len(tets) > 0
     assert _sigpipe_ignored()
+
+
+def test_a_surface_finer_than_gmsh_needs_is_decimated_closed_and_in_place():
+    """A label map's skin (about 10^5 triangles) reaches gmsh decimated to at most
+    MAX_SURFACE_TRIANGLES, still closed, its points on the original surface and its volume
+    kept; the tetrahedra then fill the same ball."""
+    sphere = trimesh.creation.icosphere(subdivisions=6, radius=40.0)  # 81,920 triangles
+    assert len(sphere.faces) > MAX_SURFACE_TRIANGLES
+    vertices, faces = meshable_surface(np.asarray(sphere.vertices), np.asarray(sphere.faces))
+    small = trimesh.Trimesh(vertices, faces, process=False)
+    assert len(faces) <= MAX_SURFACE_TRIANGLES and small.is_watertight
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 40.0).max() < 0.05
+    assert small.volume == pytest.approx(sphere.volume, rel=2e-3)
+    points, tets = tet_mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces), 10.0)
+    volume = np.abs(np.linalg.det(points[tets[:, 1:]] - points[tets[:, :1]])).sum() / 6.0
+    assert volume == pytest.approx(sphere.volume, rel=0.02)
+    assert np.linalg.norm(points, axis=1).max() < 40.2
+
+
+def test_a_surface_within_the_limit_reaches_gmsh_as_it_is():
+    box = trimesh.creation.box(extents=(30.0, 20.0, 10.0))
+    vertices, faces = np.asarray(box.vertices), np.asarray(box.faces)
+    kept_vertices, kept_faces = meshable_surface(vertices, faces)
+    assert kept_vertices is vertices and kept_faces is faces
 
 
 def test_the_rim_of_the_probe_face_gets_finer_tetrahedra():

@@ -56,6 +56,10 @@ EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 #: barycentric coordinates (10, 4) of a 10-node tetrahedron's nodes (vertices, then edges)
 NODE_BARYCENTRIC = np.vstack([np.eye(4), 0.5 * (np.eye(4)[EDGES[:, 0]] + np.eye(4)[EDGES[:, 1]])])
 NEWTON_ITERATIONS = 40
+#: Most surface triangles handed to gmsh (:func:`meshable_surface`): the built-in breasts' skins
+#: have fewer and are meshed as they are; a label map's marching-cubes skin (about 10^5) is
+#: decimated first (docs/mri.md, "Against the P2 truth")
+MAX_SURFACE_TRIANGLES = 20_000
 LINE_SEARCH_HALVINGS = 8
 #: Levenberg-Marquardt shifts (times the tangent's diagonal) tried in turn where the Newton
 #: direction does not descend or its line search fails: 0, then 1e-4, 1e-3, ... 1e2
@@ -212,6 +216,7 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
     volume is filled inside the surface's own triangles, kept as they are (sizes then apply
     inside only), and a warning says so. InputError when neither route meshes it."""
     sizes = (size_mm, fine_at, fine_mm, fine_radius_mm, rim)
+    vertices, faces = meshable_surface(vertices, faces)
     try:
         return _gmsh_tets(vertices, faces, *sizes, remesh=True)
     except Exception as exc:  # noqa: BLE001 - gmsh raises a bare Exception
@@ -224,6 +229,23 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
         raise InputError(f"gmsh cannot fill the breast surface with tetrahedra, remeshed "
                          f"({remeshed}) or as it is ({str(exc).strip()[:120]}): is it closed?",
                          "P2 reference") from None
+
+
+def meshable_surface(vertices: np.ndarray, faces: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The closed surface (vertices (n, 3) mm, faces (m, 3)) that :func:`tet_mesh` hands to
+    gmsh: as it is with at most :data:`MAX_SURFACE_TRIANGLES` faces, else decimated to that
+    many (quadric error metric, fast-simplification through trimesh; it stays closed). gmsh
+    remeshes the surface at the tetrahedra's size, so the triangles beyond that number only
+    slow its classification. The decimated vertices stay where the quadric metric puts them:
+    moved onto the original surface, their triangles no longer parametrise (gmsh refuses)."""
+    import trimesh
+
+    if len(faces) <= MAX_SURFACE_TRIANGLES:
+        return vertices, faces
+    small = trimesh.Trimesh(vertices, faces, process=False).simplify_quadric_decimation(
+        face_count=MAX_SURFACE_TRIANGLES)
+    return np.asarray(small.vertices, dtype=np.float64), np.asarray(small.faces, dtype=np.int64)
 
 
 def _gmsh_tets(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
