@@ -73,7 +73,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.errors import BiopsynavError  # noqa: E402
-from biopsynav.evaluate.p2 import probe_key  # noqa: E402
+from biopsynav.evaluate.p2 import chest_key, probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_case_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material, other_materials  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings  # noqa: E402
@@ -109,7 +109,7 @@ def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
             "tet_fine_mm": args.tet_fine,
             **probe_key(case.cfg.probe, args.friction, args.tet_rim, args.edge_radius,
-                        args.quadrature_degree)}
+                        args.quadrature_degree), **chest_key(case.anatomy)}
 
 
 def load_reference(path: Path, key: dict, replace: bool = False) -> dict:

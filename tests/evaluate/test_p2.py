@@ -13,10 +13,12 @@ import pytest
 import trimesh
 
 from biopsynav.evaluate.p2 import (
+    MAX_SURFACE_TRIANGLES,
     TetReference,
     _barycentric_gradients,
-    MAX_SURFACE_TRIANGLES,
+    chest_key,
     element_quadrature,
+    held_by_chest_wall,
     meshable_surface,
     p2_nodes,
     shape_gradients,
@@ -477,6 +479,31 @@ def test_a_surface_finer_than_gmsh_needs_is_decimated_closed_and_in_place():
     volume = np.abs(np.linalg.det(points[tets[:, 1:]] - points[tets[:, :1]])).sum() / 6.0
     assert volume == pytest.approx(sphere.volume, rel=0.02)
     assert np.linalg.norm(points, axis=1).max() < 40.2
+
+
+def _sphere_anatomy(curved: bool) -> SimpleNamespace:
+    """A 40 mm ball whose cap below z = -25 mm is the chest wall (a muscle interface when
+    ``curved``), and whose plane is z = -30 mm."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    vertices = np.asarray(sphere.vertices)
+    return SimpleNamespace(vertices=vertices, normals=np.asarray(sphere.vertex_normals),
+                           fixed_vertices=vertices[:, 2] < -25.0, chest_curved=curved,
+                           chest_point=np.array([0.0, 0.0, -30.0]),
+                           chest_normal=np.array([0.0, 0.0, -2.0]))
+
+
+def test_a_curved_chest_wall_holds_the_skin_its_vertices_hold():
+    """A label map's chest wall is the curved interface with the muscle: the truth holds the
+    surface points whose nearest vertex the wall holds (the case grid's rule), not only those
+    near its plane, which would leave most of that cap free; a flat wall keeps the plane."""
+    curved = _sphere_anatomy(True)
+    points = curved.vertices * 0.999  # on the surface, a hair inside
+    held = held_by_chest_wall(curved, points, 1.0)
+    np.testing.assert_array_equal(held, curved.fixed_vertices)
+    flat = held_by_chest_wall(_sphere_anatomy(False), points, 1.0)
+    np.testing.assert_array_equal(flat, np.abs(points[:, 2] + 30.0) <= 1.0)
+    assert flat.sum() < held.sum()
+    assert chest_key(curved) == {"chest_wall": "curved"} and chest_key(_sphere_anatomy(False)) == {}
 
 
 def test_a_surface_within_the_limit_reaches_gmsh_as_it_is():

@@ -231,6 +231,26 @@ def tet_mesh(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
                          "P2 reference") from None
 
 
+def held_by_chest_wall(anatomy: Any, points: np.ndarray, tol_mm: float) -> np.ndarray:
+    """(k,) bool: which surface ``points`` (k, 3) mm the chest wall holds. A flat wall: those
+    within ``tol_mm`` of its plane. A curved one (a label map's interface with the muscle,
+    ``anatomy.chest_curved``): those whose nearest surface vertex is a chest-wall vertex, on its
+    outer side or within ``tol_mm`` inside, as the case grid fixes its nodes
+    (:func:`biopsynav.grid.build.behind_curved_wall`)."""
+    if getattr(anatomy, "chest_curved", False):
+        from ..grid.build import behind_curved_wall
+
+        return behind_curved_wall(anatomy, np.asarray(points, dtype=np.float64), tol_mm)
+    normal = anatomy.chest_normal / np.linalg.norm(anatomy.chest_normal)
+    return np.abs((points - anatomy.chest_point) @ normal) <= tol_mm
+
+
+def chest_key(anatomy: Any) -> dict:
+    """The chest wall's part of a P2 answer's key: nothing for a flat wall (the keys of the
+    truths made before curved walls were held as such), the rule for a curved one."""
+    return {"chest_wall": "curved"} if getattr(anatomy, "chest_curved", False) else {}
+
+
 def meshable_surface(vertices: np.ndarray, faces: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The closed surface (vertices (n, 3) mm, faces (m, 3)) that :func:`tet_mesh` hands to
@@ -405,8 +425,7 @@ class TetReference:
         mu, lam = lame_constants(np.array([e_mpa]), np.array([nu]))
         skin_nodes = _boundary_nodes(tets, len(points), elements)
         locs = nodes[skin_nodes]
-        normal = anatomy.chest_normal / np.linalg.norm(anatomy.chest_normal)
-        on_chest = np.abs((locs - anatomy.chest_point) @ normal) <= chest_tol_mm
+        on_chest = held_by_chest_wall(anatomy, locs, chest_tol_mm)
         _, nearest = cKDTree(anatomy.vertices).query(locs)
         skin = SimpleNamespace(vertices=locs, normals=anatomy.normals[nearest],
                                fixed_vertices=on_chest, pushable=~on_chest)

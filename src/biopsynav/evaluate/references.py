@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fem.teacher import teacher_refinement
-from .p2 import probe_key
+from .p2 import chest_key, probe_key
 
 
 class GridReference:
@@ -132,7 +132,7 @@ class P2Reference:
         what = {"anatomy": self.case.anatomy.fingerprint(), "E_mpa": self.e_mpa, "nu": self.nu,
                 "size_mm": self.size_mm, "fine_mm": self.fine_mm,
                 **probe_key(self.case.cfg.probe, self.friction, self.rim_mm,
-                            self.edge_radius_mm)}
+                            self.edge_radius_mm), **chest_key(self.case.anatomy)}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 
     def _read_cache(self) -> dict:
