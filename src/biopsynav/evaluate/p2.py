@@ -9,7 +9,8 @@ Kirchhoff stress ``tau = mu (b - I) + lam ln J I`` and its tangent ``c = lam I x
 lam ln J) II``, on spatial shape-function gradients; the biopsynav kernel works in the
 reference configuration), its own element kernels (numba,
 :mod:`~biopsynav.evaluate.p2_kernels`), assembly and Newton loop (MKL Pardiso for the linear
-solves). The boundary conditions: the chest-wall plane fixed; the skin the probe face
+solves). The boundary conditions: the chest wall fixed (its plane, or a label map's curved
+muscle interface as the case grid holds it: :func:`held_by_chest_wall`); the skin the probe face
 touches at the rest pose (within the contact tolerance, under the footprint, facing the probe;
 :func:`biopsynav.probe.skin_under_face`) moved rigidly with the probe (stuck to it, as the
 tracker's contact points); and, given the face's footprint, the probe a rigid body
