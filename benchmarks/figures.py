@@ -46,7 +46,7 @@ def depth_means(data: dict, method: str) -> list[float]:
     out = []
     for depth in (10.0, 20.0, 30.0):
         v = [r["tre_mm"][method] for r in data["rows"]
-             if r["depth_mm"] == depth and r["status"].get(method) == "ok"]
+             if r["depth_mm"] == depth and r.get("status", {}).get(method) == "ok"]
         out.append(sum(v) / len(v) if v else math.nan)
     return out
 

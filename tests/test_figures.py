@@ -109,3 +109,15 @@ def test_every_documentation_page_the_code_names_exists_with_its_section():
 def test_a_reference_page_stays_a_reference(page):
     """About 20 KB at most: dated narratives go to docs/experiments.md."""
     assert (ROOT / "docs" / page).stat().st_size <= 21_000
+
+
+def test_a_push_the_truth_did_not_answer_leaves_its_depth_out(figures):
+    """A truth comparison's row without a truth answer (the reference push failed: no
+    ``status``) counts in no depth's mean instead of stopping the rendering."""
+    import math
+
+    data = {"rows": [{"lesion": 1, "depth_mm": 10.0, "status": {"net": "ok"},
+                      "tre_mm": {"net": 0.2}},
+                     {"lesion": 1, "depth_mm": 30.0, "reference_mm": None}]}
+    means = figures.depth_means(data, "net")
+    assert means[0] == pytest.approx(0.2) and math.isnan(means[1]) and math.isnan(means[2])
