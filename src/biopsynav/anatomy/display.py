@@ -64,12 +64,23 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, max_triangles: int
     faces = np.asarray(faces, dtype=np.int64)
     if len(faces) <= max_triangles:
         return sp.identity(len(vertices), format="csr"), faces
+    small_vertices, small_faces = quadric_decimated(vertices, faces, max_triangles)
+    return on_surface_weights(vertices, faces, small_vertices), small_faces
+
+
+def quadric_decimated(vertices: np.ndarray, faces: np.ndarray, max_triangles: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The closed triangle surface (vertices (n, 3) mm, faces (m, 3)) as it is with at most
+    ``max_triangles`` faces, else decimated to that many (quadric error metric,
+    fast-simplification through trimesh; it stays closed), its vertices where the metric
+    puts them: (k, 3) mm float64 and (m', 3) int64 when decimated."""
+    if len(faces) <= max_triangles:
+        return vertices, faces
     import trimesh
 
     small = trimesh.Trimesh(vertices, faces, process=False).simplify_quadric_decimation(
         face_count=max_triangles)
-    return on_surface_weights(vertices, faces, np.asarray(small.vertices)), \
-        np.asarray(small.faces, dtype=np.int64)
+    return np.asarray(small.vertices, dtype=np.float64), np.asarray(small.faces, dtype=np.int64)
 
 
 def on_surface_weights(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,

@@ -256,17 +256,14 @@ def meshable_surface(vertices: np.ndarray, faces: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The closed surface (vertices (n, 3) mm, faces (m, 3)) that :func:`tet_mesh` hands to
     gmsh: as it is with at most :data:`MAX_SURFACE_TRIANGLES` faces, else decimated to that
-    many (quadric error metric, fast-simplification through trimesh; it stays closed). gmsh
-    remeshes the surface at the tetrahedra's size, so the triangles beyond that number only
-    slow its classification. The decimated vertices stay where the quadric metric puts them:
-    moved onto the original surface, their triangles no longer parametrise (gmsh refuses)."""
-    import trimesh
+    many (:func:`biopsynav.anatomy.display.quadric_decimated`). gmsh remeshes the surface at
+    the tetrahedra's size, so the triangles beyond that number only slow its classification.
+    The decimated vertices stay where the quadric metric puts them, not projected onto the
+    original surface as :func:`~biopsynav.anatomy.display.decimate` does for display: so
+    moved, their triangles no longer parametrise (gmsh refuses)."""
+    from ..anatomy.display import quadric_decimated
 
-    if len(faces) <= MAX_SURFACE_TRIANGLES:
-        return vertices, faces
-    small = trimesh.Trimesh(vertices, faces, process=False).simplify_quadric_decimation(
-        face_count=MAX_SURFACE_TRIANGLES)
-    return np.asarray(small.vertices, dtype=np.float64), np.asarray(small.faces, dtype=np.int64)
+    return quadric_decimated(vertices, faces, MAX_SURFACE_TRIANGLES)
 
 
 def _gmsh_tets(vertices: np.ndarray, faces: np.ndarray, size_mm: float,
