@@ -70,7 +70,8 @@ def dataset_complete(case: Case) -> bool:
         cfg = case.cfg
         store = open_store(case.paths.dataset, mode="r")
         check_compatible(store, case.fingerprint(),
-                         protocol_dict(cfg, cfg.dataset.n_train, cfg.dataset.n_test))
+                         protocol_dict(cfg, cfg.dataset.n_train, cfg.dataset.n_test,
+                                       case.anatomy))
         return bool(store.done_mask().all())
     except BiopsynavError:  # generate_case then reports what is wrong
         return False

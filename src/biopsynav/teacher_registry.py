@@ -8,8 +8,9 @@ built (the configuration reads the names from here without importing the data st
 returns an object whose ``solve(push)`` answers a rigid push on the case grid, (n_nodes, 3)
 mm, or raises SolverError (:class:`biopsynav.dataset.converged.P2Teacher` is the built-in
 ``p2``), and whose class has
-``check(case)`` (InputError for a case it cannot teach) and ``protocol(cfg)`` (what its
-answers depend on, recorded in the data set's protocol).
+``check(case)`` (InputError for a case it cannot teach) and ``protocol(cfg, anatomy)`` (what
+its answers depend on beside the case's anatomy and grid fingerprint, recorded in the data set's
+protocol).
 """
 
 from __future__ import annotations

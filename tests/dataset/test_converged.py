@@ -123,6 +123,25 @@ def test_the_teacher_is_part_of_the_protocol(p2_reference, tmp_path):
         generate_case(dst, workers=1, progress=False)
 
 
+def test_the_protocol_names_a_curved_chest_wall_and_leaves_a_flat_ones_as_it_was(p2_base):
+    """The P2 teacher held a label map's curved wall as a plane before it held what the grid
+    holds: a data set of a curved wall records the rule (so one made before is refused), one of
+    a flat wall keeps its former protocol."""
+    from types import SimpleNamespace
+
+    from biopsynav.dataset.store import protocol_dict
+
+    cfg = load_config(p2_base)
+    flat = protocol_dict(cfg, 5, 1, SimpleNamespace(chest_curved=False))
+    curved = protocol_dict(cfg, 5, 1, SimpleNamespace(chest_curved=True))
+    assert "chest_wall" not in flat["dataset"]["teacher_protocol"]
+    assert curved["dataset"]["teacher_protocol"]["chest_wall"] == "curved"
+    assert {**curved["dataset"]["teacher_protocol"], "chest_wall": None} \
+        == {**flat["dataset"]["teacher_protocol"], "chest_wall": None}
+    with pytest.raises(ValueError, match="anatomy"):
+        protocol_dict(cfg, 5, 1)
+
+
 @pytest.mark.parametrize("edit, words", [
     ({"dataset": {"teacher_refine": 2.0}}, "teacher_refine"),
     ({"probe": {"rigid_share": 0.5}}, "rigid_share = 1"),

@@ -67,15 +67,17 @@ class P2Teacher:
         _one_material(case)
 
     @staticmethod
-    def protocol(cfg: Any) -> dict:
+    def protocol(cfg: Any, anatomy: Any) -> dict:
         """What its answers depend on beside the case's anatomy, grid and material: the
-        truth's mesh sizes and probe (:func:`biopsynav.evaluate.p2.probe_key`), the fit."""
-        from ..evaluate.p2 import probe_key
+        truth's mesh sizes and probe (:func:`biopsynav.evaluate.p2.probe_key`), how it holds
+        ``anatomy``'s chest wall (:func:`biopsynav.evaluate.p2.chest_key`: named for a curved
+        wall only, which the truth held as a plane before), the fit."""
+        from ..evaluate.p2 import chest_key, probe_key
 
         ev, data = cfg.evaluate, cfg.dataset
         return {"size_mm": float(data.teacher_size_mm), "fine_mm": float(data.teacher_fine_mm),
                 **probe_key(cfg.probe, str(ev.p2_friction), float(ev.p2_rim_mm),
-                            float(ev.p2_edge_radius_mm)),
+                            float(ev.p2_edge_radius_mm)), **chest_key(anatomy),
                 "to_case_grid": TO_CASE_GRID, "fit_refine": FIT_REFINE,
                 "fit_smoothing": FIT_SMOOTHING, "push_limit_s": PUSH_LIMIT_S}
 

@@ -166,7 +166,7 @@ def prepare_store(case: Any, n_train: int, n_test: int, overwrite: bool
     (:mod:`.grow`), else create it (after removal with overwrite); the store and, when it
     grew, one line saying how (also printed on stderr)."""
     path = dataset_path(case.dir)
-    protocol = protocol_dict(case.cfg, n_train, n_test)
+    protocol = protocol_dict(case.cfg, n_train, n_test, case.anatomy)
     fingerprint = case.fingerprint()
     if path.exists():
         if overwrite:

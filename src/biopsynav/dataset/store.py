@@ -104,8 +104,9 @@ def recorded_probe_value(protocol: dict, key: str) -> Any:
     return (protocol.get("probe") or {}).get(key, FORMER_PROBE_VALUES[key])
 
 
-def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
-    """Everything besides anatomy and grid that decides the samples' content.
+def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int, anatomy: Any = None) -> dict:
+    """Everything besides anatomy and grid that decides the samples' content (``anatomy``,
+    the case's, is read by a teacher other than the grid's: :func:`teacher_protocol`).
 
     [material] (without ``fictitious_stiffness`` when 0), the FE-model inputs of other
     sections ([anatomy] tissue_labels, [grid] min_fraction, and with rigid pushes [tracker]
@@ -149,7 +150,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int) -> dict:
             "dataset": {"seed": cfg.dataset.seed, "n_train": int(n_train),
                         "n_test": int(n_test), "newton_budget": cfg.dataset.newton_budget,
                         "contact_input": cfg.dataset.contact_input,
-                        **mixed_draws(cfg), **teacher_protocol(cfg), **checks}}
+                        **mixed_draws(cfg), **teacher_protocol(cfg, anatomy), **checks}}
 
 
 #: How a data set of both kinds places and draws them (:func:`biopsynav.probe.draw_index`);
@@ -179,17 +180,21 @@ def without_unused_force_keys(probe: dict) -> dict:
     return {k: v for k, v in probe.items() if k not in FORCE_PATCH_KEYS}
 
 
-def teacher_protocol(cfg: CaseConfig) -> dict:
+def teacher_protocol(cfg: CaseConfig, anatomy: Any = None) -> dict:
     """The teacher grid's part of the protocol: nothing for the case grid itself (the protocol
     of before ``[dataset] teacher_refine``), else the refinement, the floor of its cells'
     weights (absent from data sets made before ``teacher_min_fraction``: 0.05 then) and how
     its solutions are fitted to the case grid (:data:`TEACHER_FIT`), and the order of a
     Richardson extrapolation from the case grid's solution (absent when off). Another
     teacher (``[dataset] teacher``, :mod:`biopsynav.teacher_registry`): its name and what its
-    answers depend on (its ``protocol(cfg)``)."""
+    answers depend on (its ``protocol(cfg, anatomy)``; ValueError without the anatomy)."""
     builder = builder_or_none(cfg.dataset.teacher)
     if builder is not None:
-        return {"teacher": cfg.dataset.teacher, "teacher_protocol": builder.protocol(cfg)}
+        if anatomy is None:
+            raise ValueError(f"the protocol of teacher {cfg.dataset.teacher!r} needs the "
+                             "case's anatomy")
+        return {"teacher": cfg.dataset.teacher,
+                "teacher_protocol": builder.protocol(cfg, anatomy)}
     refine = teacher_refinement(cfg)
     if refine == 1:
         return {}
