@@ -2,7 +2,7 @@
 
     python benchmarks/mri_exam.py --collection CLONE --exam 06 --side left
                                   [--workdir DIR] [--push-minutes 8] [--no-truth]
-                                  [--recipe NAME] [--tag TAG]
+                                  [--recipe NAME] [--tag TAG] [--one-material]
 
 ``CLONE``: a local copy of the GitHub repository ``acpelicano/breast_models_repository``
 (Pelicano et al., 3 T prone breast MRI models; a git clone, or a folder of ``Exam_NN``
@@ -23,6 +23,14 @@ hand):
 5. unless ``--no-truth``: ``benchmarks/truth.py`` with the same pushes, the network and the
    FE engine against the P2 tetrahedral truth, each reference push bounded by
    ``--push-minutes``.
+
+``--one-material`` compares like with like: the P2 truth has one material, so the breast is
+made one (``--tissue-labels 1=fat,-2=fat``, a ``--config`` of ``[material] default_tissue =
+"fat"`` and the tumours as soft as the fat, :data:`ONE_MATERIAL_CONFIG`), the truth of its pushes
+is solved right after ``init`` (``truth.py --reference-only``), and ``run``'s Table 2 is against
+it (``[evaluate] reference = "stored"``, ``truth_file`` that reference): the check of
+docs/mri.md, "Against the P2 truth, as one material", in one command. Without it the network of
+a skin-over-fat breast is compared with the homogeneous truth (``truth.py`` warns).
 
 Run it alone on the machine. Writes ``benchmarks/results/mri-exam-NN-SIDE[-TAG].json``; the last
 line reads ``RESULT volume_ml=... total_min=... table1_mean_mm=... net_d30_mm=...
@@ -55,6 +63,18 @@ from time_to_model import stage_minutes
 ROOT = Path(__file__).resolve().parents[1]
 TUMOUR_LABELS = (-3, -4)  # malignant, benign
 LABEL_MAP = "Label_map_simple.mha"
+#: init's tissue flag of ``--one-material``: skin made fat
+ONE_MATERIAL_TISSUES = "1=fat,-2=fat"
+#: init's --config of ``--one-material``: fat everywhere, the tumours as soft as the fat (E MPa)
+#: and as compressible
+ONE_MATERIAL_CONFIG = """[material]
+default_tissue = "fat"
+
+[material.tissues.lesion]
+E_mpa = 0.00446
+nu = 0.45
+"""
+DEPTHS_MM = ("10", "20", "30")
 
 
 def archive_bytes(collection: Path, exam: str) -> bytes:
@@ -104,12 +124,23 @@ def cli(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True)
 
 
+def truth_run(case_dir: Path, push_minutes: float, *flags: str) -> None:
+    """``truth.py CASE`` over every lesion at :data:`DEPTHS_MM`, its reference in the default
+    place (``CASE/../<case>-p2.json``), with ``flags``."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
+                    "--lesions", "0", "--depths", *DEPTHS_MM,
+                    "--push-minutes", str(push_minutes), *flags], check=True)
+
+
+def reference_path(case_dir: Path) -> Path:
+    """Where :func:`truth_run` keeps the P2 truth's answers (``truth.py``'s default)."""
+    return case_dir.parent / f"{case_dir.name}-p2.json"
+
+
 def tumour_motion(case_dir: Path, push_minutes: float) -> dict:
     """``truth.py`` over every lesion at 10, 20, 30 mm: its rows and per-method means."""
     out = case_dir.parent / f"{case_dir.name}-truth.json"
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "truth.py"), str(case_dir),
-                    "--lesions", "0", "--depths", "10", "20", "30",
-                    "--push-minutes", str(push_minutes), "--out", str(out)], check=True)
+    truth_run(case_dir, push_minutes, "--out", str(out))
     data = json.loads(out.read_text())
     means = {m: depth_means(data, m) for m in ("net", "fem", "rigid")}
     return {"rows": data["rows"], "depth_means_mm": means, "bound": bound_check(data["rows"])}
@@ -166,9 +197,35 @@ def bound_check(rows: list[dict]) -> dict:
     return {"pushes": checked, "covered": f"{sum(c['covered'] for c in checked)}/{len(checked)}"}
 
 
+def init_flags(args: argparse.Namespace, work: Path) -> list[str]:
+    """``init``'s flags beside the label map, lesions and side: the collection's labels
+    (:data:`LABEL_FLAGS`), ``--recipe``, and with ``--one-material`` the skin made fat and
+    :data:`ONE_MATERIAL_CONFIG` (written to ``work``)."""
+    flags = [*LABEL_FLAGS, *(["--recipe", args.recipe] if args.recipe else [])]
+    if args.one_material:
+        config = work / "one-material.toml"
+        config.write_text(ONE_MATERIAL_CONFIG)
+        flags[flags.index("--tissue-labels") + 1] = ONE_MATERIAL_TISSUES
+        flags += ["--config", str(config)]
+    return flags
+
+
+def judge_by_truth(case_dir: Path, push_minutes: float) -> None:
+    """Solve the P2 truth of every lesion's pushes (``truth.py --reference-only``) and make it
+    the reference of ``run``'s Table 2 (``[evaluate] reference = "stored"``)."""
+    from biopsynav.config import load_config, save_config
+
+    truth_run(case_dir, push_minutes, "--reference-only")
+    cfg = load_config(case_dir)
+    cfg.evaluate.reference = "stored"
+    cfg.evaluate.truth_file = f"../{reference_path(case_dir).name}"  # relative to the case
+    save_config(case_dir, cfg)
+
+
 def from_label_map(args: argparse.Namespace) -> tuple[Path, float, dict, float]:
-    """Unpack, ``init`` and ``run`` (every default): the case folder, init's seconds, the
-    run's stage seconds and its minutes in all."""
+    """Unpack, ``init`` and ``run`` (every default; with ``--one-material`` the truth solved
+    between them): the case folder, init's seconds, the run's stage seconds and its minutes
+    in all."""
     from biopsynav.pipeline import run_case
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="mri-"))
@@ -177,10 +234,11 @@ def from_label_map(args: argparse.Namespace) -> tuple[Path, float, dict, float]:
     if case_dir.exists():
         sys.exit(f"mri_exam: {case_dir} exists; the benchmark starts from the label map")
     t = time.perf_counter()
-    recipe = ["--recipe", args.recipe] if args.recipe else []
-    print(cli("init", str(case_dir), "--labelmap", str(label_map), *LABEL_FLAGS,
-              *lesion_flag(label_map), "--side", args.side, *recipe).stdout.strip())
+    print(cli("init", str(case_dir), "--labelmap", str(label_map), *init_flags(args, work),
+              *lesion_flag(label_map), "--side", args.side).stdout.strip())
     init_s = time.perf_counter() - t
+    if args.one_material:
+        judge_by_truth(case_dir, args.push_minutes)
     start = time.perf_counter()
     timings = run_case(case_dir)["timings_s"]
     return case_dir, init_s, timings, (time.perf_counter() - start) / 60
@@ -196,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-truth", action="store_true")
     p.add_argument("--recipe", default=None, help="init's --recipe (default: init's default)")
     p.add_argument("--tag", default=None, help="a suffix of the result file's name")
+    p.add_argument("--one-material", action="store_true",
+                   help="the breast made one material (skin and tumours as fat), Table 2 and "
+                        "the figures against the P2 truth of that one material")
     p.add_argument("--case", type=Path, default=None,
                    help="a case of this exam and side that `run` finished: its tumours' motion "
                         "and figures only (no stage times)")
@@ -227,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
                "table2_placements": table2["placements"],
                "table2_tables": table2["tables"], "tumour_motion": motion,
                "model_motion": models}
-    tag = f"-{args.tag}" if args.tag else ""
+    tag = args.tag or ("one-material" if args.one_material else None)
+    tag = f"-{tag}" if tag else ""
     write_result(f"mri-exam-{args.exam}-{args.side}{tag}", figures)
     print(f"RESULT volume_ml={info['modelled']['breast_volume_ml']:.0f} "
           f"total_min={total_min:.1f} table1_mean_mm={table1['mean_e_mm']:.4f} "
