@@ -33,7 +33,6 @@ def test_one_material_makes_a_case_the_truth_accepts_and_judges_table_2_by_it(mo
     truth require), and the truth solved after ``init`` becomes Table 2's reference."""
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     import mri_exam
-
     from biopsynav.case import Case
     from biopsynav.cli import main
     from biopsynav.config import load_config
