@@ -158,7 +158,8 @@ def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
     """One row per depth: the reference displacement, the rigid assumption's and each
     tracker's TRE (None: no answer, with its status), each answer's lesion displacement
     (``moved_mm``) and 95 % bound (``bound_mm``), the network's lesion self-check at that
-    depth (``relative_miss``, :mod:`biopsynav.tracker.bound`), where one was given its reason
+    depth (``relative_miss``, :mod:`biopsynav.tracker.bound`) and its teacher gap
+    (``teacher_gap``), where one was given its reason
     (``reason``) and the FE answer's ``fem_spring_factor`` (1: the springs as asked; 4, inf:
     elastic contact's fallbacks) for lesion index ``li``."""
     rows = []
@@ -184,6 +185,8 @@ def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
                 row.setdefault("bound_mm", {})[name] = float(res.lesions[li].bound_mm)
             if name == "net" and tr.lesion_check is not None:
                 row["relative_miss"] = float(tr.lesion_check.relative_at(depth)[li])
+                gap = float(tr.lesion_check.teacher_gap[li])
+                row["teacher_gap"] = gap if np.isfinite(gap) else None
             if res.reason:
                 row.setdefault("reason", {})[name] = res.reason
             if name == "fem" and tr.last_solve is not None:

@@ -48,10 +48,43 @@ def test_the_check_measures_the_network_against_its_teacher(checked):
     assert written["lesions"] == check["lesions"]
 
 
+def test_the_teacher_gap_is_the_teacher_against_itself_on_a_finer_grid(checked):
+    """Each lesion's teacher gap: the FE teacher and the same FE on a grid
+    TEACHER_CHECK_REFINEMENT times finer, pushed TEACHER_CHECK_DEPTH_MM over the lesion; the
+    distance of their lesion centres over the teacher's lesion motion."""
+    from biopsynav.evaluate.lesion_check import (
+        TEACHER_CHECK_DEPTH_MM,
+        TEACHER_CHECK_REFINEMENT,
+        finer_teacher,
+    )
+    from biopsynav.evaluate.simulation import evaluation_solver_settings
+    from biopsynav.tracker.core import fem_engine
+
+    case, check = checked
+    assert check["teacher_check"] == {"depth_mm": TEACHER_CHECK_DEPTH_MM,
+                                      "refinement": TEACHER_CHECK_REFINEMENT}
+    settings = evaluation_solver_settings(case)
+    fem, fine = fem_engine(case, settings), finer_teacher(case, settings)
+    assert fine.case.grid.spacing == pytest.approx(case.grid.spacing / TEACHER_CHECK_REFINEMENT)
+    gaps = [lesion["teacher_gap"] for lesion in check["lesions"].values()]
+    assert any(g is not None for g in gaps)
+    li = next(i for i, g in enumerate(gaps) if g is not None)
+    placement = place_case_probe(case, li)
+    moved = []
+    for tracker in (fem, fine):
+        tracker.set_rest_pose(placement.pose)
+        moved.append(tracker.update(placement.pushed(TEACHER_CHECK_DEPTH_MM)).lesions[li]
+                     .displacement)
+    assert gaps[li] == pytest.approx(np.linalg.norm(moved[0] - moved[1])
+                                     / np.linalg.norm(moved[0]), rel=1e-6)
+    assert 0.0 < gaps[li] < 0.5  # two grids of one FE: near, never the same
+
+
 def test_the_tracker_widens_its_bounds_by_the_check(checked):
     case, check = checked
     tracker = Tracker.load(case, engine="net")
     assert tracker.lesion_check is not None and "self-check" in tracker.bound_basis
+    assert "finer grid" in tracker.bound_basis
     from biopsynav.info import case_summary
 
     assert case_summary(case.dir)["bounds"].startswith("widened by each lesion's self-check")
@@ -63,7 +96,9 @@ def test_the_tracker_widens_its_bounds_by_the_check(checked):
     assert result.reliable
     lesion = result.lesions[li]
     rel = check["lesions"][str(lesion.id)]["relative"][-1]
-    expected = error_bound_mm(lesion.displacement[None], DEPTHS[-1], np.array([rel]))[0]
+    gap = check["lesions"][str(lesion.id)]["teacher_gap"]
+    expected = error_bound_mm(lesion.displacement[None], DEPTHS[-1], np.array([rel]),
+                              np.array([np.nan if gap is None else gap]))[0]
     assert lesion.bound_mm == pytest.approx(expected, rel=0.05)  # depth: the contact's mean
 
 
@@ -96,3 +131,6 @@ def test_the_check_in_two_worker_processes_matches_one(checked, tmp_path):
         # answers to far below the check's millimetres
         assert np.allclose([m for m in got["miss_mm"] if m is not None],
                            [m for m in lesion["miss_mm"] if m is not None], atol=1e-4)
+        assert (got["teacher_gap"] is None) == (lesion["teacher_gap"] is None)
+        if got["teacher_gap"] is not None:
+            assert got["teacher_gap"] == pytest.approx(lesion["teacher_gap"], abs=1e-5)

@@ -16,6 +16,7 @@ from biopsynav.tracker.bound import (
     CHECK_FORMAT,
     CHECK_WEIGHT,
     COEFFICIENTS,
+    TEACHER_WEIGHT,
     UNCHECKED_COEFFICIENTS,
     LesionCheck,
     error_bound_mm,
@@ -36,6 +37,7 @@ def test_the_coefficients_are_those_the_benchmark_fitted():
         (fitted["unchecked_c"], fitted["unchecked_a"], fitted["unchecked_b"]), rel=1e-3,
         abs=1e-6)
     assert CHECK_WEIGHT == fitted["weight"]
+    assert TEACHER_WEIGHT == fitted["teacher_weight"]
 
 
 def test_the_bound_grows_with_the_lesions_motion_and_the_push():
@@ -80,16 +82,19 @@ def test_the_shell_is_the_surface_pushed_out_whichever_way_its_faces_wind():
     np.testing.assert_array_equal(offset_surface(v, f, 0.0), v)  # at rest: the surface
 
 
-def test_a_lesion_the_network_missed_gets_a_wider_bound():
-    """The self-check's relative miss widens the bound by k |d| r; a lesion without a check
-    (NaN) is bounded by the unchecked coefficients."""
-    d = np.array([[0.0, 0.0, 10.0]] * 3)
-    bounds = error_bound_mm(d, 20.0, np.array([0.0, 0.2, np.nan]))
+def test_a_lesion_the_network_missed_or_whose_teacher_is_off_gets_a_wider_bound():
+    """The self-check's relative miss widens the bound by k |d| r, the teacher gap by
+    k_t |d| g; a lesion without either (NaN) is bounded by the unchecked coefficients."""
+    d = np.array([[0.0, 0.0, 10.0]] * 5)
+    bounds = error_bound_mm(d, 20.0, np.array([0.0, 0.2, 0.0, np.nan, 0.2]),
+                            np.array([0.0, 0.0, 0.1, 0.1, np.nan]))
     c, a, b = COEFFICIENTS
     assert bounds[0] == pytest.approx(c + 10.0 * (a + 20.0 * b))
     assert bounds[1] == pytest.approx(bounds[0] + CHECK_WEIGHT * 10.0 * 0.2)
-    assert bounds[2] == pytest.approx(error_bound_mm(d[:1], 20.0)[0])
-    assert error_bound_mm(np.zeros((1, 3)), 20.0, np.array([0.5]))[0] == 0.0  # at rest
+    assert bounds[2] == pytest.approx(bounds[0] + TEACHER_WEIGHT * 10.0 * 0.1)
+    unchecked = error_bound_mm(d[:1], 20.0)[0]
+    assert bounds[3] == pytest.approx(unchecked) and bounds[4] == pytest.approx(unchecked)
+    assert error_bound_mm(np.zeros((1, 3)), 20.0, np.array([0.5]), np.array([0.1]))[0] == 0.0
 
 
 def _write_check(folder: Path, meta: dict, lesions: dict, depths=(15.0, 25.0, 35.0)) -> None:
@@ -101,8 +106,8 @@ def _write_check(folder: Path, meta: dict, lesions: dict, depths=(15.0, 25.0, 35
 
 def test_a_check_is_read_interpolated_and_held_beyond_its_depths(tmp_path):
     meta = {"fingerprint": "abc", "node_shape": [3, 3, 3]}
-    _write_check(tmp_path, meta, {"1": {"relative": [0.1, 0.3, 0.2]},
-                                  "2": {"relative": [None, 0.4, None]},
+    _write_check(tmp_path, meta, {"1": {"relative": [0.1, 0.3, 0.2], "teacher_gap": 0.03},
+                                  "2": {"relative": [None, 0.4, None], "teacher_gap": None},
                                   "3": {"relative": [None, None, None]}})
     check = LesionCheck.load(tmp_path, meta, [1, 2, 3, 4])  # lesion 4: not in the check
     assert check is not None
@@ -110,6 +115,7 @@ def test_a_check_is_read_interpolated_and_held_beyond_its_depths(tmp_path):
     assert check.relative_at(5.0)[0] == pytest.approx(0.1)  # held below the first depth
     assert check.relative_at(50.0)[0] == pytest.approx(0.2)  # ... and beyond the last
     assert np.isnan(check.relative_at(20.0)[2:]).all()
+    assert check.teacher_gap[0] == pytest.approx(0.03) and np.isnan(check.teacher_gap[1:]).all()
     assert LesionCheck.load(tmp_path, meta, []).relative_at(20.0).shape == (0,)  # no lesions
 
 

@@ -5,9 +5,14 @@ The probe is placed over each lesion as Table 2 and the truth place it
 tracking network and its teacher (the FE engine on the network's teacher grid, Table 2's
 ``fem``) answer each push. The distance between their lesion centres over the teacher's lesion
 displacement is the lesion's *relative miss* at that depth: how much of the lesion's motion
-the network has not learnt from its teacher there. The tracker widens each lesion's error
-bound by it (:mod:`biopsynav.tracker.bound`), so that a lesion the network learnt badly is not
-shown with the bound of one it learnt well. No truth takes part, so every case gets its check.
+the network has not learnt from its teacher there. Each lesion's *teacher gap* is the teacher
+against itself on a grid :data:`TEACHER_CHECK_REFINEMENT` times finer at
+:data:`TEACHER_CHECK_DEPTH_MM`: the distance between their lesion centres over the teacher's
+lesion displacement, how far the teacher is from converged at that lesion (which the network's
+miss against the teacher cannot show). The tracker widens each lesion's error bound by both
+(:mod:`biopsynav.tracker.bound`), so that a lesion the network learnt badly, or whose teacher
+is off, is not shown with the bound of one learnt well from a converged teacher. No truth takes
+part, so every case gets its check.
 The depths differ from the truth's 10 / 20 / 30 mm, so that ``benchmarks/error_bound.py``
 judges the bound on pushes the check did not make.
 
@@ -35,10 +40,15 @@ from .simulation import evaluation_solver_settings
 
 #: probe displacements (mm) of each lesion's check pushes, between and beyond the truth's
 CHECK_DEPTHS_MM = (15.0, 25.0, 35.0)
+#: the push (mm) at which each lesion's teacher is compared with itself on a finer grid
+TEACHER_CHECK_DEPTH_MM = 15.0
+#: how many times finer than the teacher's that grid's cells are
+TEACHER_CHECK_REFINEMENT = 1.46
 
 
-#: The worker process's (case, network tracker, FE tracker), set up by :func:`init_engines`.
-_ENGINES: tuple[Case, Tracker, Tracker] | None = None
+#: The worker process's (case, network tracker, FE tracker, the FE on a finer grid), set up by
+#: :func:`init_engines`.
+_ENGINES: tuple[Case, Tracker, Tracker, Tracker] | None = None
 
 
 def run_lesion_check(case: Case, workers: int = 0, log: Callable[[str], None] = print,
@@ -47,8 +57,9 @@ def run_lesion_check(case: Case, workers: int = 0, log: Callable[[str], None] = 
     local processes (0: one per core; 1: in this process), written to the tracking model's
     folder and returned:
     ``model_checksum``, ``depths_mm``, ``lesions`` ({id: ``miss_mm``, ``teacher_mm``,
-    ``relative`` per depth, None where either engine gave no answer, and ``status``}) and
-    ``seconds``."""
+    ``relative`` per depth, None where either engine gave no answer, ``status``, and
+    ``teacher_gap``, None where the teacher or the finer grid gave none}), ``teacher_check``
+    (its depth and refinement) and ``seconds``."""
     import os
 
     start = time.perf_counter()
@@ -59,13 +70,16 @@ def run_lesion_check(case: Case, workers: int = 0, log: Callable[[str], None] = 
     if workers > 1:
         checks = checks_in_workers(case, indices, workers, depths_mm)
     else:
-        engines = (case, Tracker.load(case, engine="net"),
-                   fem_engine(case, evaluation_solver_settings(case)))
+        settings = evaluation_solver_settings(case)
+        engines = (case, Tracker.load(case, engine="net"), fem_engine(case, settings),
+                   finer_teacher(case, settings))
         checks = [lesion_pushes(*engines, li, depths_mm) for li in indices]
     result = {"format": CHECK_FORMAT, "model_checksum": LesionCheck.checksum_of(meta),
               "depths_mm": [float(d) for d in depths_mm],
               "lesions": {str(case.anatomy.lesions[li].id): c
                           for li, c in zip(indices, checks, strict=True)},
+              "teacher_check": {"depth_mm": TEACHER_CHECK_DEPTH_MM,
+                                "refinement": TEACHER_CHECK_REFINEMENT},
               "seconds": time.perf_counter() - start}
     write_json_atomic(model_dir / LESION_CHECK, result)
     log(check_line(result))
@@ -73,10 +87,26 @@ def run_lesion_check(case: Case, workers: int = 0, log: Callable[[str], None] = 
 
 
 def init_engines(case: Case) -> None:
-    """Worker set-up: the network tracker and its FE teacher, one thread each."""
+    """Worker set-up: the network tracker, its FE teacher and the teacher on a finer grid, one
+    thread each."""
     global _ENGINES
     settings = dataclasses.replace(evaluation_solver_settings(case), threads=1)
-    _ENGINES = (case, Tracker.load(case, engine="net", threads=1), fem_engine(case, settings))
+    _ENGINES = (case, Tracker.load(case, engine="net", threads=1), fem_engine(case, settings),
+                finer_teacher(case, settings))
+
+
+def finer_teacher(case: Case, settings) -> Tracker:
+    """The FE engine of the tracking model's teacher (its law, contact and solver
+    ``settings``) on a grid :data:`TEACHER_CHECK_REFINEMENT` times finer than the teacher's,
+    its spring budget scaled as a fine-grid reference's."""
+    from ..fem.teacher import teacher_refinement
+    from ..refine import tracking_teacher_case
+    from ..tracker.core import finer_grid_spring_budget
+    from .simulation import reference_case
+
+    refinement = teacher_refinement(tracking_teacher_case(case).cfg) * TEACHER_CHECK_REFINEMENT
+    return fem_engine(reference_case(case, refinement),
+                      finer_grid_spring_budget(settings, refinement), on_teacher=False)
 
 
 def check_lesion(lesion_index: int, depths_mm: tuple[float, ...]) -> dict:
@@ -110,10 +140,12 @@ def checks_in_workers(case: Case, indices: list[int], workers: int,
     return [checks[li] for li in indices]
 
 
-def lesion_pushes(case: Case, net: Tracker, fem: Tracker, lesion_index: int,
+def lesion_pushes(case: Case, net: Tracker, fem: Tracker, fine: Tracker, lesion_index: int,
                   depths_mm: tuple[float, ...]) -> dict:
-    """The check of one lesion: both engines at each of ``depths_mm`` over it."""
+    """The check of one lesion: its teacher gap (:func:`teacher_gap`, ``fine`` the teacher on
+    the finer grid), then the network and the teacher at each of ``depths_mm`` over it."""
     placement = place_case_probe(case, lesion_index)
+    gap = teacher_gap(fem, fine, placement, lesion_index)
     for tracker in (net, fem):
         tracker.set_rest_pose(placement.pose)
     out: dict[str, list] = {"miss_mm": [], "teacher_mm": [], "relative": [], "status": []}
@@ -127,7 +159,22 @@ def lesion_pushes(case: Case, net: Tracker, fem: Tracker, lesion_index: int,
         out["teacher_mm"].append(moved)
         out["relative"].append(None if miss is None else miss / max(moved, 1e-9))
         out["status"].append("; ".join(unanswered) or "ok")
-    return out
+    return {**out, "teacher_gap": gap}
+
+
+def teacher_gap(fem: Tracker, fine: Tracker, placement, lesion_index: int) -> float | None:
+    """The share of the lesion's motion by which the teacher on the finer grid moves it
+    otherwise at :data:`TEACHER_CHECK_DEPTH_MM` over it: |u_teacher - u_finer| / |u_teacher|
+    (the lesion displacements, mm); None where either gave no reliable answer."""
+    pose = placement.pushed(TEACHER_CHECK_DEPTH_MM)
+    answers = []
+    for tracker in (fem, fine):
+        tracker.set_rest_pose(placement.pose)
+        answers.append(tracker.update(pose))
+    if not all(a.reliable for a in answers):
+        return None
+    coarse, finer = (a.lesions[lesion_index].displacement for a in answers)
+    return float(np.linalg.norm(coarse - finer) / max(float(np.linalg.norm(coarse)), 1e-9))
 
 
 def pair_distance(answers, lesion_index: int) -> tuple[float, float]:
@@ -139,11 +186,19 @@ def pair_distance(answers, lesion_index: int) -> tuple[float, float]:
 
 
 def check_line(result: dict) -> str:
-    """One line: the largest relative miss of each lesion, and the time taken."""
+    """One line: the largest relative miss of each lesion, its teacher gap, the time taken."""
     worst = {i: max((r for r in v["relative"] if r is not None), default=None)
              for i, v in result["lesions"].items()}
-    parts = [f"{i} {'-' if w is None else f'{100 * w:.0f} %'}" for i, w in worst.items()]
+    parts = [f"{i} {share_words(w)}" for i, w in worst.items()]
     depths = ", ".join(f"{d:g}" for d in result["depths_mm"])
+    gaps = [f"{i} {share_words(v.get('teacher_gap'))}" for i, v in result["lesions"].items()]
     return (f"lesion check (the network against its teacher at {depths} mm; the largest "
             "share of each lesion's motion missed): " + ", ".join(parts)
+            + f"; the teacher against a grid {TEACHER_CHECK_REFINEMENT:g} times finer at "
+            f"{TEACHER_CHECK_DEPTH_MM:g} mm: " + ", ".join(gaps)
             + f"; {result['seconds']:.0f} s")
+
+
+def share_words(share: float | None) -> str:
+    """A share as a whole percentage, ``-`` for None."""
+    return "-" if share is None else f"{100 * share:.0f} %"

@@ -273,22 +273,33 @@ def table2_section(case_dir: Path, fig_dir: Path, cfg: CaseConfig | None = None)
 
 def lesion_check_blocks(path: Path) -> list:
     """The lesion self-check's table: each lesion's share of its motion the network missed
-    against its teacher at each check depth; nothing when it was not made."""
+    against its teacher at each check depth, and its teacher gap (a check made before the gap
+    was part of it shows none); nothing when it was not made."""
     check = read_stage_json(path)
     if check is None:
         return []
     try:
         depths = [float(d) for d in check["depths_mm"]]
-        rows = [[str(i)] + ["-" if r is None else f"{100 * float(r):.0f} %"
-                            for r in v["relative"]] for i, v in check["lesions"].items()]
+        teacher = check.get("teacher_check", {})
+        rows = [[str(i)] + [_share(r) for r in v["relative"]] + [_share(v.get("teacher_gap"))]
+                for i, v in check["lesions"].items()]
+        gap_title = (f"teacher gap ({float(teacher['refinement']):g}x finer grid, "
+                     f"{float(teacher['depth_mm']):g} mm)" if teacher else "teacher gap")
     except (KeyError, TypeError, ValueError, AttributeError):
         raise InputError("damaged: not a lesion check; rebuild it with `biopsynav evaluate`",
                          str(path)) from None
     return [Para("Each lesion's self-check (the tracking network against its own FE teacher, "
                  "the probe pushed over the lesion; no truth takes part): the share of the "
-                 "lesion's motion the network missed. It widens that lesion's 95 % bound "
+                 "lesion's motion the network missed, and the share by which the teacher on a "
+                 "finer grid moves it otherwise (the teacher gap: how far the teacher is from "
+                 "converged there). Both widen that lesion's 95 % bound "
                  "(docs/tracker.md, \"Error bound\")."),
-            GridTable(["lesion"] + [f"{d:g} mm" for d in depths], rows)]
+            GridTable(["lesion"] + [f"{d:g} mm" for d in depths] + [gap_title], rows)]
+
+
+def _share(value: float | None) -> str:
+    """A share as a whole percentage, ``-`` for None."""
+    return "-" if value is None else f"{100 * float(value):.0f} %"
 
 
 def table2_blocks(result: dict, title: str, png: Path) -> list:

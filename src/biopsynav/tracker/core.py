@@ -758,8 +758,10 @@ class Tracker:
         ``depth_mm``: centres, their 95 % bounds and, when ``disp`` covers them, the mesh
         vertices."""
         n = len(self._lesion_ids)
-        check = None if self.lesion_check is None else self.lesion_check.relative_at(depth_mm)
-        bounds = error_bound_mm(disp[:n], depth_mm, check)
+        check = self.lesion_check
+        bounds = (error_bound_mm(disp[:n], depth_mm) if check is None else
+                  error_bound_mm(disp[:n], depth_mm, check.relative_at(depth_mm),
+                                 check.teacher_gap))
         if len(disp) == n:
             return [LesionResult(i, c + d, d, status, bound_mm=float(b)) for i, c, d, b in
                     zip(self._lesion_ids, self._lesion_centres, disp, bounds, strict=True)]
