@@ -278,6 +278,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "10 / 20 / 30 mm",
      Cell("time-to-model-phantom-pushes-amx", ttm_summary,
           TTM.format("phantom") + " --recipe pushes --tag amx"), "<= 15 min", "-"),
+    ("the same on an AMD EPYC with AVX-512 BF16 and no AMX, with the teacher gap in each "
+     "lesion's self-check (the Intel row above was measured before it): whole; each stage; "
+     "Table 1; the TRE",
+     Cell("time-to-model-phantom-pushes-avx512-gap", ttm_summary,
+          TTM.format("phantom") + " --recipe pushes --tag avx512-gap"), "<= 15 min", "-"),
     ("the same network: the paper's Table 1, mean / max e on 200 force patches (the paper's "
      "data) solved by its own teacher's law",
      Cell("table1-patches-phantom-pushes-amx", table1_cell,

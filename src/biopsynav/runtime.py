@@ -181,10 +181,10 @@ def evaluation_minutes(case) -> float:
 
 
 #: each lesion's self-check (:mod:`biopsynav.evaluate.lesion_check`, three pushes of 15-35 mm
-#: on the teacher's grid in two processes): the phantom's default model (10 lesions, 2,225
-#: active cells), alone, Intel Xeon, 2026-12-06: 73 s at a speed probe of 0.91x, 1.35 min at
-#: the reference machine's speed
-LESION_CHECK = {"active_cells": PHANTOM_ACTIVE_CELLS, "lesions": 10, "minutes": 1.35}
+#: on the teacher's grid and the teacher gap's push on a finer one, in two processes): the
+#: phantom's default model (10 lesions, 2,225 active cells), alone, AMD EPYC, 2026-12-06: 171 s
+#: at a speed probe of 1.62x, 1.76 min at the reference machine's speed
+LESION_CHECK = {"active_cells": PHANTOM_ACTIVE_CELLS, "lesions": 10, "minutes": 1.76}
 
 
 def lesion_check_minutes(case) -> float:
