@@ -293,6 +293,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "whole; each stage; Table 1 on its held-out rigid pushes",
      Cell("time-to-model-ucdavis-pushes-amx", ttm_summary,
           TTM.format("ucdavis") + " --recipe pushes --tag amx"), "<= 15 min", "-"),
+    ("the same on an AMD EPYC with AVX-512 BF16 and no AMX, with the teacher gap in each "
+     "lesion's self-check (44 s of the evaluation; Table 2 against the fine-grid truth): whole; "
+     "each stage; Table 1",
+     Cell("time-to-model-ucdavis-pushes-avx512-gap", ttm_summary,
+          TTM.format("ucdavis") + " --recipe pushes --tag avx512-gap"), "<= 15 min", "-"),
     ("the same network: the paper's Table 1 on 200 force patches of its own teacher's law",
      Cell("table1-patches-ucdavis-pushes-amx", table1_cell,
           "python benchmarks/table1_patches.py CASE --result-name "
