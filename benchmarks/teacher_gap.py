@@ -29,7 +29,12 @@ from resultfile import write_result
 def lesion_gaps(case_dir: Path) -> dict[str, float | None]:
     """{lesion id: teacher gap} of every lesion of the case in ``case_dir``."""
     from biopsynav.case import Case
-    from biopsynav.evaluate.lesion_check import finer_teacher, teacher_gap
+    from biopsynav.evaluate.lesion_check import (
+        TEACHER_CHECK_DEPTH_MM,
+        finer_teacher,
+        pushed_lesion,
+        teacher_gap,
+    )
     from biopsynav.evaluate.placement import place_case_probe
     from biopsynav.evaluate.simulation import evaluation_solver_settings
     from biopsynav.tracker.core import fem_engine
@@ -39,7 +44,9 @@ def lesion_gaps(case_dir: Path) -> dict[str, float | None]:
     fem, fine = fem_engine(case, settings), finer_teacher(case, settings)
     gaps = {}
     for li, lesion in enumerate(case.anatomy.lesions):
-        gaps[str(lesion.id)] = teacher_gap(fem, fine, place_case_probe(case, li), li)
+        placement = place_case_probe(case, li)
+        teacher = pushed_lesion(fem, placement, li, TEACHER_CHECK_DEPTH_MM)
+        gaps[str(lesion.id)] = teacher_gap(fine, placement, li, teacher)
         print(f"lesion {lesion.id}: teacher gap {gaps[str(lesion.id)]}", flush=True)
     return gaps
 

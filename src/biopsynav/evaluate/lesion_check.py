@@ -142,16 +142,18 @@ def checks_in_workers(case: Case, indices: list[int], workers: int,
 
 def lesion_pushes(case: Case, net: Tracker, fem: Tracker, fine: Tracker, lesion_index: int,
                   depths_mm: tuple[float, ...]) -> dict:
-    """The check of one lesion: its teacher gap (:func:`teacher_gap`, ``fine`` the teacher on
-    the finer grid), then the network and the teacher at each of ``depths_mm`` over it."""
+    """The check of one lesion: the network and the teacher at each of ``depths_mm`` over it,
+    then its teacher gap (:func:`teacher_gap`, ``fine`` the teacher on the finer grid; the
+    teacher's own push at :data:`TEACHER_CHECK_DEPTH_MM` is the check's where it made one)."""
     placement = place_case_probe(case, lesion_index)
-    gap = teacher_gap(fem, fine, placement, lesion_index)
     for tracker in (net, fem):
         tracker.set_rest_pose(placement.pose)
     out: dict[str, list] = {"miss_mm": [], "teacher_mm": [], "relative": [], "status": []}
+    taught: dict[float, np.ndarray | None] = {}  # depth -> the teacher's lesion displacement
     for depth in depths_mm:
         pose = placement.pushed(depth)
         answers = net.update(pose), fem.update(pose)
+        taught[depth] = lesion_displacement(answers[1], lesion_index)
         unanswered = [f"{name}: {a.status}" for name, a in zip(("net", "fem"), answers,
                                                                 strict=True) if not a.reliable]
         miss, moved = (None, None) if unanswered else pair_distance(answers, lesion_index)
@@ -159,22 +161,38 @@ def lesion_pushes(case: Case, net: Tracker, fem: Tracker, fine: Tracker, lesion_
         out["teacher_mm"].append(moved)
         out["relative"].append(None if miss is None else miss / max(moved, 1e-9))
         out["status"].append("; ".join(unanswered) or "ok")
-    return {**out, "teacher_gap": gap}
+    at = TEACHER_CHECK_DEPTH_MM
+    teacher = taught[at] if at in taught else pushed_lesion(fem, placement, lesion_index, at)
+    return {**out, "teacher_gap": teacher_gap(fine, placement, lesion_index, teacher)}
 
 
-def teacher_gap(fem: Tracker, fine: Tracker, placement, lesion_index: int) -> float | None:
+def teacher_gap(fine: Tracker, placement, lesion_index: int,
+                teacher: np.ndarray | None) -> float | None:
     """The share of the lesion's motion by which the teacher on the finer grid moves it
-    otherwise at :data:`TEACHER_CHECK_DEPTH_MM` over it: |u_teacher - u_finer| / |u_teacher|
-    (the lesion displacements, mm); None where either gave no reliable answer."""
-    pose = placement.pushed(TEACHER_CHECK_DEPTH_MM)
-    answers = []
-    for tracker in (fem, fine):
-        tracker.set_rest_pose(placement.pose)
-        answers.append(tracker.update(pose))
-    if not all(a.reliable for a in answers):
+    otherwise at :data:`TEACHER_CHECK_DEPTH_MM` over it: |u_teacher - u_finer| / |u_teacher|,
+    ``teacher`` (3,) mm the teacher's lesion displacement there
+    (:func:`pushed_lesion`); None where either gave no reliable answer."""
+    if teacher is None:
         return None
-    coarse, finer = (a.lesions[lesion_index].displacement for a in answers)
-    return float(np.linalg.norm(coarse - finer) / max(float(np.linalg.norm(coarse)), 1e-9))
+    finer = pushed_lesion(fine, placement, lesion_index, TEACHER_CHECK_DEPTH_MM)
+    if finer is None:
+        return None
+    return float(np.linalg.norm(teacher - finer) / max(float(np.linalg.norm(teacher)), 1e-9))
+
+
+def pushed_lesion(tracker: Tracker, placement, lesion_index: int,
+                  depth_mm: float) -> np.ndarray | None:
+    """The lesion's displacement (3,) mm when ``tracker``, set to the placement's rest pose,
+    answers its push of ``depth_mm``; None where the answer is not reliable."""
+    tracker.set_rest_pose(placement.pose)
+    return lesion_displacement(tracker.update(placement.pushed(depth_mm)), lesion_index)
+
+
+def lesion_displacement(answer, lesion_index: int) -> np.ndarray | None:
+    """A copy of the lesion's displacement (3,) mm in a tracker's ``answer``, None where the
+    answer is not reliable."""
+    return (np.array(answer.lesions[lesion_index].displacement, dtype=np.float64)
+            if answer.reliable else None)
 
 
 def pair_distance(answers, lesion_index: int) -> tuple[float, float]:

@@ -275,13 +275,16 @@ def lesion_check_blocks(path: Path) -> list:
     """The lesion self-check's table: each lesion's share of its motion the network missed
     against its teacher at each check depth, and its teacher gap (a check made before the gap
     was part of it shows none); nothing when it was not made."""
+    from ..evaluate.lesion_check import share_words
+
     check = read_stage_json(path)
     if check is None:
         return []
     try:
         depths = [float(d) for d in check["depths_mm"]]
         teacher = check.get("teacher_check", {})
-        rows = [[str(i)] + [_share(r) for r in v["relative"]] + [_share(v.get("teacher_gap"))]
+        rows = [[str(i)] + [share_words(_float_or_none(r)) for r in v["relative"]]
+                + [share_words(_float_or_none(v.get("teacher_gap")))]
                 for i, v in check["lesions"].items()]
         gap_title = (f"teacher gap ({float(teacher['refinement']):g}x finer grid, "
                      f"{float(teacher['depth_mm']):g} mm)" if teacher else "teacher gap")
@@ -297,9 +300,9 @@ def lesion_check_blocks(path: Path) -> list:
             GridTable(["lesion"] + [f"{d:g} mm" for d in depths] + [gap_title], rows)]
 
 
-def _share(value: float | None) -> str:
-    """A share as a whole percentage, ``-`` for None."""
-    return "-" if value is None else f"{100 * float(value):.0f} %"
+def _float_or_none(value) -> float | None:
+    """``value`` as a float (ValueError or TypeError for neither a number nor None)."""
+    return None if value is None else float(value)
 
 
 def table2_blocks(result: dict, title: str, png: Path) -> list:
