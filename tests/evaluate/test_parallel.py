@@ -1,5 +1,5 @@
-"""Table 2's fine-grid ground truth solved in worker processes gives the records of a run that
-solves it push by push in this process."""
+"""Table 2's fine-grid ground truth and FE teacher solved in worker processes give the records
+of a run that solves them push by push in this process."""
 
 from __future__ import annotations
 
@@ -20,13 +20,16 @@ def small_table2_case(coarse_phantom) -> Case:
     return Case(coarse_phantom.dir, cfg, coarse_phantom.anatomy, coarse_phantom.grid)
 
 
-def test_the_ground_truth_in_two_processes_is_the_one_of_this_process(small_table2_case):
+def test_the_ground_truth_and_teacher_in_two_processes_are_those_of_this_process(small_table2_case):
     said: list[str] = []
     alone = run_simulation(small_table2_case, methods=("fem", "rigid"), log=lambda _: None,
                            workers=1)
     shared = run_simulation(small_table2_case, methods=("fem", "rigid"), log=said.append,
                             workers=2)
-    assert any("4 pushes of 2 lesions solved in 2 processes" in line for line in said), said
+    assert any("ground truth: 4 pushes of 2 lesions solved in 2 processes" in line
+               for line in said), said
+    assert any("FE teacher: 4 pushes of 2 lesions solved in 2 processes" in line
+               for line in said), said
     assert alone["placements"] == shared["placements"]
     assert len(alone["records"]) == len(shared["records"]) == 2 * 2 * 3  # + the reference's
     for a, b in zip(alone["records"], shared["records"], strict=True):

@@ -12,6 +12,7 @@ Methods: ``net`` (the U-Net tracker), ``fem`` (FE tracker at the training resolu
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -90,8 +91,9 @@ def setup_for(case: Case, quick: bool) -> Setup:
 def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, quick: bool = False,
                    log: Callable[[str], None] = print, workers: int = 0) -> dict:
     """Table 2 by simulation of ``case`` (loaded, or its folder); returns the JSON-ready result.
-    A fine-grid ground truth is solved first in ``workers`` local processes (0: one per core;
-    1: in this process, push by push; :mod:`biopsynav.evaluate.parallel`).
+    A fine-grid ground truth, then the ``fem`` method, are solved first in ``workers`` local
+    processes (0: one per core; 1: in this process, push by push;
+    :mod:`biopsynav.evaluate.parallel`).
 
     Keys: ``source`` ("simulation"), ``methods``, ``records`` (one per lesion, push and
     method: displacement_mm, bin, tre_mm or None with status and reason, time_ms),
@@ -114,8 +116,9 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     plans = [(li, placement, _depths(reference, li, push_depths(k, setup.pushes,
                                                                 setup.max_push_mm)))
              for k, (li, placement) in enumerate(plans)]
+    workers = workers or os.cpu_count() or 1
     reference = solved_beforehand(reference, case, setup, settings, plans, workers, log)
-    trackers = _method_trackers(case, methods, settings)
+    trackers = _method_trackers(case, methods, settings, plans, workers, log)
     records: list[Record] = []
     placements = []
     for li, placement, depths in plans:
@@ -150,29 +153,40 @@ NO_LESIONS = ("the case has no lesions, so there is nothing to track: no push so
               "judges the network)")
 
 
-def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSettings,
-                      plans: list[tuple[int, Placement, np.ndarray]], workers: int,
-                      log: Callable[[str], None]):
-    """``reference`` with every push of ``plans`` ((lesion, placement, depths mm)) solved in
-    ``workers`` local processes, each lesion's pushes in turn in one of them, when its rest
-    poses are independent (``independent_rest_poses``: the fine grid), more than one worker
-    is asked (0: one per core) and there is more than one lesion; else ``reference`` itself,
-    which then solves as it is asked."""
-    import os
+Plans = list[tuple[int, Placement, np.ndarray]]  # (lesion index, placement, depths mm)
 
+
+def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSettings,
+                      plans: Plans, workers: int, log: Callable[[str], None]):
+    """``reference`` with every push of ``plans`` solved in ``workers`` local processes
+    (:func:`in_workers`) when its rest poses are independent (``independent_rest_poses``: the
+    fine grid); else ``reference`` itself, which then solves as it is asked."""
+    from .parallel import SolvedReference, grid_reference
+
+    if not getattr(reference, "independent_rest_poses", False):
+        return reference
+    answers = in_workers(grid_reference, (type(reference), case, setup, settings), plans,
+                         workers, "ground truth", log)
+    return reference if answers is None else SolvedReference(reference, answers)
+
+
+def in_workers(factory, args: tuple, plans: Plans, workers: int, what: str,
+               log: Callable[[str], None]):
+    """The answers of the engine ``factory(*args)`` to every push of ``plans``, each lesion's
+    pushes in turn in one of ``workers`` local processes
+    (:func:`~biopsynav.evaluate.parallel.solve_in_workers`); None (solve them in this
+    process) for fewer than two workers or lesions."""
     from .parallel import solve_in_workers
 
-    workers = workers or os.cpu_count() or 1
     lesions = [(placement.pose, [placement.pushed(float(d)) for d in depths])
                for _, placement, depths in plans]
-    if not getattr(reference, "independent_rest_poses", False) or workers < 2 \
-            or len(lesions) < 2:
-        return reference
+    if workers < 2 or len(lesions) < 2:
+        return None
     start = time.perf_counter()
-    solved = solve_in_workers(reference, case, setup, settings, lesions, workers)
-    log(f"  ground truth: {sum(len(p) for _, p in lesions)} pushes of {len(lesions)} lesions "
+    answers = solve_in_workers(factory, args, lesions, workers, f"Table 2's {what}")
+    log(f"  {what}: {sum(len(p) for _, p in lesions)} pushes of {len(lesions)} lesions "
         f"solved in {workers} processes, {time.perf_counter() - start:.1f} s")
-    return solved
+    return answers
 
 
 def no_lesions_result(methods: Sequence[str], seconds: float) -> dict:
@@ -200,17 +214,25 @@ def _depths(reference, lesion_index: int, default: np.ndarray) -> np.ndarray:
     return default if depths is None else depths
 
 
-def _method_trackers(case: Case, methods: Sequence[str],
-                     settings: SolverSettings) -> dict[str, Tracker]:
-    trackers: dict[str, Tracker] = {}
+def _method_trackers(case: Case, methods: Sequence[str], settings: SolverSettings,
+                     plans: Plans, workers: int, log: Callable[[str], None]) -> dict:
+    """The engines of ``methods``: the network tracker, and the FE teacher (on the network's
+    teacher grid) with every push of ``plans`` solved in ``workers`` processes where there
+    are two or more (:func:`in_workers`)."""
+    from .parallel import SolvedAnswers, teacher_engine
+
+    trackers: dict = {}
     if "net" in methods:
         trackers["net"] = Tracker.load(case, engine="net")
     if "fem" in methods:
-        trackers["fem"] = fem_engine(case, settings)  # on the network's teacher grid
+        answers = in_workers(teacher_engine, (case, settings), plans, workers, "FE teacher",
+                             log)
+        trackers["fem"] = (fem_engine(case, settings) if answers is None
+                           else SolvedAnswers(answers))
     return trackers
 
 
-def _set_rest(placement: Placement, reference, trackers: dict[str, Tracker]) -> int:
+def _set_rest(placement: Placement, reference, trackers: dict) -> int:
     n = reference.set_rest_pose(placement.pose)
     for tr in trackers.values():
         tr.set_rest_pose(placement.pose)
@@ -218,7 +240,7 @@ def _set_rest(placement: Placement, reference, trackers: dict[str, Tracker]) -> 
 
 
 def push_records(placement: Placement, lesion_index: int, push: int, depth_mm: float,
-                 reference, trackers: dict[str, Tracker],
+                 reference, trackers: dict,
                  methods: Sequence[str]) -> list[Record]:
     """Records of every method for one push of ``depth_mm`` (probe displacement) mm."""
     pose = placement.pushed(depth_mm)
