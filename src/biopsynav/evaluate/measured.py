@@ -26,7 +26,7 @@ import numpy as np
 from ..case import Case, as_case
 from ..errors import InputError
 from ..tracker.csvtrack import read_poses
-from .simulation import METHODS, _method_trackers, evaluation_solver_settings
+from .simulation import METHODS, evaluation_solver_settings, method_trackers
 from .table import BIN_NAMES, Record, aggregate, bin_name
 
 MEASURED_COLUMNS = ("frame", "lesion_id", "x", "y", "z")
@@ -97,7 +97,7 @@ def evaluate_measured(case: Case | str | Path, poses_csv: str | Path, measured_c
     lesion_ids = [int(les.id) for les in case.anatomy.lesions]
     _check_consistency(rows, measured, lesion_ids, poses_csv, measured_csv)
     index_of = {lid: i for i, lid in enumerate(lesion_ids)}
-    trackers = _method_trackers(case, methods, evaluation_solver_settings(case))
+    trackers = method_trackers(case, methods, evaluation_solver_settings(case))
     records: list[Record] = []
     rest: dict[str, tuple[np.ndarray, int]] = {}
     for frame, sequence, pose in rows:

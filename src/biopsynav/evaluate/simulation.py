@@ -118,7 +118,8 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
              for k, (li, placement) in enumerate(plans)]
     workers = workers or os.cpu_count() or 1
     reference = solved_beforehand(reference, case, setup, settings, plans, workers, log)
-    trackers = _method_trackers(case, methods, settings, plans, workers, log)
+    trackers = method_trackers(case, methods, settings,
+                               teacher_beforehand(case, methods, settings, plans, workers, log))
     records: list[Record] = []
     placements = []
     for li, placement, depths in plans:
@@ -214,21 +215,29 @@ def _depths(reference, lesion_index: int, default: np.ndarray) -> np.ndarray:
     return default if depths is None else depths
 
 
-def _method_trackers(case: Case, methods: Sequence[str], settings: SolverSettings,
-                     plans: Plans, workers: int, log: Callable[[str], None]) -> dict:
-    """The engines of ``methods``: the network tracker, and the FE teacher (on the network's
-    teacher grid) with every push of ``plans`` solved in ``workers`` processes where there
-    are two or more (:func:`in_workers`)."""
-    from .parallel import SolvedAnswers, teacher_engine
+def teacher_beforehand(case: Case, methods: Sequence[str], settings: SolverSettings,
+                       plans: Plans, workers: int, log: Callable[[str], None]):
+    """The ``fem`` method's answers to every push of ``plans``, solved in ``workers`` local
+    processes (:func:`in_workers`); None where it is not asked or is solved here."""
+    from .parallel import teacher_engine
+
+    if "fem" not in methods:
+        return None
+    return in_workers(teacher_engine, (case, settings), plans, workers, "FE teacher", log)
+
+
+def method_trackers(case: Case, methods: Sequence[str], settings: SolverSettings,
+                    fem_answers=None) -> dict:
+    """The engines of ``methods``: the network tracker and the FE teacher (on the network's
+    teacher grid; served from ``fem_answers``, :func:`teacher_beforehand`, where given)."""
+    from .parallel import SolvedAnswers
 
     trackers: dict = {}
     if "net" in methods:
         trackers["net"] = Tracker.load(case, engine="net")
     if "fem" in methods:
-        answers = in_workers(teacher_engine, (case, settings), plans, workers, "FE teacher",
-                             log)
-        trackers["fem"] = (fem_engine(case, settings) if answers is None
-                           else SolvedAnswers(answers))
+        trackers["fem"] = (fem_engine(case, settings) if fem_answers is None
+                           else SolvedAnswers(fem_answers))
     return trackers
 
 
