@@ -368,9 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
                         "reference): fine_grid; p2, an independent tetrahedral FE; or stored, "
                         "that FE's answers computed once and kept")
-    p.add_argument("--workers", type=int, default=0, help="local processes that solve a "
-                   "fine-grid ground truth's pushes (default 0: one per core; 1: in this "
-                   "process)")
+    p.add_argument("--workers", type=int, default=0, help="local processes that solve the "
+                   "self-check's, the FE teacher's and a fine-grid ground truth's pushes "
+                   "(default 0: one per core; 1: in this process)")
 
     p = add("track", cmd_track, "Track lesions along a CSV of probe poses.")
     p.add_argument("case_dir", type=Path)

@@ -138,8 +138,9 @@ def refine_stage(case: Case, workers: int) -> dict:
 
 def evaluation_stage(case: Case, quick: bool, workers: int) -> None:
     """Stage 4: Table 1, each lesion's self-check and Table 2 when they are missing or older
-    than the model (the tracking model: ``refine/model`` with ``[refine] samples > 0``); a
-    fine-grid ground truth and the self-check solved in ``workers`` local processes."""
+    than the model (the tracking model: ``refine/model`` with ``[refine] samples > 0``); the
+    self-check, the FE teacher and a fine-grid ground truth solved in ``workers`` local
+    processes."""
     if _stale(case.paths.table2(), case.paths.model_meta, _refined_meta(case)):
         from .evaluate import evaluate_case
 

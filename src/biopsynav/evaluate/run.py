@@ -37,10 +37,11 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
     Writes ``CASE/eval/table1.json`` (+ PNGs, by :mod:`biopsynav.network.evaluate`),
     ``CASE/eval/table2.json`` and ``table2.md`` (simulation) or ``table2_measured.json`` and
     ``.md`` (user data), ``lesion_check.json`` in the tracking model's folder (with Table
-    2), and prints the tables. ``quick`` evaluates a subset (3 lesions, a
-    1.5 times finer reference); ``workers``: local processes of a fine-grid ground truth
-    (0: one per core). Returns ``{"table1": ..., "lesion_check": ..., "table2": ...}``
-    (the last two absent with ``table2=False``, the check for a case without lesions).
+    2), and prints the tables. ``quick`` evaluates a subset (3 lesions, a 1.5 times finer
+    reference); ``workers``: local processes of the self-check, the FE teacher and a
+    fine-grid ground truth (0: one per core). Returns ``{"table1": ..., "lesion_check": ...,
+    "table2": ...}`` (the last two absent with ``table2=False``, the check for a case
+    without lesions).
     """
     if workers < 0:
         raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
