@@ -13,6 +13,7 @@ undamaged run, which the first test checks.
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import io
 import json
 import shutil
@@ -120,7 +121,7 @@ def readers(trained_case: Path, poses_csv: Path, tmp_path_factory) -> dict[str, 
 def test_every_file_of_a_trained_case_is_covered(trained_case: Path, readers):
     files = {str(p.relative_to(trained_case)) for p in trained_case.rglob("*") if p.is_file()}
     files = {f for f in files if not f.startswith("dataset.zarr/")
-             and not Path(f).name.startswith(".")}
+             and not Path(f).name.startswith(".") and not _kept_compliance(f)}
     listed = {f for f in CASE_FILES if not f.startswith("dataset.zarr/")}
     assert files <= listed, files - listed
     for name in CASE_FILES:
@@ -128,6 +129,12 @@ def test_every_file_of_a_trained_case_is_covered(trained_case: Path, readers):
     # the commands do read the case: the audit sees them
     assert "case.toml" in readers["info"] and "model/meta.json" in readers["track"]
     assert "dataset.zarr/targets/c/3/0/0/0/0" in readers["train"]
+
+
+def _kept_compliance(rel: str) -> bool:
+    """Whether ``rel`` is a kept contact compliance, named by a hash
+    (``cache/contact_compliance-<sha256>.npz``): :func:`test_a_damaged_cache_is_harmless`."""
+    return fnmatch.fnmatch(rel, "cache/contact_compliance-*.npz")
 
 
 def _damage(path: Path, how: str) -> None:
@@ -191,3 +198,24 @@ def test_damaged_file_is_named_or_harmless(rel, how, trained_case, poses_csv, re
         assert rc == 2, (op, rc, err)
         assert len(lines) == 1 and lines[0].startswith("biopsynav: error: "), (op, err)
         assert _names(lines[0], rel), (op, lines[0])
+
+
+@pytest.mark.parametrize("how", DAMAGES)
+def test_a_damaged_cache_is_harmless(how, trained_case, poses_csv, readers, tmp_path):
+    """The kept contact compliance is computed again, never read damaged: every command that
+    opens it answers as with it whole, and leaves it whole."""
+    kept = [f for op in OPS for f in readers[op] if _kept_compliance(f)]
+    assert kept, "no command opened the kept contact compliance"
+    ops = [op for op in OPS if set(kept) & set(readers[op])]
+    case = tmp_path / "case"
+    shutil.copytree(trained_case, case)
+    _damage(case / kept[0], how)
+    for op in ops:
+        rc, err, out = _run(_argv(op, case, poses_csv))
+        assert rc == 0 and "Traceback" not in err, (op, rc, err)
+        _usable(op, case, out)
+    import numpy as np
+
+    from biopsynav.contact.greens import read_kept
+    with np.load(case / kept[0]) as whole:
+        assert read_kept(case / kept[0], whole["zt"].shape, np.float32) is not None

@@ -39,6 +39,11 @@ REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
 REPORT_FILES = "report_files"  # figures the report makes, beside report.html
 LOCK_NAME = ".biopsynav.lock"
+#: computed arrays kept between processes, named by a hash of what they are computed from
+#: (``contact_compliance-<sha256>.npz``: :mod:`biopsynav.contact.greens`); deleting it costs
+#: only their computation again
+CACHE_DIR = "cache"
+COMPLIANCE_CACHE = "contact_compliance"  # cache/contact_compliance-<sha256>.npz
 
 
 @dataclass(frozen=True)
@@ -135,6 +140,10 @@ class CasePaths:
     @property
     def lock(self) -> Path:
         return self.dir / LOCK_NAME
+
+    @property
+    def cache(self) -> Path:
+        return self.dir / CACHE_DIR
 
     def outputs(self) -> list[Path]:
         """The pipeline outputs the folder holds (data set, model, refined case, evaluation)."""

@@ -6,7 +6,10 @@ E, nu, immersed weights and fixed chest wall). Candidate nodes are the 8 nodes o
 cell that holds a skin vertex off the chest wall: the only nodes a probe contact can load.
 ``Z`` is computed once (one factorisation of ``K``, blocks of right-hand sides) and held
 transposed, ``zt`` (candidate dofs x free equations), so that the columns of a contact set are
-contiguous rows.
+contiguous rows. A case's ``Z`` is kept in its ``cache`` folder
+(:data:`~biopsynav.layout.CACHE_DIR`), named by a hash of ``K`` and the candidate equations,
+so that the processes of one run (data workers, training, the evaluation's workers, the
+tracker) compute it once and a changed model can never read a stale one.
 
 Used by the elastic contact input (:func:`biopsynav.probe.contact_input_operator`) and by the
 network's physics baseline (:class:`biopsynav.contact.baseline.LinearElasticBaseline`).
@@ -15,6 +18,7 @@ network's physics baseline (:class:`biopsynav.contact.baseline.LinearElasticBase
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -41,7 +45,8 @@ class ContactCompliance:
     """
 
     def __init__(self, model: FEModel, candidate_nodes: np.ndarray,
-                 node_shape: tuple[int, int, int], dtype: type = np.float32) -> None:
+                 node_shape: tuple[int, int, int], dtype: type = np.float32,
+                 cache: Path | None = None) -> None:
         start = time.perf_counter()
         self.node_shape = tuple(int(n) for n in node_shape)
         self.n_nodes = int(np.prod(self.node_shape))
@@ -63,17 +68,21 @@ class ContactCompliance:
         node_of_eq[eq[nodes, comps]] = nodes
         comp_of_eq[eq[nodes, comps]] = comps
         self.out_pos = comp_of_eq * self.n_nodes + node_of_eq
-        self.zt = greens_rows(model, self.cols, dtype)
+        self.zt = greens_rows(model, self.cols, dtype, cache)
         diag = self.zt[np.arange(len(self.cols)), self.cols] if len(self.cols) else np.ones(1)
         self.z_ref = float(np.median(diag))
         self.setup_s = time.perf_counter() - start
 
     @classmethod
     def from_case(cls, case: Case, dtype: type = np.float32) -> ContactCompliance:
-        """The compliance of a case: its FE model and the nodes around its free skin."""
+        """The compliance of a case: its FE model and the nodes around its free skin, kept in
+        (and read from) the case folder's cache where the folder exists here (a Dask worker
+        on another machine computes it)."""
         from ..fem.model import FEModel
 
-        return cls(FEModel.from_case(case), candidate_nodes(case), case.grid.node_shape, dtype)
+        paths = case.paths
+        return cls(FEModel.from_case(case), candidate_nodes(case), case.grid.node_shape, dtype,
+                   cache=paths.cache if paths.config.is_file() else None)
 
     @property
     def n_candidate_dofs(self) -> int:
@@ -111,24 +120,82 @@ def candidate_nodes(case: Case) -> np.ndarray:
     return np.unique(emb.nodes.ravel())
 
 
-def greens_rows(model: FEModel, cols: np.ndarray, dtype: type) -> np.ndarray:
-    """``Z^T = (K^-1 E)^T`` (m, n_eq) for unit loads on equations ``cols`` (K symmetric).
-
-    One factorisation of K(u = 0) and blocks of many right-hand sides: MKL Pardiso through
-    pypardiso when installed (one call solves a whole block), else SciPy's SuperLU.
-    """
+def greens_rows(model: FEModel, cols: np.ndarray, dtype: type,
+                cache: Path | None = None) -> np.ndarray:
+    """``Z^T = (K^-1 E)^T`` (m, n_eq) for unit loads on equations ``cols`` (K symmetric):
+    read from ``cache`` (a folder) where it holds them (:func:`cache_file`), else computed
+    and written there (where it can be: a folder that cannot be written only costs the
+    computation next time)."""
     from ..fem.solver import tangent_matrix
 
     k = tangent_matrix(model, np.zeros((model.n_nodes, 3))).tocsr()
     k.sort_indices()
+    path = None if cache is None else cache_file(cache, k, cols, dtype)
+    kept = None if path is None else read_kept(path, (len(cols), model.n_eq), dtype)
+    if kept is not None:
+        return kept
+    out = solved_rows(k, cols, dtype)
+    if path is not None:
+        keep(path, out)
+    return out
+
+
+def cache_file(cache: Path, k, cols: np.ndarray, dtype: type) -> Path:
+    """``cache/contact_compliance-<sha256>.npz``: the hash of ``k`` (CSR, sorted indices),
+    the candidate equations ``cols`` and the storage ``dtype``."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (k.indptr, k.indices, k.data, np.asarray(cols, np.int64)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(np.dtype(dtype).str.encode())
+    from ..layout import COMPLIANCE_CACHE
+
+    return Path(cache) / f"{COMPLIANCE_CACHE}-{h.hexdigest()}.npz"
+
+
+def read_kept(path: Path, shape: tuple[int, int], dtype: type) -> np.ndarray | None:
+    """The array kept at ``path`` when it is there, whole (the zip's CRC-32 of its bytes) and
+    of ``shape`` and ``dtype``; else None (computed again and written over)."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as kept:
+            out = kept["zt"]
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    return out if out.shape == shape and out.dtype == np.dtype(dtype) else None
+
+
+def keep(path: Path, rows: np.ndarray) -> None:
+    """Write ``rows`` to ``path`` atomically (an uncompressed zip: a CRC-32 of the bytes); a
+    folder that cannot be written is passed by."""
+    import io
+
+    from ..errors import WriteError
+    from ..fileio import write_bytes_atomic
+
+    buf = io.BytesIO()
+    np.savez(buf, zt=rows)
+    try:
+        write_bytes_atomic(path, buf.getvalue())
+    except WriteError:
+        pass
+
+
+def solved_rows(k, cols: np.ndarray, dtype: type) -> np.ndarray:
+    """``Z^T`` (m, n_eq) of the stiffness ``k`` (CSR) for unit loads on equations ``cols``:
+    one factorisation and blocks of many right-hand sides (MKL Pardiso through pypardiso when
+    installed: one call solves a whole block; else SciPy's SuperLU)."""
+    n_eq = k.shape[0]
     solve = _factorised(k)
-    out = np.empty((len(cols), model.n_eq), dtype=dtype)
+    out = np.empty((len(cols), n_eq), dtype=dtype)
     block = 1024
     for start in range(0, len(cols), block):  # blocks of right-hand sides (memory)
         c = cols[start:start + block]
-        rhs = np.zeros((model.n_eq, len(c)))
+        rhs = np.zeros((n_eq, len(c)))
         rhs[c, np.arange(len(c))] = 1.0
-        out[start:start + len(c)] = np.asarray(solve(rhs)).reshape(model.n_eq, len(c)).T
+        out[start:start + len(c)] = np.asarray(solve(rhs)).reshape(n_eq, len(c)).T
     return out
 
 
