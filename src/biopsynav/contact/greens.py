@@ -145,12 +145,12 @@ def cache_file(cache: Path, k, cols: np.ndarray, dtype: type) -> Path:
     the candidate equations ``cols`` and the storage ``dtype``."""
     import hashlib
 
+    from ..layout import COMPLIANCE_CACHE
+
     h = hashlib.sha256()
     for a in (k.indptr, k.indices, k.data, np.asarray(cols, np.int64)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(np.dtype(dtype).str.encode())
-    from ..layout import COMPLIANCE_CACHE
-
     return Path(cache) / f"{COMPLIANCE_CACHE}-{h.hexdigest()}.npz"
 
 
