@@ -52,6 +52,17 @@ def test_a_damaged_kept_file_is_computed_again_and_replaced(case_dir):
     assert np.array_equal(G.ContactCompliance.from_case(Case.load(case_dir)).zt, first.zt)
 
 
+def test_what_a_killed_write_left_is_deleted_when_the_file_is_written(case_dir):
+    cache = Case.load(case_dir).paths.cache
+    G.ContactCompliance.from_case(Case.load(case_dir))
+    (path,) = kept_files(case_dir)
+    path.unlink()
+    debris = cache / f".{path.name}.abc123.tmp"
+    debris.write_bytes(b"half a file")
+    G.ContactCompliance.from_case(Case.load(case_dir))
+    assert not debris.exists() and kept_files(case_dir) == [path]
+
+
 def test_another_material_gets_its_own_file(case_dir):
     soft = G.ContactCompliance.from_case(Case.load(case_dir))
     cfg = load_config(case_dir)

@@ -168,13 +168,17 @@ def read_kept(path: Path, shape: tuple[int, int], dtype: type) -> np.ndarray | N
 
 
 def keep(path: Path, rows: np.ndarray) -> None:
-    """Write ``rows`` to ``path`` atomically (an uncompressed zip: a CRC-32 of the bytes); a
-    folder that cannot be written is passed by."""
+    """Write ``rows`` to ``path`` atomically (an uncompressed zip: a CRC-32 of the bytes),
+    first deleting what a write of it killed midway left; a folder that cannot be written is
+    passed by. (A write of the same file by another process at the same moment may then fail:
+    passed by too, the other's lands.)"""
     import io
 
     from ..errors import WriteError
-    from ..fileio import write_bytes_atomic
+    from ..fileio import remove_partial_writes, write_bytes_atomic
 
+    if path.parent.is_dir():
+        remove_partial_writes(path.parent, [path.name])
     buf = io.BytesIO()
     np.savez(buf, zt=rows)
     try:
