@@ -25,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from biopsynav.cli import main
+from biopsynav.layout import CACHE_DIR, COMPLIANCE_CACHE
 
 DAMAGES = ("truncate", "flip", "empty", "delete")
 OPS = ("info", "track", "evaluate", "report", "train")
@@ -134,7 +135,7 @@ def test_every_file_of_a_trained_case_is_covered(trained_case: Path, readers):
 def _kept_compliance(rel: str) -> bool:
     """Whether ``rel`` is a kept contact compliance, named by a hash
     (``cache/contact_compliance-<sha256>.npz``): :func:`test_a_damaged_cache_is_harmless`."""
-    return fnmatch.fnmatch(rel, "cache/contact_compliance-*.npz")
+    return fnmatch.fnmatch(rel, f"{CACHE_DIR}/{COMPLIANCE_CACHE}-*.npz")
 
 
 def _damage(path: Path, how: str) -> None:

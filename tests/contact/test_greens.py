@@ -12,6 +12,7 @@ import pytest
 import biopsynav.contact.greens as G
 from biopsynav.case import Case
 from biopsynav.config import load_config, save_config
+from biopsynav.layout import COMPLIANCE_CACHE
 
 
 @pytest.fixture()
@@ -23,7 +24,7 @@ def case_dir(base_case: Path, tmp_path: Path) -> Path:
 
 def kept_files(case_dir: Path) -> list[Path]:
     cache = Case.load(case_dir).paths.cache
-    return sorted(cache.glob("contact_compliance-*.npz")) if cache.is_dir() else []
+    return sorted(cache.glob(f"{COMPLIANCE_CACHE}-*.npz")) if cache.is_dir() else []
 
 
 def never_solved(*_args, **_kw):
