@@ -1,5 +1,7 @@
-"""End to end: `biopsynav demo --quick` as a user runs it (the default recipe, and the chain),
-then the report and both tables."""
+"""End to end: `biopsynav demo --quick` as a user runs it (the default recipe), then the
+report and both tables. The chain recipe's stages (force patches, training through the contact
+projection, `[refine]`, Table 1 and Table 2 of the refined model) are run in tests/test_refine.py
+and tests/network/test_train.py."""
 
 from __future__ import annotations
 
@@ -16,31 +18,23 @@ import pytest
 BIN = Path(sys.executable).with_name("biopsynav")
 
 
-@pytest.fixture(scope="session", params=["pushes", "chain"])
-def quick_demo(request, tmp_path_factory):
-    """(case folder, stdout, minutes, recipe) of ``demo --quick``: the default recipe as a
-    user types it, the other with ``--recipe``."""
-    from biopsynav.recipes import DEFAULT_RECIPE
-
-    recipe = request.param
-    case = tmp_path_factory.mktemp(f"demo-{recipe}") / "demo-case"
-    extra = [] if recipe == DEFAULT_RECIPE else ["--recipe", recipe]
+@pytest.fixture(scope="session")
+def quick_demo(tmp_path_factory):
+    """(case folder, stdout, minutes) of ``demo --quick`` as a user types it."""
+    case = tmp_path_factory.mktemp("demo") / "demo-case"
     start = time.perf_counter()
-    proc = subprocess.run([str(BIN), "demo", "--quick", str(case), *extra], capture_output=True,
+    proc = subprocess.run([str(BIN), "demo", "--quick", str(case)], capture_output=True,
                           text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     minutes = (time.perf_counter() - start) / 60
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return case, proc.stdout, minutes, recipe
-
-
-def tracking_model(case: Path, recipe: str) -> Path:
-    """The model folder the tracker uses: the chain's ``[refine]`` model, else the case's."""
-    return case / "refine" / "model" if recipe == "chain" else case / "model"
+    return case, proc.stdout, minutes
 
 
 def test_demo_writes_report_with_both_tables(quick_demo):
-    case, out, minutes, recipe = quick_demo
-    print(f"demo --quick --recipe {recipe} took {minutes:.2f} min")
+    from biopsynav.recipes import DEFAULT_RECIPE
+
+    case, out, minutes = quick_demo
+    print(f"demo --quick (recipe {DEFAULT_RECIPE}) took {minutes:.2f} min")
     assert f"Report: {case / 'report.html'}" in out
     # one view of the run: the expected total first, each stage at the run's clock, the
     # table of stage times last
@@ -53,21 +47,17 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     assert "http://" not in html and "https://" not in html.replace("https://doi", "")
 
     t1 = json.loads((case / "eval" / "table1.json").read_text())
-    # the quick demo is deterministic: the chain's case network on its held-out force patches
-    # 0.1214 / 0.2471 mm in three runs, 2026-12-02; the pushes recipe's network on its
-    # held-out rigid pushes (deeper, up to 35 mm) 0.2555 / 0.7033 mm, 2026-12-05; a
+    # the quick demo is deterministic: the pushes recipe's network on its held-out rigid
+    # pushes (up to 35 mm) 0.2555 / 0.7033 mm, 2026-12-05, 0.2554 / 0.7024 mm 2026-12-07; a
     # prediction's median 0.7-1.1 ms alone (the bound leaves room for the suite's load)
-    mean_limit, max_limit = {"chain": (0.25, 0.5), "pushes": (0.4, 1.0)}[recipe]
-    assert 0 < t1["mean_e_mm"] < mean_limit and t1["mean_e_mm"] < t1["max_e_mm"] < max_limit
+    assert 0 < t1["mean_e_mm"] < 0.4 and t1["mean_e_mm"] < t1["max_e_mm"] < 1.0
     assert t1["max_disp_mm"] > 10.0
     assert 0 < t1["predict_p50_ms"] < 50
-    # the chain's case network honours the contact points (the tracker's contact projection);
-    # the network's own figures are kept beside. Rigid pushes' contact points lag the face
-    # (elastic contact): the pushes recipe trains and predicts without it
-    chain = recipe == "chain"
-    assert t1["contact_projection"] is chain
+    # rigid pushes' contact points lag the face (elastic contact): the pushes recipe trains
+    # and predicts without the contact projection (tests/test_refine.py: the chain's with it)
+    assert t1["contact_projection"] is False
     meta = json.loads((case / "model" / "meta.json").read_text())
-    assert meta["baseline"].get("projection", False) is chain  # trained through it too
+    assert meta["baseline"].get("projection", False) is False
     assert meta["training"]["setup_s"] > 0 and t1["train_min"] * 60 > meta["training"]["setup_s"]
     assert 0 < t1["mean_e_unprojected_mm"] <= t1["max_e_unprojected_mm"]
     # physical admissibility of the predicted fields, against the FE targets (never inverted)
@@ -80,7 +70,7 @@ def test_demo_writes_report_with_both_tables(quick_demo):
 
 
 def test_demo_table2_network_matches_fe(quick_demo):
-    case, _, _, recipe = quick_demo
+    case, _, _ = quick_demo
     t2 = json.loads((case / "eval" / "table2.json").read_text())
     means = {m: t2["tables"][m]["overall_mean"] for m in ("net", "fem", "rigid")}
     assert all(np.isfinite(v) and v >= 0 for v in means.values()), means
@@ -88,7 +78,7 @@ def test_demo_table2_network_matches_fe(quick_demo):
     assert means["rigid"] > 2 * means["fem"], means
     # the network refuses (out_of_envelope, listed) only pushes deeper than the deepest one it
     # was trained on (the tracking model's rigid pushes reach 35 mm, Table 2's 31)
-    deepest = json.loads((tracking_model(case, recipe) / "meta.json").read_text())["envelope"][
+    deepest = json.loads((case / "model" / "meta.json").read_text())["envelope"][
         "max_probe_disp_mm"]
     records = t2["records"]
     refused = [r for r in records if r["method"] == "net" and r["tre_mm"] is None]
@@ -117,7 +107,7 @@ def test_demo_table2_network_matches_fe(quick_demo):
 
 
 def test_run_skips_stages_that_are_up_to_date(quick_demo):
-    case, _, _, _ = quick_demo
+    case, _, _ = quick_demo
     proc = subprocess.run([str(BIN), "run", str(case)], capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]

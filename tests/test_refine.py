@@ -132,6 +132,11 @@ def test_table1_covers_the_refined_model_too(refined):
     base = json.loads((refined / "eval" / "table1.json").read_text())
     fine = json.loads((refined / "refine" / "eval" / "table1.json").read_text())
     assert base["n_samples"] == 2 and fine["n_samples"] == 1  # each its own held-out pushes
+    # the chain's case network (force patches) honours the contact points: trained and
+    # evaluated through the contact projection; the refined one (rigid pushes, elastic
+    # contact: points that lag the face) without it
+    assert json.loads((refined / "model" / "meta.json").read_text())["baseline"]["projection"]
+    assert base["contact_projection"] is True and fine["contact_projection"] is False
 
 
 def test_the_report_names_the_refined_model(refined):

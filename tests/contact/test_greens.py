@@ -1,5 +1,6 @@
 """The contact compliance ``Z`` is computed once per case and kept in its cache folder: a later
-process reads it, a damaged or foreign file is computed again, another model gets its own."""
+process reads it, a damaged or foreign file is computed again, another model gets its own and
+the old one is deleted."""
 
 from __future__ import annotations
 
@@ -64,15 +65,20 @@ def test_what_a_killed_write_left_is_deleted_when_the_file_is_written(case_dir):
     assert not debris.exists() and kept_files(case_dir) == [path]
 
 
-def test_another_material_gets_its_own_file(case_dir):
+def test_another_material_gets_its_own_file_which_replaces_the_old(case_dir):
     soft = G.ContactCompliance.from_case(Case.load(case_dir))
+    (old,) = kept_files(case_dir)
     cfg = load_config(case_dir)
     cfg.material.tissues = {name: {**law, "E_mpa": 2 * law["E_mpa"]}
                             for name, law in cfg.material.tissues.items()}
     save_config(case_dir, cfg)
     stiff = G.ContactCompliance.from_case(Case.load(case_dir))
-    assert len(kept_files(case_dir)) == 2
+    (new,) = kept_files(case_dir)  # the case's model changed: its old Z is deleted
+    assert new != old and not old.exists()
     np.testing.assert_allclose(stiff.zt, soft.zt / 2, rtol=1e-4, atol=1e-9)
+    other = new.with_name(old.name)  # one that cannot be deleted stays, and is no harm
+    other.mkdir()
+    assert G.remove_other_compliances(new) == [] and other.is_dir()
 
 
 def test_a_cache_that_cannot_be_written_only_costs_the_computation(case_dir):

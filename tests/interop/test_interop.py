@@ -95,7 +95,9 @@ def test_serve_streams_every_message_type_to_the_cpp_library(trained_case, cpp_b
     for name in lesions:
         assert counts[f"TRANSFORM {name}ToReference"] > 1000
         assert counts[f"POLYDATA {name}"] > 10 * STREAM_S / 2  # 20 Hz, reliable poses only
-        assert counts[f"POLYDATA {name}Bound"] == counts[f"POLYDATA {name}"]  # its 95 % shell
+        # its 95 % shell follows each lesion model in the same batch; the client stops reading
+        # at STREAM_S, which may fall inside the last batch (after Lesion<id>, before its shell)
+        assert 0 <= counts[f"POLYDATA {name}"] - counts[f"POLYDATA {name}Bound"] <= 1
     assert counts["POLYDATA BreastSkin"] > STREAM_S  # 2 Hz
     assert {"ok", "probe_not_tracked", "no_rest_pose: tracker connection lost"} <= \
         set(got["statuses"])

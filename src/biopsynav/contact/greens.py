@@ -9,7 +9,8 @@ transposed, ``zt`` (candidate dofs x free equations), so that the columns of a c
 contiguous rows. A case's ``Z`` is kept in its ``cache`` folder
 (:data:`~biopsynav.layout.CACHE_DIR`), named by a hash of ``K`` and the candidate equations,
 so that the processes of one run (data workers, training, the evaluation's workers, the
-tracker) compute it once and a changed model can never read a stale one.
+tracker) compute it once and a changed model can never read a stale one (its file replaces
+the stale one).
 
 Used by the elastic contact input (:func:`biopsynav.probe.contact_input_operator`) and by the
 network's physics baseline (:class:`biopsynav.contact.baseline.LinearElasticBaseline`).
@@ -169,9 +170,10 @@ def read_kept(path: Path, shape: tuple[int, int], dtype: type) -> np.ndarray | N
 
 def keep(path: Path, rows: np.ndarray) -> None:
     """Write ``rows`` to ``path`` atomically (an uncompressed zip: a CRC-32 of the bytes),
-    first deleting what a write of it killed midway left; a folder that cannot be written is
-    passed by. (A write of the same file by another process at the same moment may then fail:
-    passed by too, the other's lands.)"""
+    first deleting what a write of it killed midway left, then the folder's other kept
+    compliances (of a model the case no longer has: a folder keeps the one of its model); a
+    folder that cannot be written is passed by. (A write of the same file by another process
+    at the same moment may then fail: passed by too, the other's lands.)"""
     import io
 
     from ..errors import WriteError
@@ -184,7 +186,24 @@ def keep(path: Path, rows: np.ndarray) -> None:
     try:
         write_bytes_atomic(path, buf.getvalue())
     except WriteError:
-        pass
+        return
+    remove_other_compliances(path)
+
+
+def remove_other_compliances(path: Path) -> list[Path]:
+    """Delete the kept compliances beside ``path`` other than it (``contact_compliance-*.npz``
+    of other hashes); a file that cannot be deleted stays. Returns the deleted paths."""
+    from ..layout import COMPLIANCE_CACHE
+
+    removed = []
+    for other in path.parent.glob(f"{COMPLIANCE_CACHE}-*.npz"):
+        if other.name != path.name:
+            try:
+                other.unlink()
+            except OSError:
+                continue
+            removed.append(other)
+    return removed
 
 
 def solved_rows(k, cols: np.ndarray, dtype: type) -> np.ndarray:
