@@ -712,27 +712,80 @@ def test_the_stiffness_comes_in_canonical_form_and_symmetric(cube):
     assert stiff.nnz == len(pairs)
 
 
-def test_a_factored_pattern_is_reused_and_a_new_one_analysed_again():
-    """Matrices of one pattern, then of another, each solved exactly: the kept analysis
-    serves only its own pattern."""
+def _symmetric_matrix(pattern, rng):
+    """A symmetric positive definite matrix of ``pattern`` (CSR) with random values."""
     import scipy.sparse as sp
 
+    values = pattern.copy()
+    values.data = rng.normal(size=values.nnz)
+    return (values + values.T).tocsr() + 20.0 * sp.eye(pattern.shape[0])
+
+
+def _random_pattern(density: float, n: int = 40):
+    import scipy.sparse as sp
+
+    pattern = sp.random(n, n, density=density, random_state=1, format="csr")
+    return (pattern + pattern.T + sp.eye(n)).tocsr()
+
+
+def test_a_factored_pattern_is_reused_and_a_new_one_analysed_again(monkeypatch):
+    """Matrices of one pattern, then of another, each solved to the single-precision factors'
+    accuracy (Newton's residual, in double precision, corrects the rest): the kept analysis
+    serves only its own pattern."""
     from biopsynav.evaluate import p2
     from biopsynav.evaluate.p2 import solve_symmetric
 
+    monkeypatch.setattr(p2, "_SYMMETRIC_SOLVER", None)
     rng = np.random.default_rng(0)
-    phases = []
+    analyses, errors = [], []
     for density in (0.3, 0.3, 0.6):
-        pattern = sp.random(40, 40, density=density, random_state=1, format="csr")
-        pattern = (pattern + pattern.T + sp.eye(40)).tocsr()
+        pattern = _random_pattern(density)
         for _ in range(2):
-            values = pattern.copy()
-            values.data = rng.normal(size=values.nnz)
-            matrix = (values + values.T).tocsr() + 20.0 * sp.eye(40)
-            rhs = rng.normal(size=40)
-            assert np.allclose(matrix @ solve_symmetric(matrix, rhs), rhs, atol=1e-9)
-            phases.append(p2._SYMMETRIC_SOLVER.pardiso.phase)
-    assert phases == [13, 23, 23, 23, 13, 23]  # analysed once per pattern
+            matrix, rhs = _symmetric_matrix(pattern, rng), rng.normal(size=40)
+            x = solve_symmetric(matrix, rhs)
+            errors.append(np.linalg.norm(matrix @ x - rhs) / np.linalg.norm(rhs))
+            analyses.append(p2._SYMMETRIC_SOLVER.analyses)
+    assert analyses == [1, 1, 1, 1, 2, 2]  # analysed once per pattern
+    assert max(errors) < 1e-5 and min(errors) > 1e-12  # single precision, not double
+
+
+def test_factors_that_single_precision_refuses_are_made_in_double(monkeypatch):
+    """A matrix whose single-precision factorisation Pardiso refuses is factored again in
+    double precision and solved to its accuracy; the next pattern is single precision
+    again. In double precision too a refusal is a failed solve (RuntimeError)."""
+    import scipy.sparse as sp
+
+    from biopsynav.evaluate import p2
+    from biopsynav.fem import linsolve
+
+    real = linsolve._PardisoHandle.factor
+
+    def single_refused(handle, data):
+        if handle.dtype == np.float32:
+            raise linsolve.FactorizationError("refused for the test")
+        return real(handle, data)
+
+    solver = p2._SymmetricSolver(single=True)
+    rng = np.random.default_rng(1)
+    matrix, rhs = _symmetric_matrix(_random_pattern(0.3), rng), rng.normal(size=40)
+    upper = sp.triu(matrix, format="csr")
+    upper.sort_indices()
+    monkeypatch.setattr(linsolve._PardisoHandle, "factor", single_refused)
+    x = solver.solve(upper, rhs)
+    assert np.linalg.norm(matrix @ x - rhs) < 1e-10 * np.linalg.norm(rhs)
+    assert solver.handle.dtype == np.float64 and solver.analyses == 2
+    monkeypatch.setattr(linsolve._PardisoHandle, "factor", real)
+    other = _symmetric_matrix(_random_pattern(0.6), rng)
+    upper = sp.triu(other, format="csr")
+    upper.sort_indices()
+    solver.solve(upper, rhs)
+    assert solver.handle.dtype == np.float32
+    monkeypatch.setattr(linsolve._PardisoHandle, "factor", lambda *_: (_ for _ in ()).throw(
+        linsolve.FactorizationError("refused in both")))
+    with pytest.raises(RuntimeError, match="linear solve failed"):
+        solver.solve(upper, rhs)
+    with pytest.raises(RuntimeError, match="no factored tangent"):
+        solver.resolve(rhs)
 
 
 def test_newton_reuses_a_factored_tangent_once_it_converges_fast(monkeypatch):
