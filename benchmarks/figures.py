@@ -106,6 +106,18 @@ def pair(a: str, b: str, digits: int = 2, unit: str = " ms") -> Callable[[dict],
                          f"{fmt(data['figures'][b], digits)}{unit}")
 
 
+def p2_push_cost(data: dict) -> str:
+    """The P2 truth's pushes in turn: seconds with single-precision factors and in double,
+    and how far apart their answers are, per depth."""
+    rows = data["figures"]["rows"]
+
+    def joined(key: str, digits: int) -> str:
+        return " / ".join(fmt(r[key], digits) for r in rows)
+
+    apart = " / ".join(f"{r['diff_mm']:.1g}" for r in rows)
+    return f"{joined('single_s', 0)} s against {joined('double_s', 0)} s; {apart} mm apart"
+
+
 def p2_teacher_cost(data: dict) -> str:
     """The P2 teacher's pushes: seconds a push and the estimated minutes of 400 pushes on 16
     and 64 workers."""
@@ -478,6 +490,13 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "python benchmarks/truth_agreement.py CASE --lesion-ids 5 --stored "
           "src/biopsynav/data/truths/ucdavis-homogeneous.json --orders 2 --push-minutes 30 "
           "--result-name truth-agreement-ucdavis-lesion4"), "<= 0.2 mm at 30 mm", "-"),
+    ("one push of the P2 truth (10 mm tetrahedra, 4 mm near the probe, the face's edges rounded "
+     "by 2.5 mm), phantom lesion 1 at 10 / 20 / 30 mm in turn: Newton's tangents factored in "
+     "single precision (the default) against double; the distance between their lesion "
+     "displacements",
+     Cell("p2-push-phantom-lesion1", with_speed(p2_push_cost),
+          "python benchmarks/p2_push.py --lesion-ids 1 --depths 10 20 30 --push-minutes 20"),
+     "a 30 mm UC Davis push <= 10 s, within 0.05 mm of the full solve", "-"),
     ("the P2 teacher (`[refine] teacher = \"p2\"`, the truth's 4 mm tetrahedra), phantom: its "
      "rigid pushes through a Dask LocalCluster (one thread a worker), and the estimate for "
      "larger clusters (`N (push + overhead) / workers`; the first pushes of the draw order, "

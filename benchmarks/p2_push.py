@@ -1,10 +1,11 @@
 """What one push of the P2 truth costs, and what its single-precision factors save.
 
-    python benchmarks/p2_push.py CASE --lesion-ids 5 [--depths 10 20 30]
+    python benchmarks/p2_push.py [CASE] --lesion-ids 5 [--depths 10 20 30]
                                  [--tet-size 10] [--tet-fine 4] [--edge-radius 2.5]
                                  [--push-minutes 30] [--result-name NAME | --no-result-file]
 
-CASE: a case folder of one material (the truth's, ``biopsynav.evaluate.p2``). The probe is
+CASE: a case folder of one material (the truth's, ``biopsynav.evaluate.p2``; default: the
+built-in phantom, made in a temporary folder). The probe is
 placed over the lesion as Table 2 and ``truth.py`` place it and pushed along its beam to each
 depth in turn (each from the last answer, as ``truth.py`` does), on one mesh (``--tet-size`` mm
 tetrahedra, ``--tet-fine`` mm within 35 mm of the probe; the probe a rigid body, its face's
@@ -98,7 +99,7 @@ def summary(rows: list[dict]) -> dict:
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("case_dir", type=Path)
+    p.add_argument("case_dir", type=Path, nargs="?", default=None)
     p.add_argument("--lesion-ids", required=True, help="one lesion id, as the case spells it")
     p.add_argument("--depths", type=non_negative_mm, nargs="+", default=[30.0])
     p.add_argument("--tet-size", type=non_negative_mm, default=10.0)
@@ -112,10 +113,21 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from biopsynav.case import Case
+    import tempfile
+
+    from biopsynav.case import Case, make_phantom_case
 
     args = parser().parse_args(argv)
-    case = Case.load(args.case_dir)
+    with tempfile.TemporaryDirectory() as scratch:
+        if args.case_dir is None:
+            case, case_name = make_phantom_case(Path(scratch) / "phantom"), "phantom"
+        else:
+            case, case_name = Case.load(args.case_dir), args.case_dir.name
+        return measure(case, case_name, args)
+
+
+def measure(case, case_name: str, args: argparse.Namespace) -> int:
+    """Both precisions' pushes, printed and written (see the module doc)."""
     (lesion,) = chosen_lesions(case, 1, args.lesion_ids.split(",")[0])
     runs = {}
     for name, single in PRECISIONS.items():
@@ -130,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['depth_mm']:g} mm: single {r['single_s']:.1f} s, double {r['double_s']:.1f} "
               f"s, {r['diff_mm']:.2e} mm apart")
     if not args.no_result_file:
-        name = args.result_name or f"p2-push-{args.case_dir.name}-lesion{figures['lesion']}"
+        name = args.result_name or f"p2-push-{case_name}-lesion{figures['lesion']}"
         write_result(name, figures, speed_probes=speed_probes())
     print(result_line(figures, ("push_s", "full_s", "speedup", "max_diff_mm")))
     return 0
