@@ -497,6 +497,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("p2-push-phantom-lesion1", with_speed(p2_push_cost),
           "python benchmarks/p2_push.py --lesion-ids 1 --depths 10 20 30 --push-minutes 20"),
      "a 30 mm UC Davis push <= 10 s, within 0.05 mm of the full solve", "-"),
+    ("the same, UC Davis (one material) lesion 5 at 10 mm (108,300 unknowns)",
+     Cell("p2-push-ucdavis-homogeneous-lesion5", with_speed(p2_push_cost),
+          "python benchmarks/p2_push.py CASE --lesion-ids 5 --depths 10 --result-name "
+          "p2-push-ucdavis-homogeneous-lesion5"),
+     "a 30 mm UC Davis push <= 10 s, within 0.05 mm of the full solve", "-"),
     ("the P2 teacher (`[refine] teacher = \"p2\"`, the truth's 4 mm tetrahedra), phantom: its "
      "rigid pushes through a Dask LocalCluster (one thread a worker), and the estimate for "
      "larger clusters (`N (push + overhead) / workers`; the first pushes of the draw order, "

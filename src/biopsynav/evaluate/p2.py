@@ -84,8 +84,7 @@ FRESH_CONTRACTION = 0.5
 FROZEN_CONTRACTION = 0.5
 #: Pardiso factors the tangents in single precision; the forces, energies, residuals and
 #: so the converged answer stay double precision (Newton corrects the inexact directions).
-#: UC Davis lesion 5 at 10 mm (108,300 dofs, AMD EPYC, 2 threads): 68 s against 93, a
-#: factorisation 1.7 s against 3.4, the lesion's displacement the same to 1e-5 mm.
+#: What it saves, and how far the answers move: ``benchmarks/p2_push.py``, docs/evaluation.md.
 SINGLE_PRECISION_FACTORS = True
 ARMIJO = 1e-4  # sufficient decrease of the energy along a step, as a share of its slope
 #: The probe of this reference (:meth:`TetReference.push` with a footprint), in the answer
