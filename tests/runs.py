@@ -1,8 +1,15 @@
-"""Settings that make a whole `run` of a test case take seconds."""
+"""Settings that make a whole `run` of a test case take seconds, and a benchmark script run as
+a user runs it."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 from biopsynav.config import CaseConfig
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def small_run_settings(cfg: CaseConfig) -> None:
@@ -13,3 +20,14 @@ def small_run_settings(cfg: CaseConfig) -> None:
     cfg.evaluate.timed_predictions = 10
     cfg.evaluate.max_lesions, cfg.evaluate.deformations_per_lesion = 1, 1
     cfg.evaluate.reference_refinement = 1.0
+
+
+def run_benchmark(script: str, args: list[str], cwd: Path) -> tuple[str, dict[str, str]]:
+    """Run ``benchmarks/<script>`` with ``args`` in the folder ``cwd``, which must succeed:
+    its standard output and the values of its last line (``RESULT key=value ...``)."""
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / script), *args],
+                          capture_output=True, text=True, timeout=600, cwd=cwd)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("RESULT "), last
+    return proc.stdout, dict(item.split("=") for item in last.split()[1:])

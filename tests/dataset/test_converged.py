@@ -174,22 +174,18 @@ def test_the_cost_benchmark_times_a_local_cluster_and_extrapolates(base_case, tm
     import subprocess
     import sys
 
-    root = Path(__file__).resolve().parents[2]
-    bench = root / "benchmarks"
-    proc = subprocess.run(
-        [sys.executable, str(bench / "p2_teacher.py"), str(base_case), "--samples", "3",
-         "--workers", "1", "--fine", "12", "--size", "25", "--no-result-file"],
-        capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    last = proc.stdout.strip().splitlines()[-1]
-    assert last.startswith("RESULT push_s_mean="), last
-    values = dict(item.split("=") for item in last.split()[1:])
+    from tests.runs import BENCHMARKS, run_benchmark
+
+    out, values = run_benchmark("p2_teacher.py", [str(base_case), "--samples", "3", "--workers",
+                                                "1", "--fine", "12", "--size", "25",
+                                                "--no-result-file"], tmp_path)
+    assert "push_s_mean" in values
     push, overhead = float(values["push_s_mean"]), float(values["overhead_s"])
     assert push > 0 and overhead >= 0
     assert float(values["est_16w_400_min"]) == pytest.approx(
         400 * (push + overhead) / 16 / 60, rel=0.02, abs=0.1)
-    assert "3 pushes" in proc.stdout
-    bad = subprocess.run([sys.executable, str(bench / "p2_teacher.py"), "--fine", "20",
+    assert "3 pushes" in out
+    bad = subprocess.run([sys.executable, str(BENCHMARKS / "p2_teacher.py"), "--fine", "20",
                           "--size", "10"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--fine <= --size" in bad.stderr
 

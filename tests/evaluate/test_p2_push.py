@@ -3,27 +3,19 @@ against the double-precision solve, on a coarse mesh of the built-in phantom."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests.runs import run_benchmark
 
 
 def test_single_precision_factors_land_where_double_precision_does(tmp_path):
     """A 5 mm push over lesion 1 on 20 mm tetrahedra (12 mm under the probe): both precisions
     answer, each factoring tangents, and their lesion displacements agree far below the
     truth's own errors (0.1 mm) while the push moves the lesion by about a millimetre."""
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "p2_push.py"), "--lesion-ids", "1",
-         "--depths", "5", "--tet-size", "20", "--tet-fine", "12", "--no-result-file"],
-        capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    last = proc.stdout.strip().splitlines()[-1]
-    assert last.startswith("RESULT push_s="), last
-    figures = dict(item.split("=") for item in last.split()[1:])
+    out, figures = run_benchmark("p2_push.py", ["--lesion-ids", "1", "--depths", "5",
+                                                "--tet-size", "20", "--tet-fine", "12",
+                                                "--no-result-file"], tmp_path)
+    assert "push_s" in figures and "full_s" in figures
     assert float(figures["max_diff_mm"]) < 1e-4, figures
-    lines = [line.strip() for line in proc.stdout.splitlines() if "5 mm: " in line]
+    lines = [line.strip() for line in out.splitlines() if "5 mm: " in line]
     assert len(lines) == 3 and lines[0].startswith("single") and lines[1].startswith("double")
     assert lines[2].startswith("5 mm: single") and "mm apart" in lines[2], lines
     moved = float(lines[0].split("|u| ")[1].split()[0])
