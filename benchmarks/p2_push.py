@@ -52,7 +52,7 @@ def solve_depths(case, lesion: int, depths: list[float], single: bool, args) -> 
                                 fine_at=placement.pose[:3, 3], fine_mm=args.tet_fine)
     contact = ref.contact(placement.pose, probe.footprint, probe.contact_tolerance_mm)
     centre = np.array([case.anatomy.lesions[lesion].center])
-    solver = p2.factor_in_single_precision(single)
+    solver = p2.set_factor_precision(single)
     rows, failure = [], ""
     limit = 60.0 * args.push_minutes if args.push_minutes > 0 else None
     for depth in depths:

@@ -1116,9 +1116,9 @@ def solve_symmetric(matrix: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     return _SYMMETRIC_SOLVER.solve(upper, np.asarray(rhs, dtype=np.float64))
 
 
-def factor_in_single_precision(single: bool = SINGLE_PRECISION_FACTORS) -> _SymmetricSolver:
-    """Make the later solves factor in single (or double) precision, with a fresh solver
-    (its counters at zero); the solver."""
+def set_factor_precision(single: bool = SINGLE_PRECISION_FACTORS) -> _SymmetricSolver:
+    """Make the later solves factor in single precision (``single``) or in double, with a
+    fresh solver (its counters at zero); the solver."""
     global _SYMMETRIC_SOLVER
     if _SYMMETRIC_SOLVER is not None:
         _SYMMETRIC_SOLVER._forget()
