@@ -1034,38 +1034,32 @@ class _SymmetricSolver:
 
     def solve(self, upper: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
         """``upper``'s symmetric matrix ^-1 ``rhs`` (n,); RuntimeError where Pardiso refuses
-        it in double precision too."""
-        from ..fem.linsolve import FactorizationError
-
+        it in double precision too (the next pattern is single precision again)."""
         if not np.diff(upper.indptr).all():
             raise RuntimeError("P2 reference: the linear solve failed (an empty row)")
         known = self.pattern is not None and np.array_equal(upper.indptr, self.pattern[0]) \
             and np.array_equal(upper.indices, self.pattern[1])
         if not known or self.handle is None:
             self._analyse(upper, self.single)
+        refused = self._factor(upper)
+        if refused is not None and self.handle.dtype != np.float64:
+            self._analyse(upper, single=False)  # the fallback: double precision
+            refused = self._factor(upper)
+        if refused is not None:
+            self._forget()
+            raise RuntimeError(f"P2 reference: the linear solve failed ({refused})")
+        return self.resolve(rhs)
+
+    def _factor(self, upper: sp.csr_matrix) -> Exception | None:
+        """Factor ``upper`` on the current handle; the error where Pardiso refuses it."""
+        from ..fem.linsolve import FactorizationError
+
         self.factorisations += 1
         try:
             self.handle.factor(upper.data)
         except FactorizationError as exc:
-            if self.handle.dtype == np.float64:
-                self._forget()
-                raise RuntimeError(f"P2 reference: the linear solve failed ({exc})") from None
-            self._analyse(upper, single=False)
-            self.factorisations += 1
-            return self.solve_in_double(upper, rhs)
-        return self.resolve(rhs)
-
-    def solve_in_double(self, upper: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
-        """:meth:`solve` on a handle analysed in double precision (the fallback); the next
-        pattern is single precision again."""
-        from ..fem.linsolve import FactorizationError
-
-        try:
-            self.handle.factor(upper.data)
-        except FactorizationError as exc:
-            self._forget()
-            raise RuntimeError(f"P2 reference: the linear solve failed ({exc})") from None
-        return self.resolve(rhs)
+            return exc
+        return None
 
     def resolve(self, rhs: np.ndarray) -> np.ndarray:
         """The last factored matrix ^-1 ``rhs`` (a back-substitution, phase 33), in double
