@@ -20,3 +20,19 @@ def test_single_precision_factors_land_where_double_precision_does(tmp_path):
     assert lines[2].startswith("5 mm: single") and "mm apart" in lines[2], lines
     moved = float(lines[0].split("|u| ")[1].split()[0])
     assert 0.3 < moved < 5.0 and "0 factorisations" not in lines[0], lines
+
+
+def test_a_lesion_the_case_lacks_is_one_line_before_any_solve(tmp_path):
+    """``--lesion-ids`` naming no lesion of the case: one line naming the ids there are, no
+    push solved and no result file written."""
+    import subprocess
+    import sys
+
+    from tests.runs import BENCHMARKS
+
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "p2_push.py"), "--lesion-ids", "99",
+                           "--result-name", "p2-push-test-refused"],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode != 0 and "no lesion with id 99" in done.stderr, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and "single" not in done.stdout
+    assert not (BENCHMARKS / "results" / "p2-push-test-refused.json").exists()
