@@ -281,7 +281,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add(name: str, func: Callable, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_)
+        # argparse expands "%" in a help (not in a description)
+        p = sub.add_parser(name, help=help_.replace("%", "%%"), description=help_)
         p.set_defaults(func=func)
         return p
 
