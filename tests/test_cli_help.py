@@ -34,3 +34,9 @@ def test_the_top_level_help_lists_every_command():
 def test_each_command_has_a_help_page(command):
     text = _help_of([command, "--help"])
     assert text.startswith("usage: biopsynav " + command)
+
+
+def test_version_names_the_installed_package():
+    from importlib.metadata import version
+
+    assert _help_of(["--version"]).strip() == f"biopsynav {version('biopsynav')}"

@@ -273,11 +273,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _version() -> str:
+    """The installed package's version ("unknown" when run from a source tree without an
+    install)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("biopsynav")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="biopsynav",
         description="Real-time breast lesion tracking for ultrasound-guided biopsy. "
                     "Units: mm, N, MPa.")
+    parser.add_argument("--version", action="version", version=f"biopsynav {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add(name: str, func: Callable, help_: str) -> argparse.ArgumentParser:
