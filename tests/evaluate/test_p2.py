@@ -758,7 +758,7 @@ def test_factors_that_single_precision_refuses_are_made_in_double(monkeypatch):
     from biopsynav.evaluate import p2
     from biopsynav.fem import linsolve
 
-    real = linsolve._PardisoHandle.factor
+    real = linsolve.PardisoHandle.factor
 
     def single_refused(handle, data):
         if handle.dtype == np.float32:
@@ -770,17 +770,17 @@ def test_factors_that_single_precision_refuses_are_made_in_double(monkeypatch):
     matrix, rhs = _symmetric_matrix(_random_pattern(0.3), rng), rng.normal(size=40)
     upper = sp.triu(matrix, format="csr")
     upper.sort_indices()
-    monkeypatch.setattr(linsolve._PardisoHandle, "factor", single_refused)
+    monkeypatch.setattr(linsolve.PardisoHandle, "factor", single_refused)
     x = solver.solve(upper, rhs)
     assert np.linalg.norm(matrix @ x - rhs) < 1e-10 * np.linalg.norm(rhs)
     assert solver.handle.dtype == np.float64 and solver.analyses == 2
-    monkeypatch.setattr(linsolve._PardisoHandle, "factor", real)
+    monkeypatch.setattr(linsolve.PardisoHandle, "factor", real)
     other = _symmetric_matrix(_random_pattern(0.6), rng)
     upper = sp.triu(other, format="csr")
     upper.sort_indices()
     solver.solve(upper, rhs)
     assert solver.handle.dtype == np.float32
-    monkeypatch.setattr(linsolve._PardisoHandle, "factor", lambda *_: (_ for _ in ()).throw(
+    monkeypatch.setattr(linsolve.PardisoHandle, "factor", lambda *_: (_ for _ in ()).throw(
         linsolve.FactorizationError("refused in both")))
     with pytest.raises(RuntimeError, match="linear solve failed"):
         solver.solve(upper, rhs)

@@ -1017,7 +1017,7 @@ class TetReference:
 
 class _SymmetricSolver:
     """MKL Pardiso in its symmetric indefinite mode (``mtype = -2``, Bunch-Kaufman pivoting,
-    the upper triangle; :class:`~biopsynav.fem.linsolve._PardisoHandle`) that keeps the
+    the upper triangle; :class:`~biopsynav.fem.linsolve.PardisoHandle`) that keeps the
     analysis (ordering, symbolic factorisation) of the last matrix pattern: a matrix of that
     pattern (Newton's next tangent while the contact set stands) is only factored again, with
     the same ordering and so the same factors (scaling and weighted matching, which would
@@ -1027,7 +1027,7 @@ class _SymmetricSolver:
 
     def __init__(self, single: bool = True) -> None:
         self.single = single
-        self.handle = None  # the _PardisoHandle of the pattern below
+        self.handle = None  # the PardisoHandle of the pattern below
         self.pattern: tuple[np.ndarray, np.ndarray] | None = None
         self.analyses = 0  # how many patterns were analysed (a new handle each)
         self.factorisations = 0  # how many matrices were factored (the fallback's counted)
@@ -1077,11 +1077,10 @@ class _SymmetricSolver:
     def _analyse(self, upper: sp.csr_matrix, single: bool) -> None:
         """A new handle for ``upper``'s pattern (analysed at its first factorisation), the
         last one released."""
-        from ..fem.linsolve import _PardisoHandle, pypardiso_solver
+        from ..fem.linsolve import pardiso_handle
 
         self._forget()
-        self.handle = _PardisoHandle(pypardiso_solver()._mkl_pardiso, upper.indptr,
-                                     upper.indices, -2, single)
+        self.handle = pardiso_handle(upper.indptr, upper.indices, -2, single)
         self.pattern = (upper.indptr.copy(), upper.indices.copy())
         self.analyses += 1
 

@@ -94,7 +94,7 @@ def full_matrix(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> sp
     return (upper + sp.triu(upper, k=1, format="csr").T).tocsr()
 
 
-class _PardisoHandle:
+class PardisoHandle:
     """One MKL Pardiso instance (one matrix type) for a fixed pattern; phases 11/22/33."""
 
     def __init__(self, function, indptr: np.ndarray, indices: np.ndarray, mtype: int,
@@ -211,6 +211,14 @@ def pypardiso_solver(mtype: int = 11):
         raise _unloadable(exc) from None
 
 
+def pardiso_handle(indptr: np.ndarray, indices: np.ndarray, mtype: int,
+                   single: bool = False) -> PardisoHandle:
+    """A :class:`PardisoHandle` of matrix type ``mtype`` (2 SPD, -2 symmetric indefinite)
+    for the upper-triangle CSR pattern ``indptr``, ``indices`` (zero-based), on MKL's
+    Pardiso as pypardiso loads it; ``single`` factors in single precision."""
+    return PardisoHandle(pypardiso_solver()._mkl_pardiso, indptr, indices, mtype, single)
+
+
 class PardisoSolver:
     """MKL Pardiso: SPD Cholesky first, symmetric indefinite LDL^T when that fails."""
 
@@ -223,9 +231,9 @@ class PardisoSolver:
         function = wrapper._mkl_pardiso  # argtypes already declared by pypardiso
         if threads > 0:
             wrapper.libmkl.MKL_Domain_Set_Num_Threads(int(threads), MKL_DOMAIN_PARDISO)
-        self._spd = _PardisoHandle(function, indptr, indices, 2, single)
-        self._make_indefinite = lambda: _PardisoHandle(function, indptr, indices, -2, single)
-        self._indefinite: _PardisoHandle | None = None
+        self._spd = PardisoHandle(function, indptr, indices, 2, single)
+        self._make_indefinite = lambda: PardisoHandle(function, indptr, indices, -2, single)
+        self._indefinite: PardisoHandle | None = None
         self._active = self._spd
         self.last_mode = "spd"
 
