@@ -11,12 +11,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.runs import BENCHMARKS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
 def figures(monkeypatch):
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import figures
 
     return figures

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tests.runs import BENCHMARKS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -13,7 +15,7 @@ def test_the_bound_checked_is_the_one_the_tracker_gave(monkeypatch):
     """Each push is judged against the bound the tracker returned with that answer
     (``truth.py``'s ``bound_mm``, self-check included), and a push the truth did not answer
     is left out rather than stopping the benchmark."""
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import mri_exam
 
     def row(lesion: int, tre: float) -> dict:
@@ -31,7 +33,7 @@ def test_one_material_makes_a_case_the_truth_accepts_and_judges_table_2_by_it(mo
     """``--one-material``: ``init`` with the collection's label flags, the skin made fat and
     the tumours as soft as the fat gives a case of one material (what the P2 truth and a stored
     truth require), and the truth solved after ``init`` becomes Table 2's reference."""
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import mri_exam
     from biopsynav.case import Case
     from biopsynav.cli import main

@@ -3,18 +3,16 @@ name the result file."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.runs import BENCHMARKS
 
 
 @pytest.mark.parametrize("option, value, named", [("--prior", "someone-else", "prior"),
                                                   ("--iterations", "0", "iterations")])
 def test_a_bad_network_option_is_refused_before_any_work(option, value, named, tmp_path,
                                                          monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import time_to_model
 
     with pytest.raises(SystemExit) as stop:
@@ -24,7 +22,7 @@ def test_a_bad_network_option_is_refused_before_any_work(option, value, named, t
 
 
 def test_a_variant_of_the_defaults_never_takes_the_defaults_result_name(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import time_to_model
 
     assert time_to_model.result_name("phantom", None, None) == "time-to-model-phantom"

@@ -26,6 +26,7 @@ from biopsynav.evaluate.p2 import (
     tet_mesh,
 )
 from biopsynav.materials import lame_constants
+from tests.runs import BENCHMARKS
 
 from .conftest import cube_reference
 
@@ -84,7 +85,7 @@ def test_the_benchmarks_say_how_far_the_nearest_fold_lies_from_the_lesion(cube, 
     """convergence.py and truth.py print, beside the folded elements of an answer, how far
     the nearest lies from the lesion (both deformed), so that a reader can judge whether the
     fold matters there."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
 
     node = cube.elements[0][4]
@@ -106,7 +107,7 @@ def test_convergence_reports_the_training_teachers_against_the_reference(monkeyp
     table of errors against the reference beside the grids'."""
     import argparse
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
 
     assert convergence.teacher_spec("1.46:2") == "1.46:2"
@@ -127,7 +128,7 @@ def test_convergence_reports_the_training_teachers_against_the_reference(monkeyp
 def test_convergence_reports_a_single_grid(monkeypatch, capsys):
     """``convergence.py --cells 7.3`` (one grid, to check a reference): the table shows its
     error and no extrapolation, instead of stopping in the report after the solves."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
 
     result = {"cells_mm": [7.3], "depths_mm": [10.0, 30.0], "lesions": [0], "lesion_ids": [1],
@@ -146,7 +147,7 @@ def test_convergence_compares_the_fields_near_the_probe(coarse_phantom, monkeypa
     the breast near the probe: drawn the same each time, inside and clear of the skin; the
     field a grid answers holds its lesion displacement where a point is the lesion; the
     table is the mean distance to the reference's field, '-' where the reference has none."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
     from biopsynav.anatomy.model import winding_number
     from biopsynav.evaluate.placement import place_probe
@@ -552,7 +553,7 @@ def test_the_benchmarks_refuse_a_bad_mesh_option_before_any_work(option, value, 
     more, ``--quadrature-degree`` a rule whose every weight is positive (5, 6, 7: the rules
     of degree 4, 8 and 9 have negative ones); anything else stops the parser (exit 2, the
     option named), before a case is read or any reference file is written."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth
 
     with pytest.raises(SystemExit) as stop:
@@ -571,7 +572,7 @@ def test_the_agreement_refuses_a_bad_rule_before_any_work(option, value, tmp_pat
     (NGSolve reads anything lower, negative too, as one point without a word), and
     ``--quadrature-degree`` the P2 rules with positive weights; anything else stops the
     parser (exit 2, the option named) before a mesh is made or a file written."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth_agreement
 
     out = tmp_path / "agree.json"
@@ -590,7 +591,7 @@ def test_the_agreement_refuses_a_lesion_id_the_case_lacks_before_any_solve(ids, 
     does): an id the phantom lacks, or a word, stops it with one line naming the ids it
     has and the phantom (not the temporary folder it was made in), before a mesh is made or
     a file written."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth_agreement
 
     out = tmp_path / "agree.json"
@@ -606,7 +607,7 @@ def test_the_benchmarks_refuse_a_bad_push_time_limit_before_any_work(minutes, tm
     """``truth.py --push-minutes`` (and convergence.py's) takes a time of 0 minutes or more;
     anything else stops the parser (exit 2, the option and its unit named) before a case is
     read or any reference file is written."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth
 
     with pytest.raises(SystemExit) as stop:
@@ -622,7 +623,7 @@ def test_the_benchmarks_refuse_an_edge_radius_the_face_cannot_have(coarse_phanto
     """``truth.py --edge-radius`` must fit the case's probe face (below half its 10 mm
     side): a larger one stops the run with the reason, before any reference file is
     written; a negative one stops the parser."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth
 
     with pytest.raises(SystemExit) as stop:
@@ -642,7 +643,7 @@ def test_convergence_keeps_a_reference_without_the_probe_body_apart(tmp_path, ca
     rest): refused with ``--edge-radius``, which shapes the body it leaves out, before any
     case is read; and a stored reference of the other probe model is not reused for it, nor
     one without the body for the full reference."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
 
     with pytest.raises(SystemExit) as stop:
@@ -834,7 +835,7 @@ def test_a_lesion_stopped_between_depths_continues_from_the_last_one(coarse_phan
     stopped during the second depth solves only that depth again, and lands where a run
     never stopped lands; the kept state is removed once the lesion is finished, and a kept
     state of other settings is not continued."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
     from biopsynav.evaluate.placement import place_probe
 
@@ -882,7 +883,7 @@ def test_a_push_past_its_time_limit_is_given_up_and_said_so(coarse_phantom, monk
     """``--push-minutes``: a reference push still solving past its limit ends that lesion's
     pushes as failed from that depth on, said to be given up, not as a failure of the
     model; the depths before it keep their answers."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
     from biopsynav.evaluate.placement import place_probe
 
@@ -933,7 +934,7 @@ def test_a_failed_lesion_is_solved_again_on_request_from_its_last_answer(coarse_
     failure and its last answered state kept beside the reference; a plain run reuses the
     stored failure, a run with ``--retry-failed`` solves only the failed depth, from that
     state, and stores the lesion whole, the state removed."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth
 
     ref_file = tmp_path / "ref.json"

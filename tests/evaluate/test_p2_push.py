@@ -3,7 +3,7 @@ against the double-precision solve, on a coarse mesh of the built-in phantom."""
 
 from __future__ import annotations
 
-from tests.runs import run_benchmark
+from tests.runs import BENCHMARKS, run_benchmark
 
 
 def test_single_precision_factors_land_where_double_precision_does(tmp_path):
@@ -28,7 +28,6 @@ def test_a_lesion_the_case_lacks_is_one_line_before_any_solve(tmp_path):
     import subprocess
     import sys
 
-    from tests.runs import BENCHMARKS
 
     done = subprocess.run([sys.executable, str(BENCHMARKS / "p2_push.py"), "--lesion-ids", "99",
                            "--result-name", "p2-push-test-refused"],

@@ -4,13 +4,10 @@ the same tetrahedra and the same glued-face push agree."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.runs import BENCHMARKS, run_benchmark
 
 pytest.importorskip("ngsolve", reason="NGSolve is the second FE code (the peer extra, which "
                     "requirements.lock holds)")
@@ -23,12 +20,9 @@ def test_the_p2_truth_and_ngsolve_agree_on_one_mesh(tmp_path):
     lesion by about a millimetre; P3 on the same mesh moves it by more than that agreement
     (the check can tell the codes apart from the discretisation)."""
     out = tmp_path / "agree.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "truth_agreement.py"), "--lesion-ids", "1",
-         "--depths", "3", "6", "--tet-size", "20", "--tet-fine", "12", "--orders", "2", "3",
-         "--out", str(out), "--no-result-file"],
-        capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    _, result = run_benchmark("truth_agreement.py", [
+        "--lesion-ids", "1", "--depths", "3", "6", "--tet-size", "20", "--tet-fine", "12",
+        "--orders", "2", "3", "--out", str(out), "--no-result-file"], tmp_path)
     figures = json.loads(out.read_text())
     rows = figures["rows"]
     assert [r["depth_mm"] for r in rows] == [3.0, 6.0]
@@ -36,7 +30,7 @@ def test_the_p2_truth_and_ngsolve_agree_on_one_mesh(tmp_path):
     assert 0.3 < moved[0] < moved[1] < 5.0, moved
     assert figures["codes_max_mm"] < 1e-3, figures["codes_max_mm"]
     assert figures["p_max_mm"] > 10 * figures["codes_max_mm"], figures
-    assert "RESULT codes_max_mm=" in proc.stdout.splitlines()[-1]
+    assert result["codes_max_mm"] == f"{figures['codes_max_mm']:.4f}"
 
 
 def test_h_refinement_of_the_p2_truth_alone(tmp_path):
@@ -45,12 +39,10 @@ def test_h_refinement_of_the_p2_truth_alone(tmp_path):
     refinement moves the lesion (a discretisation error that can be told), by less than the
     push moves it, and the result line names both."""
     out = tmp_path / "h.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "truth_agreement.py"), "--lesion-ids", "1",
-         "--depths", "6", "--tet-size", "20", "--tet-fine", "12", "--orders", "--h-fine", "8",
-         "--rim-fine", "6", "--out", str(out), "--no-result-file"],
-        capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    _, result = run_benchmark("truth_agreement.py", [
+        "--lesion-ids", "1", "--depths", "6", "--tet-size", "20", "--tet-fine", "12",
+        "--orders", "--h-fine", "8", "--rim-fine", "6", "--out", str(out),
+        "--no-result-file"], tmp_path)
     figures = json.loads(out.read_text())
     (row,) = figures["rows"]
     moved = sum(c * c for c in row["p2"]) ** 0.5
@@ -59,19 +51,19 @@ def test_h_refinement_of_the_p2_truth_alone(tmp_path):
     assert figures["h_max_mm"] == row["h8_mm"] and row["codes_mm"] is None
     assert figures["rim_max_mm"] == row["r6_mm"] and "h8-r6_mm" not in row
     assert "ngsolve_p2" not in row
-    assert f"h_max_mm={row['h8_mm']:.4f}" in proc.stdout.splitlines()[-1]
-    assert f"rim_max_mm={row['r6_mm']:.4f}" in proc.stdout.splitlines()[-1]
+    assert result["h_max_mm"] == f"{row['h8_mm']:.4f}"
+    assert result["rim_max_mm"] == f"{row['r6_mm']:.4f}"
 
 
 @pytest.mark.parametrize("option, sizes", [("--h-fine", ["12"]), ("--h-fine", ["0"]),
                                            ("--h-fine", ["x"]), ("--rim-fine", ["0"]),
                                            ("--rim-fine", ["3", "--rim", "2"])])
 def test_a_refinement_that_is_not_finer_is_refused_before_any_solve(option, sizes, tmp_path,
-                                                                      capsys):
+                                                                      capsys, monkeypatch):
     """An ``--h-fine`` size no finer than ``--tet-fine``, a ``--rim-fine`` size no finer
     than ``--rim`` (or not a size) stops the script with one line naming the option, before
     a case is made or a file written."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth_agreement
 
     out = tmp_path / "h.json"
@@ -85,7 +77,7 @@ def test_a_refinement_that_is_not_finer_is_refused_before_any_solve(option, size
 def test_each_refinement_step_is_measured_against_the_mesh_before_it(monkeypatch):
     """With several --h-fine sizes a row holds each finer answer against the 4 mm one and
     against the mesh before it: how far one more refinement moves the lesion."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth_agreement
 
     p2 = [[1.0, 0.0, 0.0]]

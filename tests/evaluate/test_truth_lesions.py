@@ -6,10 +6,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.runs import BENCHMARKS
+
 
 @pytest.fixture
 def truth(monkeypatch):
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth
 
     return truth

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.runs import BENCHMARKS
+
 
 @pytest.fixture
 def refinement(monkeypatch):
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import truth_refinement
 
     return truth_refinement

@@ -4,18 +4,18 @@ probe, on the samples Table 1 judges."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from biopsynav.case import Case
 from biopsynav.layout import CasePaths
+from tests.runs import BENCHMARKS
 
 
 @pytest.fixture
 def error_bands(monkeypatch):
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import error_bands
 
     return error_bands

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+from tests.runs import BENCHMARKS
 
 
 def test_the_copy_links_the_push_data_and_leaves_the_case_alone(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import pushes_only
 
     case = tmp_path / "case"
@@ -27,7 +27,7 @@ def test_the_copy_links_the_push_data_and_leaves_the_case_alone(tmp_path, monkey
 
 
 def test_the_defaults_are_the_measured_recipe(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import pushes_only
 
     args = pushes_only.parser().parse_args(["c", "--reference", "t.json"])
@@ -45,7 +45,7 @@ def test_a_truth_truth_py_would_solve_again_is_refused_before_any_work(tmp_path,
 
     from biopsynav.case import make_phantom_case
 
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import pushes_only
 
     make_phantom_case(tmp_path / "ph")

@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from biopsynav.config import CaseConfig, config_from_dict, load_config, save_config
 from biopsynav.recipes import recipe_overrides
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+from tests.runs import BENCHMARKS
 
 
 def test_the_scratch_case_draws_force_patches_with_the_case_s_own_law(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import table1_patches
 
     case, out = tmp_path / "case", tmp_path / "out"
@@ -31,7 +28,7 @@ def test_the_scratch_case_draws_force_patches_with_the_case_s_own_law(tmp_path, 
 
 def test_a_case_without_a_model_or_no_samples_is_refused_before_any_work(tmp_path, capsys,
                                                                           monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import table1_patches
 
     (tmp_path / "case").mkdir()

@@ -8,13 +8,14 @@ from pathlib import Path
 import pytest
 
 from biopsynav.report import write_report
+from tests.runs import BENCHMARKS
 
 DEPTHS = [10.0, 30.0]
 
 
 @pytest.fixture()
 def convergence(monkeypatch):
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import convergence
 
     return convergence

@@ -23,8 +23,9 @@ from biopsynav.tracker.bound import (
 )
 from biopsynav.tracker.csvtrack import lesions_csv
 from biopsynav.tracker.result import LesionResult, TrackingResult
+from tests.runs import BENCHMARKS
 
-RESULT_FILE = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "error-bound.json"
+RESULT_FILE = BENCHMARKS / "results" / "error-bound.json"
 
 
 def test_the_coefficients_are_those_the_benchmark_fitted():
