@@ -6,6 +6,8 @@ and prints samples per minute. The rate is the steady one, from the first to the
 written (file times of the ``done`` chunks): the start-up before the first sample (the force
 calibration, about 1.5 min of it on the phantom, then the pool's spawn, imports and first
 factorisation) is reported apart and added once to the projection for 1,000 samples.
+``--recipe pushes`` measures the rigid pushes of that recipe instead of force patches
+(``generate-pushes.json``).
 
 Last line: ``RESULT per_min_1w=<..> per_min_2w=<..> minutes_1000=<..>``.
 """
@@ -46,13 +48,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=30, help="samples per run")
     parser.add_argument("--keep", type=Path, help="keep the case folder here")
+    parser.add_argument("--recipe", help="a recipe of `init --recipe` (e.g. pushes: rigid "
+                        "pushes; default: the configuration's defaults, force patches)")
     args = parser.parse_args()
 
     from biopsynav.case import make_phantom_case
+    from biopsynav.recipes import recipe_overrides
+
+    overrides = None if args.recipe is None else recipe_overrides(args.recipe)
 
     tmp = Path(tempfile.mkdtemp(prefix="biopsynav-bench-"))
     try:
-        case = make_phantom_case(tmp / "phantom")
+        case = make_phantom_case(tmp / "phantom", overrides=overrides)
         print(f"phantom: {int(case.grid.active_cells.sum())} active cells, nodes "
               f"{case.grid.node_shape}, f_max_n {case.cfg.probe.f_max_n} N, "
               f"E {case.cfg.material.tissues['phantom']['E_mpa'] * 1e3:g} kPa", flush=True)
@@ -75,9 +82,9 @@ def main() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
     print(f"RESULT per_min_1w={runs[1]['per_min_steady']:.1f} "
           f"per_min_2w={runs[2]['per_min_steady']:.1f} minutes_1000={minutes_1000:.1f}")
-    write_result("generate", {"per_min_1w": runs[1]["per_min_steady"],
-                              "per_min_2w": runs[2]["per_min_steady"],
-                              "minutes_1000": minutes_1000})
+    name = "generate" if args.recipe is None else f"generate-{args.recipe}"
+    write_result(name, {"per_min_1w": runs[1]["per_min_steady"],
+                        "per_min_2w": runs[2]["per_min_steady"], "minutes_1000": minutes_1000})
 
 
 if __name__ == "__main__":

@@ -615,7 +615,9 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
     and the energy's slope ``g(s) = R(u + s du) . du`` drops to half its initial size or
     stays negative; else a safeguarded secant search on ``g`` (Crisfield), bisecting away
     from inverted states. Without ``settings.line_search`` only inversion shortens the step.
-    Returns (u, R, tangent data, energy, step, min det F) of the accepted state."""
+    Returns (u, R, None, energy, step, min det F) of the accepted state: its tangent is left
+    to the caller, which evaluates it only when the next iteration factors one (not for a
+    modified Newton iteration, nor at convergence)."""
     g0 = float(r @ du)
     if g0 >= 0.0:  # not a descent direction (indefinite tangent): backtrack on |R|
         return _backtrack_residual(system, u, du, r, t)
@@ -625,7 +627,7 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
     worst_det = np.inf
     for k in range(MAX_BACKTRACKS + 1):
         trial = u + step * du
-        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=k == 0)
+        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=False)
         worst_det = min(worst_det, det_t)
         if det_t <= 0.0 or not (np.isfinite(energy_t) and np.all(np.isfinite(r_t))):
             hi = None
@@ -654,19 +656,18 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
                                    "the Newton direction")
         raise _NoDecrease("the line search found no decrease of the energy")
     _, step, trial, r_t, data_t, energy_t, det_t = best
-    if data_t is None:
-        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=True)
     return trial, r_t, data_t, energy_t, step, det_t
 
 
 def _backtrack_residual(system: _System, u: np.ndarray, du: np.ndarray, r: np.ndarray,
                         t: float):
-    """Halve the step until the residual norm decreases on an uninverted state."""
+    """Halve the step until the residual norm decreases on an uninverted state; the tangent
+    data of the accepted state is left to the caller (None), which evaluates it if needed."""
     r_norm = float(np.linalg.norm(r))
     step, worst_det = 1.0, np.inf
     for _ in range(MAX_BACKTRACKS + 1):
         trial = u + step * du
-        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=True)
+        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=False)
         worst_det = min(worst_det, det_t)
         if det_t > 0.0 and np.isfinite(energy_t) and \
                 float(np.linalg.norm(r_t)) <= (1.0 - ARMIJO * step) * r_norm:
