@@ -43,18 +43,24 @@ REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
              "minutes": {"generate": 2.68, "evaluate and report": 3.47}}
 # its pushes: REFINE_PUSH_MINUTES; its trainings: TRAINING_STEP_FACTOR
 PROBE_STEPS = 10  # steps timed after one warm-up; their median
+#: What a rigid push costs since the FE engine evaluates a tangent only where it factors one,
+#: against before (the measurements below that predate it): 1.13 s against 1.30 on the
+#: phantom's rigid pushes, one thread, the two codes interleaved in one process, AMD EPYC,
+#: 2026-12-07 (docs/fem.md, "Newton strategy").
+FE_SPEEDUP = 1.13 / 1.30
 #: Minutes of 1,000 default ``[refine]`` rigid pushes on the 2-core machine: the median of
 #: five breasts with ``[probe] max_chest_compression``, each alone, 2026-12-03
 #: (time-to-model-phantom 11.0 min on 2,225 active cells, which the limit leaves alone; MRI
 #: 13 right 4.6 on 2,524, 05 right 7.2 on 3,529, 05 left 6.5 on 3,656, 06 right 6.7 on
-#: 4,068; docs/dataset.md). Not scaled by the cells: they do not predict it.
-REFINE_PUSH_MINUTES = 6.7
+#: 4,068; docs/dataset.md). Not scaled by the cells: they do not predict it. 6.7 then, times
+#: :data:`FE_SPEEDUP`.
+REFINE_PUSH_MINUTES = 6.7 * FE_SPEEDUP
 #: The same for the built-in phantom, a fixed anatomy whose own cost is measured: the
 #: ``pushes`` demo's 450 rigid pushes took 5.47 min at a speed probe of 0.86x (Intel Xeon,
 #: alone, 2026-12-06; ``time-to-model-phantom-pushes-amx.json``, its data set's summary):
-#: 14.1 min per 1,000 at the reference machine's speed, on its 2,225 active cells of 7.3 mm.
-#: Its steep flank makes deep pushes that need the 4x springs.
-PHANTOM_PUSH_MINUTES = 14.1
+#: 14.1 min per 1,000 at the reference machine's speed, on its 2,225 active cells of 7.3 mm,
+#: times :data:`FE_SPEEDUP`. Its steep flank makes deep pushes that need the 4x springs.
+PHANTOM_PUSH_MINUTES = 14.1 * FE_SPEEDUP
 PHANTOM_ACTIVE_CELLS = 2225
 #: Seconds of a training iteration over :func:`probe_seconds`'s step at the same batch, grid
 #: and arithmetic, at the day's speed: the median of five trainings, AMD EPYC, bf16,
@@ -182,9 +188,9 @@ def evaluation_minutes(case) -> float:
 
 #: each lesion's self-check (:mod:`biopsynav.evaluate.lesion_check`, three pushes of 15-35 mm
 #: on the teacher's grid and the teacher gap's push on a finer one, in two processes): the
-#: phantom's default model (10 lesions, 2,225 active cells), alone, AMD EPYC, 2026-12-06: 171 s
-#: at a speed probe of 1.62x, 1.76 min at the reference machine's speed
-LESION_CHECK = {"active_cells": PHANTOM_ACTIVE_CELLS, "lesions": 10, "minutes": 1.76}
+#: phantom's default model (10 lesions, 2,225 active cells), alone, AMD EPYC, 2026-12-07: 126 s
+#: at a speed probe of 1.42x, 1.48 min at the reference machine's speed
+LESION_CHECK = {"active_cells": PHANTOM_ACTIVE_CELLS, "lesions": 10, "minutes": 1.48}
 
 
 def lesion_check_minutes(case) -> float:
@@ -228,9 +234,11 @@ def push_minutes_per_1000(case) -> float:
 #: Table 2 with the fine-grid ground truth (each lesion's pushes in turn, the lesions in two
 #: processes): ``time_to_model.py --case ucdavis`` (the ``pushes`` recipe), AMD EPYC,
 #: 2026-12-05: evaluation and report 5.36 min at the run's speed probe of 1.15x, 4.66 at the
-#: reference machine's speed; 5 lesions x 4 pushes on 1,920 active cells refined twice.
+#: reference machine's speed; 5 lesions x 4 pushes on 1,920 active cells refined twice. Times
+#: what the FE engine's change of 2026-12-07 took off the fine-grid truth, most of the stage
+#: (391 s against 447 in the same case's runs that day).
 FINE_GRID_TABLE2 = {"active_cells": 1920, "reference_refinement": 2.0, "pushes": 20,
-                    "minutes": 4.66}
+                    "minutes": 4.66 * 391 / 447}
 
 #: pushes per lesion of a stored truth (benchmarks/truth.py's 10, 20 and 30 mm)
 STORED_PUSHES = 3
