@@ -161,3 +161,67 @@ def test_full_disk_damages_nothing(trained_case, tmp_path):
             assert rc == 2, (argv, err)
             assert "No space left on device" in one_line_error(err), (argv, err)
             assert digests(case) == before, argv  # nothing damaged, nothing half-written
+
+
+def argparse_error(argv: list[str]) -> str:
+    """The usage error of ``argv`` (exit status 2, nothing run): its last line."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
+            pytest.raises(SystemExit) as stop:
+        main([str(a) for a in argv])
+    assert stop.value.code == 2 and "Traceback" not in err.getvalue()
+    return err.getvalue().strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("iterations", ["-3", "0"])
+def test_train_with_no_iterations_is_refused_and_keeps_the_model(trained_case, iterations):
+    """`train --iterations -3` used to train for no iteration and write that untrained network
+    over the case's model; the count is refused where it enters, the model left as it was."""
+    from biopsynav.errors import InputError
+    from biopsynav.network.train import train_case
+
+    before = digests(trained_case / "model")
+    line = argparse_error(["train", trained_case, "--iterations", iterations])
+    assert "--iterations" in line and "must be >= 1" in line
+    with pytest.raises(InputError, match="iterations must be >= 1"):
+        train_case(trained_case, iterations=int(iterations), progress=False)
+    assert digests(trained_case / "model") == before
+
+
+@pytest.mark.parametrize("command", ["run", "demo", "generate", "refine", "evaluate"])
+def test_a_negative_worker_count_is_refused_before_any_stage(command, tmp_path):
+    case = tmp_path / "new-case"
+    line = argparse_error([command, case, "--workers", "-1"])
+    assert "--workers" in line and "must be >= 0" in line
+    assert not case.exists()
+
+
+def test_run_case_refuses_a_negative_worker_count_before_any_stage(tmp_path):
+    from biopsynav.errors import InputError
+    from biopsynav.pipeline import run_demo
+
+    with pytest.raises(InputError, match="--workers must be >= 0"):
+        run_demo(tmp_path / "demo", workers=-1)
+    assert not (tmp_path / "demo").exists()
+
+
+@pytest.mark.parametrize("size", ["0", "-1", "nan", "inf", "x"])
+def test_init_refuses_a_cell_size_that_is_not_a_size(size, tmp_path):
+    line = argparse_error(["init", tmp_path / "c", "--phantom", "--cell-size", size])
+    assert "--cell-size" in line
+    assert not (tmp_path / "c").exists()
+
+
+def test_serve_checks_its_addresses_before_loading_the_tracker(tmp_path):
+    """A bad --listen is named at once, not after the tracker loads: here the case has no
+    model, whose error would otherwise come first."""
+    from biopsynav.case import make_phantom_case
+    from biopsynav.errors import InputError
+    from biopsynav.igtl.service import serve
+
+    case = make_phantom_case(tmp_path / "untrained")
+    for kwargs, where in (({"listen_addr": "notaport"}, "--listen"),
+                          ({"tracker_addr": "127.0.0.1:99999"}, "--tracker")):
+        with pytest.raises(InputError) as caught:
+            serve(case, **kwargs)
+        assert caught.value.where == where, caught.value

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -18,6 +19,30 @@ from .layout import CasePaths
 from .reference_registry import reference_names
 
 LABEL_OPTIONS = ("--breast-labels", "--lesion-labels", "--chest-labels", "--tissue-labels")
+
+
+def _count(minimum: int) -> Callable[[str], int]:
+    """An argparse type: an integer of at least ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+def _cell_size(text: str) -> float:
+    """An argparse type: a finite cell size > 0 mm (the config checks its range)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a size in mm, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0.0:
+        raise argparse.ArgumentTypeError(f"must be a size > 0 mm, got {text}")
+    return value
 
 
 def _label_list(text: str) -> list[int | str]:
@@ -123,7 +148,7 @@ def cmd_init(args: argparse.Namespace) -> int:
     overrides["anatomy"]["input_frame"] = args.frame
     if args.tissue_labels:
         overrides["anatomy"]["tissue_labels"] = args.tissue_labels
-    if args.cell_size:
+    if args.cell_size is not None:
         overrides.setdefault("grid", {})["cell_size_mm"] = args.cell_size
     if args.config:
         import tomllib
@@ -324,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "carry their own")
     p.add_argument("--chest-wall", default="auto", help="auto | x-min ... z-max | "
                    "plane:px,py,pz,nx,ny,nz (default auto)")
-    p.add_argument("--cell-size", type=float, help="grid cell size, mm")
+    p.add_argument("--cell-size", type=_cell_size, help="grid cell size, mm")
     p.add_argument("--config", type=Path, help="a TOML file with case.toml sections to set")
     _recipe_option(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild an existing case")
@@ -349,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("generate", cmd_generate, "Generate the training data (random probe pushes).")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
+    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes (0: all "
                    "cores); the force calibration uses them with --scheduler too")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--overwrite", action="store_true", help="discard data made for another "
@@ -360,13 +385,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("train", cmd_train, "Train the U-Net surrogate (resumable).")
     p.add_argument("case_dir", type=Path)
     p.add_argument("--preset", choices=("default", "paper", "custom"))
-    p.add_argument("--iterations", type=int)
+    p.add_argument("--iterations", type=_count(1))
     p.add_argument("--device", choices=("auto", "cpu", "cuda"))
 
     p = add("refine", cmd_refine, "Train the network further on a finer teacher's rigid "
             "pushes ([refine] samples > 0; resumable).")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
+    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes (0: all "
                    "cores)")
 
     p = add("evaluate", cmd_evaluate,
@@ -381,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
                         "reference): fine_grid; p2, an independent tetrahedral FE; or stored, "
                         "that FE's answers computed once and kept")
-    p.add_argument("--workers", type=int, default=0, help="local processes that solve the "
+    p.add_argument("--workers", type=_count(0), default=0, help="local processes that solve the "
                    "self-check's, the FE teacher's and a fine-grid ground truth's pushes "
                    "(default 0: one per core; 1: in this process)")
 
@@ -407,12 +432,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("run", cmd_run, "Run every missing stage of a case.")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=int, default=0)
+    p.add_argument("--workers", type=_count(0), default=0)
 
     p = add("demo", cmd_demo, "The whole pipeline on the built-in phantom.")
     p.add_argument("case_dir", type=Path, nargs="?", default=Path("demo-case"))
     p.add_argument("--quick", action="store_true", help="reduced sizes, a few minutes")
-    p.add_argument("--workers", type=int, default=0)
+    p.add_argument("--workers", type=_count(0), default=0)
     _recipe_option(p)
     return parser
 

@@ -154,11 +154,21 @@ def _refined_meta(case: Case) -> Path:
     return CasePaths(case.paths.refine).model_meta
 
 
+def check_workers(workers: int) -> None:
+    """InputError unless ``workers`` (local processes, 0: one per core) is >= 0: checked where
+    a run starts, before any stage."""
+    from .errors import InputError
+
+    if workers < 0:
+        raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
+
+
 def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:
     """Run every stage of ``case_dir`` whose outputs are missing or out of date: the folder is
     read once into a :class:`~biopsynav.case.Case` that every stage is handed."""
     from .report import write_report
 
+    check_workers(workers)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     estimate = None  # made before the long stages of a new case; read by timed()
@@ -207,6 +217,7 @@ def run_demo(case_dir: str | Path = "demo-case", quick: bool = False, workers: i
     :mod:`biopsynav.recipes`) and run the whole pipeline on it."""
     from .case import make_phantom_case
 
+    check_workers(workers)
     case_dir = Path(case_dir)
     start = time.perf_counter()
     if not CasePaths(case_dir).config.exists():

@@ -115,14 +115,18 @@ def serve(case: Case | str | Path, tracker_addr: str | Address | None = None,
     """``biopsynav serve``: load the tracker of ``case`` (loaded, or its folder) and run the
     service (addresses and device None: its case.toml)."""
     from ..case import as_case
+    from .server import to_address
 
     case = as_case(case)
+    cfg = case.cfg.igtl
+    # the addresses are checked before the tracker loads (seconds)
+    tracker_addr = to_address(tracker_addr or cfg.tracker, "--tracker")
+    listen_addr = to_address(listen_addr or cfg.listen, "--listen")
     log.info("loading the tracker of %s", case.dir)
     if not case.anatomy.lesions:
         log.info(NO_LESIONS)
-    cfg = case.cfg.igtl
-    return run_service(service_tracker(case, cfg), tracker_addr or cfg.tracker,
-                       listen_addr or cfg.listen, device or cfg.probe_device, settings=cfg)
+    return run_service(service_tracker(case, cfg), tracker_addr, listen_addr,
+                       device or cfg.probe_device, settings=cfg)
 
 
 def service_tracker(case: Case | str | Path, cfg: IgtlSection | None = None) -> TrackerLike:
