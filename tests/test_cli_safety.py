@@ -66,6 +66,9 @@ def test_show_out_refuses_a_symlink(trained_case, tmp_path):
     rc, err = run(["show", trained_case, "--out", link])
     assert rc == 2 and "symbolic link" in one_line_error(err)
     assert target.read_bytes() == b"not a picture of ours"
+    rc, err = run(["show", trained_case, "--out", tmp_path / "notes.txt"])
+    assert rc == 2 and "name a .png file" in one_line_error(err)
+    assert not (tmp_path / "notes.txt").exists()
 
 
 def test_latin1_poses_csv_is_one_line(trained_case, poses_csv, tmp_path):

@@ -196,6 +196,8 @@ def cmd_show(args: argparse.Namespace) -> int:
 
     if args.out:
         check_output_path(args.out, "--out")
+        if Path(args.out).suffix.lower() != ".png":
+            raise InputError(f"{args.out}: the picture is a PNG; name a .png file", "--out")
     out = render_case(loaded_case(args), args.out)
     print(f"picture written to {out}")
     return 0
