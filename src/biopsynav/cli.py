@@ -434,12 +434,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("run", cmd_run, "Run every missing stage of a case.")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=_count(0), default=0)
+    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes of "
+                   "every stage (0: one per core)")
 
     p = add("demo", cmd_demo, "The whole pipeline on the built-in phantom.")
     p.add_argument("case_dir", type=Path, nargs="?", default=Path("demo-case"))
     p.add_argument("--quick", action="store_true", help="reduced sizes, a few minutes")
-    p.add_argument("--workers", type=_count(0), default=0)
+    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes of "
+                   "every stage (0: one per core)")
     _recipe_option(p)
     return parser
 
