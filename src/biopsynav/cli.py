@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 from collections.abc import Callable
@@ -32,17 +31,6 @@ def _count(minimum: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
         return value
     return parse
-
-
-def _cell_size(text: str) -> float:
-    """An argparse type: a finite cell size > 0 mm (the config checks its range)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a size in mm, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0.0:
-        raise argparse.ArgumentTypeError(f"must be a size > 0 mm, got {text}")
-    return value
 
 
 def _label_list(text: str) -> list[int | str]:
@@ -351,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "carry their own")
     p.add_argument("--chest-wall", default="auto", help="auto | x-min ... z-max | "
                    "plane:px,py,pz,nx,ny,nz (default auto)")
-    p.add_argument("--cell-size", type=_cell_size, help="grid cell size, mm")
+    p.add_argument("--cell-size", type=float, help="grid cell size, mm")
     p.add_argument("--config", type=Path, help="a TOML file with case.toml sections to set")
     _recipe_option(p)
     p.add_argument("--overwrite", action="store_true", help="rebuild an existing case")

@@ -130,8 +130,9 @@ def test_without_side_the_breast_that_holds_the_lesion(tmp_path, capsys):
     assert code == 0, err
     a = Case.load(tmp_path / "c").anatomy
     assert (-a.vertices[:, 0]).min() > 150.0, "the patient's left breast, holding the tumour"
-    assert "the one of 2 breasts holding the lesions" in json.dumps(
+    assert "the patient's left one of 2 breasts, the one holding the lesions" in json.dumps(
         json.loads(run(capsys, "info", tmp_path / "c", "--json")[1])["label_map"])
+    assert "breast    the patient's left one of 2 breasts" in out  # init says which it took
 
 
 def test_a_lesion_near_the_cut_is_warned_about(tmp_path, capsys):

@@ -297,12 +297,23 @@ def select_breast(mask: np.ndarray, lesion_mask: np.ndarray, side: str, image: L
         return comps == pick, no_cut, {"breast": f"the {side} one of {len(keep)} breasts"}
     holding = [c for c in keep if (lesion_mask & (comps == c)).any()]
     if len(holding) == 1:
-        return comps == holding[0], no_cut, {"breast": f"the one of {len(keep)} breasts "
-                                                       "holding the lesions"}
+        side_of = _side_among([c[0] for c in centres], keep.index(holding[0]))
+        return comps == holding[0], no_cut, {"breast": f"the {side_of}one of {len(keep)} "
+                                                       "breasts, the one holding the lesions"}
     where = "; ".join(f"{int(sizes[c - 1] * image.voxel_mm3 / 1000)} mL at RAS "
                       f"{np.round(p, 1).tolist()}" for c, p in zip(keep, centres, strict=True))
     raise InputError(f"the label map holds {len(keep)} separate breasts ({where}); give --side "
                      "left or --side right", str(path))
+
+
+def _side_among(ras_x: list[float], index: int) -> str:
+    """``"patient's left "`` or ``"patient's right "`` for the breast ``index`` of those whose
+    centres lie at RAS ``ras_x`` (mm) when it is the furthest to that side, else ``""``."""
+    if ras_x[index] == max(ras_x):
+        return "patient's right "
+    if ras_x[index] == min(ras_x):
+        return "patient's left "
+    return ""
 
 
 def _cut_at_midline(mask: np.ndarray, side: str, image: LabelImage

@@ -85,9 +85,10 @@ def modelled_lines(facts: dict) -> list[str]:
     if "breast_volume_ml" not in facts:
         return []
     x, y, z = facts["extent_mm"]
-    line = (f"  breast    {facts['breast_volume_ml']:.0f} mL, {x:.0f} x {y:.0f} x {z:.0f} mm "
-            f"(RAS x, y, z); the chest wall holds {100 * facts['back_held_share']:.0f} % of "
-            "its back")
+    which = f"{facts['breast']}: " if facts.get("breast") else ""  # a label map's choice
+    held = 100 * facts["back_held_share"]
+    line = (f"  breast    {which}{facts['breast_volume_ml']:.0f} mL, {x:.0f} x {y:.0f} x "
+            f"{z:.0f} mm (RAS x, y, z); the chest wall holds {held:.0f} % of its back")
     if facts.get("torso_cut_ml"):
         where = facts.get("torso_cut_where", {})
         line += (f"; {facts['torso_cut_ml']:.0f} mL of the map's torso tissue cut away ("
