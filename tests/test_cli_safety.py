@@ -166,16 +166,6 @@ def test_full_disk_damages_nothing(trained_case, tmp_path):
             assert digests(case) == before, argv  # nothing damaged, nothing half-written
 
 
-def argparse_error(argv: list[str]) -> str:
-    """The usage error of ``argv`` (exit status 2, nothing run): its last line."""
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
-            pytest.raises(SystemExit) as stop:
-        main([str(a) for a in argv])
-    assert stop.value.code == 2 and "Traceback" not in err.getvalue()
-    return err.getvalue().strip().splitlines()[-1]
-
-
 @pytest.mark.parametrize("iterations", ["-3", "0"])
 def test_train_with_no_iterations_is_refused_and_keeps_the_model(trained_case, iterations):
     """`train --iterations -3` used to train for no iteration and write that untrained network
@@ -184,26 +174,28 @@ def test_train_with_no_iterations_is_refused_and_keeps_the_model(trained_case, i
     from biopsynav.network.train import train_case
 
     before = digests(trained_case / "model")
-    line = argparse_error(["train", trained_case, "--iterations", iterations])
-    assert "--iterations" in line and "must be >= 1" in line
-    with pytest.raises(InputError, match="iterations must be >= 1"):
+    rc, err = run(["train", trained_case, "--iterations", iterations])
+    assert rc == 2 and "--iterations: must be >= 1" in one_line_error(err)
+    with pytest.raises(InputError, match="--iterations: must be >= 1"):
         train_case(trained_case, iterations=int(iterations), progress=False)
     assert digests(trained_case / "model") == before
 
 
 @pytest.mark.parametrize("command", ["run", "demo", "generate", "refine", "evaluate"])
-def test_a_negative_worker_count_is_refused_before_any_stage(command, tmp_path):
-    case = tmp_path / "new-case"
-    line = argparse_error([command, case, "--workers", "-1"])
-    assert "--workers" in line and "must be >= 0" in line
-    assert not case.exists()
+def test_a_negative_worker_count_is_refused_before_any_stage(command, trained_case, tmp_path):
+    """`run --workers -2` used to start its stages (and `demo` its estimate) first."""
+    case = tmp_path / "new-case" if command == "demo" else trained_case
+    before = digests(trained_case)
+    rc, err = run([command, case, "--workers", "-1"])
+    assert rc == 2 and "--workers: must be >= 0 (0: one per core), got -1" in one_line_error(err)
+    assert not (tmp_path / "new-case").exists() and digests(trained_case) == before
 
 
 def test_run_case_refuses_a_negative_worker_count_before_any_stage(tmp_path):
     from biopsynav.errors import InputError
     from biopsynav.pipeline import run_demo
 
-    with pytest.raises(InputError, match="--workers must be >= 0"):
+    with pytest.raises(InputError, match="--workers: must be >= 0"):
         run_demo(tmp_path / "demo", workers=-1)
     assert not (tmp_path / "demo").exists()
 

@@ -20,19 +20,6 @@ from .reference_registry import reference_names
 LABEL_OPTIONS = ("--breast-labels", "--lesion-labels", "--chest-labels", "--tissue-labels")
 
 
-def _count(minimum: int) -> Callable[[str], int]:
-    """An argparse type: an integer of at least ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
-        return value
-    return parse
-
-
 def _label_list(text: str) -> list[int | str]:
     """Comma-separated label values (any integer, negative included) or segment names."""
     from .config import label_item
@@ -364,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("generate", cmd_generate, "Generate the training data (random probe pushes).")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes (0: all "
+    p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
                    "cores); the force calibration uses them with --scheduler too")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     p.add_argument("--overwrite", action="store_true", help="discard data made for another "
@@ -375,13 +362,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("train", cmd_train, "Train the U-Net surrogate (resumable).")
     p.add_argument("case_dir", type=Path)
     p.add_argument("--preset", choices=("default", "paper", "custom"))
-    p.add_argument("--iterations", type=_count(1))
+    p.add_argument("--iterations", type=int)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"))
 
     p = add("refine", cmd_refine, "Train the network further on a finer teacher's rigid "
             "pushes ([refine] samples > 0; resumable).")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes (0: all "
+    p.add_argument("--workers", type=int, default=0, help="local worker processes (0: all "
                    "cores)")
 
     p = add("evaluate", cmd_evaluate,
@@ -396,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
                         "reference): fine_grid; p2, an independent tetrahedral FE; or stored, "
                         "that FE's answers computed once and kept")
-    p.add_argument("--workers", type=_count(0), default=0, help="local processes that solve the "
+    p.add_argument("--workers", type=int, default=0, help="local processes that solve the "
                    "self-check's, the FE teacher's and a fine-grid ground truth's pushes "
                    "(default 0: one per core; 1: in this process)")
 
@@ -422,13 +409,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("run", cmd_run, "Run every missing stage of a case.")
     p.add_argument("case_dir", type=Path)
-    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes of "
+    p.add_argument("--workers", type=int, default=0, help="local worker processes of "
                    "every stage (0: one per core)")
 
     p = add("demo", cmd_demo, "The whole pipeline on the built-in phantom.")
     p.add_argument("case_dir", type=Path, nargs="?", default=Path("demo-case"))
     p.add_argument("--quick", action="store_true", help="reduced sizes, a few minutes")
-    p.add_argument("--workers", type=_count(0), default=0, help="local worker processes of "
+    p.add_argument("--workers", type=int, default=0, help="local worker processes of "
                    "every stage (0: one per core)")
     _recipe_option(p)
     return parser

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from .case import Case, build_case
 from .config import load_config
+from .dataset.pool import check_workers
 from .fileio import read_json
 from .layout import CasePaths
 from .recipes import DEFAULT_RECIPE, merged, recipe_overrides
@@ -116,6 +117,7 @@ def refine_stage(case: Case, workers: int) -> dict:
     ``CASE_DIR/refine`` (:mod:`biopsynav.refine`), and the case's network trained further on
     them when that model is missing or older than those pushes or than the case's model; the
     fine data's summary ({} when off)."""
+    check_workers(workers)
     if not case.cfg.refine.samples:
         print("  off ([refine] samples = 0)")
         return {}
@@ -152,15 +154,6 @@ def evaluation_stage(case: Case, quick: bool, workers: int) -> None:
 def _refined_meta(case: Case) -> Path:
     """``refine/model/meta.json`` (absent unless ``[refine] samples > 0`` ran)."""
     return CasePaths(case.paths.refine).model_meta
-
-
-def check_workers(workers: int) -> None:
-    """InputError unless ``workers`` (local processes, 0: one per core) is >= 0: checked where
-    a run starts, before any stage."""
-    from .errors import InputError
-
-    if workers < 0:
-        raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
 
 
 def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:

@@ -52,6 +52,6 @@ def test_a_negative_worker_count_is_refused_before_any_work(coarse_phantom, caps
     before = sorted(p.name for p in eval_dir.iterdir()) if eval_dir.is_dir() else []
     assert main(["evaluate", str(coarse_phantom.dir), "--workers", "-2"]) == 2
     err = capsys.readouterr().err
-    assert "--workers must be >= 0, got -2" in err and "Traceback" not in err
+    assert "--workers: must be >= 0 (0: one per core), got -2" in err and "Traceback" not in err
     after = sorted(p.name for p in eval_dir.iterdir()) if eval_dir.is_dir() else []
     assert after == before

@@ -29,7 +29,7 @@ from ..fileio import save_figure_atomic, write_json_atomic
 from ..layout import DATASET_PLOT, DATASET_SUMMARY
 from ..teacher_registry import builder_or_none
 from .grow import grow_store, growth_summary, sizes_alone_differ
-from .pool import WorkerProcesses
+from .pool import WorkerProcesses, check_workers
 from .store import (
     DatasetStore,
     check_compatible,
@@ -94,8 +94,7 @@ def generate_case(case: Case | str | Path, workers: int = 0, scheduler: str | No
     if n_train < 1 or n_test < 1:
         raise InputError(f"n_train and n_test must be >= 1, got {n_train} and {n_test}",
                          "generate")
-    if workers < 0:
-        raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
+    check_workers(workers)
     preflight(case)  # input errors here, before a store or a worker exists
     store, grown = prepare_store(case, n_train, n_test, overwrite)
     work = working_case(case, store, workers)

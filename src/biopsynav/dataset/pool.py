@@ -48,6 +48,13 @@ NEVER_STARTED = ("the worker processes died while starting, before their set-up:
 SETUP_FILE = "setup.pickle"  # in a pool's folder: the set-up function and its arguments
 
 
+def check_workers(workers: int) -> None:
+    """InputError naming ``--workers`` unless ``workers`` (local processes; 0: one per core)
+    is >= 0: each command that starts processes checks it before any work."""
+    if workers < 0:
+        raise InputError(f"must be >= 0 (0: one per core), got {workers}", "--workers")
+
+
 class WorkerProcesses:
     """``workers`` spawned processes (0: one per core), each running ``setup(*setup_args)``
     once after its thread limits and watchdog are in place. Nothing starts until the first

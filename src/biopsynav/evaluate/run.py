@@ -6,6 +6,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..case import Case, as_case
+from ..dataset.pool import check_workers
 from ..errors import InputError
 from ..fileio import write_json_atomic, write_text_atomic
 from ..layout import EVAL_DIR, TABLE2, TABLE2_MEASURED
@@ -43,8 +44,7 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
     "table2": ...}`` (the last two absent with ``table2=False``, the check for a case
     without lesions).
     """
-    if workers < 0:
-        raise InputError(f"--workers must be >= 0, got {workers}", "--workers")
+    check_workers(workers)
     if (measured is None) != (poses is None):
         raise InputError("--poses and --measured go together: the tracked probe poses and the "
                          "lesion positions measured in those frames", "evaluate")

@@ -276,7 +276,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
         s.preset = preset
     if iterations is not None:
         if int(iterations) < 1:  # before anything is read or written: the model stays
-            raise InputError(f"iterations must be >= 1, got {iterations}", "--iterations")
+            raise InputError(f"must be >= 1, got {iterations}", "--iterations")
         s.iterations = int(iterations)
     if device is not None:
         s.device = device
