@@ -483,8 +483,9 @@ def _newton(system: _System, solver: LinearSolver, settings: SolverSettings,
             if report.reference_residual == 0.0:
                 report.reference_residual = system.reference_residual(du / (t - t_prev))
             try:
-                u, r, data, energy, step, min_det = _line_search(system, settings, u, du, r,
-                                                                 energy, t)
+                u, r, energy, step, min_det = _line_search(system, settings, u, du, r,
+                                                           energy, t)
+                data = None  # the new state's tangent: evaluated when the next step factors
             except _NoDecrease:
                 # at the residual's round-off floor (docs/fem.md, "Newton strategy")?
                 rel = r_before / report.reference_residual
@@ -615,9 +616,9 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
     and the energy's slope ``g(s) = R(u + s du) . du`` drops to half its initial size or
     stays negative; else a safeguarded secant search on ``g`` (Crisfield), bisecting away
     from inverted states. Without ``settings.line_search`` only inversion shortens the step.
-    Returns (u, R, None, energy, step, min det F) of the accepted state: its tangent is left
-    to the caller, which evaluates it only when the next iteration factors one (not for a
-    modified Newton iteration, nor at convergence)."""
+    Returns (u, R, energy, step, min det F) of the accepted state; trials evaluate no
+    tangent: the caller evaluates the accepted state's only when the next iteration factors
+    one (not for a modified Newton iteration, nor at convergence)."""
     g0 = float(r @ du)
     if g0 >= 0.0:  # not a descent direction (indefinite tangent): backtrack on |R|
         return _backtrack_residual(system, u, du, r, t)
@@ -627,7 +628,7 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
     worst_det = np.inf
     for k in range(MAX_BACKTRACKS + 1):
         trial = u + step * du
-        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=False)
+        r_t, _, det_t, energy_t = system.evaluate(trial, t, tangent=False)
         worst_det = min(worst_det, det_t)
         if det_t <= 0.0 or not (np.isfinite(energy_t) and np.all(np.isfinite(r_t))):
             hi = None
@@ -636,7 +637,7 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
         g = float(r_t @ du)
         lower = energy_t <= energy + 1e-12 * abs(energy)
         if lower and (best is None or abs(g) < abs(best[0])):
-            best = (g, step, trial, r_t, data_t, energy_t, det_t)
+            best = (g, step, trial, r_t, energy_t, det_t)
         if not settings.line_search or (lower and (abs(g) <= LS_TOLERANCE * abs(g0)
                                                    or (k == 0 and g < 0.0))):
             break
@@ -655,23 +656,23 @@ def _line_search(system: _System, settings: SolverSettings, u: np.ndarray, du: n
             raise _IncrementFailed(f"inverted elements (min det F = {worst_det:.3g}) along "
                                    "the Newton direction")
         raise _NoDecrease("the line search found no decrease of the energy")
-    _, step, trial, r_t, data_t, energy_t, det_t = best
-    return trial, r_t, data_t, energy_t, step, det_t
+    _, step, trial, r_t, energy_t, det_t = best
+    return trial, r_t, energy_t, step, det_t
 
 
 def _backtrack_residual(system: _System, u: np.ndarray, du: np.ndarray, r: np.ndarray,
                         t: float):
-    """Halve the step until the residual norm decreases on an uninverted state; the tangent
-    data of the accepted state is left to the caller (None), which evaluates it if needed."""
+    """Halve the step until the residual norm decreases on an uninverted state: (u, R,
+    energy, step, min det F) of it, as :func:`_line_search` (no tangent evaluated)."""
     r_norm = float(np.linalg.norm(r))
     step, worst_det = 1.0, np.inf
     for _ in range(MAX_BACKTRACKS + 1):
         trial = u + step * du
-        r_t, data_t, det_t, energy_t = system.evaluate(trial, t, tangent=False)
+        r_t, _, det_t, energy_t = system.evaluate(trial, t, tangent=False)
         worst_det = min(worst_det, det_t)
         if det_t > 0.0 and np.isfinite(energy_t) and \
                 float(np.linalg.norm(r_t)) <= (1.0 - ARMIJO * step) * r_norm:
-            return trial, r_t, data_t, energy_t, step, det_t
+            return trial, r_t, energy_t, step, det_t
         step *= 0.5
     if worst_det <= 0.0:
         raise _IncrementFailed(f"inverted elements (min det F = {worst_det:.3g}) along the "
