@@ -1039,7 +1039,7 @@ class _SymmetricSolver:
             raise RuntimeError("P2 reference: the linear solve failed (an empty row)")
         known = self.pattern is not None and np.array_equal(upper.indptr, self.pattern[0]) \
             and np.array_equal(upper.indices, self.pattern[1])
-        if not known or self.handle is None:
+        if not known:  # no pattern (nor handle) after _forget
             self._analyse(upper, self.single)
         refused = self._factor(upper)
         if refused is not None and self.handle.dtype != np.float64:
