@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from biopsynav.recipes import RECIPES, recipe_overrides
 from resultfile import write_result  # noqa: E402  (benchmarks/, this script's folder)
 
 
@@ -48,12 +49,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=30, help="samples per run")
     parser.add_argument("--keep", type=Path, help="keep the case folder here")
-    parser.add_argument("--recipe", help="a recipe of `init --recipe` (e.g. pushes: rigid "
-                        "pushes; default: the configuration's defaults, force patches)")
+    parser.add_argument("--recipe", choices=sorted(RECIPES), help="a recipe of `init "
+                        "--recipe` (e.g. pushes: rigid pushes; default: the configuration's "
+                        "defaults, force patches)")
     args = parser.parse_args()
 
     from biopsynav.case import make_phantom_case
-    from biopsynav.recipes import recipe_overrides
 
     overrides = None if args.recipe is None else recipe_overrides(args.recipe)
 
