@@ -16,6 +16,14 @@ upper pole meet the chest wall); the volume is every tissue voxel in the box, sk
 
 Writes ``benchmarks/results/mri-breasts.json``; last line ``RESULT within15=<n>/<m>
 max_diff_pct=<..> warned=<..>``.
+
+``--all``: every exam in DIR, as a new user of the collection would run ``init``: the label
+flags with both tumour labels (``--lesion-labels -3,-4``) and no ``--side``, so that the
+tumours choose the breast; where ``init`` refuses (tumours in both breasts), each side in
+turn. Per exam: what ``init`` said (modelled, or its one-line refusal), the breast's
+volume and extent, the tumours found against the collection's README count for that side,
+the warnings. Writes ``benchmarks/results/mri-breasts-all.json``; last line ``RESULT
+modelled=<n>/<m> refused=<..> tumours_found=<n>/<m> warned=<..>``.
 """
 
 from __future__ import annotations
@@ -39,6 +47,19 @@ HAND_CROPS = {"01": ({"right": (90, 155, 60, 225), "left": (190, 255, 60, 215)},
               "07": ({"right": (85, 150, 70, 225), "left": (193, 258, 80, 228)}, -3),
               "10": ({"right": (30, 165, 30, 200), "left": (215, 330, 40, 190)}, -3),
               "13": ({"right": (68, 158, 55, 215), "left": (188, 270, 60, 213)}, -3)}
+#: exam -> (tumours in the right breast, in the left), from the collection's README table
+TUMOURS = {"01": (2, 0), "02": (2, 1), "03": (1, 0), "04": (2, 0), "05": (2, 0),
+           "06": (0, 1), "07": (0, 1), "08": (0, 1), "09": (2, 0), "10": (1, 0),
+           "11": (0, 1), "12": (2, 0), "13": (1, 0), "14": (1, 0), "15": (0, 1),
+           "16": (0, 1), "17": (0, 1), "18": (2, 0), "19": (0, 1), "20": (1, 0),
+           "21": (1, 0), "22": (0, 1), "23": (1, 0), "24": (0, 2), "25": (1, 0),
+           "26": (0, 1), "27": (1, 0), "28": (0, 1), "29": (1, 0), "30": (2, 3),
+           "31": (0, 1), "32": (0, 1), "33": (0, 1), "34": (0, 1), "35": (1, 0),
+           "36": (0, 1), "37": (0, 2), "38": (1, 0), "39": (0, 1), "40": (1, 0),
+           "41": (3, 2), "42": (1, 0), "43": (0, 1), "44": (1, 0), "45": (2, 1),
+           "46": (2, 3), "47": (0, 2), "48": (1, 1), "49": (1, 0), "50": (1, 0),
+           "51": (1, 0), "52": (2, 1), "53": (2, 0), "54": (0, 1), "55": (1, 0)}
+SIDES = ("right", "left")
 TISSUE = (1, -2, -3, -4)
 #: the label flags of the collection's simple maps, but for the lesion labels and the side
 LABEL_FLAGS = ["--breast-labels", "1,-2", "--chest-labels", "-1", "--tissue-labels",
@@ -70,12 +91,88 @@ def modelled(path: Path, side: str, lesion: int, case_dir: Path) -> dict:
             "warnings": info["warnings"]}
 
 
+def init_as_user(path: Path, case_dir: Path, side: str | None) -> tuple[dict | None, str]:
+    """``init`` with the collection's label flags and both tumour labels (``--side`` only
+    when given): what it modelled (``info --json``) and the time, or None and its error
+    line."""
+    flags = [*LABEL_FLAGS, "--lesion-labels", "-3,-4", *(["--side", side] if side else [])]
+    start = time.time()
+    done = subprocess.run([sys.executable, "-m", "biopsynav.cli", "init", str(case_dir),
+                           "--labelmap", str(path), *flags], capture_output=True, text=True)
+    if done.returncode:
+        return None, (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+    info = json.loads(subprocess.run([sys.executable, "-m", "biopsynav.cli", "info",
+                                      str(case_dir), "--json"], check=True,
+                                     capture_output=True, text=True).stdout)
+    return {"init_s": round(time.time() - start, 1), "lesions": info["n_lesions"],
+            "active_cells": info["active_cells"], **info["modelled"],
+            "warnings": info["warnings"], "breast": info["label_map"].get("breast", "")}, ""
+
+
+def side_of(breast: str) -> str:
+    """The side named in ``info``'s breast line ("the patient's left one of 2 breasts ...")."""
+    return next((side for side in SIDES if f"patient's {side}" in breast), "")
+
+
+def sweep_exam(exam: str, path: Path, work: Path) -> list[dict]:
+    """One exam as a new user meets it: ``init`` without ``--side``, then each side where
+    it asks for one; a row per attempt."""
+    got, error = init_as_user(path, work / exam, None)
+    rows = [sweep_row(exam, None, got, error)]
+    if got is None and "--side" in error:
+        rows += [sweep_row(exam, side, *init_as_user(path, work / f"{exam}{side}", side))
+                 for side in SIDES]
+    return rows
+
+
+def sweep_row(exam: str, side: str | None, got: dict | None, error: str) -> dict:
+    """A row of the sweep: the side asked, what was modelled and the README's tumour count
+    for the side modelled."""
+    row = {"exam": exam, "side_asked": side or "", "error": error}
+    if got is not None:
+        modelled_side = side or side_of(got["breast"])
+        counts = dict(zip(SIDES, TUMOURS.get(exam, (None, None)), strict=True))
+        row.update(got, tumours_readme=counts.get(modelled_side))
+    print(f"exam {exam} {side or '(no side)':9}: " + (error or (
+        f"{got['breast']}: {got['breast_volume_ml']:.0f} mL, "
+        f"{got['lesions']} lesions (README {row['tumours_readme']}), "
+        f"{got['active_cells']} cells, init {got['init_s']:.1f} s; warnings: "
+        f"{got['warnings'] or 'none'}")), flush=True)
+    return row
+
+
+def sweep(exams: Path, out: Path) -> None:
+    """``--all``: every exam of ``exams`` as a new user would run ``init``; the result file
+    and its RESULT line."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for folder in sorted(exams.glob("Exam_*")):
+            rows += sweep_exam(folder.name.split("_")[1], folder / "Label_map_simple.mha",
+                               Path(tmp))
+    done = [r for r in rows if not r["error"]]
+    refused = [r for r in rows if r["error"] and not r["side_asked"]
+               and "--side" not in r["error"]]
+    found = sum(r["lesions"] == r["tumours_readme"] for r in done)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d", time.gmtime()), "rows": rows,
+                               "modelled": len(done), "refused": len(refused),
+                               "tumours_found": found}, indent=1) + "\n")
+    print(f"RESULT modelled={len(done)}/{len(rows)} refused={len(refused)} "
+          f"tumours_found={found}/{len(done)} warned={sum(bool(r['warnings']) for r in done)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--exams", type=Path, required=True, help="folder of Exam_NN folders")
-    parser.add_argument("--out", type=Path,
-                        default=Path(__file__).parent / "results" / "mri-breasts.json")
+    parser.add_argument("--all", action="store_true",
+                        help="every exam, as a new user would run init (see above)")
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    results = Path(__file__).parent / "results"
+    if args.all:
+        sweep(args.exams, args.out or results / "mri-breasts-all.json")
+        return
+    args.out = args.out or results / "mri-breasts.json"
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for exam, (sides, lesion) in HAND_CROPS.items():

@@ -51,7 +51,8 @@ def case_summary(case: Case | str | Path) -> dict:
         "crop_vertices": int(np.asarray(a.crop_vertices).sum()),
         "label_map": {k: facts[k] for k in ("breast", "label_volume_ml", "surface_volume_ml",
                                             "voxel_mm", "unlabelled_holes_voxels",
-                                            "lesion_specks_left_out")
+                                            "lesion_specks_left_out",
+                                            "lesion_labels_absent")
                       if k in facts},
         "modelled": {k: facts[k] for k in MODELLED_KEYS if k in facts},
         "warnings": list(facts.get("warnings", [])),
@@ -244,4 +245,6 @@ def _label_map_lines(s: dict) -> list[str]:
             + (f"; {m['unlabelled_holes_voxels']} unlabelled voxels inside the breast take "
                "the nearest labelled tissue" if m.get("unlabelled_holes_voxels") else "")
             + (f"; {m['lesion_specks_left_out']} lesion-label specks under 0.05 mL left out"
-               if m.get("lesion_specks_left_out") else "")]
+               if m.get("lesion_specks_left_out") else "")
+            + (f"; lesion labels not in the map: {', '.join(m['lesion_labels_absent'])}"
+               if m.get("lesion_labels_absent") else "")]

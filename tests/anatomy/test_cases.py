@@ -176,7 +176,10 @@ def test_label_absent_from_labelmap(tmp_path, capsys):
     sitk.WriteImage(sitk.GetImageFromArray(labels), str(path))
     code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
                        "1", "--lesion-labels", "4")
-    assert code == 2 and "label 4 is absent" in err
+    assert code == 2 and "--lesion-labels: none of 4 is in the label map" in err
+    code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
+                       "1,4")
+    assert code == 2 and "label 4 is absent" in err, "a breast label must be there"
 
 
 def test_ucdavis_coarse_grid_embeds_the_whole_skin(tmp_path, capsys, ucdavis_dir):
@@ -233,7 +236,7 @@ def test_readme_walkthrough_on_the_ucdavis_segmentation(tmp_path, capsys, ucdavi
     info = json.loads(run(capsys, "info", tmp_path / "a", "--json")[1])
     assert info["n_lesions"] == 1
     assert info["chest_wall"]["kind"].startswith("interface with the chest labels")
-    assert "the right one of 2 breasts" in info["label_map"]["breast"]
+    assert "the patient's right one of 2 breasts (--side right)" in info["label_map"]["breast"]
     assert info["volume_ml"] == pytest.approx(599, rel=0.03)
     tissues = {t["segment"]: t["tissue"] for t in info["tissues"]}
     assert tissues == {"fat": "fat", "gland": "gland", "skin": "skin", "tumour": "lesion"}

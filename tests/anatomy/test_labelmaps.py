@@ -118,7 +118,7 @@ def test_bilateral_segmentation_by_name_side_and_muscle(segmentation, tmp_path, 
     tissues = {t["segment"]: t["tissue"] for t in info["tissues"]}
     assert tissues == {"tumour": "lesion", "skin": "skin", "fat": "fat"}
     assert info["label_map"]["label_volume_ml"] == pytest.approx(labelled_ml, rel=1e-3)
-    assert "the left one of 2 breasts" in info["label_map"]["breast"]
+    assert "the patient's left one of 2 breasts (--side left)" in info["label_map"]["breast"]
     share = g.active_label_share()
     assert ((share > 0).sum(axis=1) > 1).sum() > 50, "cells across the skin mix tissues"
 
@@ -144,7 +144,7 @@ def test_two_breasts_need_a_side(segmentation, tmp_path, capsys):
     code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
                        "fat,skin")
     assert code == 2 and "2 separate breasts" in err and "--side left" in err
-    assert err.count("\n") == 1
+    assert "no lesion given to choose by" in err and err.count("\n") == 1
     # the lesions decide when they lie in one breast only
     code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
                        "fat,skin", "--lesion-labels", "benign", "--chest-labels", "muscle")

@@ -91,8 +91,14 @@ def test_label_maps(tmp_path, suffix):
     lps = np.array([10 + 45, 20 + 45, 30 + 20])
     np.testing.assert_allclose(raw.lesions[0].center, lps * [-1, -1, 1], atol=0.2)  # RAS
     assert winding_number(raw.lesions[0].center[None], v, f)[0] > 0.5
-    with pytest.raises(InputError, match="label 5 is absent"):
+    with pytest.raises(InputError, match="--lesion-labels: none of 5 is in the label map"):
         read_anatomy(path, breast_labels=[1], lesion_labels=[5])
+    with pytest.raises(InputError, match="label 5 is absent"):
+        read_anatomy(path, breast_labels=[1, 5], lesion_labels=[7])
+    # a protocol's lesion classes (benign, malignant) need not all be in one patient's map
+    both = read_anatomy(path, breast_labels=[1], lesion_labels=[5, 7])
+    assert len(both.lesions) == 1 and both.facts["lesion_labels_absent"] == ["5"]
+    assert "lesion_labels_absent" not in raw.facts
     with pytest.raises(InputError, match="needs --breast-labels"):
         read_anatomy(path)
 

@@ -173,6 +173,21 @@ def resolve_labels(spec: list, image: LabelImage, option: str, path: Path) -> li
     return values
 
 
+def resolve_lesion_labels(spec: list, image: LabelImage, path: Path
+                          ) -> tuple[list[int], list[str]]:
+    """Label values of the lesion labels ``spec`` present in the image, and the items absent
+    from it: a segmentation protocol names every lesion class (benign, malignant), and one
+    patient need not have each. InputError when some are given and none is present."""
+    present = set(np.unique(image.labels).tolist())
+    values = [_label_value(item, image.segments, "--lesion-labels", path) for item in spec]
+    absent = [str(label_item(item)) for item, v in zip(spec, values, strict=True)
+              if v not in present]
+    if spec and len(absent) == len(spec):
+        raise InputError(f"--lesion-labels: none of {', '.join(absent)} is in the label map "
+                         f"(present: {sorted(present)})", str(path))
+    return [v for v in values if v in present], absent
+
+
 def label_value(item: int | str, segments: dict[str, int]) -> int | None:
     """The label value of ``item``: an integer as it is, a segment name (any case) looked up
     in ``segments``; None for a name that is not a segment."""
@@ -215,7 +230,7 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
         raise InputError("a label map needs --breast-labels (label values or segment names of "
                          "breast tissue)", str(path))
     breast_v = resolve_labels(breast, image, "--breast-labels", path)
-    lesion_v = resolve_labels(lesion, image, "--lesion-labels", path)
+    lesion_v, lesion_absent = resolve_lesion_labels(lesion, image, path)
     chest_v = resolve_labels(chest, image, "--chest-labels", path)
     chest_mask = np.isin(image.labels, chest_v)
     mask = np.isin(image.labels, breast_v + lesion_v) & ~chest_mask
@@ -224,6 +239,8 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     away = mask & ~kept
     mask, cut, picked = select_breast(kept, held, side, image, path)
     facts.update(picked)
+    if lesion_absent:
+        facts["lesion_labels_absent"] = lesion_absent
     if away.any():
         facts["torso_cut_where"] = cut_directions(away, mask, image)
     cut = cut | (torso_cut & mask)
@@ -294,7 +311,8 @@ def select_breast(mask: np.ndarray, lesion_mask: np.ndarray, side: str, image: L
     if side:
         x = [c[0] for c in centres]
         pick = keep[int(np.argmin(x) if side == "left" else np.argmax(x))]
-        return comps == pick, no_cut, {"breast": f"the {side} one of {len(keep)} breasts"}
+        return comps == pick, no_cut, {"breast": f"the patient's {side} one of {len(keep)} "
+                                                f"breasts (--side {side})"}
     holding = [c for c in keep if (lesion_mask & (comps == c)).any()]
     if len(holding) == 1:
         side_of = _side_among([c[0] for c in centres], keep.index(holding[0]))
@@ -302,8 +320,10 @@ def select_breast(mask: np.ndarray, lesion_mask: np.ndarray, side: str, image: L
                                                        "breasts, the one holding the lesions"}
     where = "; ".join(f"{int(sizes[c - 1] * image.voxel_mm3 / 1000)} mL at RAS "
                       f"{np.round(p, 1).tolist()}" for c, p in zip(keep, centres, strict=True))
-    raise InputError(f"the label map holds {len(keep)} separate breasts ({where}); give --side "
-                     "left or --side right", str(path))
+    lesions = (f"lesions in {len(holding)} of them" if holding else
+               "no lesion in any" if lesion_mask.any() else "no lesion given to choose by")
+    raise InputError(f"the label map holds {len(keep)} separate breasts ({where}), {lesions}; "
+                     "give --side left or --side right", str(path))
 
 
 def _side_among(ras_x: list[float], index: int) -> str:

@@ -93,4 +93,7 @@ def modelled_lines(facts: dict) -> list[str]:
         where = facts.get("torso_cut_where", {})
         line += (f"; {facts['torso_cut_ml']:.0f} mL of the map's torso tissue cut away ("
                  + ", ".join(f"{k} {100 * v:.0f} %" for k, v in where.items()) + ")")
-    return [line, *(f"  warning   {w}" for w in facts.get("warnings", []))]
+    absent = facts.get("lesion_labels_absent")
+    note = ([f"  lesions   no voxel of lesion label {', '.join(absent)} in the map"]
+            if absent else [])
+    return [line, *note, *(f"  warning   {w}" for w in facts.get("warnings", []))]
