@@ -152,6 +152,29 @@ def test_two_breasts_need_a_side(segmentation, tmp_path, capsys):
     assert Case.load(tmp_path / "c").anatomy.vertices[:, 0].min() > -90.0  # the right one
 
 
+def test_lesion_specks_do_not_choose_the_breast(tmp_path, capsys):
+    """Clinical maps hold specks of a lesion label far from the tumour (exam 10 of the MRI
+    collection: 44 of them, 0.001-0.03 mL, in both breasts): they neither make the map's
+    breasts both hold lesions nor become lesions. A lesion-sized blob does."""
+    lab = bilateral_labels()
+    speck = (int(120 / SPACING[0]), int(50 / SPACING[1]), int(40 / SPACING[2]))
+    assert lab[speck] == 1, "the speck lies in the patient's left breast's fat"
+    lab[speck] = -4
+    path = tmp_path / "specks.nrrd"
+    write_segmentation(path, lab, names=False)
+    flags = ["--breast-labels", "-2,1", "--chest-labels", "-1", "--lesion-labels", "-4",
+             "--tissue-labels", "-2=skin,1=fat,-4=lesion"]
+    code, _, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, *flags)
+    assert code == 0, err
+    case = Case.load(tmp_path / "c")
+    assert case.anatomy.vertices[:, 0].max() < -20.0, "the right breast, which holds the lesion"
+    assert len(case.anatomy.lesions) == 1
+    lab[speck[0] - 2:speck[0] + 3, speck[1] - 2:speck[1] + 3, speck[2] - 2:speck[2] + 2] = -4
+    write_segmentation(path, lab, names=False)
+    code, _, err = run(capsys, "init", tmp_path / "d", "--labelmap", path, *flags)
+    assert code == 2 and "lesions in 2 of them" in err
+
+
 def test_breasts_joined_across_the_sternum_are_cut(tmp_path, capsys):
     path = tmp_path / "joined.nrrd"
     write_segmentation(path, bilateral_labels(bridge=True), names=False)

@@ -234,7 +234,8 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     chest_v = resolve_labels(chest, image, "--chest-labels", path)
     chest_mask = np.isin(image.labels, chest_v)
     mask = np.isin(image.labels, breast_v + lesion_v) & ~chest_mask
-    held = np.isin(image.labels, lesion_v) | image.voxels_at(lesion_centres)
+    held = lesion_voxels(image.labels, lesion_v, image.voxel_mm3) \
+        | image.voxels_at(lesion_centres)
     kept, torso_cut, facts = cut_torso_tissue(mask, image, finding)
     away = mask & ~kept
     mask, cut, picked = select_breast(kept, held, side, image, path)
@@ -441,6 +442,19 @@ def volume_facts(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, imag
                          f"{labelled:.1f} mL; lower [anatomy] labelmap_smoothing_mm", str(path))
     return {"label_volume_ml": round(labelled, 3), "surface_volume_ml": round(surface, 3),
             "voxel_mm": np.round(image.spacing, 4).tolist()}
+
+
+def lesion_voxels(labels: np.ndarray, lesion: list[int], voxel_mm3: float) -> np.ndarray:
+    """The voxels (xyz bool) of the lesion labels' connected components of at least
+    :data:`MIN_LESION_ML`: the lesions that choose the breast; specks of a lesion label in
+    the other breast (segmentation noise) do not."""
+    held = np.zeros(labels.shape, bool)
+    for value in lesion:
+        comps, n = ndimage.label(labels == value)
+        sizes = np.bincount(comps.ravel(), minlength=n + 1) * voxel_mm3 / 1000.0
+        sizes[0] = 0.0
+        held |= (sizes >= MIN_LESION_ML)[comps]
+    return held
 
 
 def lesion_masks(labels: np.ndarray, lesion: list[int], breast: np.ndarray,
