@@ -175,6 +175,24 @@ def test_lesion_specks_do_not_choose_the_breast(tmp_path, capsys):
     assert code == 2 and "lesions in 2 of them" in err
 
 
+def test_a_maps_only_lesion_is_kept_however_small(tmp_path, capsys):
+    """A map's one lesion under the speck size (exam 31 of the MRI collection: a 0.041 mL
+    benign lesion) is the lesion, not a speck: it chooses the breast and is modelled."""
+    lab = bilateral_labels()
+    lab[lab == -4] = 1
+    spot = (int(45 / SPACING[0]), int(42 / SPACING[1]), int(35 / SPACING[2]))
+    lab[spot[0]:spot[0] + 3, spot[1], spot[2]] = -4  # 3 voxels of 10 mm3: 0.03 mL
+    path = tmp_path / "small.nrrd"
+    write_segmentation(path, lab, names=False)
+    code, out, err = run(capsys, "init", tmp_path / "c", "--labelmap", path, "--breast-labels",
+                         "-2,1", "--chest-labels", "-1", "--lesion-labels", "-4",
+                         "--tissue-labels", "-2=skin,1=fat,-4=lesion")
+    assert code == 0, err
+    case = Case.load(tmp_path / "c")
+    assert case.anatomy.vertices[:, 0].max() < -20.0, "the right breast, which holds it"
+    assert len(case.anatomy.lesions) == 1
+
+
 def test_breasts_joined_across_the_sternum_are_cut(tmp_path, capsys):
     path = tmp_path / "joined.nrrd"
     write_segmentation(path, bilateral_labels(bridge=True), names=False)
