@@ -204,6 +204,17 @@ def test_breasts_joined_across_the_sternum_are_cut(tmp_path, capsys):
     assert a.vertices[:, 0].min() > -90.0 and a.vertices[:, 0].max() < -20.0
     cut_x = a.vertices[a.crop_vertices][:, 0]
     assert (cut_x < -80.0).any(), "the midline cut is a crop face"
+    # without --side the lesions choose the half, as they choose between separate breasts
+    flags = ["--breast-labels", "-2,1", "--chest-labels", "-1", "--tissue-labels",
+             "-2=skin,1=fat,-3=lesion,-4=lesion"]
+    code, out, err = run(capsys, "init", tmp_path / "d", "--labelmap", path, *flags,
+                         "--lesion-labels", "-4")
+    assert code == 0, err
+    assert "the patient's right breast, cut from the other at the midline (the one holding" in out
+    np.testing.assert_allclose(Case.load(tmp_path / "d").anatomy.vertices, a.vertices)
+    code, _, err = run(capsys, "init", tmp_path / "e", "--labelmap", path, *flags,
+                       "--lesion-labels", "-3,-4")
+    assert code == 2 and "joined across the sternum, lesions in both; give --side" in err
 
 
 def test_unmapped_and_unknown_labels_are_refused_at_init(tmp_path, capsys):

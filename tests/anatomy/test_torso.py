@@ -174,6 +174,24 @@ def test_a_breast_alone_is_not_cut():
     assert (got.keep == mask).all() and not got.cut_face.any() and got.facts == {}
 
 
+def test_a_thin_patients_torso_is_cut():
+    """A torso layer of 4 mm (exam 44 of the MRI collection: at most 4 mm, the others 7-9 mm)
+    is a torso: the breasts are kept and the layer beside them cut away."""
+    idx = np.indices(SHAPE).transpose(1, 2, 3, 0) * SPACING
+    x, y, z = idx[..., 0], idx[..., 1], idx[..., 2]
+    front = LAYER[0] + 4.0
+    mask = (y >= LAYER[0]) & (y < front)
+    for cx, cz in CENTRES:
+        mask |= (np.sqrt((x - cx) ** 2 + (y - LAYER[0]) ** 2 + (z - cz) ** 2) < RADIUS) \
+            & (y < LAYER[0])
+    got = cut_torso(mask, np.full(3, SPACING), np.diag([1.0, -1.0, 1.0]), PROTRUSION, 200.0)
+    assert got.facts.get("torso_cut_ml", 0.0) > 100.0, "the thin layer beside the breasts"
+    for cx, cz in CENTRES:  # each breast's apex column is kept
+        i, k = int(cx / SPACING), int(cz / SPACING)
+        assert got.keep[i, :, k].sum() == mask[i, :, k].sum() > 0
+    assert not got.keep[int(150 / SPACING), :, int(20 / SPACING)].any(), "between, below"
+
+
 def test_back_voxels_are_the_most_posterior_of_each_column():
     mask = np.zeros((3, 6, 2), bool)
     mask[0, 1:4, 0] = True

@@ -8,7 +8,12 @@ import torch
 
 from biopsynav.network.data import load_dataset, normalisation_stats, quadratic_scale
 from biopsynav.network.export import SurrogateNet
-from biopsynav.network.metrics import masked_loss, mean_norm_error, mean_norm_error_np
+from biopsynav.network.metrics import (
+    masked_loss,
+    mean_dof_error_np,
+    mean_norm_error,
+    mean_norm_error_np,
+)
 from biopsynav.network.unet import QUADRATIC_PAIRS, UNetSpec
 
 from .synth import write_synthetic_dataset
@@ -75,6 +80,8 @@ def test_mean_norm_error_is_mean_over_active_nodes():
     target[0, 2][~mask] = 100.0  # inactive: must not count
     assert torch.allclose(mean_norm_error(pred, target, mask), torch.tensor([5.0]))
     assert np.allclose(mean_norm_error_np(pred.numpy(), target.numpy(), mask.numpy()), [5.0])
+    # eq. (3) read per degree of freedom: (3 + 4 + 0) / 3 over the active nodes' components
+    assert np.allclose(mean_dof_error_np(pred.numpy(), target.numpy(), mask.numpy()), [7 / 3])
 
 
 def test_normalisation_stats_over_active_nodes_only(tmp_path):

@@ -310,7 +310,7 @@ def select_breast(mask: np.ndarray, lesion_mask: np.ndarray, side: str, image: L
     if len(keep) == 1:
         if side:
             return _cut_at_midline(comps == keep[0], side, image)
-        return comps == keep[0], no_cut, {"breast": "the only breast"}
+        return _joined_breast(comps == keep[0], lesion_mask, image, path)
     if side:
         x = [c[0] for c in centres]
         pick = keep[int(np.argmin(x) if side == "left" else np.argmax(x))]
@@ -339,25 +339,51 @@ def _side_among(ras_x: list[float], index: int) -> str:
     return ""
 
 
-def _cut_at_midline(mask: np.ndarray, side: str, image: LabelImage
+def _cut_at_midline(mask: np.ndarray, side: str, image: LabelImage, why: str = ""
                     ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """One breast of a mask that joins both across the sternum: cut at the thinnest sagittal
-    slab between the two lobes (the index axis nearest RAS x), or the mask as it is when it
-    has one lobe."""
+    """One breast of a mask that joins both across the sternum (:func:`_midline_halves`), or
+    the mask as it is when it has one lobe; ``why`` the side was taken (``--side``'s words
+    when empty)."""
+    halves = _midline_halves(mask, image)
+    if halves is None:
+        return mask, np.zeros_like(mask), {"breast": "the only breast"}
+    keep = _largest_component(mask & halves[side])
+    cut_face = keep & ndimage.binary_dilation(mask & ~keep)
+    return keep, cut_face, {"breast": f"the patient's {side} breast, cut from the other at the "
+                                      f"midline ({why or f'--side {side}'})"}
+
+
+def _midline_halves(mask: np.ndarray, image: LabelImage) -> dict[str, np.ndarray] | None:
+    """The patient's left and right of a mask (xyz bool) whose tissue has two lobes along
+    the index axis nearest RAS x, split at the thinnest sagittal slab between them; None for
+    one lobe."""
     signs = image.ras_axis_signs()
     axis = int(np.argmax(np.abs(signs)))
     profile = mask.sum(axis=tuple(a for a in range(3) if a != axis)).astype(np.float64)
     cut = _valley(profile)
     if cut is None:
-        return mask, np.zeros_like(mask), {"breast": "the only breast"}
+        return None
     index = np.arange(mask.shape[axis]).reshape([-1 if a == axis else 1 for a in range(3)])
     lower, upper = index < cut, index > cut
     if signs[axis] < 0:  # a larger index is further to the patient's left (RAS -x)
         lower, upper = upper, lower
-    keep = mask & (lower if side == "left" else upper)
-    keep = _largest_component(keep)
-    cut_face = keep & ndimage.binary_dilation(mask & ~keep)
-    return keep, cut_face, {"breast": f"the {side} breast, cut from the other at the midline"}
+    return {"left": lower, "right": upper}
+
+
+def _joined_breast(mask: np.ndarray, lesion_mask: np.ndarray, image: LabelImage, path: Path
+                   ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The map's one component without ``--side``: the half of two lobes joined across the
+    sternum that holds the lesions (cut at the midline), or the component when it has one
+    lobe; InputError when the lesions do not choose a half."""
+    halves = _midline_halves(mask, image)
+    if halves is None:
+        return mask, np.zeros_like(mask), {"breast": "the only breast"}
+    holding = [side for side, half in halves.items() if (lesion_mask & mask & half).any()]
+    if len(holding) != 1:
+        lesions = "lesions in both" if holding else "no lesion in either"
+        raise InputError(f"the label map's two breasts are joined across the sternum, "
+                         f"{lesions}; give --side left or --side right", str(path))
+    return _cut_at_midline(mask, holding[0], image, "the one holding the lesions")
 
 
 def _valley(profile: np.ndarray) -> int | None:

@@ -1,7 +1,10 @@
 """Error measures of the paper (eq. 3), masked to active nodes.
 
 ``e`` of one sample is the mean over the ``n`` active nodes of the Euclidean norm of the nodal
-displacement error, in mm. Inactive nodes neither count nor dilute it.
+displacement error, in mm. Inactive nodes neither count nor dilute it. The paper's eq. (3)
+divides by "the number of degrees of freedom of the mesh", which reads as the mean over the
+``3 n`` displacement components of their absolute error (:func:`mean_dof_error_np`): the
+same errors weigh about half as much that way (docs/evaluation.md, "Table 1").
 """
 
 from __future__ import annotations
@@ -20,6 +23,14 @@ def mean_norm_error_np(pred: np.ndarray, target: np.ndarray, active: np.ndarray)
     """NumPy twin of :func:`mean_norm_error`: (B, 3, nx, ny, nz) x2, (nx, ny, nz) bool -> (B,)."""
     norm = np.linalg.norm(np.asarray(pred, np.float64) - np.asarray(target, np.float64), axis=1)
     return norm[:, active].mean(axis=1)
+
+
+def mean_dof_error_np(pred: np.ndarray, target: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """Per-sample mean absolute error (B,) mm over the ``3 n`` displacement components of the
+    active nodes: the paper's eq. (3) read per degree of freedom. (B, 3, nx, ny, nz) x2,
+    (nx, ny, nz) bool."""
+    diff = np.asarray(pred, np.float64) - np.asarray(target, np.float64)
+    return np.abs(diff[:, :, active]).mean(axis=(1, 2))
 
 
 LOSSES = ("norm", "mse", "l1")

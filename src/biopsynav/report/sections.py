@@ -157,6 +157,10 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
         ["mean norm error e (mm)", _num(t1.get("mean_e_mm")), _num(p["mean_e_mm"])],
         ["std of e (mm)", _num(t1.get("std_e_mm")), _num(p["std_e_mm"])],
         ["max of e (mm)", _num(t1.get("max_e_mm")), _num(p["max_e_mm"])],
+        ["e per degree of freedom, mean / max (mm): eq. (3) as written, the mean absolute "
+         "error of the 3 n displacement components", f"{_num(t1.get('mean_e_dof_mm'))} / "
+         f"{_num(t1.get('max_e_dof_mm'))}", f"{_num(p['mean_e_mm'])} / {_num(p['max_e_mm'])} "
+         "(which reading the paper's figures are is not said)"],
         ["prediction time (ms)", f"{_num(t1.get('predict_mean_ms'))} ± "
                                  f"{_num(t1.get('predict_std_ms'))} (median "
                                  f"{_num(t1.get('predict_p50_ms'))}, p99 "
