@@ -143,6 +143,7 @@ def test_a_lesion_near_the_cut_is_warned_about(tmp_path, capsys):
     assert code == 0, err
     warned = [line for line in out.splitlines() if line.startswith("  warning")]
     assert len(warned) == 1 and "lesion 2 lies" in warned[0] and "crop face" in warned[0]
+    assert "a lower [anatomy] breast_protrusion_mm cuts the torso further out" in warned[0]
 
 
 def test_graded_labels_map_by_a_table(tmp_path, capsys):

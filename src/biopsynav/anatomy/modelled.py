@@ -75,7 +75,9 @@ def modelled_warnings(facts: dict, lesion_ids: list[int]) -> list[str]:
     for lid, gap in zip(lesion_ids, facts["lesion_crop_gap_mm"] or [], strict=False):
         if gap < MIN_CROP_GAP_MM:
             out.append(f"lesion {lid} lies {gap:.1f} mm from a crop face (under "
-                       f"{MIN_CROP_GAP_MM:.0f} mm): the tissue beyond the cut is not modelled")
+                       f"{MIN_CROP_GAP_MM:.0f} mm): the tissue beyond the cut is not modelled"
+                       + ("; a lower [anatomy] breast_protrusion_mm cuts the torso further "
+                          "out" if facts.get("torso_cut_ml") else ""))
     return out
 
 
