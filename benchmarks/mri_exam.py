@@ -285,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
                "generate": {k: summary.get(k) for k in ("failures", "too_deep", "minutes")},
                "refine_pushes": {k: pushes.get(k) for k in ("failures", "too_deep", "minutes")},
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
+               "table1_mean_e_dof_mm": table1.get("mean_e_dof_mm"),
+               "table1_max_e_dof_mm": table1.get("max_e_dof_mm"),
                "table2_placements": table2["placements"],
                "table2_tables": table2["tables"], "tumour_motion": motion,
                "model_motion": models}

@@ -208,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     figures = {"total_min": total_min, "stages_min": minutes,
                "train_min": minutes.get("network training", math.nan),
                "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
+               "table1_mean_e_dof_mm": table1.get("mean_e_dof_mm"),
+               "table1_max_e_dof_mm": table1.get("max_e_dof_mm"),
                "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), "recipe": args.recipe,
                "table1_samples": table1.get("n_samples"), **kind_table1(table1), **tre}

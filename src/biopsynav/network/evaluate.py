@@ -215,7 +215,10 @@ def _figures(out: Path, pred: np.ndarray, y: np.ndarray, active: np.ndarray, e: 
 def format_table1(r: dict) -> str:
     """Table 1 as text (mm, ms, min)."""
     return (f"mean e {r['mean_e_mm']:.4f} mm | std e {r['std_e_mm']:.4f} mm | "
-            f"max e {r['max_e_mm']:.4f} mm | prediction {r['predict_p50_ms']:.2f} ms median, "
+            f"max e {r['max_e_mm']:.4f} mm"
+            + (f" (per degree of freedom: {r['mean_e_dof_mm']:.4f} / {r['max_e_dof_mm']:.4f} mm)"
+               if "mean_e_dof_mm" in r else "")
+            + f" | prediction {r['predict_p50_ms']:.2f} ms median, "
             f"{r['predict_p99_ms']:.2f} ms p99 ({r['runtime']}, {r['precision']}"
             f"{', contact projection' if r.get('contact_projection') else ''}) | training "
             f"{r['train_min']:.1f} min | max nodal displacement {r['max_disp_mm']:.2f} mm | "
