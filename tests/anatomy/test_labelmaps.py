@@ -175,6 +175,24 @@ def test_lesion_specks_do_not_choose_the_breast(tmp_path, capsys):
     assert code == 2 and "lesions in 2 of them" in err
 
 
+def test_small_compact_lesions_are_lesions_and_slivers_specks():
+    """On 1 mm voxels (the MRI collection's): a 0.048 mL lesion beside a large one is a
+    lesion (its one-voxel erosion keeps a core: exam 37's second lesion), a 0.030 mL sliver
+    one voxel thick is a speck (exam 02's largest speck is 0.040 mL, its core 1 voxel)."""
+    from scipy import ndimage
+
+    from biopsynav.anatomy.labelmap import kept_lesions
+
+    labels = np.zeros((60, 40, 40), np.int16)
+    idx = np.indices(labels.shape).transpose(1, 2, 3, 0)
+    labels[np.linalg.norm(idx - [15, 20, 20], axis=-1) < 6] = -3
+    labels[40:44, 10:14, 10:13] = -3  # 48 voxels, 4 x 4 x 3
+    labels[30:70, 30, 30] = -3  # a line of 30 voxels
+    (voxels, kept), = kept_lesions(labels, [-3], 1.0)
+    assert ndimage.label(kept)[1] == 2
+    assert kept[41, 11, 11] and not kept[35, 30, 30]
+
+
 def test_a_maps_only_lesion_is_kept_however_small(tmp_path, capsys):
     """A map's one lesion under the speck size (exam 31 of the MRI collection: a 0.041 mL
     benign lesion) is the lesion, not a speck: it chooses the breast and is modelled."""
