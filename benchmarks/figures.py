@@ -283,6 +283,16 @@ def table1_cell(d: dict) -> str:
 
 
 #: BENCHMARKS.md: (what, cell, target, paper)
+def sweep_cell(d: dict) -> str:
+    """The figures of ``mri_breasts.py --all``."""
+    rows = d["rows"]
+    chosen = sum(not r["side_asked"] and not r["error"] for r in rows)
+    asked = sum("--side" in r["error"] for r in rows)
+    warned = sum(bool(r.get("warnings")) for r in rows if not r["error"])
+    return (f"{chosen}; {asked}; {d['modelled']}, {d['tumours_found']}; {warned}; "
+            f"{d['refused']}")
+
+
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("`make demo` from nothing, phantom, the default recipe `pushes` (450 rigid pushes, one "
      "network; Intel Xeon with AMX-BF16; the evaluation with each lesion's self-check): whole; "
@@ -571,6 +581,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
       for kind, unit in (("amx", "AMX-BF16"), ("avx512", "AVX-512 BF16, no AMX"))],
     ("`make test`", Cell("suite-time", figure("minutes", 1, " min"),
                          "python benchmarks/suite_time.py"), "<= 10 min", "-"),
+    ("`init` on every exam of that MRI collection as a new user runs it (the label flags, both "
+     "tumour labels, no `--side`; each side where `init` asks for one): exams whose breast the "
+     "tumours chose; exams asked for a side; breasts modelled, of which with the tumour count "
+     "the collection's README lists; breasts warned about; exams refused otherwise",
+     Cell("mri-breasts-all", sweep_cell, "python benchmarks/mri_breasts.py --exams DIR --all"),
+     "-", "-"),
     ("clinical MRI breasts found by label flags alone, within 15 % of a hand crop",
      Cell("mri-breasts", lambda d: f"{d['within15']} of {len(d['rows'])}",
           "python benchmarks/mri_breasts.py --exams DIR"),

@@ -237,8 +237,8 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     chest_v = resolve_labels(chest, image, "--chest-labels", path)
     chest_mask = np.isin(image.labels, chest_v)
     mask = np.isin(image.labels, breast_v + lesion_v) & ~chest_mask
-    held = lesion_voxels(image.labels, lesion_v, image.voxel_mm3) \
-        | image.voxels_at(lesion_centres)
+    found = kept_lesions(image.labels, lesion_v, image.voxel_mm3)
+    held = lesion_voxels(found, image.labels.shape) | image.voxels_at(lesion_centres)
     kept, torso_cut, facts = cut_torso_tissue(mask, image, finding)
     away = mask & ~kept
     mask, cut, picked = select_breast(kept, held, side, image, path)
@@ -255,8 +255,7 @@ def read_label_anatomy(path: Path, breast: list, lesion: list, chest: list, side
     sampled = mask & ~unlabelled_holes(labelled, mask, image.labels, breast_v + lesion_v)
     facts["unlabelled_holes_voxels"] = int(mask.sum() - sampled.sum())
     ijk = np.argwhere(sampled)[:: max(1, int(sampled.sum()) // MAX_SAMPLES)]
-    lesions, facts["lesion_specks_left_out"] = lesion_masks(image.labels, lesion_v, mask,
-                                                            image.voxel_mm3)
+    lesions, facts["lesion_specks_left_out"] = lesion_masks(found, mask)
     return LabelAnatomy(vertices, faces, image.to_ras(ijk),
                         image.labels[tuple(ijk.T)].astype(np.int32), lesions,
                         image.to_ras(crop_voxels(mask, cut)), chest_interface(
@@ -473,11 +472,11 @@ def volume_facts(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, imag
             "voxel_mm": np.round(image.spacing, 4).tolist()}
 
 
-def lesion_voxels(labels: np.ndarray, lesion: list[int], voxel_mm3: float) -> np.ndarray:
-    """The voxels (xyz bool) of the lesions of the lesion labels (:func:`kept_lesions`, over
+def lesion_voxels(found: list[tuple[np.ndarray, np.ndarray]], shape: tuple) -> np.ndarray:
+    """The voxels (xyz bool, ``shape``) of the lesions ``found`` (:func:`kept_lesions`, over
     the whole map): the lesions that choose the breast, without the specks."""
-    held = np.zeros(labels.shape, bool)
-    for _, kept in kept_lesions(labels, lesion, voxel_mm3):
+    held = np.zeros(shape, bool)
+    for _, kept in found:
         held |= kept
     return held
 
@@ -496,21 +495,30 @@ def kept_lesions(labels: np.ndarray, lesion: list[int], voxel_mm3: float
         voxels = labels == value
         comps, n = ndimage.label(voxels)
         sizes = np.bincount(comps.ravel(), minlength=n + 1) * voxel_mm3 / 1000.0
-        core = np.bincount(comps[ndimage.binary_erosion(voxels)], minlength=n + 1)
-        sizes[0], core[0] = 0.0, 0
-        found.append((voxels, comps, sizes, core))
+        sizes[0] = 0.0
+        found.append((voxels, comps, sizes, _core_voxels(comps, n)))
     largest = max((float(sizes.max()) for _, _, sizes, _ in found), default=0.0)
     return [(voxels, (((sizes >= MIN_LESION_ML) | (core >= MIN_LESION_CORE_VOXELS)
                        | (sizes == largest)) & (sizes > 0.0))[comps])
             for voxels, comps, sizes, core in found]
 
 
-def lesion_masks(labels: np.ndarray, lesion: list[int], breast: np.ndarray,
-                 voxel_mm3: float) -> tuple[list[np.ndarray], int]:
-    """One mask per connected component, inside the chosen breast, of the lesions of the
-    lesion labels (:func:`kept_lesions`), and the number of specks left out inside it."""
+def _core_voxels(comps: np.ndarray, n: int) -> np.ndarray:
+    """(n + 1,) int: how many voxels of each labelled component of ``comps`` a one-voxel
+    erosion keeps (each eroded within its own bounding box; index 0 unused)."""
+    core = np.zeros(n + 1, np.int64)
+    for i, box in enumerate(ndimage.find_objects(comps), start=1):
+        if box is not None:
+            core[i] = ndimage.binary_erosion(comps[box] == i).sum()
+    return core
+
+
+def lesion_masks(found: list[tuple[np.ndarray, np.ndarray]], breast: np.ndarray
+                 ) -> tuple[list[np.ndarray], int]:
+    """One mask per connected component, inside the chosen ``breast`` (xyz bool), of the
+    lesions ``found`` (:func:`kept_lesions`), and the number of specks left out inside it."""
     masks, specks = [], 0
-    for voxels, kept in kept_lesions(labels, lesion, voxel_mm3):
+    for voxels, kept in found:
         comps, n = ndimage.label(kept & breast)
         masks += [comps == c + 1 for c in range(n)]
         specks += ndimage.label(voxels & ~kept & breast)[1]
