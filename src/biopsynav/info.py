@@ -244,7 +244,7 @@ def _label_map_lines(s: dict) -> list[str]:
             f"{s['crop_vertices']} surface vertices on crop faces (never pushed)"
             + (f"; {m['unlabelled_holes_voxels']} unlabelled voxels inside the breast take "
                "the nearest labelled tissue" if m.get("unlabelled_holes_voxels") else "")
-            + (f"; {m['lesion_specks_left_out']} lesion-label specks under 0.05 mL left out"
-               if m.get("lesion_specks_left_out") else "")
+            + (f"; {m['lesion_specks_left_out']} lesion-label specks (under 0.05 mL, a "
+               "sliver thick) left out" if m.get("lesion_specks_left_out") else "")
             + (f"; lesion labels not in the map: {', '.join(m['lesion_labels_absent'])}"
                if m.get("lesion_labels_absent") else "")]
