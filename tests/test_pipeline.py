@@ -128,7 +128,9 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
 
 def test_a_fine_grid_truth_is_expected_to_cost_its_solves(base_case):
     """With the fine-grid truth the evaluation's estimate is the measured fine-grid run's,
-    scaled by the pushes and by the fine grid's cells^1.3; a stored truth keeps its own."""
+    scaled by the rounds of lesions on the cores (a lesion is one task: one lesion on two
+    cores costs what two do, the single-tumour patient's case), the pushes and the fine
+    grid's cells^1.3; a stored truth keeps its own."""
     import dataclasses
 
     from biopsynav.case import Case
@@ -144,15 +146,23 @@ def test_a_fine_grid_truth_is_expected_to_cost_its_solves(base_case):
     for refinement in (1.5, 3.0):
         case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, reference="fine_grid",
                                                 reference_refinement=refinement)
-        minutes.append(evaluation_minutes(case))
+        minutes.append(evaluation_minutes(case, cores=2))
     assert minutes[1] == pytest.approx(minutes[0] * 8.0 ** FE_EXPONENT)
-    lesions = evaluated_lesions(case)
+    rounds = -(-evaluated_lesions(case) // 2)
     cells = (case.grid.active_cells.sum() * 27.0 / (FINE_GRID_TABLE2["active_cells"] * 8.0))
     assert minutes[1] == pytest.approx(
-        FINE_GRID_TABLE2["minutes"] * cells ** FE_EXPONENT * lesions
-        * case.cfg.evaluate.deformations_per_lesion / FINE_GRID_TABLE2["pushes"])
+        FINE_GRID_TABLE2["minutes"] * cells ** FE_EXPONENT * rounds / FINE_GRID_TABLE2["rounds"]
+        * case.cfg.evaluate.deformations_per_lesion / FINE_GRID_TABLE2["pushes_per_lesion"])
     case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, reference="stored")
     assert evaluation_minutes(case) != pytest.approx(minutes[1])
+    by_lesions = []
+    for n in (1, 2):
+        case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, max_lesions=n,
+                                                reference="fine_grid")
+        by_lesions.append(evaluation_minutes(case, cores=2))
+    assert evaluated_lesions(case) == 2
+    assert by_lesions[0] == pytest.approx(by_lesions[1]), "one lesion keeps one core busy"
+    assert evaluation_minutes(case, cores=1) == pytest.approx(2 * by_lesions[1])
 
 
 def test_what_remains_is_rescaled_by_what_the_stages_took():
