@@ -154,7 +154,8 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
         return s
     p = PAPER_TABLE1
     rows = [
-        ["mean norm error e (mm)", _num(t1.get("mean_e_mm")), _num(p["mean_e_mm"])],
+        ["mean norm error e (mm; the mean of each node's error norm)", _num(t1.get("mean_e_mm")),
+         _num(p["mean_e_mm"])],
         ["std of e (mm)", _num(t1.get("std_e_mm")), _num(p["std_e_mm"])],
         ["max of e (mm)", _num(t1.get("max_e_mm")), _num(p["max_e_mm"])],
         ["e per degree of freedom, mean / max (mm): eq. (3) as written, the mean absolute "
