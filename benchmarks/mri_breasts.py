@@ -23,7 +23,9 @@ tumours choose the breast; where ``init`` refuses (tumours in both breasts), eac
 turn. Per exam: what ``init`` said (modelled, or its one-line refusal), the breast's
 volume and extent, the tumours found against the collection's README count for that side,
 the warnings. Writes ``benchmarks/results/mri-breasts-all.json``; last line ``RESULT
-modelled=<n>/<m> refused=<..> tumours_found=<n>/<m> warned=<..>``.
+modelled=<n>/<m> refused=<..> tumours_found=<n>/<m> warned=<..>``. With ``--detailed``, the
+graded maps (``DIR/Exam_NN/Label_map_detailed.mha``: fibroglandular 1-3 and the transition 4
+as gland, fat 5-7, by a table file) to ``mri-breasts-all-detailed.json``.
 """
 
 from __future__ import annotations
@@ -64,6 +66,9 @@ TISSUE = (1, -2, -3, -4)
 #: the label flags of the collection's simple maps, but for the lesion labels and the side
 LABEL_FLAGS = ["--breast-labels", "1,-2", "--chest-labels", "-1", "--tissue-labels",
                "1=fat,-2=skin"]
+#: the detailed maps' grades (fibroglandular 1-3, transition 4, fat 5-7) as a table file's rows
+DETAILED_TABLE = "1,gland\n2,gland\n3,gland\n4,gland\n5,fat\n6,fat\n7,fat\n-2,skin\n"
+DETAILED_FLAGS = ["--breast-labels", "1,2,3,4,5,6,7,-2", "--chest-labels", "-1"]
 
 
 def hand_crop_ml(path: Path, box: tuple[int, int, int, int]) -> float:
@@ -91,11 +96,12 @@ def modelled(path: Path, side: str, lesion: int, case_dir: Path) -> dict:
             "warnings": info["warnings"]}
 
 
-def init_as_user(path: Path, case_dir: Path, side: str | None) -> tuple[dict | None, str]:
-    """``init`` with the collection's label flags and both tumour labels (``--side`` only
+def init_as_user(path: Path, case_dir: Path, side: str | None, label_flags: list[str]
+                 ) -> tuple[dict | None, str]:
+    """``init`` with the collection's ``label_flags`` and both tumour labels (``--side`` only
     when given): what it modelled (``info --json``) and the time, or None and its error
     line."""
-    flags = [*LABEL_FLAGS, "--lesion-labels", "-3,-4", *(["--side", side] if side else [])]
+    flags = [*label_flags, "--lesion-labels", "-3,-4", *(["--side", side] if side else [])]
     start = time.time()
     done = subprocess.run([sys.executable, "-m", "biopsynav.cli", "init", str(case_dir),
                            "--labelmap", str(path), *flags], capture_output=True, text=True)
@@ -114,13 +120,14 @@ def side_of(breast: str) -> str:
     return next((side for side in SIDES if f"patient's {side}" in breast), "")
 
 
-def sweep_exam(exam: str, path: Path, work: Path) -> list[dict]:
+def sweep_exam(exam: str, path: Path, work: Path, label_flags: list[str]) -> list[dict]:
     """One exam as a new user meets it: ``init`` without ``--side``, then each side where
     it asks for one; a row per attempt."""
-    got, error = init_as_user(path, work / exam, None)
+    got, error = init_as_user(path, work / exam, None, label_flags)
     rows = [sweep_row(exam, None, got, error)]
     if got is None and "--side" in error:
-        rows += [sweep_row(exam, side, *init_as_user(path, work / f"{exam}{side}", side))
+        rows += [sweep_row(exam, side, *init_as_user(path, work / f"{exam}{side}", side,
+                                                      label_flags))
                  for side in SIDES]
     return rows
 
@@ -141,14 +148,20 @@ def sweep_row(exam: str, side: str | None, got: dict | None, error: str) -> dict
     return row
 
 
-def sweep(exams: Path, out: Path) -> None:
-    """``--all``: every exam of ``exams`` as a new user would run ``init``; the result file
-    and its RESULT line."""
+def sweep(exams: Path, out: Path, detailed: bool) -> None:
+    """``--all``: every exam of ``exams`` as a new user would run ``init`` (``detailed``: on
+    the graded maps, their grades mapped by a table file); the result file and its RESULT
+    line."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        flags = LABEL_FLAGS
+        if detailed:
+            table = Path(tmp) / "grades.csv"
+            table.write_text(DETAILED_TABLE, encoding="utf-8")
+            flags = [*DETAILED_FLAGS, "--tissue-labels", str(table)]
+        name = "Label_map_detailed.mha" if detailed else "Label_map_simple.mha"
         for folder in sorted(exams.glob("Exam_*")):
-            rows += sweep_exam(folder.name.split("_")[1], folder / "Label_map_simple.mha",
-                               Path(tmp))
+            rows += sweep_exam(folder.name.split("_")[1], folder / name, Path(tmp), flags)
     done = [r for r in rows if not r["error"]]
     refused = [r for r in rows if r["error"] and not r["side_asked"]
                and "--side" not in r["error"]]
@@ -166,11 +179,14 @@ def main() -> None:
     parser.add_argument("--exams", type=Path, required=True, help="folder of Exam_NN folders")
     parser.add_argument("--all", action="store_true",
                         help="every exam, as a new user would run init (see above)")
+    parser.add_argument("--detailed", action="store_true",
+                        help="with --all: the graded maps (DIR/Exam_NN/Label_map_detailed.mha)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     results = Path(__file__).parent / "results"
     if args.all:
-        sweep(args.exams, args.out or results / "mri-breasts-all.json")
+        name = "mri-breasts-all-detailed.json" if args.detailed else "mri-breasts-all.json"
+        sweep(args.exams, args.out or results / name, args.detailed)
         return
     args.out = args.out or results / "mri-breasts.json"
     rows = []
