@@ -339,18 +339,24 @@ def _side_among(ras_x: list[float], index: int) -> str:
     return ""
 
 
-def _cut_at_midline(mask: np.ndarray, side: str, image: LabelImage, why: str = ""
+def _cut_at_midline(mask: np.ndarray, side: str, image: LabelImage
                     ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """One breast of a mask that joins both across the sternum (:func:`_midline_halves`), or
-    the mask as it is when it has one lobe; ``why`` the side was taken (``--side``'s words
-    when empty)."""
+    """The ``--side`` breast of a mask that joins both across the sternum
+    (:func:`_midline_halves`), or the mask as it is when it has one lobe."""
     halves = _midline_halves(mask, image)
     if halves is None:
         return mask, np.zeros_like(mask), {"breast": "the only breast"}
-    keep = _largest_component(mask & halves[side])
+    return _take_half(mask, halves[side], side, f"--side {side}")
+
+
+def _take_half(mask: np.ndarray, half: np.ndarray, side: str, why: str
+               ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The largest piece of ``mask`` in the patient's ``side`` ``half`` (xyz bool), the face
+    where it was cut from the rest, and what was chosen (``why``)."""
+    keep = _largest_component(mask & half)
     cut_face = keep & ndimage.binary_dilation(mask & ~keep)
     return keep, cut_face, {"breast": f"the patient's {side} breast, cut from the other at the "
-                                      f"midline ({why or f'--side {side}'})"}
+                                      f"midline ({why})"}
 
 
 def _midline_halves(mask: np.ndarray, image: LabelImage) -> dict[str, np.ndarray] | None:
@@ -383,7 +389,8 @@ def _joined_breast(mask: np.ndarray, lesion_mask: np.ndarray, image: LabelImage,
         lesions = "lesions in both" if holding else "no lesion in either"
         raise InputError(f"the label map's two breasts are joined across the sternum, "
                          f"{lesions}; give --side left or --side right", str(path))
-    return _cut_at_midline(mask, holding[0], image, "the one holding the lesions")
+    side = holding[0]
+    return _take_half(mask, halves[side], side, "the one holding the lesions")
 
 
 def _valley(profile: np.ndarray) -> int | None:

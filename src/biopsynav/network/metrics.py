@@ -4,7 +4,8 @@
 displacement error, in mm. Inactive nodes neither count nor dilute it. The paper's eq. (3)
 divides by "the number of degrees of freedom of the mesh", which reads as the mean over the
 ``3 n`` displacement components of their absolute error (:func:`mean_dof_error_np`): the
-same errors weigh about half as much that way (docs/evaluation.md, "Table 1").
+same errors weigh about half as much that way (docs/network.md, "What e is, and the
+paper's").
 """
 
 from __future__ import annotations
