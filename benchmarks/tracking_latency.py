@@ -2,7 +2,7 @@
 
     python benchmarks/tracking_latency.py [CASE_DIR] [--duration 60 | --quick] [--rate 100]
                                           [--poses poses.csv] [--updates 2000]
-                                          [--push-mm 8] [--follow]
+                                          [--push-mm 8] [--follow] [--result-name NAME]
 
 * ``update``: ``Tracker.load(CASE_DIR).update`` over ``--updates`` poses, median and p99;
   with ``--follow`` the same poses again with ``[tracker] contact_follows_pose`` on (the
@@ -333,6 +333,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="synthetic pushes over the case's lesion of this index (1: the first)")
     p.add_argument("--follow", action="store_true",
                    help="time update() again with [tracker] contact_follows_pose on")
+    p.add_argument("--result-name", default="tracking-latency",
+                   help="result file name under benchmarks/results (without .json)")
     args = p.parse_args(argv)
     if args.follow and args.case_dir is None:
         p.error("--follow needs CASE_DIR")
@@ -362,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"RESULT update_p50_ms={upd50:.3f} update_p99_ms={upd99:.3f} rtt_p50_ms={rtt50:.3f} "
           f"rtt_p99_ms={rtt99:.3f} lost={lost} fem_update_ms={fem:.1f}{extra}")
     if args.case_dir and not args.quick:
-        write_result("tracking-latency", {
+        write_result(args.result_name, {
             "update_p50_ms": upd50, "update_p99_ms": upd99, "rtt_p50_ms": rtt50,
             "rtt_p99_ms": rtt99, "lost": lost, "fem_update_ms": fem}, case=str(args.case_dir),
             speed_probes=speed_probes())  # after the timings: it would load the machine

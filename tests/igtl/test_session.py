@@ -147,10 +147,14 @@ def test_prepare_decimates_the_skin_before_the_first_pose(monkeypatch):
 
     skin = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
     tracker = RigidLesionTracker(CENTERS, skin=(skin.vertices, skin.faces))
+    prepared = []
+    tracker.prepare_surface = lambda: prepared.append(True)  # the tracker's own skin work
     off, _ = make_session(tracker)  # skin model off: nothing to prepare
     off.prepare()
+    assert prepared == []
     session, clock = make_session(tracker, skin_model_rate_hz=5.0, skin_model_triangles=300)
     session.prepare()
+    assert prepared == [True]
     calls = []
     monkeypatch.setattr(session_module, "decimate", lambda *a: calls.append(a))
     session.add_peer("slicer")

@@ -99,6 +99,26 @@ def test_rest_pose_and_push(fem_tracker):
     assert r.surface[top, 2] == pytest.approx(65.0, abs=1.0)
 
 
+def test_prepare_surface_builds_the_skin_embedding_the_skin_answers_use(coarse_case,
+                                                                        monkeypatch):
+    """The service prepares the skin before the first pose: no skin answer builds it again
+    (on a clinical skin the build held up a 100 Hz stream for a tenth of a second)."""
+    import biopsynav.tracker.core as core
+
+    tracker = Tracker.load(coarse_case.dir, engine="fem")
+    tracker.prepare_surface()
+
+    def rebuilt(*_):
+        raise AssertionError("the skin embedding was built again")
+
+    monkeypatch.setattr(core, "surface_embedding", rebuilt)
+    tracker.set_rest_pose(TOP)
+    r = tracker.update(pushed(5.0), with_surface=True)
+    assert r.status == st.OK, r.reason
+    top = np.argmax(coarse_case.anatomy.vertices[:, 2])
+    assert r.surface[top, 2] == pytest.approx(70.0, abs=1.0)
+
+
 def test_unreliable_poses_give_no_numbers(fem_tracker):
     fem_tracker.set_rest_pose(TOP)
     nan_pose = pushed(5.0)

@@ -33,18 +33,11 @@ class Embedding:
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if not np.isfinite(points).all():
             raise InputError("points contain NaN or infinite coordinates", where)
-        cshape = np.array(grid.cell_shape)
-        rel = (points - grid.origin) / grid.spacing
-        ijk = np.floor(rel).astype(np.int64)
-        outside = np.any((ijk < 0) | (ijk > cshape - 1) | (rel > cshape), axis=1)
-        ijk = np.clip(ijk, 0, cshape - 1)
-        if require_active:
-            outside |= ~grid.active_cells[tuple(ijk.T)]
+        rel, ijk = _cell_coordinates(grid, points)
+        outside = _outside(grid, rel, ijk, require_active)
         if outside.any():
-            first = points[np.argmax(outside)]
-            raise InputError(f"{int(outside.sum())} of {len(points)} points lie outside the "
-                             f"active grid cells (first at {np.round(first, 2).tolist()} mm)",
-                             where)
+            raise _outside_error(points, outside, where)
+        ijk = np.clip(ijk, 0, np.array(grid.cell_shape) - 1)
         xi = np.clip(rel - ijk, 0.0, 1.0)
         weights = trilinear_weights(xi)
         nodes = index.hex_connectivity(ijk, grid.node_shape)
@@ -59,8 +52,10 @@ class Embedding:
                          self.matrix[rows])
 
     def interpolate(self, field: np.ndarray) -> np.ndarray:
-        """Node field (n_nodes, C) -> values (n_points, C) at the points."""
-        return np.einsum("pk,pkc->pc", self.weights, np.asarray(field)[self.nodes])
+        """Node field (n_nodes, C) -> values (n_points, C) at the points (the sparse
+        ``matrix`` times the field: no (n_points, 8, C) gather, which on a skin of 10^5
+        vertices costs eight times the product)."""
+        return np.asarray(self.matrix @ np.asarray(field))
 
     def spread(self, values: np.ndarray) -> np.ndarray:
         """Point values (n_points, C) -> node sums (n_nodes, C) with the trilinear weights."""
@@ -76,11 +71,38 @@ def surface_embedding(grid: Grid, anatomy) -> Embedding:
     which sits on the fitted chest-wall plane: they are clamped into the nearest cell, whose
     nodes there are fixed, so they are never loaded and never move."""
     fixed = np.asarray(anatomy.fixed_vertices, dtype=bool)
-    Embedding.build(grid, anatomy.vertices[~fixed], where="skin surface")  # the check
     points = np.array(anatomy.vertices, dtype=np.float64)
+    rel, ijk = _cell_coordinates(grid, points)
+    outside = _outside(grid, rel, ijk, True) & ~fixed
+    if outside.any():
+        raise _outside_error(points[~fixed], outside[~fixed], "skin surface")
     top = grid.origin + (np.asarray(grid.node_shape) - 1) * grid.spacing
     points[fixed] = np.clip(points[fixed], grid.origin, top)
     return Embedding.build(grid, points, require_active=False, where="skin surface")
+
+
+def _cell_coordinates(grid: Grid, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``points`` (n, 3) mm in cell units from the grid's origin (n, 3) and the index (n, 3)
+    of the cell each lies in (unclipped: outside the grid where a point is)."""
+    rel = (points - grid.origin) / grid.spacing
+    return rel, np.floor(rel).astype(np.int64)
+
+
+def _outside(grid: Grid, rel: np.ndarray, ijk: np.ndarray, require_active: bool
+             ) -> np.ndarray:
+    """(n,) bool: the points of cell coordinates ``rel`` and cells ``ijk`` outside the
+    grid, or with ``require_active`` outside its active cells."""
+    cshape = np.array(grid.cell_shape)
+    outside = np.any((ijk < 0) | (ijk > cshape - 1) | (rel > cshape), axis=1)
+    if require_active:
+        outside |= ~grid.active_cells[tuple(np.clip(ijk, 0, cshape - 1).T)]
+    return outside
+
+
+def _outside_error(points: np.ndarray, outside: np.ndarray, where: str) -> InputError:
+    first = points[np.argmax(outside)]
+    return InputError(f"{int(outside.sum())} of {len(points)} points lie outside the active "
+                      f"grid cells (first at {np.round(first, 2).tolist()} mm)", where)
 
 
 def trilinear_weights(xi: np.ndarray) -> np.ndarray:

@@ -159,10 +159,14 @@ class IgtlSession:
     def prepare(self) -> None:
         """Compute before the first pose what a reply would otherwise compute on the hot path:
         the decimated skin model, when one is sent (its first decimation, imports included,
-        takes a few hundred milliseconds: at 100 Hz that many poses would queue)."""
+        takes a few hundred milliseconds: at 100 Hz that many poses would queue), and the
+        tracker's own skin embedding (``prepare_surface``, when it has one)."""
         if self._skin is None and self.settings.skin_model_rate_hz > 0 and \
                 getattr(self.tracker, "skin_mesh", None) is not None:
             self._skin = decimate(*self.tracker.skin_mesh, self.settings.skin_model_triangles)
+            prepare_surface = getattr(self.tracker, "prepare_surface", None)
+            if prepare_surface is not None:
+                prepare_surface()
 
     # --------------------------------------------------------------------------- peers
     def add_peer(self, name: str, is_tracker: bool = False) -> Peer:

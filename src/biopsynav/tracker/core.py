@@ -781,6 +781,12 @@ class Tracker:
         with_surface=True).surface`` gives the vertices where they moved to."""
         return self.case.anatomy.vertices, self.case.anatomy.faces
 
+    def prepare_surface(self) -> None:
+        """Build now what the first ``update(pose, with_surface=True)`` would otherwise
+        build: the skin vertices' embedding in the grid (on a clinical skin of 10^5
+        vertices, longer than ten updates)."""
+        self._surface_embedding()
+
     def _rest_result(self, status: str, reason: str, start: float) -> TrackingResult:
         lesions = self._lesion_results(np.zeros_like(self._lesion_points), status)
         return TrackingResult(lesions, status, reason, (time.perf_counter() - start) * 1e3)
