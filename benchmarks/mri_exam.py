@@ -58,7 +58,7 @@ from pathlib import Path
 from figures import depth_means
 from mri_breasts import LABEL_FLAGS
 from resultfile import write_result
-from time_to_model import stage_minutes
+from time_to_model import stage_minutes, table1_figures
 
 ROOT = Path(__file__).resolve().parents[1]
 TUMOUR_LABELS = (-3, -4)  # malignant, benign
@@ -284,10 +284,7 @@ def main(argv: list[str] | None = None) -> int:
                "stages_min": stage_minutes(case_dir, timings, 0.0),
                "generate": {k: summary.get(k) for k in ("failures", "too_deep", "minutes")},
                "refine_pushes": {k: pushes.get(k) for k in ("failures", "too_deep", "minutes")},
-               "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
-               "table1_mean_e_dof_mm": table1.get("mean_e_dof_mm"),
-               "table1_max_e_dof_mm": table1.get("max_e_dof_mm"),
-               "table2_placements": table2["placements"],
+               **table1_figures(table1), "table2_placements": table2["placements"],
                "table2_tables": table2["tables"], "tumour_motion": motion,
                "model_motion": models}
     tag = args.tag or ("one-material" if args.one_material else None)

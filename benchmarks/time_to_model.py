@@ -140,6 +140,13 @@ def net_against_truth(case_dir: Path, truth: Path) -> dict:
         return json.loads(out.read_text())
 
 
+def table1_figures(table1: dict) -> dict:
+    """A run's ``eval/table1.json`` as result-file figures: mean and max e, on the node norm
+    and per degree of freedom (docs/network.md, "What e is, and the paper's"), mm."""
+    return {f"table1_{key}": table1.get(key)
+            for key in ("mean_e_mm", "max_e_mm", "mean_e_dof_mm", "max_e_dof_mm")}
+
+
 def kind_table1(table1: dict) -> dict:
     """Table 1 of each kind of held-out sample of a data set of both (the ``pushes-patches``
     recipe): ``table1_<kind>_mean_e_mm``, ``_max_e_mm`` and ``_samples``; {} for one kind."""
@@ -207,10 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     meta = json.loads((case_dir / "model" / "meta.json").read_text())["training"]
     figures = {"total_min": total_min, "stages_min": minutes,
                "train_min": minutes.get("network training", math.nan),
-               "table1_mean_e_mm": table1["mean_e_mm"], "table1_max_e_mm": table1["max_e_mm"],
-               "table1_mean_e_dof_mm": table1.get("mean_e_dof_mm"),
-               "table1_max_e_dof_mm": table1.get("max_e_dof_mm"),
-               "precision": meta.get("precision"), "train_iterations": meta.get("iterations"),
+               **table1_figures(table1), "precision": meta.get("precision"),
+               "train_iterations": meta.get("iterations"),
                "prior": (meta.get("prior") or {}).get("name", "none"), "recipe": args.recipe,
                "table1_samples": table1.get("n_samples"), **kind_table1(table1), **tre}
     name = result_name(args.case + ("" if args.recipe == "chain" else f"-{args.recipe}"),

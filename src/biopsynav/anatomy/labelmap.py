@@ -165,14 +165,11 @@ def _integer_labels(array: np.ndarray, path: Path) -> np.ndarray:
 
 def resolve_labels(spec: list, image: LabelImage, option: str, path: Path) -> list[int]:
     """Label values of ``spec`` (integers or segment names), each present in the image."""
-    present = set(np.unique(image.labels).tolist())
-    values = []
-    for item in spec:
-        value = _label_value(item, image.segments, option, path)
+    values, present = _values_and_present(spec, image, option, path)
+    for item, value in zip(spec, values, strict=True):
         if value not in present:
             raise InputError(f"label {item} is absent from the label map (present: "
                              f"{sorted(present)})", str(path))
-        values.append(value)
     return values
 
 
@@ -181,14 +178,21 @@ def resolve_lesion_labels(spec: list, image: LabelImage, path: Path
     """Label values of the lesion labels ``spec`` present in the image, and the items absent
     from it: a segmentation protocol names every lesion class (benign, malignant), and one
     patient need not have each. InputError when some are given and none is present."""
-    present = set(np.unique(image.labels).tolist())
-    values = [_label_value(item, image.segments, "--lesion-labels", path) for item in spec]
+    values, present = _values_and_present(spec, image, "--lesion-labels", path)
     absent = [str(label_item(item)) for item, v in zip(spec, values, strict=True)
               if v not in present]
     if spec and len(absent) == len(spec):
         raise InputError(f"--lesion-labels: none of {', '.join(absent)} is in the label map "
                          f"(present: {sorted(present)})", str(path))
     return [v for v in values if v in present], absent
+
+
+def _values_and_present(spec: list, image: LabelImage, option: str, path: Path
+                        ) -> tuple[list[int], set[int]]:
+    """The label value of each item of ``spec`` (InputError for a name that is no segment)
+    and the set of values the image holds."""
+    values = [_label_value(item, image.segments, option, path) for item in spec]
+    return values, set(np.unique(image.labels).tolist())
 
 
 def label_value(item: int | str, segments: dict[str, int]) -> int | None:
