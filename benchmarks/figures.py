@@ -517,6 +517,16 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           h_lesions_cmd("1,3,4", "ucdavis-homogeneous",
                         "truth-refinement-ucdavis-edge25-h-lesions")),
      "<= 0.1 mm", "-"),
+    ("the same h refinement with a 2 mm rim in both meshes (the face's outline resolved), "
+     "phantom lesion 4, 10 / 20 mm (66,471 and 122,628 unknowns; without the rim 0.238 mm "
+     "at 20 mm, two rows above): 4 against 2.8 mm; the stored truth against the 2.8 mm answer",
+     Cell("truth-refinement-phantom-lesion4-rim2-h",
+          per_depth("step_rim2f4_rim2f28_mm", "stored_truth_to_finest_mm"),
+          "python benchmarks/truth.py CASE --lesion-ids 4 --depths 10 20 --edge-radius 2.5 "
+          "--tet-rim 2 --tet-fine F --reference-only --reference rim2fF.json (F = 4, 2.8); "
+          "python benchmarks/truth_refinement.py rim2f4=rim2f4.json rim2f28=rim2f28.json "
+          "--stored src/biopsynav/data/truths/phantom.json --result-name "
+          "truth-refinement-phantom-lesion4-rim2-h"), "<= 0.1 mm", "-"),
     ("the same, UC Davis (one material) lesion 5 at 10 / 20 / 30 mm (108,300 unknowns): "
      "between the two codes; what the probe body changes",
      Cell("truth-agreement-ucdavis-lesion4", per_depth("codes_mm", "contact_mm"),
