@@ -22,10 +22,17 @@ def small_table2_case(coarse_phantom) -> Case:
 
 def test_the_ground_truth_and_teacher_in_two_processes_are_those_of_this_process(small_table2_case):
     said: list[str] = []
-    alone = run_simulation(small_table2_case, methods=("fem", "rigid"), log=lambda _: None,
+    said_alone: list[str] = []
+    alone = run_simulation(small_table2_case, methods=("fem", "rigid"), log=said_alone.append,
                            workers=1)
     shared = run_simulation(small_table2_case, methods=("fem", "rigid"), log=said.append,
                             workers=2)
+    # solved here, each push is announced before its solve (a deep one can take minutes);
+    # solved beforehand in the workers, none is
+    announced = [line for line in said_alone if ": push " in line]
+    assert len(announced) == 4 and announced[-1].endswith(" mm) ..."), said_alone
+    assert "push 2 of 2" in announced[-1]
+    assert not [line for line in said if ": push " in line], said
     assert any("ground truth: 4 pushes of 2 lesions solved in 2 processes" in line
                for line in said), said
     assert any("FE teacher: 4 pushes of 2 lesions solved in 2 processes" in line

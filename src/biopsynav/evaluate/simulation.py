@@ -128,6 +128,9 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
         placements.append({**placement.to_dict(), "n_contact": n_contact,
                            "push_depths_mm": depths.tolist()})
         for p, depth in enumerate(depths):
+            if solves_here(reference):  # a deep push can take minutes: say which is running
+                log(f"  lesion {placement.lesion}: push {p + 1} of {len(depths)} "
+                    f"({depth:.1f} mm) ...")
             records += push_records(placement, li, p, float(depth), reference, trackers, methods)
         log(f"  lesion {placement.lesion}: {n_contact} contact points, pushes "
             f"{', '.join(f'{d:.1f}' for d in depths)} mm, {time.perf_counter() - t_les:.1f} s")
@@ -239,6 +242,15 @@ def method_trackers(case: Case, methods: Sequence[str], settings: SolverSettings
         trackers["fem"] = (fem_engine(case, settings) if fem_answers is None
                            else SolvedAnswers(fem_answers))
     return trackers
+
+
+def solves_here(reference) -> bool:
+    """Whether ``reference`` is a fine-grid truth that solves each push in this process as it
+    is asked (not served from the answers of :func:`solved_beforehand`)."""
+    from .parallel import SolvedAnswers
+
+    return bool(getattr(reference, "independent_rest_poses", False)) and \
+        not isinstance(reference, SolvedAnswers)
 
 
 def _set_rest(placement: Placement, reference, trackers: dict) -> int:
