@@ -175,3 +175,21 @@ def test_a_model_that_learnt_elastic_contact_is_never_projected(tmp_path):
     assert sur.projects(True) and not sur.projects(False)
     meta["baseline"]["elastic_contact"] = True
     assert not sur.projects(True) and not sur.projects(False)
+
+
+def test_table1_gives_the_physics_baseline_alone_beside_the_network(trained_case):
+    """Table 1 of a model with a physics baseline also scores the baseline alone (the network
+    with its head at zero) on the same held-out samples, recomputed here from the stored
+    inputs and targets."""
+    from biopsynav.inference.surrogate import case_fingerprint
+    from biopsynav.network.metrics import mean_norm_error_np
+
+    t1 = json.loads((trained_case / "eval" / "table1.json").read_text())
+    data = load_dataset(trained_case)
+    sur = Surrogate.load(trained_case / "model", case_fingerprint(trained_case))
+    x = data.inputs[data.test_idx].numpy()
+    e = mean_norm_error_np(sur.baseline.predict(x), data.targets[data.test_idx].numpy(),
+                           data.active.numpy())
+    assert t1["baseline_mean_e_mm"] == pytest.approx(float(e.mean()), rel=1e-6)
+    assert t1["baseline_max_e_mm"] == pytest.approx(float(e.max()), rel=1e-6)
+    assert t1["baseline_mean_e_mm"] != pytest.approx(t1["mean_e_mm"], rel=1e-3)  # it trained

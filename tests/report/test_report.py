@@ -82,7 +82,7 @@ def _fake_outputs(case_dir):
          "train_min": 1.0, "max_disp_mm": 30.0, "n_samples": 16, "runtime": "torchscript",
          "precision": "fp32", "inverted_samples": 3, "inverted_cells_max": 7,
          "inverted_cells_total": 11, "inverted_samples_fe": 0, "mean_e_dof_mm": 0.021,
-         "max_e_dof_mm": 0.109}))
+         "max_e_dof_mm": 0.109, "baseline_mean_e_mm": 0.31, "baseline_max_e_mm": 1.27}))
     recs = [Record(lid, k, mm, bin_name(mm), m, None if (m == "net" and mm > 28) else
                    0.1 * lid + mm / 10 + (m == "rigid") * mm,
                    status="ok" if not (m == "net" and mm > 28) else "out_of_envelope",
@@ -108,6 +108,7 @@ def test_report_with_all_outputs_holds_both_tables(init_only):
     assert "not run yet" not in md
     assert "0.04" in md and "0.052" in md  # Table 1 beside the paper's
     assert "3 of 16, at most 7 cells (0)" in md  # inverted cells of the predictions
+    assert "the physics baseline alone" in md and "0.31 / 1.27" in md
     assert "| 0.021 / 0.109 | 0.052 / 0.266 (which reading" in md  # eq. (3) per dof
     assert "U-Net (network)" in md and "FE model, training resolution" in md
     assert "Rigid (lesions do not move)" in md

@@ -110,6 +110,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
     e = mean_norm_error_np(pred, y, active)
     disp = np.linalg.norm(y, axis=1)[:, active].max(axis=1)  # (n,) largest nodal displacement
     result = error_summary(e) | dof_figures(mean_dof_error_np(pred, y, active))
+    result.update(baseline_figures(sur, x, y, active))
     rigid = held_out_rigid(data)
     if rigid is not None:
         result["by_kind"] = kind_figures(e, rigid)
@@ -144,6 +145,17 @@ def dof_figures(e_dof: np.ndarray) -> dict:
     eq. (3) read per degree of freedom (:func:`~.metrics.mean_dof_error_np`)."""
     return {"mean_e_dof_mm": float(e_dof.mean()), "std_e_dof_mm": float(e_dof.std()),
             "max_e_dof_mm": float(e_dof.max())}
+
+
+def baseline_figures(sur: Surrogate, x: np.ndarray, y: np.ndarray, active: np.ndarray) -> dict:
+    """Mean and max e (mm) of the surrogate's physics baseline alone on the inputs ``x`` (n,
+    4, nx, ny, nz) against the targets ``y`` (n, 3, nx, ny, nz): the network with its head at
+    zero, what training adds to (``baseline_mean_e_mm``, ``baseline_max_e_mm``); {} for a
+    model without a baseline."""
+    if sur.baseline is None:
+        return {}
+    e = mean_norm_error_np(sur.baseline.predict(x), y, active)
+    return {"baseline_mean_e_mm": float(e.mean()), "baseline_max_e_mm": float(e.max())}
 
 
 def held_out_rigid(data: Dataset) -> np.ndarray | None:
@@ -223,6 +235,8 @@ def format_table1(r: dict) -> str:
             f"{', contact projection' if r.get('contact_projection') else ''}) | training "
             f"{r['train_min']:.1f} min | max nodal displacement {r['max_disp_mm']:.2f} mm | "
             f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes"
+            + (f" | the physics baseline alone: mean e {r['baseline_mean_e_mm']:.4f} mm, max e "
+               f"{r['baseline_max_e_mm']:.4f} mm" if "baseline_mean_e_mm" in r else "")
             + (f" | {r['inverted_samples']} predictions invert a cell (at most "
                f"{r['inverted_cells_max']}; FE {r['inverted_samples_fe']})"
                if "inverted_samples" in r else "")

@@ -173,6 +173,10 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
         ["runtime / precision", f"{t1.get('runtime', '-')} / {t1.get('precision', '-')}",
          "PyTorch, GPU"],
     ]
+    if "baseline_mean_e_mm" in t1:  # what training adds to the network's physics baseline
+        rows.append(["the physics baseline alone (the network's head at zero), mean / max e "
+                     "(mm)", f"{_num(t1['baseline_mean_e_mm'])} / "
+                     f"{_num(t1['baseline_max_e_mm'])}", "not reported"])
     if "inverted_samples" in t1:  # det F <= 0 somewhere: the predicted field is not physical
         rows.append(["predictions that invert a cell (FE targets)",
                      f"{t1['inverted_samples']} of {_num(t1.get('n_samples'))}, at most "
