@@ -268,7 +268,7 @@ def make_runner(spec: WorkerSpec, workers: int, scheduler: str | None):
 def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
          max_failure_share: float, progress: bool) -> None:
     """Keep the workers busy with the missing samples; write results as they come."""
-    from tqdm import tqdm
+    from ..progress import progress_bar
 
     n_total = store.n_total
     next_attempt = _next_attempts(store.failures())
@@ -276,8 +276,9 @@ def _run(runner: Any, store: DatasetStore, todo: np.ndarray, stats: Counter,
     in_flight: dict[Any, tuple[int, int]] = {}
     crashes: Counter = Counter()
     limit = IN_FLIGHT_PER_WORKER * runner.capacity
-    bar = tqdm(total=n_total, initial=n_total - len(todo), unit="sample", smoothing=0.05,
-               disable=not progress, desc="generate", dynamic_ncols=True)
+    bar = progress_bar(total=n_total, initial=n_total - len(todo), unit="sample",
+                       smoothing=0.05, disable=not progress, desc="generate",
+                       dynamic_ncols=True)
     try:
         while queue or in_flight:
             while queue and len(in_flight) < limit:

@@ -560,12 +560,12 @@ class TrainingLoop:
         return float(loss.detach())
 
     def run(self, progress: bool, stop_after: int | None) -> None:
-        from tqdm import tqdm
+        from ..progress import progress_bar
 
         st, s = self.state, self.s
         end = s.iterations if stop_after is None else min(s.iterations, stop_after)
-        bar = tqdm(total=s.iterations, initial=st["iteration"], disable=not progress,
-                   desc="train", unit="it", dynamic_ncols=True)
+        bar = progress_bar(total=s.iterations, initial=st["iteration"], disable=not progress,
+                           desc="train", unit="it", dynamic_ncols=True)
         t0 = time.perf_counter() - st["elapsed_s"]
         try:
             self.iterate(end, t0, bar)
