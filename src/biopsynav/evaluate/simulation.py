@@ -122,13 +122,14 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
                                teacher_beforehand(case, methods, settings, plans, workers, log))
     records: list[Record] = []
     placements = []
+    announce = solves_here(reference)  # a deep push can take minutes: say which is running
     for li, placement, depths in plans:
         t_les = time.perf_counter()
         n_contact = _set_rest(placement, reference, trackers)
         placements.append({**placement.to_dict(), "n_contact": n_contact,
                            "push_depths_mm": depths.tolist()})
         for p, depth in enumerate(depths):
-            if solves_here(reference):  # a deep push can take minutes: say which is running
+            if announce:
                 log(f"  lesion {placement.lesion}: push {p + 1} of {len(depths)} "
                     f"({depth:.1f} mm) ...")
             records += push_records(placement, li, p, float(depth), reference, trackers, methods)
