@@ -28,6 +28,7 @@ import tempfile
 from pathlib import Path
 
 from biopsynav.layout import CasePaths
+from biopsynav.network.evaluate import baseline_words
 from pushes_only import copy_case_files
 from resultfile import write_result
 
@@ -91,8 +92,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{r['mean_e_mm']:.4f} mm, max e {r['max_e_mm']:.3f} mm (largest nodal displacement "
           f"{r['max_disp_mm']:.1f} mm); read per degree of freedom (eq. 3 as written): mean "
           f"{r['mean_e_dof_mm']:.4f} mm, max {r['max_e_dof_mm']:.3f} mm"
-          + (f"; the physics baseline alone: mean e {r['baseline_mean_e_mm']:.4f} mm, max e "
-             f"{r['baseline_max_e_mm']:.3f} mm" if "baseline_mean_e_mm" in r else ""))
+          + (f"; {baseline_words(r)}" if "baseline_mean_e_mm" in r else ""))
     print(f"RESULT mean_e_mm={r['mean_e_mm']:.4f} max_e_mm={r['max_e_mm']:.4f} "
           f"mean_e_dof_mm={r['mean_e_dof_mm']:.4f} max_e_dof_mm={r['max_e_dof_mm']:.4f} "
           f"samples={r['n_samples']}")

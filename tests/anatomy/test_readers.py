@@ -110,7 +110,10 @@ def test_lesion_csv(tmp_path):
     assert les.id == 3 and les.points.shape == (30, 3)
     np.testing.assert_allclose(np.linalg.norm(les.points - les.center, axis=1), 4.0)
     for text, msg in [("id,x,y\n1,2,3\n", "needs the columns"),
-                      ("id,x,y,z,radius_mm\n1,a,2,3,4\n", "line 2: not a number"),
+                      ("id,x,y,z,radius_mm\n1,a,2,3,4\n", "line 2: column x is not a number: 'a'"),
+                      ("id,x,y,z,radius_mm\n1,1,2,3\n", "line 2: column radius_mm is empty"),
+                      ("id,x,y,z,radius_mm\n1,1,2,3,4\n2.5,1,2,3,4\n",
+                       "line 3: column id is not a whole number"),
                       ("id,x,y,z,radius_mm\n1,1,2,3,-4\n", "positive radius"),
                       ("id,x,y,z,radius_mm\n1,1,2,3,4\n1,1,2,3,4\n", "not unique"),
                       ("id,x,y,z,radius_mm\n", "no rows")]:

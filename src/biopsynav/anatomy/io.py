@@ -209,12 +209,7 @@ def read_lesion_csv(path: str | Path, n_points: int) -> list[Lesion]:
         lesions = []
         for line, row in enumerate(reader, start=2):
             row = {k.strip(): (v or "").strip() for k, v in row.items() if k}
-            try:
-                lid = int(row["id"])
-                center = np.array([float(row[c]) for c in "xyz"])
-                radius = float(row["radius_mm"])
-            except ValueError:
-                raise InputError(f"line {line}: not a number in {row}", str(path)) from None
+            lid, center, radius = _lesion_row(row, line, path)
             if not np.isfinite(center).all() or not np.isfinite(radius) or radius <= 0:
                 raise InputError(f"line {line}: lesion {lid} needs finite coordinates and a "
                                  "positive radius", str(path))
@@ -225,6 +220,21 @@ def read_lesion_csv(path: str | Path, n_points: int) -> list[Lesion]:
     if len(set(ids)) != len(ids):
         raise InputError("lesion ids are not unique", str(path))
     return lesions
+
+
+def _lesion_row(row: dict[str, str], line: int, path: Path) -> tuple[int, np.ndarray, float]:
+    """A lesion CSV row's id, centre (3,) mm and radius mm; InputError naming the line and
+    the column that is empty or not a number."""
+    values = []
+    for column in ("id", "x", "y", "z", "radius_mm"):
+        text = row.get(column, "")
+        try:
+            values.append(int(text) if column == "id" else float(text))
+        except ValueError:
+            kind = "a whole number" if column == "id" else "a number"
+            what = "empty" if not text else f"not {kind}: {text!r}"
+            raise InputError(f"line {line}: column {column} is {what}", str(path)) from None
+    return values[0], np.array(values[1:4], dtype=np.float64), values[4]
 
 
 def read_markups(path: Path, radius_mm: float, n_points: int) -> list[Lesion]:

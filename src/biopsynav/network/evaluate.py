@@ -224,6 +224,13 @@ def _figures(out: Path, pred: np.ndarray, y: np.ndarray, active: np.ndarray, e: 
                 out / "largest_deformation.png")
 
 
+def baseline_words(r: dict) -> str:
+    """Table 1 ``r``'s physics baseline alone (``baseline_mean_e_mm``, ``baseline_max_e_mm``)
+    as words."""
+    return (f"the physics baseline alone: mean e {r['baseline_mean_e_mm']:.4f} mm, max e "
+            f"{r['baseline_max_e_mm']:.4f} mm")
+
+
 def format_table1(r: dict) -> str:
     """Table 1 as text (mm, ms, min)."""
     return (f"mean e {r['mean_e_mm']:.4f} mm | std e {r['std_e_mm']:.4f} mm | "
@@ -235,8 +242,7 @@ def format_table1(r: dict) -> str:
             f"{', contact projection' if r.get('contact_projection') else ''}) | training "
             f"{r['train_min']:.1f} min | max nodal displacement {r['max_disp_mm']:.2f} mm | "
             f"{r['n_samples']} test samples, {r['n_active_nodes']} active nodes"
-            + (f" | the physics baseline alone: mean e {r['baseline_mean_e_mm']:.4f} mm, max e "
-               f"{r['baseline_max_e_mm']:.4f} mm" if "baseline_mean_e_mm" in r else "")
+            + (f" | {baseline_words(r)}" if "baseline_mean_e_mm" in r else "")
             + (f" | {r['inverted_samples']} predictions invert a cell (at most "
                f"{r['inverted_cells_max']}; FE {r['inverted_samples_fe']})"
                if "inverted_samples" in r else "")
