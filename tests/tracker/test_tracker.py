@@ -263,6 +263,21 @@ def test_track_csv_fem(coarse_case, tmp_path):
     assert all(0.0 < b < 5.0 for (frame, _), b in bound.items() if frame in ("1", "3"))
 
 
+def test_a_refused_rest_pose_names_the_poses_file_and_frame(coarse_case, tmp_path):
+    """A NaN rest pose stops ``track`` before anything is written, naming the file and the
+    frame; a NaN pose later in a sequence is that frame's status (a tracker's dropout)."""
+    bad = TOP.copy()
+    bad[2, 3] = np.nan
+    out = tmp_path / "lesions.csv"
+    poses = _poses_csv(tmp_path / "poses.csv", [("a", TOP), ("a", pushed(4.0)), ("b", bad)])
+    with pytest.raises(InputError, match=r"poses\.csv: frame 2: rest pose of sequence 'b': "
+                                         r"pose contains NaN"):
+        track_csv(coarse_case.dir, poses, out, engine="fem")
+    assert not out.exists()
+    poses = _poses_csv(tmp_path / "poses.csv", [("a", TOP), ("a", bad), ("a", pushed(4.0))])
+    assert track_csv(coarse_case.dir, poses, out, engine="fem") == {"ok": 2, "invalid_pose": 1}
+
+
 def test_bad_poses_csv(tmp_path):
     bad = tmp_path / "p.csv"
     bad.write_text("frame,x\n1,2\n")

@@ -57,8 +57,10 @@ def read_poses(path: str | Path) -> list[tuple[int, str, np.ndarray]]:
     return rows
 
 
-def track_rows(tracker, rows: list[tuple[int, str, np.ndarray]]) -> list[tuple]:
-    """Track every row; the first row of each sequence sets the rest pose. Returns
+def track_rows(tracker, rows: list[tuple[int, str, np.ndarray]], where: str = "poses"
+               ) -> list[tuple]:
+    """Track every row; the first row of each sequence sets the rest pose (InputError at
+    ``where``, the poses' file, naming the frame, when the tracker refuses it). Returns
     (frame, TrackingResult) per row."""
     out = []
     seen: set[str] = set()
@@ -69,7 +71,7 @@ def track_rows(tracker, rows: list[tuple[int, str, np.ndarray]]) -> list[tuple]:
                 tracker.set_rest_pose(pose)
             except InputError as exc:
                 raise InputError(f"frame {frame}: rest pose of sequence {sequence!r}: "
-                                 f"{exc.what}", "poses") from None
+                                 f"{exc.what}", where) from None
         out.append((frame, tracker.update(pose)))
     return out
 
@@ -99,7 +101,7 @@ def track_csv(case: Case | str | Path, poses: str | Path, out: str | Path,
     rows = read_poses(poses)
     tracker = Tracker.load(case, engine=engine)
     log(f"95 % bounds: {tracker.bound_basis}")
-    tracked = track_rows(tracker, rows)
+    tracked = track_rows(tracker, rows, str(poses))
     write_text_atomic(out, lesions_csv(tracked))
     return dict(Counter(result.status for _, result in tracked))
 
