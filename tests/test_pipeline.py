@@ -82,25 +82,25 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
 
     case = Case.load(base_case)
     ref = REFERENCE["probe_s"]
-    same = estimate_run(case, (ref, ref))
+    same = estimate_run(case, (ref, ref), workers=2)
     assert same.slowness == pytest.approx(1.0)
     # a training: its iterations at the probe's step, times what an iteration costs beyond it
     assert same.minutes["train"] == pytest.approx(
         case.cfg.network.iterations * ref * TRAINING_STEP_FACTOR / 60.0)
-    slow = estimate_run(case, (2.0 * ref, 2.0 * ref))
+    slow = estimate_run(case, (2.0 * ref, 2.0 * ref), workers=2)
     assert slow.slowness == pytest.approx(2.0)
     assert slow.total == pytest.approx(2.0 * same.total)
     case.cfg.network = dataclasses.replace(case.cfg.network,
                                            iterations=2 * case.cfg.network.iterations)
     case.cfg.dataset = dataclasses.replace(case.cfg.dataset, n_train=2 * case.cfg.dataset.n_train,
                                            n_test=2 * case.cfg.dataset.n_test)
-    double = estimate_run(case, (ref, ref))
+    double = estimate_run(case, (ref, ref), workers=2)
     for stage in ("train", "generate"):
         assert double.minutes[stage] == pytest.approx(2.0 * same.minutes[stage])
     pushes = []
     for samples in (500, 1000):  # the rigid pushes: their count, not the cells
         case.cfg.refine = dataclasses.replace(case.cfg.refine, samples=samples)
-        pushes.append(estimate_run(case, (ref, ref)).minutes["refine pushes"])
+        pushes.append(estimate_run(case, (ref, ref), workers=2).minutes["refine pushes"])
     # the built-in phantom at its own measured cost (by its cells^1.3), any other anatomy at
     # the breasts' median
     phantom = PHANTOM_PUSH_MINUTES * (case.grid.active_cells.sum() / PHANTOM_ACTIVE_CELLS) \
@@ -110,7 +110,7 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     assert pushes == pytest.approx([0.5 * per_1000, per_1000])
     case.cfg.anatomy = dataclasses.replace(case.cfg.anatomy,
                                            source="labelmap" if is_phantom else "phantom")
-    other = estimate_run(case, (ref, ref)).minutes["refine pushes"]
+    other = estimate_run(case, (ref, ref), workers=2).minutes["refine pushes"]
     assert other == pytest.approx(phantom + REFINE_PUSH_MINUTES - per_1000)
     assert double.minutes["evaluate and report"] == same.minutes["evaluate and report"]
     case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, deformations_per_lesion=2
@@ -120,10 +120,43 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     assert check == pytest.approx(
         LESION_CHECK["minutes"] * len(case.anatomy.lesions) / LESION_CHECK["lesions"]
         * (case.grid.active_cells.sum() / LESION_CHECK["active_cells"]) ** FE_EXPONENT)
-    assert estimate_run(case, (ref, ref)).minutes["evaluate and report"] == pytest.approx(
-        2.0 * same.minutes["evaluate and report"] - check)
+    evaluation = estimate_run(case, (ref, ref), workers=2).minutes["evaluate and report"]
+    assert evaluation == pytest.approx(2.0 * same.minutes["evaluate and report"] - check)
     assert "expected on this machine today: about" in same.line()
     assert 0.0 < probe_seconds(case) < 60.0
+
+
+def test_the_estimate_follows_the_fe_processes_and_prices_the_p2_teacher(base_case,
+                                                                         monkeypatch):
+    """``run --workers 1`` on 2 cores doubles the FE stages (not the trainings); the P2
+    teacher's refine pushes cost :func:`p2_push_seconds` each, shared by the processes."""
+    import dataclasses
+
+    from biopsynav import runtime
+    from biopsynav.case import Case
+
+    monkeypatch.setattr(runtime.os, "cpu_count", lambda: 2)
+    case = Case.load(base_case)
+    case.cfg.refine = dataclasses.replace(case.cfg.refine, samples=40, teacher="grid")
+    case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, reference="fine_grid")
+    ref = runtime.REFERENCE["probe_s"]
+    two = runtime.estimate_run(case, (ref, ref), workers=2)
+    assert runtime.estimate_run(case, (ref, ref)).minutes == two.minutes  # 0: one a core
+    one = runtime.estimate_run(case, (ref, ref), workers=1)
+    for stage in ("generate", "refine pushes"):
+        assert one.minutes[stage] == pytest.approx(2.0 * two.minutes[stage])
+    assert one.minutes["train"] == two.minutes["train"]
+    assert one.minutes["evaluate and report"] > 1.5 * two.minutes["evaluate and report"]
+    assert runtime.estimate_run(case, (ref, ref), workers=8).minutes == two.minutes
+    case.cfg.refine = dataclasses.replace(case.cfg.refine, teacher="p2")
+    p2 = runtime.estimate_run(case, (2 * ref, ref), workers=1).minutes["refine pushes"]
+    seconds = runtime.p2_push_seconds(case.cfg.refine.max_push_mm)
+    assert p2 == pytest.approx(40 * seconds / 60.0 * 2.0)
+    # deeper pushes cost more, none more than the push's time limit
+    from biopsynav.dataset.converged import PUSH_LIMIT_S
+
+    assert 0.0 < runtime.p2_push_seconds(10.0) < seconds < PUSH_LIMIT_S
+    assert runtime.p2_push_seconds(500.0) == pytest.approx(PUSH_LIMIT_S, rel=0.1)
 
 
 def test_a_fine_grid_truth_is_expected_to_cost_its_solves(base_case):

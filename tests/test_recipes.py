@@ -90,7 +90,7 @@ def test_the_estimate_prices_a_data_set_of_rigid_pushes_as_rigid_pushes(base_cas
     ref = REFERENCE["probe_s"]
     n = case.cfg.dataset.n_train + case.cfg.dataset.n_test
     case.cfg.probe = dataclasses.replace(case.cfg.probe, rigid_share=1.0)
-    assert estimate_run(case, (ref, ref)).minutes["generate"] == pytest.approx(
+    assert estimate_run(case, (ref, ref), workers=2).minutes["generate"] == pytest.approx(
         rigid_push_minutes(n, 1.0, 1.0, push_minutes_per_1000(case)))
 
 

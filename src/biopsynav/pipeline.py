@@ -179,7 +179,7 @@ def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dic
     case = timed(1, "anatomy and grid", "anatomy and grid", anatomy_stage, Path(case_dir))
     check_reference(case)  # a truth that cannot serve this case: said now, not after training
     if not dataset_complete(case):  # a new case: say what the whole will take first
-        estimate = estimate_run(case)
+        estimate = estimate_run(case, workers=workers)
         print(f"  {estimate.line()}", flush=True)
     data_summary = timed(2, "training data (FE simulations)", "training data", data_stage,
                          case, workers)

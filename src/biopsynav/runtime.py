@@ -16,6 +16,8 @@ the case and to this machine today, from three probes of ten U-Net training step
 * **training stages**: their iterations times the probe's step on the case's own grid at the
   stage's batch and arithmetic, times :data:`TRAINING_STEP_FACTOR` (what a training
   iteration costs beyond the bare step: data, validation, the best weights' checks);
+* **FE processes**: the reference runs had one a core on 2 cores; ``run --workers`` fewer,
+  or more cores, scale the FE stages by :data:`REFERENCE_WORKERS` over the processes;
 * evaluation and report scale with Table 2's reference solves (lesions x pushes x the fine
   grid's cells^1.3, from a run of a fine-grid truth, :data:`FINE_GRID_TABLE2`, or of the
   reference run's for other truths) and the machine's speed, plus each lesion's self-check
@@ -72,6 +74,17 @@ PHANTOM_ACTIVE_CELLS = 2225
 #: speed probe. The reference run's batch-4 fp32 training of 2026-12-02 took 1.87 times its
 #: probe (fp32 at batch 4, and the code of that day; not measured apart).
 TRAINING_STEP_FACTOR = 1.23
+#: The reference runs' FE processes (``run`` on the 2-core machine: one a core). With fewer
+#: (``--workers``) or more cores the FE stages' times scale by this over the processes: the
+#: pushes are independent (measured on 2 cores only).
+REFERENCE_WORKERS = 2
+#: A ``[refine] teacher = "p2"`` push (4 mm tetrahedra near the probe, the truth's sharp-edged
+#: probe) in one single-threaded process at the reference machine's speed: about
+#: ``P2_PUSH_S[0] exp(P2_PUSH_S[1] depth_mm)`` seconds, at most the push's time limit
+#: (:data:`biopsynav.dataset.converged.PUSH_LIMIT_S`). Fitted on the phantom's pushes of a
+#: stopped N = 50 refine (``benchmarks/p2_teacher.py --store``; result file
+#: ``p2-teacher-phantom-depths.json``, its speed probe taken out); a larger breast's cost more.
+P2_PUSH_S = (10.9, 0.168)
 
 
 @dataclass
@@ -137,8 +150,9 @@ def probe_seconds(case, node_shape: tuple[int, int, int] | None = None, *,
     return float(np.median(times[1:]))
 
 
-def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
-    """Expected minutes of each stage of ``case`` on this machine. ``probes``: seconds of
+def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0) -> Estimate:
+    """Expected minutes of each stage of ``case`` on this machine with ``workers`` FE
+    processes (``run --workers``; 0: one a core). ``probes``: seconds of
     :func:`probe_seconds` on the reference grid (the machine's speed), on the case's grid
     (its training step) and on the case's grid at ``[refine] batch_size`` (the refine
     training's step; the case's step when left out), measured when None (the third only when
@@ -149,24 +163,52 @@ def estimate_run(case, probes: tuple[float, ...] | None = None) -> Estimate:
         if case.cfg.refine.samples and case.cfg.refine.batch_size != case.cfg.network.batch_size:
             probes += (probe_seconds(case, batch=case.cfg.refine.batch_size),)
     slowness = probes[0] / ref["probe_s"]
+    fe = slowness * REFERENCE_WORKERS / fe_processes(workers)  # the FE stages' time factor
     step, refine_step = probes[1], probes[-1]  # seconds of each training's step today
     cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
     cfg, m = case.cfg, ref["minutes"]
     samples = cfg.dataset.n_train + cfg.dataset.n_test
     per_1000 = push_minutes_per_1000(case)
     rigid = cfg.probe.rigid_share * samples  # rigid pushes cost what [refine]'s do
-    minutes = {"generate": (m["generate"] * (samples - rigid) / ref["samples"] * cells * slowness
-                            + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, slowness,
+    minutes = {"generate": (m["generate"] * (samples - rigid) / ref["samples"] * cells * fe
+                            + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, fe,
                                                  per_1000)),
                "train": training_minutes(cfg.network.iterations, step)}
     if cfg.refine.samples:
-        minutes["refine pushes"] = rigid_push_minutes(cfg.refine.samples,
-                                                      cfg.refine.teacher_refine, slowness,
-                                                      per_1000)
+        minutes["refine pushes"] = refine_push_minutes(case, fe, per_1000)
         minutes["refine training"] = training_minutes(cfg.refine.iterations, refine_step)
-    minutes["evaluate and report"] = (evaluation_minutes(case)
-                                      + lesion_check_minutes(case)) * slowness
+    minutes["evaluate and report"] = (
+        evaluation_minutes(case, fe_processes(workers)) * slowness
+        + lesion_check_minutes(case) * fe)
     return Estimate(minutes, slowness)
+
+
+def p2_push_seconds(max_push_mm: float, model: tuple[float, float] = P2_PUSH_S) -> float:
+    """Expected seconds of a P2 teacher push of depth uniform in [0, ``max_push_mm``] mm in
+    one process: ``model`` (a, b), ``a exp(b depth_mm)`` seconds (default
+    :data:`P2_PUSH_S`, at the reference machine's speed), capped at the push's time limit."""
+    from .dataset.converged import PUSH_LIMIT_S
+
+    depths = np.linspace(0.0, max_push_mm, 201)
+    seconds = np.minimum(model[0] * np.exp(model[1] * depths), PUSH_LIMIT_S)
+    return float(np.trapezoid(seconds, depths) / max_push_mm)
+
+
+def fe_processes(workers: int = 0) -> int:
+    """The FE processes of a run given ``--workers workers`` (0: one a core), at most one a
+    core."""
+    cores = os.cpu_count() or 1
+    return max(1, min(workers or cores, cores))
+
+
+def refine_push_minutes(case, fe: float, per_1000: float) -> float:
+    """Expected minutes of ``[refine]``'s pushes: the grid teacher's
+    (:func:`rigid_push_minutes`) or the P2 teacher's (:data:`P2_PUSH_SECONDS` each), at the FE
+    stages' time factor ``fe`` (the machine's speed and the processes)."""
+    r = case.cfg.refine
+    if r.teacher == "p2":
+        return r.samples * p2_push_seconds(r.max_push_mm) / 60.0 * fe / REFERENCE_WORKERS
+    return rigid_push_minutes(r.samples, r.teacher_refine, fe, per_1000)
 
 
 def training_minutes(iterations: int, step_s: float) -> float:

@@ -180,7 +180,7 @@ def test_the_cost_benchmark_times_a_local_cluster_and_extrapolates(base_case, tm
                                                 "1", "--fine", "12", "--size", "25",
                                                 "--no-result-file"], tmp_path)
     assert "push_s_mean" in values
-    push, overhead = float(values["push_s_mean"]), float(values["overhead_s"])
+    push, overhead = float(values["push_s_expected"]), float(values["overhead_s"])
     assert push > 0 and overhead >= 0
     assert float(values["est_16w_400_min"]) == pytest.approx(
         400 * (push + overhead) / 16 / 60, rel=0.02, abs=0.1)
@@ -188,6 +188,38 @@ def test_the_cost_benchmark_times_a_local_cluster_and_extrapolates(base_case, tm
     bad = subprocess.run([sys.executable, str(BENCHMARKS / "p2_teacher.py"), "--fine", "20",
                           "--size", "10"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--fine <= --size" in bad.stderr
+
+
+def test_the_cost_benchmark_reads_a_stored_p2_data_set(p2_reference, base_case, tmp_path):
+    """``p2_teacher.py --store``: the pushes a P2 data set holds, none solved; the estimate
+    from their fit over the protocol's depths (a push's time grows with its depth); a data
+    set of another teacher refused."""
+    import subprocess
+    import sys
+
+    import numpy as np
+    import zarr
+    from tests.runs import BENCHMARKS, run_benchmark
+
+    from biopsynav.config import load_config
+    from biopsynav.runtime import p2_push_seconds
+
+    out, values = run_benchmark("p2_teacher.py", ["--store", str(p2_reference),
+                                                "--no-result-file"], tmp_path)
+    assert f"{N} pushes" in out and "read from" in out
+    g = zarr.open_group(str(p2_reference / "dataset.zarr"), mode="r")
+    seconds, depth = np.asarray(g["solve_s"][...]), np.asarray(g["probe_disp_mm"][...])
+    assert float(values["push_s_mean"]) == pytest.approx(seconds.mean(), abs=0.05)
+    b, ln_a = np.polyfit(depth, np.log(seconds), 1)
+    expected = p2_push_seconds(load_config(p2_reference).probe.max_push_mm,
+                               (float(np.exp(ln_a)), float(b)))
+    assert float(values["push_s_expected"]) == pytest.approx(expected, rel=0.01, abs=0.05)
+    assert float(values["est_64w_400_min"]) == pytest.approx(400 * expected / 64 / 60,
+                                                             rel=0.02, abs=0.1)
+    bad = subprocess.run([sys.executable, str(BENCHMARKS / "p2_teacher.py"), "--store",
+                          str(base_case), "--no-result-file"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 1 and "not a P2 teacher's data set" in bad.stderr
 
 
 def test_a_push_the_p2_teacher_does_not_answer_is_recorded_as_not_converged(p2_base,
