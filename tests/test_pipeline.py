@@ -157,6 +157,9 @@ def test_the_estimate_follows_the_fe_processes_and_prices_the_p2_teacher(base_ca
 
     assert 0.0 < runtime.p2_push_seconds(10.0) < seconds < PUSH_LIMIT_S
     assert runtime.p2_push_seconds(500.0) == pytest.approx(PUSH_LIMIT_S, rel=0.1)
+    limited = runtime.estimate_run(case, (ref, ref), workers=2).minutes["refine pushes"]
+    case.cfg.refine = dataclasses.replace(case.cfg.refine, teacher_push_limit_s=0.0)  # none
+    assert runtime.estimate_run(case, (ref, ref), workers=2).minutes["refine pushes"] > limited
 
 
 def test_a_fine_grid_truth_is_expected_to_cost_its_solves(base_case):

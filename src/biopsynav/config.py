@@ -418,11 +418,25 @@ class DatasetSection:
                                  lo=0.5, hi=200.0)
     teacher_fine_mm: float = opt(4.0, "With teacher = 'p2': tetrahedron size within 35 mm of "
                                       "the push (mm). 4 (default): the truth's ([evaluate] "
-                                      "p2_fine_mm), 1-5 min a push on one core; 8 solves a push "
+                                      "p2_fine_mm): on one core of the 2-core machine, about "
+                                      "20 s for a 5 mm push, 2-5 min at 20 mm, 23 min at 27 "
+                                      "mm (the phantom; teacher_push_limit_s); 8 solves a push "
                                       "in 5-100 s but lies 0.15 / 0.38 / 1.17 mm from the 4 mm "
                                       "answers at 10 / 20 / 30 mm pushes on the phantom, as far "
                                       "as the grid teacher's network (docs/dataset.md, 'The P2 "
                                       "teacher').", lo=0.5, hi=200.0)
+    teacher_push_limit_s: float = opt(1800.0, "With teacher = 'p2': a push still solving "
+                                              "after this many seconds is given up and "
+                                              "redrawn, like one that did not converge (0: no "
+                                              "limit). A push's time grows about exponentially "
+                                              "with its depth: on one core of the 2-core "
+                                              "machine the phantom's pushes deeper than about "
+                                              "30 mm take longer than the default 1,800 s, so "
+                                              "a set made there holds none of them (their "
+                                              "redraws are other pushes); raise it where the "
+                                              "deep pushes matter and the workers have the "
+                                              "time (docs/dataset.md, 'The P2 teacher').",
+                                      lo=0.0, hi=1e6)
     teacher_refine: float = opt(1.0, "The teacher's grid: each sample is solved on cells this "
                                      "many times smaller than [grid] cell_size_mm (any factor "
                                      "from 1 to 4: 1.46 turns 7.3 mm cells into 5 mm) and "
@@ -604,6 +618,9 @@ class RefineSection:
                                      "One material only.", choices=teacher_names)
     teacher_size_mm: float = opt(10.0, "With teacher = 'p2': [dataset] teacher_size_mm of the "
                                        "refine case.", lo=0.5, hi=200.0)
+    teacher_push_limit_s: float = opt(1800.0, "With teacher = 'p2': [dataset] "
+                                              "teacher_push_limit_s of the refine case (0: no "
+                                              "limit).", lo=0.0, hi=1e6)
     teacher_fine_mm: float = opt(4.0, "With teacher = 'p2': [dataset] teacher_fine_mm of the "
                                       "refine case.", lo=0.5, hi=200.0)
     extrapolation: float = opt(0.0, "Richardson extrapolation order of the refine pushes "

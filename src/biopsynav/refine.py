@@ -53,6 +53,7 @@ def refined_config(cfg: CaseConfig) -> CaseConfig:
     out.dataset.n_test = r.held_out
     out.dataset.teacher = r.teacher
     out.dataset.teacher_size_mm, out.dataset.teacher_fine_mm = r.teacher_size_mm, r.teacher_fine_mm
+    out.dataset.teacher_push_limit_s = r.teacher_push_limit_s
     out.dataset.teacher_refine = r.teacher_refine
     out.dataset.teacher_extrapolation = r.extrapolation
     net = out.network

@@ -81,7 +81,7 @@ REFERENCE_WORKERS = 2
 #: A ``[refine] teacher = "p2"`` push (4 mm tetrahedra near the probe, the truth's sharp-edged
 #: probe) in one single-threaded process at the reference machine's speed: about
 #: ``P2_PUSH_S[0] exp(P2_PUSH_S[1] depth_mm)`` seconds, at most the push's time limit
-#: (:data:`biopsynav.dataset.converged.PUSH_LIMIT_S`). Fitted on the phantom's pushes of a
+#: (``[refine] teacher_push_limit_s``). Fitted on the phantom's pushes of a
 #: stopped N = 50 refine (``benchmarks/p2_teacher.py --store``; result file
 #: ``p2-teacher-phantom-depths.json``, its speed probe taken out); a larger breast's cost more.
 P2_PUSH_S = (10.9, 0.168)
@@ -183,14 +183,17 @@ def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0
     return Estimate(minutes, slowness)
 
 
-def p2_push_seconds(max_push_mm: float, model: tuple[float, float] = P2_PUSH_S) -> float:
+def p2_push_seconds(max_push_mm: float, model: tuple[float, float] = P2_PUSH_S,
+                    limit_s: float | None = None) -> float:
     """Expected seconds of a P2 teacher push of depth uniform in [0, ``max_push_mm``] mm in
     one process: ``model`` (a, b), ``a exp(b depth_mm)`` seconds (default
-    :data:`P2_PUSH_S`, at the reference machine's speed), capped at the push's time limit."""
+    :data:`P2_PUSH_S`, at the reference machine's speed), capped at the push's time limit
+    ``limit_s`` (default :data:`biopsynav.dataset.converged.PUSH_LIMIT_S`; 0: none)."""
     from .dataset.converged import PUSH_LIMIT_S
 
+    cap = PUSH_LIMIT_S if limit_s is None else (limit_s or np.inf)
     depths = np.linspace(0.0, max_push_mm, 201)
-    seconds = np.minimum(model[0] * np.exp(model[1] * depths), PUSH_LIMIT_S)
+    seconds = np.minimum(model[0] * np.exp(model[1] * depths), cap)
     return float(np.trapezoid(seconds, depths) / max_push_mm)
 
 
@@ -207,7 +210,8 @@ def refine_push_minutes(case, fe: float, per_1000: float) -> float:
     stages' time factor ``fe`` (the machine's speed and the processes)."""
     r = case.cfg.refine
     if r.teacher == "p2":
-        return r.samples * p2_push_seconds(r.max_push_mm) / 60.0 * fe / REFERENCE_WORKERS
+        seconds = p2_push_seconds(r.max_push_mm, limit_s=r.teacher_push_limit_s)
+        return r.samples * seconds / 60.0 * fe / REFERENCE_WORKERS
     return rigid_push_minutes(r.samples, r.teacher_refine, fe, per_1000)
 
 

@@ -21,7 +21,7 @@ from biopsynav.dataset.converged import face_rest_pose
 from biopsynav.dataset.generate import generate_case
 from biopsynav.dataset.worker import SampleContext, input_springs
 from biopsynav.errors import InputError
-from biopsynav.evaluate.p2 import TetReference
+from biopsynav.evaluate.p2 import PushTimeout, TetReference
 from biopsynav.evaluate.references import default_tissue_material
 from biopsynav.grid.index import tensor_to_field
 from biopsynav.probe import contact_input, push_for_sample
@@ -235,3 +235,29 @@ def test_a_push_the_p2_teacher_does_not_answer_is_recorded_as_not_converged(p2_b
     result = worker.compute_sample(SampleContext(Case.load(p2_base)), 0, 0)
     assert not result["ok"] and result["kind"] == worker.NOT_CONVERGED
     assert result["error"] == "P2 teacher: an element inverted"
+
+
+@pytest.mark.parametrize("limit, given", [(1800.0, 1800.0), (90.0, 90.0), (0.0, None)])
+def test_the_p2_push_limit_is_the_configs_and_part_of_the_protocol(p2_fresh, monkeypatch,
+                                                                    limit, given):
+    """``[dataset] teacher_push_limit_s`` bounds each P2 push (0: no limit) and is recorded in
+    the data set's protocol (the default's as before); ``[refine]``'s reaches the refine case."""
+    from biopsynav.dataset import worker
+    from biopsynav.dataset.converged import P2Teacher
+    from biopsynav.refine import refined_config
+
+    edit_config(p2_fresh, dataset={"teacher_push_limit_s": limit})
+    case = Case.load(p2_fresh)
+    assert P2Teacher.protocol(case.cfg, case.anatomy)["push_limit_s"] == given
+    seen = []
+
+    def timed_out(self, *args, time_limit_s=None, **kwargs):
+        seen.append(time_limit_s)
+        raise PushTimeout("the push ran past its time limit")
+
+    monkeypatch.setattr(TetReference, "push", timed_out)
+    result = worker.compute_sample(SampleContext(case), 0, 0)
+    assert seen == [given] and result["kind"] == worker.NOT_CONVERGED
+    edit_config(p2_fresh, refine={"teacher_push_limit_s": limit, "teacher": "p2"})
+    refined = refined_config(load_config(p2_fresh))
+    assert refined.dataset.teacher_push_limit_s == limit

@@ -22,7 +22,7 @@ P2 FE (8 mm tetrahedra near the probe): the case grid's trilinear interpolation 
 instead (with a harmonic extension to the nodes outside the tetrahedra) 0.07-0.08 / 0.23-0.24
 / 0.55-0.66 mm; the fit holding the contact points flung the nodes of nearly empty cells to
 2-4 times the push. A push still solving after :data:`PUSH_LIMIT_S` is given up and redrawn like a
-push that did not converge.
+push that did not converge (``[dataset] teacher_push_limit_s``; 0: never).
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ FIT_REFINE = 2
 #: The fit's neighbour-difference penalty (:class:`biopsynav.grid.transfer.PointFit`),
 #: ten times the grid teacher's: nodes of nearly empty cells stay near the push's depth
 FIT_SMOOTHING = 1e-2
-#: A push still solving after this many seconds is given up (recorded as not converged)
+#: The default ``[dataset] teacher_push_limit_s``: a push still solving after this many
+#: seconds is given up (recorded as not converged)
 PUSH_LIMIT_S = 1800.0
 
 
@@ -79,12 +80,14 @@ class P2Teacher:
                 **probe_key(cfg.probe, str(ev.p2_friction), float(ev.p2_rim_mm),
                             float(ev.p2_edge_radius_mm)), **chest_key(anatomy),
                 "to_case_grid": TO_CASE_GRID, "fit_refine": FIT_REFINE,
-                "fit_smoothing": FIT_SMOOTHING, "push_limit_s": PUSH_LIMIT_S}
+                "fit_smoothing": FIT_SMOOTHING,
+                "push_limit_s": float(data.teacher_push_limit_s) or None}
 
     def solve(self, push: Any) -> np.ndarray:
         """``push`` (a rigid :class:`biopsynav.probe.ProbePush`) on its own P2 mesh, fitted
         to the case grid (:meth:`_on_case_grid`): (n_nodes, 3) mm; SolverError when it is
-        not answered (an element inverted, Newton failed, or :data:`PUSH_LIMIT_S` passed)."""
+        not answered (an element inverted, Newton failed, or ``[dataset]
+        teacher_push_limit_s`` passed)."""
         from ..errors import SolverError
         from ..evaluate.p2 import PushTimeout
 
@@ -96,7 +99,8 @@ class P2Teacher:
         pose[:3, 3] += push.displacement
         try:
             model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=probe.footprint,
-                       edge_radius_mm=float(ev.p2_edge_radius_mm), time_limit_s=PUSH_LIMIT_S)
+                       edge_radius_mm=float(ev.p2_edge_radius_mm),
+                       time_limit_s=float(self.case.cfg.dataset.teacher_push_limit_s) or None)
         except (FloatingPointError, RuntimeError, PushTimeout) as exc:
             raise SolverError(f"P2 teacher: {exc or type(exc).__name__}",
                               "[dataset] teacher") from None
