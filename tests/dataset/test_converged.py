@@ -225,16 +225,25 @@ def test_the_cost_benchmark_reads_a_stored_p2_data_set(p2_reference, base_case, 
 def test_a_push_the_p2_teacher_does_not_answer_is_recorded_as_not_converged(p2_base,
                                                                             monkeypatch):
     """An element inverting (or the time limit passing) in the P2 push is a draw that did
-    not converge, named after the teacher, which the run then redraws."""
+    not converge, named after the teacher, which the run then redraws; its record keeps the
+    push's depth."""
     from biopsynav.dataset import worker
 
     def inverted(*args, **kwargs):
         raise FloatingPointError("an element inverted")
 
+    from biopsynav.dataset.generate import _failure_record
+
     monkeypatch.setattr(TetReference, "push", inverted)
-    result = worker.compute_sample(SampleContext(Case.load(p2_base)), 0, 0)
+    case = Case.load(p2_base)
+    ctx = SampleContext(case)
+    result = worker.compute_sample(ctx, 0, 0)
     assert not result["ok"] and result["kind"] == worker.NOT_CONVERGED
     assert result["error"] == "P2 teacher: an element inverted"
+    # the failures log says how deep the push was: what sets a rigid push's cost
+    push = push_for_sample(case.anatomy, case.cfg.probe, case.cfg.dataset.seed, 0, 0,
+                           ctx.centers, pinned=ctx.pinned, training=True)
+    assert _failure_record(result)["push_mm"] == pytest.approx(push.push_mm, abs=1e-3)
 
 
 @pytest.mark.parametrize("limit, given", [(1800.0, 1800.0), (90.0, 90.0), (0.0, None)])

@@ -374,8 +374,7 @@ def _next_attempts(failures: list[dict]) -> dict[int, int]:
 
 def _failure_record(result: dict) -> dict:
     """What the failures log keeps of a draw that was not kept (``kind``: why)."""
-    extra = {"probe_disp_mm": round(result["probe_disp_mm"], 3)} if "probe_disp_mm" in result \
-        else {}
+    extra = {k: round(result[k], 3) for k in ("probe_disp_mm", "push_mm") if k in result}
     redraw = {"redraw": result["redraw"]} if result.get("redraw") else {}
     return {"index": result["index"], "attempt": result["attempt"], **redraw,
             "kind": result["kind"],

@@ -162,7 +162,7 @@ def solve_draw(ctx: SampleContext, push: Any, index: int, redraw: int) -> dict:
                                    start)
         u, report = teacher_solution(ctx, push, loaded)
     except SolverError as exc:
-        return not_converged(result, exc, start)
+        return not_converged(result, exc, start, push)
     contact_u = np.asarray(loaded @ u)
     probe_disp = probe_displacement(face_motion(ctx, push, contact_u))
     rejected = solved_rejection(ctx, push, probe_disp, u)
@@ -194,7 +194,7 @@ def converged_draw(ctx: SampleContext, push: Any, result: dict, start: float) ->
     try:
         field = ctx.converged.solve(push)
     except SolverError as exc:
-        return not_converged(result, exc, start)
+        return not_converged(result, exc, start, push)
     probe_disp = probe_displacement(face_motion(ctx, push, contact @ field))
     why = implausible(ctx.model, field, ctx.case.cfg.dataset.max_edge_stretch)
     if why:
@@ -278,12 +278,15 @@ def rigid_push_loads(ctx: SampleContext, push: Any, skin: Any = None) -> Any:
                  prescribed_displacement=rows @ target, prescribed_stiffness=springs)
 
 
-def not_converged(result: dict, exc: Any, start: float) -> dict:
+def not_converged(result: dict, exc: Any, start: float, push: Any) -> dict:
     """``result`` marked as a draw whose solve raised the SolverError ``exc`` (started at
-    ``start``, ``time.perf_counter`` s), with the last Newton iterations."""
+    ``start``, ``time.perf_counter`` s), with the last Newton iterations and, for a rigid
+    ``push``, its depth (``push_mm``: what sets a rigid push's cost)."""
     result.update(ok=False, kind=NOT_CONVERGED, error=exc.what,
                   solve_s=time.perf_counter() - start, diagnostics=exc.log[-5:],
                   newton_iters=len(exc.log))
+    if push.rigid:
+        result["push_mm"] = float(push.push_mm)
     return result
 
 
