@@ -134,6 +134,22 @@ def p2_teacher_cost(data: dict) -> str:
             f"64 workers: {fmt(est['16w_400'], 0)} / {fmt(est['64w_400'], 0)} min")
 
 
+def p2_teacher_depths(data: dict) -> str:
+    """The P2 teacher's push time against depth: the pushes' range, the deepest, the fit over
+    the protocol's depths and the estimate of 400 pushes on 16 and 64 workers."""
+    f = data["figures"]
+    depth, seconds = f["probe_disp_mm"], f["push_s"]
+    a, b = f["depth_model"]
+    est = f["estimate_min"]
+    deep = depth.index(max(depth))
+    return (f"{f['pushes']} pushes of {fmt(min(depth), 1)}-{fmt(max(depth), 1)} mm: "
+            f"{fmt(min(seconds), 0)}-{fmt(max(seconds), 0)} s (the {fmt(depth[deep], 1)} mm one "
+            f"{fmt(seconds[deep], 0)} s; mean {fmt(f['push_s_mean'], 0)}); fitted "
+            f"{a:.3g} exp({b:.3g} depth) s, {fmt(f['push_s_expected'], 0)} s a push over "
+            f"0-{fmt(f['max_push_mm'], 0)} mm; 400 pushes on 16 / 64 workers: "
+            f"{fmt(est['16w_400'], 0)} / {fmt(est['64w_400'], 0)} min")
+
+
 @dataclass
 class Cell:
     """One figure: the result file it comes from and how it is shown."""
@@ -553,6 +569,14 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "shallower than the uniform 0-35 mm, so a low estimate)",
      Cell("p2-teacher-phantom", with_speed(p2_teacher_cost),
           "python benchmarks/p2_teacher.py --samples 4"), "-", "-"),
+    ("the P2 teacher's push time against the push's depth (phantom, one thread, the pushes a "
+     "stopped `refine` of N = 50 + 6 had solved, in the draw order), fitted `a exp(b depth)` and "
+     "averaged over the protocol's depths (uniform to 35 mm, capped at the 30 min limit): the "
+     "estimate `biopsynav.runtime` prices the P2 teacher with",
+     Cell("p2-teacher-phantom-depths", with_speed(p2_teacher_depths),
+          "biopsynav refine CASE (a phantom case, [refine] teacher = \"p2\", samples = 56, "
+          "held_out = 6; stopped); python benchmarks/p2_teacher.py --store CASE/refine "
+          "--result-name p2-teacher-phantom-depths"), "-", "-"),
     ("`run` from nothing, UC Davis as one material, the default recipe `pushes` (Intel Xeon; "
      "Table 2 against the shipped P2 truth, `examples/ucdavis_breast3/homogeneous.toml`): "
      "whole; each stage; Table 1 on its held-out rigid pushes; the tracking network's TRE "

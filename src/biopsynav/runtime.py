@@ -84,7 +84,7 @@ REFERENCE_WORKERS = 2
 #: (``[refine] teacher_push_limit_s``). Fitted on the phantom's pushes of a
 #: stopped N = 50 refine (``benchmarks/p2_teacher.py --store``; result file
 #: ``p2-teacher-phantom-depths.json``, its speed probe taken out); a larger breast's cost more.
-P2_PUSH_S = (10.9, 0.168)
+P2_PUSH_S = (5.72, 0.179)
 
 
 @dataclass
@@ -206,7 +206,7 @@ def fe_processes(workers: int = 0) -> int:
 
 def refine_push_minutes(case, fe: float, per_1000: float) -> float:
     """Expected minutes of ``[refine]``'s pushes: the grid teacher's
-    (:func:`rigid_push_minutes`) or the P2 teacher's (:data:`P2_PUSH_SECONDS` each), at the FE
+    (:func:`rigid_push_minutes`) or the P2 teacher's (:func:`p2_push_seconds` each), at the FE
     stages' time factor ``fe`` (the machine's speed and the processes)."""
     r = case.cfg.refine
     if r.teacher == "p2":
