@@ -150,8 +150,10 @@ def test_the_estimate_follows_the_fe_processes_and_prices_the_p2_teacher(base_ca
     assert runtime.estimate_run(case, (ref, ref), workers=8).minutes == two.minutes
     case.cfg.refine = dataclasses.replace(case.cfg.refine, teacher="p2")
     p2 = runtime.estimate_run(case, (2 * ref, ref), workers=1).minutes["refine pushes"]
+    a, b = runtime.P2_PUSH_S  # twice as slow: twice the seconds, capped at the same limit
+    assert p2 == pytest.approx(40 * runtime.p2_push_seconds(case.cfg.refine.max_push_mm,
+                                                             (2 * a, b)) / 60.0)
     seconds = runtime.p2_push_seconds(case.cfg.refine.max_push_mm)
-    assert p2 == pytest.approx(40 * seconds / 60.0 * 2.0)
     # deeper pushes cost more, none more than the push's time limit
     from biopsynav.dataset.converged import PUSH_LIMIT_S
 

@@ -175,7 +175,7 @@ def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0
                                                  per_1000)),
                "train": training_minutes(cfg.network.iterations, step)}
     if cfg.refine.samples:
-        minutes["refine pushes"] = refine_push_minutes(case, fe, per_1000)
+        minutes["refine pushes"] = refine_push_minutes(case, fe, per_1000, slowness)
         minutes["refine training"] = training_minutes(cfg.refine.iterations, refine_step)
     minutes["evaluate and report"] = (
         evaluation_minutes(case, fe_processes(workers)) * slowness
@@ -204,14 +204,16 @@ def fe_processes(workers: int = 0) -> int:
     return max(1, min(workers or cores, cores))
 
 
-def refine_push_minutes(case, fe: float, per_1000: float) -> float:
+def refine_push_minutes(case, fe: float, per_1000: float, slowness: float) -> float:
     """Expected minutes of ``[refine]``'s pushes: the grid teacher's
-    (:func:`rigid_push_minutes`) or the P2 teacher's (:func:`p2_push_seconds` each), at the FE
-    stages' time factor ``fe`` (the machine's speed and the processes)."""
+    (:func:`rigid_push_minutes`) or the P2 teacher's (:func:`p2_push_seconds` each, at the
+    machine's ``slowness``, capped at the push's time limit in this machine's seconds), at
+    the FE stages' time factor ``fe`` (the machine's speed and the processes)."""
     r = case.cfg.refine
     if r.teacher == "p2":
-        seconds = p2_push_seconds(r.max_push_mm, limit_s=r.teacher_push_limit_s)
-        return r.samples * seconds / 60.0 * fe / REFERENCE_WORKERS
+        here = (P2_PUSH_S[0] * slowness, P2_PUSH_S[1])
+        seconds = p2_push_seconds(r.max_push_mm, here, limit_s=r.teacher_push_limit_s)
+        return r.samples * seconds / 60.0 * fe / (slowness * REFERENCE_WORKERS)
     return rigid_push_minutes(r.samples, r.teacher_refine, fe, per_1000)
 
 
