@@ -163,7 +163,8 @@ def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0
         if case.cfg.refine.samples and case.cfg.refine.batch_size != case.cfg.network.batch_size:
             probes += (probe_seconds(case, batch=case.cfg.refine.batch_size),)
     slowness = probes[0] / ref["probe_s"]
-    fe = slowness * REFERENCE_WORKERS / fe_processes(workers)  # the FE stages' time factor
+    processes = fe_processes(workers)
+    fe = fe_factor(slowness, processes)
     step, refine_step = probes[1], probes[-1]  # seconds of each training's step today
     cells = (float(case.grid.active_cells.sum()) / ref["active_cells"]) ** FE_EXPONENT
     cfg, m = case.cfg, ref["minutes"]
@@ -175,10 +176,10 @@ def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0
                                                  per_1000)),
                "train": training_minutes(cfg.network.iterations, step)}
     if cfg.refine.samples:
-        minutes["refine pushes"] = refine_push_minutes(case, fe, per_1000, slowness)
+        minutes["refine pushes"] = refine_push_minutes(case, slowness, processes, per_1000)
         minutes["refine training"] = training_minutes(cfg.refine.iterations, refine_step)
     minutes["evaluate and report"] = (
-        evaluation_minutes(case, fe_processes(workers)) * slowness
+        evaluation_minutes(case, processes) * slowness
         + lesion_check_minutes(case) * fe)
     return Estimate(minutes, slowness)
 
@@ -204,17 +205,24 @@ def fe_processes(workers: int = 0) -> int:
     return max(1, min(workers or cores, cores))
 
 
-def refine_push_minutes(case, fe: float, per_1000: float, slowness: float) -> float:
-    """Expected minutes of ``[refine]``'s pushes: the grid teacher's
-    (:func:`rigid_push_minutes`) or the P2 teacher's (:func:`p2_push_seconds` each, at the
-    machine's ``slowness``, capped at the push's time limit in this machine's seconds), at
-    the FE stages' time factor ``fe`` (the machine's speed and the processes)."""
+def fe_factor(slowness: float, processes: int) -> float:
+    """The FE stages' time factor against the reference runs: the machine's ``slowness``
+    times :data:`REFERENCE_WORKERS` over the FE ``processes``."""
+    return slowness * REFERENCE_WORKERS / processes
+
+
+def refine_push_minutes(case, slowness: float, processes: int, per_1000: float) -> float:
+    """Expected minutes of ``[refine]``'s pushes on ``processes`` FE processes at the
+    machine's ``slowness``: the grid teacher's (:func:`rigid_push_minutes`) or the P2
+    teacher's (:func:`p2_push_seconds` each in this machine's seconds, capped at the push's
+    time limit)."""
     r = case.cfg.refine
     if r.teacher == "p2":
         here = (P2_PUSH_S[0] * slowness, P2_PUSH_S[1])
         seconds = p2_push_seconds(r.max_push_mm, here, limit_s=r.teacher_push_limit_s)
-        return r.samples * seconds / 60.0 * fe / (slowness * REFERENCE_WORKERS)
-    return rigid_push_minutes(r.samples, r.teacher_refine, fe, per_1000)
+        return r.samples * seconds / 60.0 / processes
+    return rigid_push_minutes(r.samples, r.teacher_refine, fe_factor(slowness, processes),
+                              per_1000)
 
 
 def training_minutes(iterations: int, step_s: float) -> float:

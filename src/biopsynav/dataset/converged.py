@@ -81,7 +81,7 @@ class P2Teacher:
                             float(ev.p2_edge_radius_mm)), **chest_key(anatomy),
                 "to_case_grid": TO_CASE_GRID, "fit_refine": FIT_REFINE,
                 "fit_smoothing": FIT_SMOOTHING,
-                "push_limit_s": float(data.teacher_push_limit_s) or None}
+                "push_limit_s": push_limit_s(cfg)}
 
     def solve(self, push: Any) -> np.ndarray:
         """``push`` (a rigid :class:`biopsynav.probe.ProbePush`) on its own P2 mesh, fitted
@@ -100,7 +100,7 @@ class P2Teacher:
         try:
             model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=probe.footprint,
                        edge_radius_mm=float(ev.p2_edge_radius_mm),
-                       time_limit_s=float(self.case.cfg.dataset.teacher_push_limit_s) or None)
+                       time_limit_s=push_limit_s(self.case.cfg))
         except (FloatingPointError, RuntimeError, PushTimeout) as exc:
             raise SolverError(f"P2 teacher: {exc or type(exc).__name__}",
                               "[dataset] teacher") from None
@@ -131,6 +131,12 @@ class P2Teacher:
                                    fine_mm=float(data.teacher_fine_mm),
                                    rim=rim_at(rest, probe.footprint, float(ev.p2_rim_mm)))
         return model, rest
+
+
+def push_limit_s(cfg: Any) -> float | None:
+    """Seconds after which a push is given up (``[dataset] teacher_push_limit_s``); None for
+    no limit (0)."""
+    return float(cfg.dataset.teacher_push_limit_s) or None
 
 
 def face_rest_pose(push: Any) -> np.ndarray:
