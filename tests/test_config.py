@@ -46,6 +46,8 @@ def test_defaults_round_trip(tmp_path):
     ({"igtl": {"inference_threads": -1}}, "below its minimum"),
     ({"igtl": {"inference_threads": 1.5}}, "must be an integer"),
     ({"probe": {"max_push_mm": -5.0}}, "below its minimum"),
+    ({"dataset": {"teacher_push_limit_s": -1.0}}, "below its minimum"),
+    ({"refine": {"teacher_push_limit_s": "long"}}, "must be of type float"),
     ({"probe": {"max_push_mm": "deep"}}, "max_push_mm"),
     ({"probe": {"footprint_mm": [float("inf"), 10.0]}}, "two positive lengths"),
     ({"probe": {"footprint_mm": [True, 10.0]}}, "two positive lengths"),
