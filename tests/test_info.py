@@ -78,6 +78,19 @@ def test_info_names_the_model_a_training_started_from(trained_case, tmp_path):
                           "(15 mm cells), neo-hookean, force patches")
 
 
+def test_info_names_a_converged_teacher_not_the_grid():
+    from biopsynav.info import teacher_words
+
+    words = teacher_words({"teacher": "p2", "teacher_refine": 1, "rigid_share": 1.0,
+                           "material_model": "neo-hookean-split-sri-inner",
+                           "teacher_protocol": {"size_mm": 10.0, "fine_mm": 4.0,
+                                                "probe": "rigid face"}}, 7.3)
+    assert words == ("P2 tetrahedra (4 mm near the probe, 10 mm elsewhere) fitted to the case "
+                     "grid, rigid-probe pushes (rigid face)")
+    assert teacher_words({"teacher": "ngsolve"}, 7.3).startswith("the 'ngsolve' teacher")
+    assert teacher_words({"teacher": "grid", "teacher_refine": 1}, 7.3).startswith("case grid")
+
+
 def test_info_names_an_extrapolated_teacher():
     from biopsynav.info import teacher_words
 

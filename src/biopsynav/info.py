@@ -151,6 +151,8 @@ def model_teacher(case: Case, tracking: tuple[Path, dict | None, bool] | None = 
 def teacher_words(t: dict, spacing: float) -> str:
     """A model's recorded teacher (meta.json ``teacher``) in words; ``spacing``: the case
     grid's cell size, mm."""
+    if t.get("teacher", "grid") != "grid":
+        return converged_teacher_words(t)
     refine = float(t.get("teacher_refine", 1))
     order = float(t.get("teacher_extrapolation", 0.0))
     grid = (f"case grid ({spacing:g} mm cells)" if refine == 1 else
@@ -164,6 +166,18 @@ def teacher_words(t: dict, spacing: float) -> str:
         pushes += f" ({t['fem_contact']} contact" + (f", beta {beta:g})" if beta else ")")
     law = law_words(t.get("material_model"), float(t.get("fictitious_stiffness", 0.0)))
     return f"{grid}, {law}, {pushes}"
+
+
+def converged_teacher_words(t: dict) -> str:
+    """A model's recorded teacher other than the grid FE (``[dataset] teacher``, e.g. the P2
+    tetrahedra of Table 2's truth) in words, from its ``teacher_protocol``."""
+    p = t.get("teacher_protocol") or {}
+    name = str(t.get("teacher"))
+    mesh = (f"{name.upper()} tetrahedra ({float(p['fine_mm']):g} mm near the probe, "
+            f"{float(p['size_mm']):g} mm elsewhere)" if "fine_mm" in p and "size_mm" in p
+            else f"the {name!r} teacher")
+    probe = f" ({p['probe']})" if p.get("probe") else ""
+    return f"{mesh} fitted to the case grid, rigid-probe pushes{probe}"
 
 
 def tissue_table(case: Case) -> list[dict]:
