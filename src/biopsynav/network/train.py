@@ -271,15 +271,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     ``first_samples`` trains on the first that many training samples of the complete data set
     only (a study of how many samples a case needs; the held-out ones stay).
     """
-    s = dataclasses.replace(settings or NetworkSection())
-    if preset is not None:
-        s.preset = preset
-    if iterations is not None:
-        if int(iterations) < 1:  # before anything is read or written: the model stays
-            raise InputError(f"must be >= 1, got {iterations}", "--iterations")
-        s.iterations = int(iterations)
-    if device is not None:
-        s.device = device
+    s = overridden_settings(settings, preset, iterations, device)
     case_dir = case.dir if isinstance(case, Case) else Path(case)
     out = Path(model_dir) if model_dir is not None else case_dir / MODEL_DIR
     spec = section_spec(s)
@@ -288,13 +280,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     amp = use_bf16(s.precision, dev)
     if progress:
         print(precision_line(amp, dev), flush=True)
-
-    if first_samples is not None and first_samples < 1:
-        raise InputError(f"first_samples must be >= 1, got {first_samples}", "train")
-    full = load_dataset(dataset if dataset is not None else case_dir)
-    require_complete(full)
-    if first_samples is not None:
-        full.train_idx = full.train_idx[:first_samples]
+    full = training_samples(dataset if dataset is not None else case_dir, first_samples)
     source = source_model(case_dir, s, spec, full)  # checked before the baselines' work
     prior, start_line = starting_point(case, s, spec, source)
     if progress:
@@ -302,27 +288,14 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     data, baseline_meta, projections = residual_dataset(full, s.baseline, case,
                                                         s.contact_projection)
     in_scale, out_scale, quad_scale = network_scales(data, spec, baseline_meta["kind"], source)
-    signature = _signature(s, spec, data, amp)
-    signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
-                                  if not k.endswith("_s")}  # not its timings
-    if source is not None:
-        signature["init_from"] = source.checksum
     prior_summary = None if prior is None else prior.summary()  # its file hashed once
-    if prior_summary is not None:
-        signature["prior"] = prior_summary["checksum"]
+    signature = training_signature(s, spec, data, amp, baseline_meta, source, prior_summary)
     if projections is not None:
         projections = tuple(p.to(dev) for p in projections)
 
     torch.manual_seed(s.seed)
     net = SurrogateNet(spec, in_scale, out_scale, data.active.numpy(), quad_scale).to(dev)
-    if source is not None:
-        net.unet.load_state_dict(source.weights)
-    elif prior is not None:
-        prior.load_into(net.unet)
-    elif baseline_meta["kind"] != "none":
-        # residual net starts as exactly zero: the model starts as the physics baseline
-        torch.nn.init.zeros_(net.unet.head.weight)
-        torch.nn.init.zeros_(net.unet.head.bias)
+    starts_from_a_model = initial_weights(net, source, prior, baseline_meta["kind"])
     opt = build_optimizer(net.unet.parameters(), s)
     state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
@@ -333,8 +306,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     resumed_from = state["iteration"]
 
     runner = TrainingLoop(net, opt, data, s, dev, out, signature, state, projections)
-    if ckpt is None and (source is not None or prior is not None
-                         or baseline_meta["kind"] != "none"):
+    if ckpt is None and starts_from_a_model:
         runner.keep_initial()  # the source model, prior or baseline alone: the one to beat
     with deterministic_algorithms():
         runner.run(progress=progress, stop_after=stop_after)
@@ -343,28 +315,96 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
         if state["best_state"] is not None:
             net.unet.load_state_dict(state["best_state"])
         net.to(memory_format=torch.contiguous_format)
+        record = training_record(s, state, full, dev.type, threads, runner.amp, baseline_meta,
+                                 source, prior_summary)
         write_model(out, net.cpu(), spec, data, in_scale, out_scale,
-                    merged_envelope(envelope(full), source),
-                    quad_scale=quad_scale,
-                    training={"iterations": s.iterations, "batch_size": s.batch_size,
-                              "learning_rate": s.learning_rate, "loss": s.loss,
-                              "seed": s.seed, "device": dev.type, "threads": threads,
-                              "precision": "bf16" if runner.amp else "fp32",
-                              "train_time_s": state["elapsed_s"],
-                              "n_train": int(full.train_idx.numel()),
-                              # the baseline and projections of every sample, before the loop
-                              "setup_s": float(baseline_meta.get("setup_s", 0.0)
-                                               + baseline_meta.get("all_samples_s", 0.0)),
-                              "best_val_e_mm": state["best_val"],
-                              "best_iteration": state["best_iteration"],
-                              "history": state["history"],
-                              **({} if source is None else {"init_from": source.summary()}),
-                              **({} if prior_summary is None else {"prior": prior_summary})},
-                    runtime=s.runtime, baseline=baseline_meta)
+                    merged_envelope(envelope(full), source), quad_scale=quad_scale,
+                    training=record, runtime=s.runtime, baseline=baseline_meta)
     last = state["history"][-1]["val_mean_e_mm"] if state["history"] else math.nan
     return TrainSummary(out, state["iteration"], s.iterations, state["best_val"],
                         state["best_iteration"], last, state["elapsed_s"], resumed_from,
                         finished, spec.to_dict(), count_parameters(spec))
+
+
+def overridden_settings(settings: NetworkSection | None, preset: str | None,
+                        iterations: int | None, device: str | None) -> NetworkSection:
+    """A copy of the [network] section ``settings`` (defaults when None) with ``preset``,
+    ``iterations`` and ``device`` in place of its own where given; InputError for fewer than
+    one iteration (before anything is read or written: the model stays)."""
+    s = dataclasses.replace(settings or NetworkSection())
+    if preset is not None:
+        s.preset = preset
+    if iterations is not None:
+        if int(iterations) < 1:
+            raise InputError(f"must be >= 1, got {iterations}", "--iterations")
+        s.iterations = int(iterations)
+    if device is not None:
+        s.device = device
+    return s
+
+
+def training_samples(path: str | Path, first_samples: int | None) -> Dataset:
+    """The complete data set at ``path`` (a case folder or a ``dataset.zarr``), its training
+    samples cut to the first ``first_samples`` when given (InputError below 1)."""
+    if first_samples is not None and first_samples < 1:
+        raise InputError(f"first_samples must be >= 1, got {first_samples}", "train")
+    full = load_dataset(path)
+    require_complete(full)
+    if first_samples is not None:
+        full.train_idx = full.train_idx[:first_samples]
+    return full
+
+
+def training_signature(s: NetworkSection, spec: UNetSpec, data: Dataset, amp: bool,
+                       baseline_meta: dict, source: SourceModel | None,
+                       prior_summary: dict | None) -> dict:
+    """What a checkpoint must match to be resumed: the settings and data
+    (:func:`_signature`), the baseline (not its timings), the model trained from and the
+    prior started from."""
+    signature = _signature(s, spec, data, amp)
+    signature["baseline_meta"] = {k: v for k, v in baseline_meta.items()
+                                  if not k.endswith("_s")}
+    if source is not None:
+        signature["init_from"] = source.checksum
+    if prior_summary is not None:
+        signature["prior"] = prior_summary["checksum"]
+    return signature
+
+
+def initial_weights(net: SurrogateNet, source: SourceModel | None, prior: Prior | None,
+                    baseline_kind: str) -> bool:
+    """Give ``net`` its first weights: the source model's (``[network] init_from``), else the
+    prior's, else, with a physics baseline, a head at zero (the model starts as the baseline);
+    True when the net so starts as a model worth keeping if training does not beat it."""
+    if source is not None:
+        net.unet.load_state_dict(source.weights)
+    elif prior is not None:
+        prior.load_into(net.unet)
+    elif baseline_kind != "none":
+        torch.nn.init.zeros_(net.unet.head.weight)
+        torch.nn.init.zeros_(net.unet.head.bias)
+    else:
+        return False
+    return True
+
+
+def training_record(s: NetworkSection, state: dict, full: Dataset, device: str, threads: int,
+                    amp: bool, baseline_meta: dict, source: SourceModel | None,
+                    prior_summary: dict | None) -> dict:
+    """``meta.json``'s ``training``: the schedule, where and how it ran, its time (s), the
+    training samples, the best held-out e (mm) and when, the history, and what it started
+    from."""
+    return {"iterations": s.iterations, "batch_size": s.batch_size,
+            "learning_rate": s.learning_rate, "loss": s.loss, "seed": s.seed,
+            "device": device, "threads": threads, "precision": "bf16" if amp else "fp32",
+            "train_time_s": state["elapsed_s"], "n_train": int(full.train_idx.numel()),
+            # the baseline and projections of every sample, before the loop
+            "setup_s": float(baseline_meta.get("setup_s", 0.0)
+                             + baseline_meta.get("all_samples_s", 0.0)),
+            "best_val_e_mm": state["best_val"], "best_iteration": state["best_iteration"],
+            "history": state["history"],
+            **({} if source is None else {"init_from": source.summary()}),
+            **({} if prior_summary is None else {"prior": prior_summary})}
 
 
 @contextlib.contextmanager
