@@ -30,20 +30,23 @@ class Embedding:
     def build(cls, grid: Grid, points: np.ndarray, require_active: bool = True,
               where: str = "points") -> Embedding:
         """Locate ``points`` (n, 3) mm; raise InputError if any lies outside the active cells."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if not np.isfinite(points).all():
-            raise InputError("points contain NaN or infinite coordinates", where)
+        points = finite_points(points, where)
         rel, ijk = _cell_coordinates(grid, points)
         outside = _outside(grid, rel, ijk, require_active)
         if outside.any():
             raise _outside_error(points, outside, where)
+        return cls.in_cells(grid, rel, ijk)
+
+    @classmethod
+    def in_cells(cls, grid: Grid, rel: np.ndarray, ijk: np.ndarray) -> Embedding:
+        """The embedding of points at cell coordinates ``rel`` (n, 3) in the cells ``ijk`` (n,
+        3) (:func:`_cell_coordinates`), each cell clipped into the grid."""
         ijk = np.clip(ijk, 0, np.array(grid.cell_shape) - 1)
-        xi = np.clip(rel - ijk, 0.0, 1.0)
-        weights = trilinear_weights(xi)
+        weights = trilinear_weights(np.clip(rel - ijk, 0.0, 1.0))
         nodes = index.hex_connectivity(ijk, grid.node_shape)
-        rows = np.repeat(np.arange(len(points)), 8)
+        rows = np.repeat(np.arange(len(rel)), 8)
         matrix = sp.csr_matrix((weights.ravel(), (rows, nodes.ravel())),
-                               shape=(len(points), grid.n_nodes))
+                               shape=(len(rel), grid.n_nodes))
         return cls(index.flat_index(ijk, grid.cell_shape), nodes, weights, matrix)
 
     def subset(self, rows: np.ndarray) -> Embedding:
@@ -75,14 +78,23 @@ def surface_embedding(grid: Grid, anatomy) -> Embedding:
     which sits on the fitted chest-wall plane: they are clamped into the nearest cell, whose
     nodes there are fixed, so they are never loaded and never move."""
     fixed = np.asarray(anatomy.fixed_vertices, dtype=bool)
-    points = np.array(anatomy.vertices, dtype=np.float64)
+    points = finite_points(anatomy.vertices, "skin surface")
     rel, ijk = _cell_coordinates(grid, points)
     outside = _outside(grid, rel, ijk, True) & ~fixed
     if outside.any():
         raise _outside_error(points[~fixed], outside[~fixed], "skin surface")
-    top = grid.origin + (np.asarray(grid.node_shape) - 1) * grid.spacing
-    points[fixed] = np.clip(points[fixed], grid.origin, top)
-    return Embedding.build(grid, points, require_active=False, where="skin surface")
+    rel[fixed] = np.clip(rel[fixed], 0.0, np.asarray(grid.node_shape) - 1.0)
+    ijk[fixed] = np.floor(rel[fixed]).astype(np.int64)
+    return Embedding.in_cells(grid, rel, ijk)
+
+
+def finite_points(points: np.ndarray, where: str) -> np.ndarray:
+    """``points`` as (n, 3) float64 mm; InputError naming ``where`` for a NaN or infinite
+    coordinate."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(points).all():
+        raise InputError("points contain NaN or infinite coordinates", where)
+    return points
 
 
 def _cell_coordinates(grid: Grid, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
