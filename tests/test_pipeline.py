@@ -221,6 +221,20 @@ def test_what_remains_is_rescaled_by_what_the_stages_took():
                                    "refine": 600.0, "evaluation": 60.0}) == 0.0
 
 
+def test_a_refined_model_counts_for_the_evaluation_only_while_refine_is_asked(base_case,
+                                                                              tmp_path):
+    """A refine/model left from an earlier [refine] does not make Table 2 stale once
+    [refine] samples = 0."""
+    from biopsynav.case import Case
+    from biopsynav.pipeline import _refined_meta
+
+    case = Case.load(base_case)
+    case.cfg.refine.samples = 0
+    assert _refined_meta(case) == ()
+    case.cfg.refine.samples = 40
+    assert _refined_meta(case) == (case.dir / "refine" / "model" / "meta.json",)
+
+
 def test_the_stage_table_ends_with_the_whole_run():
     from biopsynav.runtime import stage_table
 

@@ -143,7 +143,7 @@ def evaluation_stage(case: Case, quick: bool, workers: int) -> None:
     than the model (the tracking model: ``refine/model`` with ``[refine] samples > 0``); the
     self-check, the FE teacher and a fine-grid ground truth solved in ``workers`` local
     processes."""
-    if _stale(case.paths.table2(), case.paths.model_meta, _refined_meta(case)):
+    if _stale(case.paths.table2(), case.paths.model_meta, *_refined_meta(case)):
         from .evaluate import evaluate_case
 
         evaluate_case(case, quick=quick, workers=workers)
@@ -151,9 +151,10 @@ def evaluation_stage(case: Case, quick: bool, workers: int) -> None:
         print("  up to date")
 
 
-def _refined_meta(case: Case) -> Path:
-    """``refine/model/meta.json`` (absent unless ``[refine] samples > 0`` ran)."""
-    return CasePaths(case.paths.refine).model_meta
+def _refined_meta(case: Case) -> tuple[Path, ...]:
+    """``(refine/model/meta.json,)`` with ``[refine] samples > 0``, else none: a refined
+    model left from before does not make the evaluation stale."""
+    return (CasePaths(case.paths.refine).model_meta,) if case.cfg.refine.samples else ()
 
 
 def run_case(case_dir: str | Path, workers: int = 0, quick: bool = False) -> dict:
