@@ -162,6 +162,23 @@ def test_atomic_writes_leave_readable_files_and_no_temporaries(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["x.txt"]
 
 
+def test_a_streamed_write_that_fails_midway_keeps_the_previous_file(tmp_path):
+    import numpy as np
+
+    from biopsynav.fileio import load_npz, save_npz_atomic, write_atomic
+
+    path = save_npz_atomic(tmp_path / "x.npz", a=np.arange(3.0))
+
+    def half_then_fail(fh):
+        fh.write(b"PK half a zip")
+        raise RuntimeError("killed midway")
+
+    with pytest.raises(RuntimeError, match="midway"):
+        write_atomic(path, half_then_fail)
+    assert load_npz(path, ["a"], "rebuild")["a"].tolist() == [0.0, 1.0, 2.0]
+    assert [p.name for p in tmp_path.iterdir()] == ["x.npz"]
+
+
 def test_truncated_case_toml_is_refused_and_an_older_one_still_loads(tmp_path):
     save_config(tmp_path, CaseConfig())
     path = tmp_path / "case.toml"

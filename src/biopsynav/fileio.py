@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -26,6 +25,13 @@ _UMASK = _current_umask()
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
+    return write_atomic(path, lambda fh: fh.write(data))
+
+
+def write_atomic(path: str | os.PathLike, writer: Callable[[BinaryIO], Any]) -> Path:
+    """Write ``path`` through a temporary file in the same folder and a rename: ``writer``
+    writes into the open temporary file (streamed, not first built in memory). WriteError
+    when the folder or the file cannot be written (the previous file, if any, unchanged)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -34,7 +40,7 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
         raise WriteError(f"cannot write here: {exc.strerror}", str(path)) from None
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+            writer(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual permissions
@@ -94,9 +100,7 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
 
 def save_npz_atomic(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
     """Save arrays to a compressed ``.npz`` atomically."""
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    return write_bytes_atomic(path, buf.getvalue())
+    return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
 
 
 def load_npz(path: str | os.PathLike, keys: Iterable[str], rebuild: str) -> dict[str, np.ndarray]:
@@ -139,9 +143,8 @@ def read_json(path: str | os.PathLike, rebuild: str, missing_ok: bool = False) -
 
 def save_figure_atomic(fig: Any, path: str | os.PathLike, dpi: int = 120) -> Path:
     """Save a matplotlib figure as PNG atomically."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
-    return write_bytes_atomic(path, buf.getvalue())
+    return write_atomic(path, lambda fh: fig.savefig(fh, format="png", dpi=dpi,
+                                                     bbox_inches="tight"))
 
 
 def json_default(obj: Any) -> Any:

@@ -174,17 +174,13 @@ def keep(path: Path, rows: np.ndarray) -> None:
     compliances (of a model the case no longer has: a folder keeps the one of its model); a
     folder that cannot be written is passed by. (A write of the same file by another process
     at the same moment may then fail: passed by too, the other's lands.)"""
-    import io
-
     from ..errors import WriteError
-    from ..fileio import remove_partial_writes, write_bytes_atomic
+    from ..fileio import remove_partial_writes, write_atomic
 
     if path.parent.is_dir():
         remove_partial_writes(path.parent, [path.name])
-    buf = io.BytesIO()
-    np.savez(buf, zt=rows)
     try:
-        write_bytes_atomic(path, buf.getvalue())
+        write_atomic(path, lambda fh: np.savez(fh, zt=rows))
     except WriteError:
         return
     remove_other_compliances(path)
