@@ -35,6 +35,9 @@ def test_info_names_the_refine_teacher_and_its_contact():
                                  "neo-hookean-split-sri-inner, to 35 mm, 16000 iterations")
     cfg.refine.fictitious_stiffness = 0.05
     assert "neo-hookean-split-sri-inner (fictitious stiffness 0.05), to 35 mm" in refine_words(cfg)
+    cfg.refine.teacher = "p2"
+    assert refine_words(cfg) == ("1000 rigid pushes (20 held out) of P2 tetrahedra (4 mm near "
+                                 "the probe, 10 mm elsewhere), to 35 mm, 16000 iterations")
     assert contact_words(config_from_dict({"tracker": {"fem_contact": "points"}})) == (
         "points: the contact points met")
     words = teacher_words({"teacher_refine": 1, "rigid_share": 1.0, "material_model":

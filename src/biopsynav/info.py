@@ -81,12 +81,16 @@ def refine_words(cfg) -> str:
     r = cfg.refine
     if not r.samples:
         return "off: the case-grid network is the tracker's model"
-    grid = ("the case grid" if r.teacher_refine == 1 else
-            f"cells {r.teacher_refine:g} times smaller"
-            + (f", extrapolated (order {r.extrapolation:g})" if r.extrapolation else ""))
-    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {grid}, "
-            f"{law_words(r.material_model, r.fictitious_stiffness)}, to {r.max_push_mm:g} mm, "
-            f"{r.iterations} iterations")
+    if r.teacher != "grid":
+        teacher = (f"{r.teacher.upper()} tetrahedra ({r.teacher_fine_mm:g} mm near the probe, "
+                   f"{r.teacher_size_mm:g} mm elsewhere)")
+    else:
+        teacher = ("the case grid" if r.teacher_refine == 1 else
+                   f"cells {r.teacher_refine:g} times smaller"
+                   + (f", extrapolated (order {r.extrapolation:g})" if r.extrapolation else ""))
+        teacher += f", {law_words(r.material_model, r.fictitious_stiffness)}"
+    return (f"{r.samples} rigid pushes ({r.held_out} held out) of {teacher}, "
+            f"to {r.max_push_mm:g} mm, {r.iterations} iterations")
 
 
 def law_words(law: str | None, fictitious: float) -> str:
