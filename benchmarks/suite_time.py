@@ -2,8 +2,9 @@
 
     python benchmarks/suite_time.py
 
-Run it alone. Writes ``benchmarks/results/suite-time.json`` (minutes, passed, failed, skipped);
-the last line reads ``RESULT minutes=... passed=... failed=... skipped=...``.
+Run it alone. Prints the 20 slowest tests (pytest's ``--durations``, where the suite's time
+goes). Writes ``benchmarks/results/suite-time.json`` (minutes, passed, failed, skipped); the
+last line reads ``RESULT minutes=... passed=... failed=... skipped=...``.
 """
 
 from __future__ import annotations
@@ -22,6 +23,10 @@ COMMAND = ["-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "--no-loadscop
            "--max-worker-restart", "0"]
 
 
+#: the slowest tests printed
+SLOWEST = 20
+
+
 def counts(output: str) -> dict:
     """passed / failed / skipped / errors of pytest's last summary line."""
     last = output.strip().splitlines()[-1] if output.strip() else ""
@@ -32,9 +37,10 @@ def counts(output: str) -> dict:
 
 def main() -> int:
     start = time.perf_counter()
-    run = subprocess.run([sys.executable, *COMMAND], cwd=ROOT, capture_output=True, text=True)
+    run = subprocess.run([sys.executable, *COMMAND, "--durations", str(SLOWEST)], cwd=ROOT,
+                         capture_output=True, text=True)
     minutes = (time.perf_counter() - start) / 60
-    print(run.stdout[-3000:], run.stderr[-2000:], sep="\n")
+    print(run.stdout[-6000:], run.stderr[-2000:], sep="\n")
     figures = {"minutes": minutes, **counts(run.stdout), "exit_status": run.returncode}
     write_result("suite-time", figures)
     print(f"RESULT minutes={minutes:.2f} passed={figures['passed']} "
