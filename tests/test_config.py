@@ -48,6 +48,8 @@ def test_defaults_round_trip(tmp_path):
     ({"probe": {"max_push_mm": -5.0}}, "below its minimum"),
     ({"dataset": {"teacher_push_limit_s": -1.0}}, "below its minimum"),
     ({"refine": {"teacher_push_limit_s": "long"}}, "must be of type float"),
+    ({"refine": {"teacher_fine_mm": 12.0}}, "teacher_fine_mm (12 mm"),
+    ({"evaluate": {"p2_fine_mm": 8.0, "p2_size_mm": 6.0}}, "p2_fine_mm (8 mm"),
     ({"probe": {"max_push_mm": "deep"}}, "max_push_mm"),
     ({"probe": {"footprint_mm": [float("inf"), 10.0]}}, "two positive lengths"),
     ({"probe": {"footprint_mm": [True, 10.0]}}, "two positive lengths"),

@@ -970,6 +970,18 @@ def _check_teachers(cfg: CaseConfig, where: str) -> None:
                              f"[probe] rigid_share = 1 (now {rigid:g})", where)
 
 
+def _check_tetrahedron_sizes(cfg: CaseConfig, where: str) -> None:
+    """InputError where a P2 mesh's tetrahedra near the probe would be larger than those
+    away from it (``fine_mm`` > ``size_mm``: the refinement reversed)."""
+    for key, size, fine in (
+            ("[evaluate] p2_", cfg.evaluate.p2_size_mm, cfg.evaluate.p2_fine_mm),
+            ("[dataset] teacher_", cfg.dataset.teacher_size_mm, cfg.dataset.teacher_fine_mm),
+            ("[refine] teacher_", cfg.refine.teacher_size_mm, cfg.refine.teacher_fine_mm)):
+        if fine > size:
+            raise InputError(f"{key}fine_mm ({fine:g} mm, the tetrahedra near the probe) must "
+                             f"not exceed {key}size_mm ({size:g} mm, those away from it)", where)
+
+
 def _check_special(cfg: CaseConfig, where: str) -> None:
     fp = cfg.probe.footprint_mm
     if len(fp) != 2 or not all(is_finite_number(v) and 0 < v < 1e3 for v in fp):
@@ -988,6 +1000,7 @@ def _check_special(cfg: CaseConfig, where: str) -> None:
                          "teacher: set [refine] teacher_refine > 1 too, or extrapolation = 0 "
                          "(the case grid's own rigid pushes)", where)
     _check_teachers(cfg, where)
+    _check_tetrahedron_sizes(cfg, where)
     if cfg.probe.rigid_share > 0 and cfg.probe.max_push_mm <= 0:
         raise InputError("[probe] rigid_share > 0 draws rigid push depths in [0, max_push_mm]: "
                          "set [probe] max_push_mm to the deepest push (mm), not 0", where)
