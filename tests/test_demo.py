@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from biopsynav.inference.model_files import meta_checksum
+
 BIN = Path(sys.executable).with_name("biopsynav")
 
 
@@ -58,6 +60,10 @@ def test_demo_writes_report_with_both_tables(quick_demo):
     assert t1["contact_projection"] is False
     meta = json.loads((case / "model" / "meta.json").read_text())
     assert meta["baseline"].get("projection", False) is False
+    # both tables name the model they evaluated (the report flags a model trained since)
+    t2 = json.loads((case / "eval" / "table2.json").read_text())
+    assert t1["model_checksum"] == t2["model_checksum"] == meta_checksum(meta)
+    assert "earlier model" not in md
     assert meta["training"]["setup_s"] > 0 and t1["train_min"] * 60 > meta["training"]["setup_s"]
     assert 0 < t1["mean_e_unprojected_mm"] <= t1["max_e_unprojected_mm"]
     # physical admissibility of the predicted fields, against the FE targets (never inverted)

@@ -119,6 +119,31 @@ def test_report_with_all_outputs_holds_both_tables(init_only):
     assert (init_only / "eval" / "table2.md").read_text().startswith("# Table 2")
 
 
+def test_tables_of_a_model_trained_since_are_flagged(init_only):
+    """table1.json and table2.json record the model they evaluated; once the model is trained
+    again the report says their figures are not the new model's."""
+    from biopsynav.config import load_config, save_config
+    from biopsynav.inference.model_files import meta_checksum
+
+    cfg = load_config(init_only)
+    cfg.refine.samples = 0  # the tracker's model is the case's
+    save_config(init_only, cfg)
+    _fake_outputs(init_only)
+    meta = json.loads((init_only / "model" / "meta.json").read_text())
+    for name in ("table1.json", "table2.json"):
+        path = init_only / "eval" / name
+        path.write_text(json.dumps(json.loads(path.read_text())
+                                   | {"model_checksum": meta_checksum(meta)}))
+    md = write_report(init_only)[1].read_text()
+    assert "earlier model" not in md
+    meta["training"]["train_time_s"] = 61.0  # trained again
+    (init_only / "model" / "meta.json").write_text(json.dumps(meta))
+    md = write_report(init_only)[1].read_text()
+    assert "Table 1 was made with an earlier model than the one now in model/" in md
+    assert "Table 2 by simulation was made with an earlier model" in md
+    assert f"run `biopsynav evaluate {init_only}` to remake it" in md
+
+
 def test_headline_first_parameters_folded_last(init_only):
     """Table 1, Table 2 and the timing open the report; the 80-odd parameters come last,
     folded (HTML <details>)."""

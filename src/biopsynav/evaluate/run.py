@@ -8,8 +8,8 @@ from pathlib import Path
 from ..case import Case, as_case
 from ..dataset.pool import check_workers
 from ..errors import InputError
-from ..fileio import write_json_atomic, write_text_atomic
-from ..layout import EVAL_DIR, TABLE2, TABLE2_MEASURED
+from ..fileio import read_json, write_json_atomic, write_text_atomic
+from ..layout import EVAL_DIR, META, TABLE2, TABLE2_MEASURED
 from ..reference_registry import check_reference
 from ..refine import fine_case
 from .measured import evaluate_measured
@@ -67,11 +67,23 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
         out["lesion_check"] = run_lesion_check(case, workers, log=log)
     if measured is not None:
         result = evaluate_measured(case, poses, measured, log=log)
-        out["table2"] = write_table2(case.dir, result, TABLE2_MEASURED, log)
+        out["table2"] = write_table2(case.dir, result | tracking_model_checksum(case),
+                                     TABLE2_MEASURED, log)
     elif table2:
         result = run_simulation(case, quick=quick, log=log, workers=workers)
-        out["table2"] = write_table2(case.dir, result, TABLE2, log)
+        out["table2"] = write_table2(case.dir, result | tracking_model_checksum(case), TABLE2,
+                                     log)
     return out
+
+
+def tracking_model_checksum(case: Case) -> dict:
+    """``{"model_checksum": ...}`` of the model the tracker uses (its ``meta.json``), so that
+    the report can tell a model trained since; {} where it has none."""
+    from ..inference.model_files import meta_checksum
+
+    meta = read_json(case.paths.tracking_model(bool(case.cfg.refine.samples)) / META, "",
+                     missing_ok=True)
+    return {"model_checksum": meta_checksum(meta)} if isinstance(meta, dict) else {}
 
 
 def write_table2(case_dir: Path, result: dict, stem: str,

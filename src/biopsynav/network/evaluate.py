@@ -17,6 +17,7 @@ from ..dataset.contacts import sample_contact_matrices
 from ..errors import FingerprintError
 from ..fileio import write_json_atomic
 from ..grid.index import tensor_to_field
+from ..inference.model_files import meta_checksum
 from ..inference.surrogate import Surrogate
 from ..layout import TABLE1_FILE, CasePaths
 from .data import Dataset, load_dataset
@@ -120,6 +121,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
                    "max_e_unprojected_mm": float(e_plain.max())})
     meta = sur.meta
     result.update({
+        "model_checksum": meta_checksum(meta),  # the report tells a model trained since
         # the optimisation loop plus the per-sample set-up before it (baseline, projections)
         "train_min": (float(meta["training"]["train_time_s"])
                       + float(meta["training"].get("setup_s", 0.0))) / 60.0,

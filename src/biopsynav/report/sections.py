@@ -184,6 +184,7 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
                      "not reported"])
     rows += kind_table1_rows(t1)
     s.blocks.append(GridTable(["", "this case", "the paper"], rows))
+    s.blocks += earlier_model_blocks(t1, CasePaths(case_dir).model, "Table 1", case_dir)
     s.blocks += rigid_table1_blocks(cfg, t1) + refined_table1_blocks(case_dir, cfg)
     figures = [("error_histogram.png", "Histogram of the mean norm error e over the test "
                                        "samples."),
@@ -196,6 +197,21 @@ def table1_section(case_dir: Path, cfg: CaseConfig) -> Section:
         s.blocks.append(Image(path, caption) if path.is_file() else
                         Note(f"{name} is missing: run `biopsynav evaluate {case_dir}` again."))
     return s
+
+
+def earlier_model_blocks(result: dict, model_dir: Path, what: str, case_dir: Path) -> list:
+    """A note when ``result`` (table1.json, table2.json) records the model it evaluated
+    (``model_checksum``) and the model now in ``model_dir`` is another (trained since);
+    none otherwise (a file from before the checksum was recorded, or no model)."""
+    from ..inference.model_files import meta_checksum
+
+    made_with = result.get("model_checksum")
+    meta = read_stage_json(model_dir / META) if made_with else None
+    if meta is None or meta_checksum(meta) == made_with:
+        return []
+    return [Note(f"{what} was made with an earlier model than the one now in "
+                 f"{model_dir.relative_to(case_dir)}/ (trained since): its figures are not "
+                 f"this model's; run `biopsynav evaluate {case_dir}` to remake it.")]
 
 
 def kind_table1_rows(t1: dict) -> list[list[str]]:
@@ -248,8 +264,16 @@ def refined_table1_blocks(case_dir: Path, cfg: CaseConfig) -> list:
                  f"{refine_teacher_words(cfg)}, refine/eval): mean / max e against that "
                  f"teacher {_num(t1.get('mean_e_mm'))} / {_num(t1.get('max_e_mm'))} mm. The "
                  "table above is the case-grid network it started from, against its own "
-                 "teacher, the case grid's force patches, law "
+                 f"teacher, the case grid's {case_samples_words(cfg)}, law "
                  f"{law_words(cfg.material.model, cfg.material.fictitious_stiffness)}.")]
+
+
+def case_samples_words(cfg: CaseConfig) -> str:
+    """The case data set's kind of sample in words (``[probe] rigid_share``)."""
+    share = cfg.probe.rigid_share
+    if share >= 1.0:
+        return "rigid-probe pushes"
+    return "force patches" if share <= 0.0 else "rigid-probe pushes and force patches"
 
 
 def refine_teacher_words(cfg: CaseConfig) -> str:
@@ -271,6 +295,9 @@ def table2_section(case_dir: Path, fig_dir: Path, cfg: CaseConfig | None = None)
         if result is None:
             continue
         found = True
+        if cfg is not None:
+            model = CasePaths(case_dir).tracking_model(bool(cfg.refine.samples))
+            s.blocks += earlier_model_blocks(result, model, f"Table 2 {title}", case_dir)
         s.blocks += table2_blocks(result, title, fig_dir / f"{stem}.png")
     if not found:
         s.blocks.append(not_run("evaluate", case_dir, "Table 2"))
