@@ -34,6 +34,7 @@ TABLE1_FILE = "table1.json"
 TABLE2 = "table2"  # by simulation: eval/table2.json and eval/table2.md
 TABLE2_MEASURED = "table2_measured"  # from user data: eval/table2_measured.json and .md
 TABLE2_REFERENCE_CACHE = "table2_p2_answers.json"  # the P2 reference's answers, by push
+TABLE2_FINE_GRID_CACHE = "table2_fine_grid_answers.json"  # the fine-grid truth, by lesion
 CONVERGENCE_FILE = "convergence.json"  # benchmarks/convergence.py's study of this case
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
@@ -118,6 +119,11 @@ class CasePaths:
     def table2_reference_cache(self) -> Path:
         """The P2 reference's answers by push (``[evaluate] reference = "p2"``)."""
         return self.eval / TABLE2_REFERENCE_CACHE
+
+    @property
+    def table2_fine_grid_cache(self) -> Path:
+        """The fine-grid truth's answers by lesion (:mod:`biopsynav.evaluate.kept`)."""
+        return self.eval / TABLE2_FINE_GRID_CACHE
 
     @property
     def convergence(self) -> Path:

@@ -24,9 +24,9 @@ def test_the_ground_truth_and_teacher_in_two_processes_are_those_of_this_process
     said: list[str] = []
     said_alone: list[str] = []
     alone = run_simulation(small_table2_case, methods=("fem", "rigid"), log=said_alone.append,
-                           workers=1)
+                           workers=1, keep=False)
     shared = run_simulation(small_table2_case, methods=("fem", "rigid"), log=said.append,
-                            workers=2)
+                            workers=2, keep=False)
     # solved here, each push is announced before its solve (a deep one can take minutes);
     # solved beforehand in the workers, none is
     announced = [line for line in said_alone if ": push " in line]
@@ -50,6 +50,35 @@ def test_the_ground_truth_and_teacher_in_two_processes_are_those_of_this_process
         return {k: v for k, v in result["reference"].items() if k != "description"}
 
     assert facts(shared) == facts(alone)
+
+
+def test_the_ground_truth_is_kept_and_served_until_something_it_depends_on_changes(
+        small_table2_case, tmp_path):
+    """A second evaluation serves the fine-grid truth from eval/table2_fine_grid_answers.json
+    (the same records, no solve); a changed setting, a damaged file or keep=False solves it
+    again."""
+    case = dataclasses.replace(small_table2_case, dir=tmp_path)
+    first: list[str] = []
+    solved = run_simulation(case, methods=("rigid",), log=first.append, workers=1)
+    kept_file = case.paths.table2_fine_grid_cache
+    assert kept_file.is_file() and any(": push 2 of 2" in line for line in first)
+    again: list[str] = []
+    served = run_simulation(case, methods=("rigid",), log=again.append, workers=2)
+    assert any("ground truth: 2 of 2 lesions kept from an earlier evaluation" in line
+               for line in again), again
+    assert not [line for line in again if ": push " in line or "solved in" in line], again
+    assert served["records"] == solved["records"]  # the reference's own solve times included
+    changed = dataclasses.replace(case, cfg=dataclasses.replace(case.cfg, solver=dataclasses.
+                                                                replace(case.cfg.solver,
+                                                                        max_iterations=41)))
+    said: list[str] = []
+    run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
+    assert not [line for line in said if "kept from" in line] and \
+        any(": push " in line for line in said)
+    kept_file.write_text(kept_file.read_text()[:100])  # damaged: solved again, never trusted
+    said.clear()
+    run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
+    assert any(": push " in line for line in said)
 
 
 def test_a_negative_worker_count_is_refused_before_any_work(coarse_phantom, capsys):

@@ -65,10 +65,10 @@ class SolvedAnswers:
         self.answers = answers
 
     def set_rest_pose(self, pose: np.ndarray) -> int:
-        return self.answers[_key(pose)][0]
+        return self.answers[pose_bytes(pose)][0]
 
     def update(self, pose: np.ndarray) -> Any:
-        return self.answers[_key(pose)][1]
+        return self.answers[pose_bytes(pose)][1]
 
 
 class SolvedReference(SolvedAnswers):
@@ -87,8 +87,15 @@ class SolvedReference(SolvedAnswers):
         return self.reference.describe()
 
 
-def _key(pose: np.ndarray) -> bytes:
+def pose_bytes(pose: np.ndarray) -> bytes:
+    """A pose (4, 4) as the key of :class:`SolvedAnswers`: its bytes."""
     return np.ascontiguousarray(pose, dtype=np.float64).tobytes()
+
+
+def lesion_answers(answers: Answers, rest: np.ndarray,
+                   poses: list[np.ndarray]) -> tuple[int, list[Any]]:
+    """A lesion's (contact points at rest, one answer per pose) from ``answers``."""
+    return answers[pose_bytes(rest)][0], [answers[pose_bytes(p)][1] for p in poses]
 
 
 def solve_in_workers(factory: Callable[..., Any], args: tuple,
@@ -116,9 +123,9 @@ def solve_in_workers(factory: Callable[..., Any], args: tuple,
                     pending.remove(future)
                     rest, poses = lesions[futures[future]]
                     n_contact, results = future.result()
-                    answers.update({_key(p): (n_contact, r)
+                    answers.update({pose_bytes(p): (n_contact, r)
                                     for p, r in zip(poses, results, strict=True)})
-                    answers.setdefault(_key(rest), (n_contact, None))
+                    answers.setdefault(pose_bytes(rest), (n_contact, None))
         except BrokenProcessPool:
             pool.check_started()  # a script without the __main__ guard: named as such
             raise BiopsynavError(f"a worker process of {what} died with {len(pending)} of its "

@@ -89,9 +89,12 @@ def setup_for(case: Case, quick: bool) -> Setup:
 
 
 def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, quick: bool = False,
-                   log: Callable[[str], None] = print, workers: int = 0) -> dict:
+                   log: Callable[[str], None] = print, workers: int = 0,
+                   keep: bool = True) -> dict:
     """Table 2 by simulation of ``case`` (loaded, or its folder); returns the JSON-ready result.
-    A fine-grid ground truth, then the ``fem`` method, are solved first in ``workers`` local
+    A fine-grid ground truth (its lesions kept from an earlier run where ``keep`` and nothing
+    it depends on changed, :mod:`biopsynav.evaluate.kept`; the others kept for the next),
+    then the ``fem`` method, are solved first in ``workers`` local
     processes (0: one per core; 1: in this process, push by push;
     :mod:`biopsynav.evaluate.parallel`).
 
@@ -117,21 +120,17 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
                                                                 setup.max_push_mm)))
              for k, (li, placement) in enumerate(plans)]
     workers = workers or os.cpu_count() or 1
-    reference = solved_beforehand(reference, case, setup, settings, plans, workers, log)
+    reference = solved_beforehand(reference, case, setup, settings, plans, workers, log, keep)
     trackers = method_trackers(case, methods, settings,
                                teacher_beforehand(case, methods, settings, plans, workers, log))
     records: list[Record] = []
     placements = []
-    announce = solves_here(reference)  # a deep push can take minutes: say which is running
     for li, placement, depths in plans:
         t_les = time.perf_counter()
         n_contact = _set_rest(placement, reference, trackers)
         placements.append({**placement.to_dict(), "n_contact": n_contact,
                            "push_depths_mm": depths.tolist()})
         for p, depth in enumerate(depths):
-            if announce:
-                log(f"  lesion {placement.lesion}: push {p + 1} of {len(depths)} "
-                    f"({depth:.1f} mm) ...")
             records += push_records(placement, li, p, float(depth), reference, trackers, methods)
         log(f"  lesion {placement.lesion}: {n_contact} contact points, pushes "
             f"{', '.join(f'{d:.1f}' for d in depths)} mm, {time.perf_counter() - t_les:.1f} s")
@@ -162,17 +161,66 @@ Plans = list[tuple[int, Placement, np.ndarray]]  # (lesion index, placement, dep
 
 
 def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSettings,
-                      plans: Plans, workers: int, log: Callable[[str], None]):
-    """``reference`` with every push of ``plans`` solved in ``workers`` local processes
-    (:func:`in_workers`) when its rest poses are independent (``independent_rest_poses``: the
-    fine grid); else ``reference`` itself, which then solves as it is asked."""
-    from .parallel import SolvedReference, grid_reference
+                      plans: Plans, workers: int, log: Callable[[str], None], keep: bool = True):
+    """``reference`` with every push of ``plans`` answered beforehand when its rest poses are
+    independent (``independent_rest_poses``: the fine grid): the lesions kept from an earlier
+    run (``keep``, :mod:`biopsynav.evaluate.kept`), the others solved in ``workers`` local
+    processes (:func:`in_workers`) or in this process (:func:`solved_here`) and kept; else
+    ``reference`` itself, which then solves as it is asked."""
+    from .kept import KeptTruth, truth_key
+    from .parallel import SolvedReference, grid_reference, lesion_answers
 
     if not getattr(reference, "independent_rest_poses", False):
         return reference
-    answers = in_workers(grid_reference, (type(reference), case, setup, settings), plans,
+    kept = KeptTruth(case.paths.table2_fine_grid_cache,
+                     truth_key(case, setup.refinement, settings) if keep else "")
+    held = [keep and kept.holds(*lesion_poses(plan)) for plan in plans]
+    todo = [plan for plan, h in zip(plans, held, strict=True) if not h]
+    if any(held):
+        log(f"  ground truth: {sum(held)} of {len(plans)} lesions kept from an earlier "
+            f"evaluation ({kept.path.name})")
+    answers = in_workers(grid_reference, (type(reference), case, setup, settings), todo,
                          workers, "ground truth", log)
-    return reference if answers is None else SolvedReference(reference, answers)
+    if answers is None:
+        answers = solved_here(reference, todo, log)
+    for plan, h in zip(plans, held, strict=True):
+        rest, poses = lesion_poses(plan)
+        if h:
+            answers.update(kept_answers(rest, poses, *kept.answers(rest, poses)))
+        elif keep:
+            kept.keep(rest, poses, *lesion_answers(answers, rest, poses))
+    return SolvedReference(reference, answers)
+
+
+def lesion_poses(plan: tuple) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A plan's rest pose (4, 4) and its pushed poses, one per depth."""
+    _, placement, depths = plan
+    return placement.pose, [placement.pushed(float(d)) for d in depths]
+
+
+def kept_answers(rest: np.ndarray, poses: list[np.ndarray], n_contact: int,
+                 results: list) -> dict:
+    """A lesion's kept answers as :class:`~biopsynav.evaluate.parallel.SolvedAnswers`
+    holds them."""
+    from .parallel import pose_bytes
+
+    out = {pose_bytes(p): (n_contact, r) for p, r in zip(poses, results, strict=True)}
+    return out | {pose_bytes(rest): (n_contact, None)}
+
+
+def solved_here(reference, plans: Plans, log: Callable[[str], None]) -> dict:
+    """Every push of ``plans`` answered by ``reference`` in this process, each push announced
+    before its solve (a deep one can take minutes), as
+    :class:`~biopsynav.evaluate.parallel.SolvedAnswers` holds them."""
+    answers: dict = {}
+    for plan in plans:
+        rest, poses = lesion_poses(plan)
+        n_contact, results = reference.set_rest_pose(rest), []
+        for p, (pose, depth) in enumerate(zip(poses, plan[2], strict=True)):
+            log(f"  lesion {plan[1].lesion}: push {p + 1} of {len(poses)} ({depth:.1f} mm) ...")
+            results.append(reference.update(pose))
+        answers.update(kept_answers(rest, poses, n_contact, results))
+    return answers
 
 
 def in_workers(factory, args: tuple, plans: Plans, workers: int, what: str,
@@ -183,8 +231,7 @@ def in_workers(factory, args: tuple, plans: Plans, workers: int, what: str,
     process) for fewer than two workers or lesions."""
     from .parallel import solve_in_workers
 
-    lesions = [(placement.pose, [placement.pushed(float(d)) for d in depths])
-               for _, placement, depths in plans]
+    lesions = [lesion_poses(plan) for plan in plans]
     if workers < 2 or len(lesions) < 2:
         return None
     start = time.perf_counter()
@@ -243,15 +290,6 @@ def method_trackers(case: Case, methods: Sequence[str], settings: SolverSettings
         trackers["fem"] = (fem_engine(case, settings) if fem_answers is None
                            else SolvedAnswers(fem_answers))
     return trackers
-
-
-def solves_here(reference) -> bool:
-    """Whether ``reference`` is a fine-grid truth that solves each push in this process as it
-    is asked (not served from the answers of :func:`solved_beforehand`)."""
-    from .parallel import SolvedAnswers
-
-    return bool(getattr(reference, "independent_rest_poses", False)) and \
-        not isinstance(reference, SolvedAnswers)
 
 
 def _set_rest(placement: Placement, reference, trackers: dict) -> int:

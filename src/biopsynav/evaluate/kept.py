@@ -1,0 +1,122 @@
+"""Table 2's fine-grid ground truth kept between evaluations.
+
+The fine-grid truth (:class:`~biopsynav.evaluate.references.GridReference`) is most of a
+patient's evaluation (minutes), and it depends on neither network: a model trained again
+meets the same truth. Each lesion's answers (its contact points at rest and one
+:class:`~biopsynav.tracker.result.TrackingResult` per push) are kept in
+``CASE/eval/table2_fine_grid_answers.json`` under a key of everything they depend on
+(:func:`truth_key`): the anatomy, every setting outside ``[network]``, ``[igtl]`` and
+``[case]``, the reference's refinement and solver settings, and the bytes of biopsynav's own
+source files, so that a changed case, setting or FE code solves them again rather than
+serving another truth. A lesion is served from the file only when every one of its pushes is
+there, and kept only when every one was solved (a deeper push continues from the one before:
+a lesion's pushes are one solve). A damaged or foreign file is solved again, never trusted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: The configuration's sections that a fine-grid answer does not depend on
+UNUSED_SECTIONS = ("network", "igtl", "case")
+#: The layout of the kept file
+FORMAT = "biopsynav-fine-grid-truth/1"
+
+
+def truth_key(case: Any, refinement: float, settings: Any) -> str:
+    """SHA-256 (hex) of what a fine-grid answer of ``case`` depends on: its anatomy, its
+    configuration outside :data:`UNUSED_SECTIONS`, the reference's ``refinement`` and solver
+    ``settings`` (a :class:`~biopsynav.fem.solver.SolverSettings`), and biopsynav's source."""
+    cfg = {k: v for k, v in case.cfg.to_dict().items() if k not in UNUSED_SECTIONS}
+    what = {"anatomy": case.anatomy.fingerprint(), "config": cfg,
+            "refinement": float(refinement), "settings": dataclasses.asdict(settings),
+            "code": source_digest()}
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def source_digest() -> str:
+    """SHA-256 (hex) of every Python file of the biopsynav package, by relative path."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+class KeptTruth:
+    """The kept answers of one fine-grid truth (``key``) in the file ``path``."""
+
+    def __init__(self, path: Path, key: str) -> None:
+        self.path, self.key = Path(path), key
+        self.lesions: dict[str, dict] = read_lesions(self.path, key)
+
+    def holds(self, rest: np.ndarray, poses: list[np.ndarray]) -> bool:
+        """Whether every push ``poses`` ((4, 4) each) over the rest pose ``rest`` is kept."""
+        kept = self.lesions.get(pose_name(rest))
+        return kept is not None and all(pose_name(p) in kept["pushes"] for p in poses)
+
+    def answers(self, rest: np.ndarray, poses: list[np.ndarray]) -> tuple[int, list[Any]]:
+        """The kept (contact points at rest, one TrackingResult per pose) of a lesion that
+        :meth:`holds`."""
+        kept = self.lesions[pose_name(rest)]
+        return int(kept["n_contact"]), [result_from_json(kept["pushes"][pose_name(p)])
+                                        for p in poses]
+
+    def keep(self, rest: np.ndarray, poses: list[np.ndarray], n_contact: int,
+             results: list[Any]) -> None:
+        """Add a lesion's solved pushes and write the file (atomically; a folder that cannot
+        be written only costs the solves next time)."""
+        from ..errors import WriteError
+        from ..fileio import write_json_atomic
+
+        pushes = {pose_name(p): result_to_json(r) for p, r in zip(poses, results, strict=True)}
+        self.lesions[pose_name(rest)] = {"n_contact": int(n_contact), "pushes": pushes}
+        try:
+            write_json_atomic(self.path, {"format": FORMAT, "key": self.key,
+                                          "lesions": self.lesions})
+        except WriteError:
+            return
+
+
+def read_lesions(path: Path, key: str) -> dict[str, dict]:
+    """The kept lesions of ``path`` when it is whole and of ``key``; else {}."""
+    try:
+        stored = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(stored, dict) or stored.get("format") != FORMAT \
+            or stored.get("key") != key or not isinstance(stored.get("lesions"), dict):
+        return {}
+    return stored["lesions"]
+
+
+def pose_name(pose: np.ndarray) -> str:
+    """A pose (4, 4) as a key: its entries rounded to 1e-9 (mm and rotation entries)."""
+    rounded = np.round(np.asarray(pose, dtype=np.float64)[:3], 9) + 0.0
+    return hashlib.sha256(rounded.tobytes()).hexdigest()[:32]
+
+
+def result_to_json(result: Any) -> dict:
+    """A TrackingResult's status, reason, solve time and lesions as plain JSON."""
+    return {"status": result.status, "reason": result.reason,
+            "latency_ms": float(result.latency_ms),
+            "lesions": [{"id": int(les.id), "center": np.asarray(les.center).tolist(),
+                         "displacement": np.asarray(les.displacement).tolist(),
+                         "status": les.status} for les in result.lesions]}
+
+
+def result_from_json(data: dict) -> Any:
+    """The TrackingResult of :func:`result_to_json`."""
+    from ..tracker.result import LesionResult, TrackingResult
+
+    lesions = [LesionResult(int(les["id"]), np.asarray(les["center"], dtype=np.float64),
+                            np.asarray(les["displacement"], dtype=np.float64),
+                            str(les["status"])) for les in data["lesions"]]
+    return TrackingResult(lesions, str(data["status"]), str(data["reason"]),
+                          float(data["latency_ms"]))
