@@ -54,7 +54,7 @@ class KeptTruth:
 
     def __init__(self, path: Path, key: str) -> None:
         self.path, self.key = Path(path), key
-        self.lesions: dict[str, dict] = kept_lesions(self.path, key)
+        self.lesions: dict[str, dict] = kept_truth_lesions(self.path, key)
 
     def holds(self, rest: np.ndarray, poses: list[np.ndarray]) -> bool:
         """Whether every push ``poses`` ((4, 4) each) over the rest pose ``rest`` is kept."""
@@ -84,7 +84,7 @@ class KeptTruth:
             return
 
 
-def kept_lesions(path: Path, key: str) -> dict[str, dict]:
+def kept_truth_lesions(path: Path, key: str) -> dict[str, dict]:
     """The kept lesions of ``path`` when it is whole and of ``key``; else {}."""
     try:
         stored = json.loads(path.read_text(encoding="utf-8"))
