@@ -19,6 +19,8 @@ MODELLED_KEYS = ("breast_volume_ml", "extent_mm", "back_held_share", "lesion_cro
 def case_summary(case: Case | str | Path) -> dict:
     """Anatomy, lesions, chest wall, grid and stage status of ``case`` (loaded, or its folder)
     as a plain dict (mm, mL)."""
+    from .evaluate.run import stale_evaluations
+
     case = as_case(case)
     a, g = case.anatomy, case.grid
     facts = read_json(case.paths.facts, "rebuild the case with `biopsynav "
@@ -57,6 +59,7 @@ def case_summary(case: Case | str | Path) -> dict:
         "modelled": {k: facts[k] for k in MODELLED_KEYS if k in facts},
         "warnings": list(facts.get("warnings", [])),
         "stages": case.stages_done(),
+        "stale_evaluations": stale_evaluations(case),
         "model_teacher": model_teacher(case, tracking),
         "bounds": bound_words(case, tracking),
         "fe_contact": contact_words(case.cfg),
@@ -242,6 +245,9 @@ def format_summary(s: dict) -> str:
           for t in s["tissues"]],
         "  stages    " + ", ".join(f"{k} {'done' if v else '-'}" for k, v in s["stages"].items()),
     ]
+    if s.get("stale_evaluations"):
+        lines.append(f"  evaluation {', '.join(s['stale_evaluations'])} of an earlier model "
+                     "(trained since): run `biopsynav evaluate CASE`")
     lines.append(f"  contact   {s['fe_contact']}")
     lines.append(f"  refine    {s['refine']}")
     if s.get("model_teacher"):

@@ -124,6 +124,7 @@ def test_tables_of_a_model_trained_since_are_flagged(init_only):
     again the report says their figures are not the new model's."""
     from biopsynav.config import load_config, save_config
     from biopsynav.inference.model_files import meta_checksum
+    from biopsynav.info import case_summary
 
     cfg = load_config(init_only)
     cfg.refine.samples = 0  # the tracker's model is the case's
@@ -136,12 +137,14 @@ def test_tables_of_a_model_trained_since_are_flagged(init_only):
                                    | {"model_checksum": meta_checksum(meta)}))
     md = write_report(init_only)[1].read_text()
     assert "earlier model" not in md
+    assert case_summary(init_only)["stale_evaluations"] == []
     meta["training"]["train_time_s"] = 61.0  # trained again
     (init_only / "model" / "meta.json").write_text(json.dumps(meta))
     md = write_report(init_only)[1].read_text()
     assert "Table 1 was made with an earlier model than the one now in model/" in md
     assert "Table 2 by simulation was made with an earlier model" in md
     assert f"run `biopsynav evaluate {init_only}` to remake it" in md
+    assert case_summary(init_only)["stale_evaluations"] == ["table1.json", "table2.json"]
 
 
 def test_headline_first_parameters_folded_last(init_only):

@@ -76,6 +76,28 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
     return out
 
 
+def made_with_another_model(result: dict, model_dir: Path) -> bool:
+    """Whether ``result`` (table1.json, table2.json) records the model it evaluated
+    (``model_checksum``) and the model now in ``model_dir`` is another (trained since);
+    False for a file from before the checksum was recorded, or no model."""
+    from ..inference.model_files import meta_checksum
+
+    made_with = result.get("model_checksum")
+    meta = read_json(Path(model_dir) / META, "", missing_ok=True) if made_with else None
+    return isinstance(meta, dict) and meta_checksum(meta) != made_with
+
+
+def stale_evaluations(case: Case) -> list[str]:
+    """The names of ``case``'s Table 1 and Table 2 files made with another model than the
+    one now evaluated (:func:`made_with_another_model`)."""
+    paths = case.paths
+    files = [(paths.table1, paths.model)] + [
+        (paths.table2(stem), paths.tracking_model(bool(case.cfg.refine.samples)))
+        for stem in (TABLE2, TABLE2_MEASURED)]
+    return [f.name for f, model in files if f.is_file()
+            and made_with_another_model(read_json(f, "", missing_ok=True) or {}, model)]
+
+
 def tracking_model_checksum(case: Case) -> dict:
     """``{"model_checksum": ...}`` of the model the tracker uses (its ``meta.json``), so that
     the report can tell a model trained since; {} where it has none."""

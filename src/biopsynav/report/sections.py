@@ -203,11 +203,9 @@ def earlier_model_blocks(result: dict, model_dir: Path, what: str, case_dir: Pat
     """A note when ``result`` (table1.json, table2.json) records the model it evaluated
     (``model_checksum``) and the model now in ``model_dir`` is another (trained since);
     none otherwise (a file from before the checksum was recorded, or no model)."""
-    from ..inference.model_files import meta_checksum
+    from ..evaluate.run import made_with_another_model
 
-    made_with = result.get("model_checksum")
-    meta = read_stage_json(model_dir / META) if made_with else None
-    if meta is None or meta_checksum(meta) == made_with:
+    if not made_with_another_model(result, model_dir):
         return []
     return [Note(f"{what} was made with an earlier model than the one now in "
                  f"{model_dir.relative_to(case_dir)}/ (trained since): its figures are not "
