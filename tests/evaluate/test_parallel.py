@@ -4,6 +4,7 @@ of a run that solves them push by push in this process."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 
@@ -79,6 +80,13 @@ def test_the_ground_truth_is_kept_and_served_until_something_it_depends_on_chang
     said.clear()
     run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
     assert any(": push " in line for line in said)
+    stored = json.loads(kept_file.read_text())  # a malformed entry: that lesion solved again
+    first_lesion = next(iter(stored["lesions"]))
+    stored["lesions"][first_lesion]["pushes"] = {"x": {"status": "ok"}}
+    kept_file.write_text(json.dumps(stored))
+    said.clear()
+    run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
+    assert any("1 of 2 lesions kept" in line for line in said), said
 
 
 def test_a_negative_worker_count_is_refused_before_any_work(coarse_phantom, capsys):

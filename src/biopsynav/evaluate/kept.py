@@ -57,16 +57,19 @@ class KeptTruth:
         self.lesions: dict[str, dict] = kept_truth_lesions(self.path, key)
 
     def holds(self, rest: np.ndarray, poses: list[np.ndarray]) -> bool:
-        """Whether every push ``poses`` ((4, 4) each) over the rest pose ``rest`` is kept."""
-        kept = self.lesions.get(pose_name(rest))
-        return kept is not None and all(pose_name(p) in kept["pushes"] for p in poses)
+        """Whether every push ``poses`` ((4, 4) each) over the rest pose ``rest`` is kept,
+        and readable."""
+        return self.answers(rest, poses) is not None
 
-    def answers(self, rest: np.ndarray, poses: list[np.ndarray]) -> tuple[int, list[Any]]:
-        """The kept (contact points at rest, one TrackingResult per pose) of a lesion that
-        :meth:`holds`."""
-        kept = self.lesions[pose_name(rest)]
-        return int(kept["n_contact"]), [result_from_json(kept["pushes"][pose_name(p)])
-                                        for p in poses]
+    def answers(self, rest: np.ndarray, poses: list[np.ndarray]) -> tuple[int, list[Any]] | None:
+        """The kept (contact points at rest, one TrackingResult per pose) of a lesion; None
+        where one is missing or its entry is malformed (solved again, never trusted)."""
+        try:
+            kept = self.lesions[pose_name(rest)]
+            return int(kept["n_contact"]), [result_from_json(kept["pushes"][pose_name(p)])
+                                            for p in poses]
+        except (KeyError, TypeError, ValueError, AttributeError):
+            return None
 
     def keep(self, rest: np.ndarray, poses: list[np.ndarray], n_contact: int,
              results: list[Any]) -> None:

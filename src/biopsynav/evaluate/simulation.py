@@ -174,19 +174,19 @@ def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSetti
         return reference
     kept = KeptTruth(case.paths.table2_fine_grid_cache,
                      truth_key(case, setup.refinement, settings) if keep else "")
-    held = [keep and kept.holds(*lesion_poses(plan)) for plan in plans]
-    todo = [plan for plan, h in zip(plans, held, strict=True) if not h]
-    if any(held):
-        log(f"  ground truth: {sum(held)} of {len(plans)} lesions kept from an earlier "
-            f"evaluation ({kept.path.name})")
+    held = [kept.answers(*lesion_poses(plan)) if keep else None for plan in plans]
+    todo = [plan for plan, h in zip(plans, held, strict=True) if h is None]
+    if len(todo) < len(plans):
+        log(f"  ground truth: {len(plans) - len(todo)} of {len(plans)} lesions kept from an "
+            f"earlier evaluation ({kept.path.name})")
     answers = in_workers(grid_reference, (type(reference), case, setup, settings), todo,
                          workers, "ground truth", log)
     if answers is None:
         answers = solved_here(reference, todo, log)
     for plan, h in zip(plans, held, strict=True):
         rest, poses = lesion_poses(plan)
-        if h:
-            answers.update(kept_answers(rest, poses, *kept.answers(rest, poses)))
+        if h is not None:
+            answers.update(kept_answers(rest, poses, *h))
         elif keep:
             kept.keep(rest, poses, *lesion_answers(answers, rest, poses))
     return SolvedReference(reference, answers)
