@@ -34,6 +34,9 @@ figures recorded too (``table1_force_patches_mean_e_mm``, ...). ``--prior`` and
 prior"); the result is then
 ``time-to-model-<case>[-<recipe>]-prior.json`` (``-itN`` added with ``--iterations N``).
 
+The run's own estimate, printed before its long stages (docs/pipeline.md, "The expected
+time"), is recorded beside the time taken (``expected_min``).
+
 Writes ``benchmarks/results/time-to-model-<case>.json``; the last line reads
 ``RESULT total_min=... train_min=... tre_d10_mm=... tre_d30_mm=...`` (nan where not measured).
 """
@@ -90,8 +93,9 @@ def check_network(network: dict) -> None:
 
 def build_and_run(kind: str, case_dir: Path, network: dict, recipe: str) -> tuple[dict, float]:
     """The pipeline from nothing with training data of ``recipe``, ``[network]`` values
-    ``network`` set in the new case (none: the recipe's): its stage times (s) and the init's
-    time (s)."""
+    ``network`` set in the new case (none: the recipe's): what the run returns (its stage
+    times ``timings_s``, s, and its estimate before the long stages ``expected_min``) and the
+    init's time (s)."""
     from biopsynav.case import make_phantom_case
     from biopsynav.config import load_config, save_config
     from biopsynav.pipeline import demo_overrides, run_case, run_demo
@@ -101,7 +105,7 @@ def build_and_run(kind: str, case_dir: Path, network: dict, recipe: str) -> tupl
         if network:  # what run_demo builds, with those values
             make_phantom_case(case_dir, overrides=merged(demo_overrides(recipe, False),
                                                          {"network": network}))
-        return run_demo(case_dir, recipe=recipe)["timings_s"], 0.0
+        return run_demo(case_dir, recipe=recipe), 0.0
     t = time.perf_counter()
     init_ucdavis(case_dir, homogeneous=kind == "ucdavis-homogeneous", recipe=recipe)
     if network:
@@ -109,7 +113,7 @@ def build_and_run(kind: str, case_dir: Path, network: dict, recipe: str) -> tupl
         save_config(case_dir, dataclasses.replace(
             cfg, network=dataclasses.replace(cfg.network, **network)))
     init_s = time.perf_counter() - t
-    return run_case(case_dir)["timings_s"], init_s
+    return run_case(case_dir), init_s
 
 
 def stage_minutes(case_dir: Path, timings: dict, init_s: float) -> dict:
@@ -206,13 +210,14 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"time_to_model: {case_dir} exists; the benchmark starts from nothing")
     probes = speed_probes()
     start = time.perf_counter()
-    timings, init_s = build_and_run(args.case, case_dir, network, args.recipe)
+    run, init_s = build_and_run(args.case, case_dir, network, args.recipe)
     total_min = (time.perf_counter() - start) / 60
-    minutes = stage_minutes(case_dir, timings, init_s)
+    minutes = stage_minutes(case_dir, run["timings_s"], init_s)
     table1 = json.loads((case_dir / "eval" / "table1.json").read_text())
     tre = {} if args.no_truth else truth_tre(args.case, case_dir)
     meta = json.loads((case_dir / "model" / "meta.json").read_text())["training"]
     figures = {"total_min": total_min, "stages_min": minutes,
+               "expected_min": run.get("expected_min"),  # the run's own estimate
                "train_min": minutes.get("network training", math.nan),
                **table1_figures(table1), "precision": meta.get("precision"),
                "train_iterations": meta.get("iterations"),
@@ -225,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)
     print("\n".join(f"  {k:<22} {v:6.2f} min" for k, v in minutes.items()))
+    if run.get("expected_min") is not None:
+        print(f"  the run expected about {run['expected_min']:.1f} min before its long stages")
     print(f"RESULT total_min={total_min:.2f} train_min={figures['train_min']:.2f} "
           f"tre_d10_mm={tre.get('tre_d10_mm', math.nan):.3f} "
           f"tre_d30_mm={tre.get('tre_d30_mm', math.nan):.3f}")
