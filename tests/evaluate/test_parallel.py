@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from biopsynav.case import Case
@@ -53,11 +54,10 @@ def test_the_ground_truth_and_teacher_in_two_processes_are_those_of_this_process
     assert facts(shared) == facts(alone)
 
 
-def test_the_ground_truth_is_kept_and_served_until_something_it_depends_on_changes(
-        small_table2_case, tmp_path):
+def test_the_ground_truth_is_kept_and_served_to_the_next_evaluation(small_table2_case,
+                                                                     tmp_path):
     """A second evaluation serves the fine-grid truth from eval/table2_fine_grid_answers.json
-    (the same records, no solve); a changed setting, a damaged file or keep=False solves it
-    again."""
+    (the same records, no solve); a malformed lesion there is solved again."""
     case = dataclasses.replace(small_table2_case, dir=tmp_path)
     first: list[str] = []
     solved = run_simulation(case, methods=("rigid",), log=first.append, workers=1)
@@ -69,24 +69,46 @@ def test_the_ground_truth_is_kept_and_served_until_something_it_depends_on_chang
                for line in again), again
     assert not [line for line in again if ": push " in line or "solved in" in line], again
     assert served["records"] == solved["records"]  # the reference's own solve times included
-    changed = dataclasses.replace(case, cfg=dataclasses.replace(case.cfg, solver=dataclasses.
-                                                                replace(case.cfg.solver,
-                                                                        max_iterations=41)))
-    said: list[str] = []
-    run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
-    assert not [line for line in said if "kept from" in line] and \
-        any(": push " in line for line in said)
-    kept_file.write_text(kept_file.read_text()[:100])  # damaged: solved again, never trusted
-    said.clear()
-    run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
-    assert any(": push " in line for line in said)
-    stored = json.loads(kept_file.read_text())  # a malformed entry: that lesion solved again
-    first_lesion = next(iter(stored["lesions"]))
-    stored["lesions"][first_lesion]["pushes"] = {"x": {"status": "ok"}}
+    stored = json.loads(kept_file.read_text())
+    stored["lesions"][next(iter(stored["lesions"]))]["pushes"] = {"x": {"status": "ok"}}
     kept_file.write_text(json.dumps(stored))
-    said.clear()
-    run_simulation(changed, methods=("rigid",), log=said.append, workers=1)
+    said: list[str] = []
+    again = run_simulation(case, methods=("rigid",), log=said.append, workers=1)
     assert any("1 of 2 lesions kept" in line for line in said), said
+
+    def untimed(result: dict) -> list:  # that lesion's truth solved again: its own times
+        return [{k: v for k, v in r.items() if k not in ("time_ms", "tre_mm")}
+                for r in result["records"]]
+
+    assert untimed(again) == untimed(solved)
+    for a, b in zip(again["records"], solved["records"], strict=True):  # factored on two
+        assert (a["tre_mm"] is None and b["tre_mm"] is None) or \
+            a["tre_mm"] == pytest.approx(b["tre_mm"], abs=1e-9)  # threads: round-off
+
+
+def test_the_kept_truth_is_keyed_by_what_it_depends_on(small_table2_case, tmp_path):
+    """Another setting outside [network], [igtl] and [case] is another truth; a damaged or
+    foreign file holds none."""
+    from biopsynav.evaluate.kept import KeptTruth, truth_key
+    from biopsynav.evaluate.simulation import evaluation_solver_settings
+
+    case = small_table2_case
+    settings = evaluation_solver_settings(case)
+    key = truth_key(case, 1.5, settings)
+    net = dataclasses.replace(case.cfg.network, iterations=case.cfg.network.iterations + 1)
+    assert truth_key(dataclasses.replace(case, cfg=dataclasses.replace(case.cfg, network=net)),
+                     1.5, settings) == key
+    solver = dataclasses.replace(case.cfg.solver, max_iterations=41)
+    assert truth_key(dataclasses.replace(case, cfg=dataclasses.replace(case.cfg, solver=solver)),
+                     1.5, settings) != key
+    assert truth_key(case, 2.0, settings) != key
+    path = tmp_path / "kept.json"
+    rest = np.eye(4)
+    KeptTruth(path, key).keep(rest, [], 7, [])
+    assert KeptTruth(path, key).answers(rest, []) == (7, [])
+    assert KeptTruth(path, "another").answers(rest, []) is None
+    path.write_text(path.read_text()[:20])
+    assert KeptTruth(path, key).answers(rest, []) is None
 
 
 def test_a_negative_worker_count_is_refused_before_any_work(coarse_phantom, capsys):
