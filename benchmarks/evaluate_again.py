@@ -8,8 +8,8 @@ CASE: a trained case whose Table 2 truth is the fine grid (``[evaluate] referenc
 folder). Its anatomy, grid, configuration, data set and model are copied into a temporary
 folder (no ``eval/``), then ``biopsynav evaluate`` runs there twice: the first solves the
 truth and keeps it, the second is what a re-evaluation after training again costs. Printed:
-both wall times and whether the second's Table 2 records (their times aside) are the
-first's. Run it alone.
+both wall times and whether the second's Table 2 records agree with the first's
+(:func:`same_records`). Run it alone.
 
 Writes ``benchmarks/results/evaluate-again-<case>.json``; the last line reads ``RESULT
 first_s=... again_s=... same_records=...``.
@@ -54,10 +54,19 @@ def timed_evaluation(case_dir: Path, workers: int) -> tuple[float, list]:
     return seconds, json.loads((case_dir / "eval" / "table2.json").read_text())["records"]
 
 
-def without_times(records: list[dict]) -> list[dict]:
-    """Table 2's records without the methods' own times (the network's and the FE method's
-    differ from run to run; the truth's is its solve's, kept with it)."""
-    return [{k: v for k, v in r.items() if k != "time_ms"} for r in records]
+def same_records(a: list[dict], b: list[dict]) -> bool:
+    """Whether two runs' Table 2 records agree: the same lesions, pushes, methods and
+    statuses, TREs within 1e-9 mm (the FE method is solved again: round-off), their times
+    aside (the network's and the FE method's differ from run to run)."""
+    def key(r: dict) -> dict:
+        return {k: v for k, v in r.items() if k not in ("time_ms", "tre_mm")}
+
+    def close(x, y) -> bool:
+        return (x is None and y is None) or (x is not None and y is not None
+                                             and abs(x - y) <= 1e-9)
+
+    return len(a) == len(b) and all(key(r) == key(s) and close(r["tre_mm"], s["tre_mm"])
+                                    for r, s in zip(a, b, strict=False))
 
 
 def parser() -> argparse.ArgumentParser:
@@ -79,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         case_dir = trained_copy(args.case, Path(work))
         first_s, first = timed_evaluation(case_dir, args.workers)
         again_s, again = timed_evaluation(case_dir, args.workers)
-    same = without_times(first) == without_times(again)
+    same = same_records(first, again)
     figures = {"first_s": first_s, "again_s": again_s, "same_records": same,
                "records": len(first)}
     write_result(args.result_name or f"evaluate-again-{args.case.name}", figures,
