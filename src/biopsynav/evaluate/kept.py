@@ -56,11 +56,6 @@ class KeptTruth:
         self.path, self.key = Path(path), key
         self.lesions: dict[str, dict] = kept_truth_lesions(self.path, key)
 
-    def holds(self, rest: np.ndarray, poses: list[np.ndarray]) -> bool:
-        """Whether every push ``poses`` ((4, 4) each) over the rest pose ``rest`` is kept,
-        and readable."""
-        return self.answers(rest, poses) is not None
-
     def answers(self, rest: np.ndarray, poses: list[np.ndarray]) -> tuple[int, list[Any]] | None:
         """The kept (contact points at rest, one TrackingResult per pose) of a lesion; None
         where one is missing or its entry is malformed (solved again, never trusted)."""
