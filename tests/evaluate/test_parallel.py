@@ -69,6 +69,9 @@ def test_the_ground_truth_is_kept_and_served_to_the_next_evaluation(small_table2
                for line in again), again
     assert not [line for line in again if ": push " in line or "solved in" in line], again
     assert served["records"] == solved["records"]  # the reference's own solve times included
+    assert served["reference"]["kept_lesions"] == 2 and "kept_lesions" not in solved["reference"]
+    assert "2 lesions' answers kept from an earlier evaluation" in \
+        served["reference"]["description"]
     stored = json.loads(kept_file.read_text())
     stored["lesions"][next(iter(stored["lesions"]))]["pushes"] = {"x": {"status": "ok"}}
     kept_file.write_text(json.dumps(stored))

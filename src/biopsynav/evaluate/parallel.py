@@ -72,19 +72,24 @@ class SolvedAnswers:
 
 
 class SolvedReference(SolvedAnswers):
-    """A reference whose answers were solved beforehand; its facts, description and build
-    time are the solving reference's."""
+    """A reference whose answers were solved beforehand (``kept_lesions`` of its lesions'
+    in an earlier evaluation, :mod:`biopsynav.evaluate.kept`); its facts, description and
+    build time are the solving reference's, with the kept lesions said."""
 
-    def __init__(self, reference: Any, answers: Answers) -> None:
+    def __init__(self, reference: Any, answers: Answers, kept_lesions: int = 0) -> None:
         super().__init__(answers)
         self.reference = reference
         self.build_s = reference.build_s
+        self.kept_lesions = int(kept_lesions)
 
     def facts(self) -> dict:
-        return self.reference.facts()
+        kept = {"kept_lesions": self.kept_lesions} if self.kept_lesions else {}
+        return self.reference.facts() | kept
 
     def describe(self) -> str:
-        return self.reference.describe()
+        kept = (f"; {self.kept_lesions} lesions' answers kept from an earlier evaluation"
+                if self.kept_lesions else "")
+        return self.reference.describe() + kept
 
 
 def pose_bytes(pose: np.ndarray) -> bytes:

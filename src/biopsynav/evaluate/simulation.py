@@ -189,7 +189,7 @@ def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSetti
             answers.update(kept_answers(rest, poses, *h))
         elif keep:
             kept.keep(rest, poses, *lesion_answers(answers, rest, poses))
-    return SolvedReference(reference, answers)
+    return SolvedReference(reference, answers, len(plans) - len(todo))
 
 
 def lesion_poses(plan: tuple) -> tuple[np.ndarray, list[np.ndarray]]:
