@@ -11,6 +11,8 @@ source files, so that a changed case, setting or FE code solves them again rathe
 serving another truth. A lesion is served from the file only when every one of its pushes is
 there, and kept only when every one was solved (a deeper push continues from the one before:
 a lesion's pushes are one solve). A damaged or foreign file is solved again, never trusted.
+The file holds one truth: another key (``evaluate --quick``'s coarser grid, a changed
+setting) replaces it.
 """
 
 from __future__ import annotations
