@@ -426,8 +426,10 @@ class DatasetSection:
                                       "answers at 10 / 20 / 30 mm pushes on the phantom, as far "
                                       "as the grid teacher's network (docs/dataset.md, 'The P2 "
                                       "teacher').", lo=0.5, hi=200.0)
-    teacher_push_limit_s: float = opt(1800.0, "With teacher = 'p2': a push still solving "
-                                              "after this many seconds is given up and "
+    teacher_push_limit_s: float = opt(1800.0, "With teacher = 'p2': a push that has taken "
+                                              "this many seconds of its worker's CPU time "
+                                              "(not wall time: what else the machine runs "
+                                              "does not count) is given up and "
                                               "redrawn, like one that did not converge (0: no "
                                               "limit). A push's time grows about exponentially "
                                               "with its depth: on one core of the 2-core "

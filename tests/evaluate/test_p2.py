@@ -905,6 +905,25 @@ def test_a_push_past_its_time_limit_is_given_up_and_said_so(coarse_phantom, monk
     assert facts["failure"] == "8 mm: gave up after 1 min (--push-minutes)"
 
 
+def test_a_push_limit_in_cpu_time_counts_the_process_not_the_wall():
+    """``cpu_time=True`` (the P2 teacher's limit) gives up on this process's CPU seconds: a
+    push given none gives up; one given plenty answers as without a limit."""
+    import time
+
+    from biopsynav.evaluate.p2 import PushTimeout
+
+    ref = cube_reference(10.0)
+    rest, pushed, contact = _top_push(ref, 3.0)
+    with pytest.raises(PushTimeout):
+        ref.push(rest, [pushed], contact, np.zeros((1, 3)), time_limit_s=0.0, cpu_time=True)
+    assert ref.clock is time.process_time
+    (free,) = ref.push(rest, [pushed], contact, np.zeros((1, 3)))
+    assert ref.clock is time.monotonic
+    (limited,) = ref.push(rest, [pushed], contact, np.zeros((1, 3)), time_limit_s=600.0,
+                          cpu_time=True)
+    assert np.allclose(limited, free, rtol=0, atol=1e-9)  # round-off of two solves
+
+
 def test_a_halved_load_step_shortens_the_next_and_lands_where_equal_steps_do(monkeypatch):
     """A load step that fails and is halved makes the next step half as long (it would
     fail too), then the steps grow back; the equilibrium is the one equal steps reach.

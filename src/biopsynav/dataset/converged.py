@@ -21,8 +21,11 @@ P2 FE (8 mm tetrahedra near the probe): the case grid's trilinear interpolation 
 0.01-0.03 / 0.05-0.10 / 0.20 mm from the P2 answer; the P2 values at the case grid's nodes
 instead (with a harmonic extension to the nodes outside the tetrahedra) 0.07-0.08 / 0.23-0.24
 / 0.55-0.66 mm; the fit holding the contact points flung the nodes of nearly empty cells to
-2-4 times the push. A push still solving after :data:`PUSH_LIMIT_S` is given up and redrawn like a
-push that did not converge (``[dataset] teacher_push_limit_s``; 0: never).
+2-4 times the push. A push that has taken :data:`PUSH_LIMIT_S` seconds of its worker's CPU
+time is given up and redrawn like a push that did not converge (``[dataset]
+teacher_push_limit_s``; 0: never): CPU time, so that what else the machine runs does not
+decide which pushes a set keeps (its speed still does; sets made before 2026-12-07 counted
+wall time).
 """
 
 from __future__ import annotations
@@ -40,8 +43,8 @@ FIT_REFINE = 2
 #: The fit's neighbour-difference penalty (:class:`biopsynav.grid.transfer.PointFit`),
 #: ten times the grid teacher's: nodes of nearly empty cells stay near the push's depth
 FIT_SMOOTHING = 1e-2
-#: The default ``[dataset] teacher_push_limit_s``: a push still solving after this many
-#: seconds is given up (recorded as not converged)
+#: The default ``[dataset] teacher_push_limit_s``: a push that has taken this many seconds of
+#: its worker's CPU time is given up (recorded as not converged)
 PUSH_LIMIT_S = 1800.0
 
 
@@ -100,7 +103,7 @@ class P2Teacher:
         try:
             model.push(rest, [pose], contact, np.zeros((0, 3)), footprint=probe.footprint,
                        edge_radius_mm=float(ev.p2_edge_radius_mm),
-                       time_limit_s=push_limit_s(self.case.cfg))
+                       time_limit_s=push_limit_s(self.case.cfg), cpu_time=True)
         except (FloatingPointError, RuntimeError, PushTimeout) as exc:
             raise SolverError(f"P2 teacher: {exc or type(exc).__name__}",
                               "[dataset] teacher") from None
