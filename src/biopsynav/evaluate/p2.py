@@ -524,8 +524,8 @@ class TetReference:
     #: the time (of :attr:`clock`) after which the push in progress gives up (PushTimeout);
     #: None: never
     deadline: float | None = None
-    #: the clock of :attr:`deadline`: wall time, or the process's CPU time (``push(...,
-    #: cpu_time=True)``)
+    #: the clock of :attr:`deadline`: wall time, or the calling thread's CPU time (``push(...,
+    #: cpu_time=True)``: a Dask worker may solve several pushes at once, one a thread)
     clock = staticmethod(time.monotonic)
 
     def mesh_fingerprint(self) -> str:
@@ -577,11 +577,11 @@ class TetReference:
         ``slip`` face, :meth:`contact`) only the face pushes, so a ``footprint`` is needed;
         the load steps follow the face's corners. With ``time_limit_s``, a call still
         solving after that many seconds raises :class:`PushTimeout` (checked at each Newton
-        iteration): seconds of wall time, or with ``cpu_time`` of this process's CPU time
-        (what a push costs whatever else the machine runs)."""
+        iteration): seconds of wall time, or with ``cpu_time`` of the calling thread's CPU
+        time (what a push costs whatever else the machine runs)."""
         if not len(contact) and footprint is None:
             raise ValueError("a push with no contact nodes needs the face's footprint")
-        self.clock = time.process_time if cpu_time else time.monotonic
+        self.clock = time.thread_time if cpu_time else time.monotonic
         self.deadline = None if time_limit_s is None else self.clock() + time_limit_s
         x0 = self.nodes[contact]
         surface = None if footprint is None else probe_surface(footprint, edge_radius_mm)
