@@ -76,14 +76,18 @@ def evaluate_case(case: Case | str | Path, table2: bool = True, measured: str | 
     return out
 
 
+#: how to rebuild a damaged evaluation file
+REEVALUATE = "run `biopsynav evaluate CASE` again"
+
+
 def made_with_another_model(result: dict, model_dir: Path) -> bool:
     """Whether ``result`` (table1.json, table2.json) records the model it evaluated
     (``model_checksum``) and the model now in ``model_dir`` is another (trained since);
     False for a file from before the checksum was recorded, or no model."""
-    from ..inference.model_files import meta_checksum
+    from ..inference.model_files import RETRAIN, meta_checksum
 
     made_with = result.get("model_checksum")
-    meta = read_json(Path(model_dir) / META, "", missing_ok=True) if made_with else None
+    meta = read_json(Path(model_dir) / META, RETRAIN, missing_ok=True) if made_with else None
     return isinstance(meta, dict) and meta_checksum(meta) != made_with
 
 
@@ -95,15 +99,15 @@ def stale_evaluations(case: Case) -> list[str]:
         (paths.table2(stem), paths.tracking_model(bool(case.cfg.refine.samples)))
         for stem in (TABLE2, TABLE2_MEASURED)]
     return [f.name for f, model in files if f.is_file()
-            and made_with_another_model(read_json(f, "", missing_ok=True) or {}, model)]
+            and made_with_another_model(read_json(f, REEVALUATE, missing_ok=True) or {}, model)]
 
 
 def tracking_model_checksum(case: Case) -> dict:
     """``{"model_checksum": ...}`` of the model the tracker uses (its ``meta.json``), so that
     the report can tell a model trained since; {} where it has none."""
-    from ..inference.model_files import meta_checksum
+    from ..inference.model_files import RETRAIN, meta_checksum
 
-    meta = read_json(case.paths.tracking_model(bool(case.cfg.refine.samples)) / META, "",
+    meta = read_json(case.paths.tracking_model(bool(case.cfg.refine.samples)) / META, RETRAIN,
                      missing_ok=True)
     return {"model_checksum": meta_checksum(meta)} if isinstance(meta, dict) else {}
 
