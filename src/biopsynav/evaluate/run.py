@@ -93,13 +93,23 @@ def made_with_another_model(result: dict, model_dir: Path) -> bool:
 
 def stale_evaluations(case: Case) -> list[str]:
     """The names of ``case``'s Table 1 and Table 2 files made with another model than the
-    one now evaluated (:func:`made_with_another_model`)."""
+    one now evaluated (:func:`made_with_another_model`); a damaged one is left to its
+    reader (the report names it)."""
     paths = case.paths
     files = [(paths.table1, paths.model)] + [
         (paths.table2(stem), paths.tracking_model(bool(case.cfg.refine.samples)))
         for stem in (TABLE2, TABLE2_MEASURED)]
-    return [f.name for f, model in files if f.is_file()
-            and made_with_another_model(read_json(f, REEVALUATE, missing_ok=True) or {}, model)]
+    return [f.name for f, model in files
+            if made_with_another_model(readable_json(f), model)]
+
+
+def readable_json(path: Path) -> dict:
+    """The JSON object at ``path``; {} when it is missing, damaged or not an object."""
+    try:
+        found = read_json(path, REEVALUATE, missing_ok=True)
+    except InputError:
+        return {}
+    return found if isinstance(found, dict) else {}
 
 
 def tracking_model_checksum(case: Case) -> dict:
