@@ -134,6 +134,15 @@ def p2_teacher_cost(data: dict) -> str:
             f"64 workers: {fmt(est['16w_400'], 0)} / {fmt(est['64w_400'], 0)} min")
 
 
+def evaluate_again(data: dict) -> str:
+    """A case evaluated twice: the truth solved, then kept (s), and whether the records
+    agree."""
+    f = data["figures"]
+    same = "the same" if f["same_records"] else "NOT the same"
+    return (f"{fmt(f['first_s'], 0)} s, then {fmt(f['again_s'], 0)} s; Table 2's "
+            f"{f['records']} records {same}")
+
+
 def p2_teacher_depths(data: dict) -> str:
     """The P2 teacher's push time against depth: the pushes' range, the deepest, the fit over
     the protocol's depths and the estimate of 400 pushes on 16 and 64 workers."""
@@ -577,6 +586,12 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "biopsynav refine CASE (a phantom case, [refine] teacher = \"p2\", samples = 56, "
           "held_out = 6; stopped); python benchmarks/p2_teacher.py --store CASE/refine "
           "--result-name p2-teacher-phantom-depths"), "-", "-"),
+    ("`evaluate` of a trained UC Davis case of three tissues (the `pushes` network of "
+     "`time_to_model.py --case ucdavis`; Table 2 against the fine-grid truth), twice: the "
+     "truth solved and kept, then served (`biopsynav.evaluate.kept`), as after training again",
+     Cell("evaluate-again-ucdavis", with_speed(evaluate_again),
+          "python benchmarks/evaluate_again.py CASE --result-name evaluate-again-ucdavis"),
+     "-", "-"),
     ("`run` from nothing, UC Davis as one material, the default recipe `pushes` (Intel Xeon; "
      "Table 2 against the shipped P2 truth, `examples/ucdavis_breast3/homogeneous.toml`): "
      "whole; each stage; Table 1 on its held-out rigid pushes; the tracking network's TRE "
