@@ -62,8 +62,8 @@ class KeptTruth:
         """The kept (contact points at rest, one TrackingResult per pose) of a lesion; None
         where one is missing or its entry is malformed (solved again, never trusted)."""
         try:
-            kept = self.lesions[pose_name(rest)]
-            return int(kept["n_contact"]), [result_from_json(kept["pushes"][pose_name(p)])
+            kept = self.lesions[pose_key(rest, rest)]
+            return int(kept["n_contact"]), [result_from_json(kept["pushes"][pose_key(rest, p)])
                                             for p in poses]
         except (KeyError, TypeError, ValueError, AttributeError):
             return None
@@ -75,8 +75,9 @@ class KeptTruth:
         from ..errors import WriteError
         from ..fileio import write_json_atomic
 
-        pushes = {pose_name(p): result_to_json(r) for p, r in zip(poses, results, strict=True)}
-        self.lesions[pose_name(rest)] = {"n_contact": int(n_contact), "pushes": pushes}
+        pushes = {pose_key(rest, p): result_to_json(r)
+                  for p, r in zip(poses, results, strict=True)}
+        self.lesions[pose_key(rest, rest)] = {"n_contact": int(n_contact), "pushes": pushes}
         try:
             write_json_atomic(self.path, {"format": FORMAT, "key": self.key,
                                           "lesions": self.lesions})
@@ -96,10 +97,11 @@ def kept_truth_lesions(path: Path, key: str) -> dict[str, dict]:
     return stored["lesions"]
 
 
-def pose_name(pose: np.ndarray) -> str:
-    """A pose (4, 4) as a key: its entries rounded to 1e-9 (mm and rotation entries)."""
-    rounded = np.round(np.asarray(pose, dtype=np.float64)[:3], 9) + 0.0
-    return hashlib.sha256(rounded.tobytes()).hexdigest()[:32]
+def pose_key(rest: np.ndarray, pose: np.ndarray) -> str:
+    """A cache key of a push (the P2 reference's, the stored truth's, the kept fine-grid
+    truth's): rest pose and pose rounded to 1e-6 mm (and rotation entries)."""
+    both = np.round(np.concatenate([rest[:3].ravel(), pose[:3].ravel()]), 6) + 0.0
+    return hashlib.sha256(both.tobytes()).hexdigest()[:32]
 
 
 def result_to_json(result: Any) -> dict:

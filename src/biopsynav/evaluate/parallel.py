@@ -50,11 +50,21 @@ def teacher_engine(case: Any, settings: Any) -> Any:
 
 
 def solve_lesion(rest: np.ndarray, poses: list[np.ndarray]) -> tuple[int, list[Any]]:
-    """Worker task: the engine's answers to the probe at each of ``poses`` ((4, 4) each, in
-    turn) over the rest pose ``rest`` (4, 4); (contact points at rest, one
-    :class:`TrackingResult` per pose)."""
-    n_contact = _ENGINE.set_rest_pose(rest)
-    return n_contact, [_ENGINE.update(pose) for pose in poses]
+    """Worker task: :func:`engine_answers` of the worker's engine."""
+    return engine_answers(_ENGINE, rest, poses)
+
+
+def engine_answers(engine: Any, rest: np.ndarray, poses: list[np.ndarray],
+                   before_each: Callable[[int], None] | None = None) -> tuple[int, list[Any]]:
+    """``engine``'s answers to the probe at each of ``poses`` ((4, 4) each, in turn) over the
+    rest pose ``rest`` (4, 4): (contact points at rest, one :class:`TrackingResult` per
+    pose); ``before_each(k)`` is called before the k-th pose's solve."""
+    n_contact, results = engine.set_rest_pose(rest), []
+    for k, pose in enumerate(poses):
+        if before_each is not None:
+            before_each(k)
+        results.append(engine.update(pose))
+    return n_contact, results
 
 
 class SolvedAnswers:
@@ -103,6 +113,14 @@ def lesion_answers(answers: Answers, rest: np.ndarray,
     return answers[pose_bytes(rest)][0], [answers[pose_bytes(p)][1] for p in poses]
 
 
+def lesion_entries(rest: np.ndarray, poses: list[np.ndarray], n_contact: int,
+                   results: list[Any]) -> Answers:
+    """A lesion's answers as :class:`SolvedAnswers` holds them (:func:`lesion_answers`
+    reads them back): each pose's, and the rest pose's contact points."""
+    entries = {pose_bytes(p): (n_contact, r) for p, r in zip(poses, results, strict=True)}
+    return entries | {pose_bytes(rest): (n_contact, None)}
+
+
 def solve_in_workers(factory: Callable[..., Any], args: tuple,
                      lesions: list[tuple[np.ndarray, list[np.ndarray]]], workers: int,
                      what: str) -> Answers:
@@ -127,10 +145,7 @@ def solve_in_workers(factory: Callable[..., Any], args: tuple,
                 for future in pool.wait_any(pending):
                     pending.remove(future)
                     rest, poses = lesions[futures[future]]
-                    n_contact, results = future.result()
-                    answers.update({pose_bytes(p): (n_contact, r)
-                                    for p, r in zip(poses, results, strict=True)})
-                    answers.setdefault(pose_bytes(rest), (n_contact, None))
+                    answers.update(lesion_entries(rest, poses, *future.result()))
         except BrokenProcessPool:
             pool.check_started()  # a script without the __main__ guard: named as such
             raise BiopsynavError(f"a worker process of {what} died with {len(pending)} of its "

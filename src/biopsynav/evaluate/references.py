@@ -29,6 +29,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fem.teacher import teacher_refinement
+from .kept import pose_key
 from .p2 import chest_key, probe_key
 
 
@@ -278,12 +279,6 @@ def default_tissue_material(case: Any) -> tuple[float, float]:
     mat = case.cfg.material
     tissue = mat.tissues[mat.default_tissue]
     return float(tissue["E_mpa"]), float(tissue["nu"])
-
-
-def pose_key(rest: np.ndarray, pose: np.ndarray) -> str:
-    """A cache key of a push: rest pose and pose rounded to 1e-6 mm (and rotation entries)."""
-    both = np.round(np.concatenate([rest[:3].ravel(), pose[:3].ravel()]), 6) + 0.0
-    return hashlib.sha256(both.tobytes()).hexdigest()[:32]
 
 
 def reference_result(ids: list[int], centres: np.ndarray, disp: np.ndarray | None,

@@ -168,13 +168,13 @@ def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSetti
     processes (:func:`in_workers`) or in this process (:func:`solved_here`) and kept; else
     ``reference`` itself, which then solves as it is asked."""
     from .kept import KeptTruth, truth_key
-    from .parallel import SolvedReference, grid_reference, lesion_answers
+    from .parallel import SolvedReference, grid_reference, lesion_answers, lesion_entries
 
     if not getattr(reference, "independent_rest_poses", False):
         return reference
-    kept = KeptTruth(case.paths.table2_fine_grid_cache,
-                     truth_key(case, setup.refinement, settings) if keep else "")
-    held = [kept.answers(*lesion_poses(plan)) if keep else None for plan in plans]
+    kept = (KeptTruth(case.paths.table2_fine_grid_cache,
+                      truth_key(case, setup.refinement, settings)) if keep else None)
+    held = [kept.answers(*lesion_poses(plan)) if kept else None for plan in plans]
     todo = [plan for plan, h in zip(plans, held, strict=True) if h is None]
     if len(todo) < len(plans):
         log(f"  ground truth: {len(plans) - len(todo)} of {len(plans)} lesions kept from an "
@@ -186,8 +186,8 @@ def solved_beforehand(reference, case: Case, setup: Setup, settings: SolverSetti
     for plan, h in zip(plans, held, strict=True):
         rest, poses = lesion_poses(plan)
         if h is not None:
-            answers.update(kept_answers(rest, poses, *h))
-        elif keep:
+            answers.update(lesion_entries(rest, poses, *h))
+        elif kept:
             kept.keep(rest, poses, *lesion_answers(answers, rest, poses))
     return SolvedReference(reference, answers, len(plans) - len(todo))
 
@@ -198,29 +198,25 @@ def lesion_poses(plan: tuple) -> tuple[np.ndarray, list[np.ndarray]]:
     return placement.pose, [placement.pushed(float(d)) for d in depths]
 
 
-def kept_answers(rest: np.ndarray, poses: list[np.ndarray], n_contact: int,
-                 results: list) -> dict:
-    """A lesion's kept answers as :class:`~biopsynav.evaluate.parallel.SolvedAnswers`
-    holds them."""
-    from .parallel import pose_bytes
-
-    out = {pose_bytes(p): (n_contact, r) for p, r in zip(poses, results, strict=True)}
-    return out | {pose_bytes(rest): (n_contact, None)}
-
-
 def solved_here(reference, plans: Plans, log: Callable[[str], None]) -> dict:
     """Every push of ``plans`` answered by ``reference`` in this process, each push announced
     before its solve (a deep one can take minutes), as
     :class:`~biopsynav.evaluate.parallel.SolvedAnswers` holds them."""
+    from .parallel import engine_answers, lesion_entries
+
     answers: dict = {}
     for plan in plans:
         rest, poses = lesion_poses(plan)
-        n_contact, results = reference.set_rest_pose(rest), []
-        for p, (pose, depth) in enumerate(zip(poses, plan[2], strict=True)):
-            log(f"  lesion {plan[1].lesion}: push {p + 1} of {len(poses)} ({depth:.1f} mm) ...")
-            results.append(reference.update(pose))
-        answers.update(kept_answers(rest, poses, n_contact, results))
+        solved = engine_answers(reference, rest, poses, push_announcer(plan, log))
+        answers.update(lesion_entries(rest, poses, *solved))
     return answers
+
+
+def push_announcer(plan: tuple, log: Callable[[str], None]) -> Callable[[int], None]:
+    """What says, before a plan's k-th push is solved, which it is."""
+    _, placement, depths = plan
+    return lambda k: log(f"  lesion {placement.lesion}: push {k + 1} of {len(depths)} "
+                         f"({depths[k]:.1f} mm) ...")
 
 
 def in_workers(factory, args: tuple, plans: Plans, workers: int, what: str,

@@ -27,8 +27,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from .kept import pose_key
 from .placement import place_case_probe
-from .references import default_tissue_material, other_materials, pose_key, reference_result
+from .references import default_tissue_material, other_materials, reference_result
 
 #: the package folder of the shipped truths
 SHIPPED = "data/truths"
