@@ -66,8 +66,9 @@ CHECK_FILES = ["bound-rows-phantom-pushes.json", "bound-rows-phantom-pushes-patc
 
 def rows_of(paths: list[Path]) -> np.ndarray:
     """(n, 5): the network's lesion displacement |d| (mm), probe depth (mm), TRE (mm), the
-    lesion's relative miss and its teacher gap, from ``truth.py --out`` files; SystemExit
-    naming a file whose rows lack the self-check (made before it) or a gap."""
+    lesion's relative miss and its teacher gap (NaN where the check has none: the finer grid
+    gave no answer), from ``truth.py --out`` files; SystemExit naming a file whose rows lack
+    the self-check (made before it) or a gap, in the row and in its case's gap file."""
     out = []
     for path in paths:
         data = json.loads(path.read_text())
@@ -78,12 +79,12 @@ def rows_of(paths: list[Path]) -> np.ndarray:
             if "relative_miss" not in r:
                 raise SystemExit(f"{path}: rows without the lesion self-check; make them again "
                                  "with benchmarks/truth.py --methods net --out")
-            gap = r.get("teacher_gap", gaps.get(str(r["lesion"])))
-            if gap is None:
+            gap = r["teacher_gap"] if "teacher_gap" in r else gaps.get(str(r["lesion"]), ...)
+            if gap is ...:
                 raise SystemExit(f"{path}: lesion {r['lesion']} has no teacher gap (neither in "
                                  "its row nor in its case's teacher-gap file)")
             out.append((r["moved_mm"]["net"], r["depth_mm"], r["tre_mm"]["net"],
-                        r["relative_miss"], gap))
+                        r["relative_miss"], np.nan if gap is None else gap))
     return np.array(out, dtype=np.float64).reshape(-1, 5)
 
 
@@ -97,6 +98,13 @@ def case_gaps(rows_file: Path) -> dict:
     return json.loads((rows_file.parent / name).read_text())["figures"]["lesions"]
 
 
+def with_check(rows: np.ndarray, k: float, kt: float = 0.0) -> np.ndarray:
+    """The rows a bound of weights ``k``, ``kt`` applies to: where either weighs, those whose
+    self-check has a teacher gap (the tracker bounds the others' lesions by the coefficients
+    without the check, which every row takes part in)."""
+    return rows if k == 0.0 and kt == 0.0 else rows[np.isfinite(rows[:, 4])]
+
+
 def bound(coef: tuple[float, float, float], k: float, rows: np.ndarray,
           kt: float = 0.0) -> np.ndarray:
     """c + |d| (a + b p + k r + k_t g), mm, for coef = (c, a, b)."""
@@ -107,7 +115,8 @@ def bound(coef: tuple[float, float, float], k: float, rows: np.ndarray,
 def fit(rows: np.ndarray, k: float, kt: float = 0.0) -> tuple[float, float, float]:
     """(c, a, b) of the least mean bound holding :data:`QUANTILE` of ``rows``' TREs, with
     the weights ``k`` and ``kt``: ``a``, ``b`` over the grid, ``c`` >= 0 the quantile of the
-    rest."""
+    rest. Rows without a teacher gap are left out where a weight is not 0 (:func:`with_check`)."""
+    rows = with_check(rows, k, kt)
     a, b = np.meshgrid(A_GRID, B_GRID, indexing="ij")
     slope = rows[:, 0] * (a[..., None] + b[..., None] * rows[:, 1] + k * rows[:, 3]
                           + kt * rows[:, 4])
@@ -118,7 +127,9 @@ def fit(rows: np.ndarray, k: float, kt: float = 0.0) -> tuple[float, float, floa
 
 def check(coef: tuple[float, float, float], k: float, rows: np.ndarray,
           kt: float = 0.0) -> dict:
-    """Coverage and, per depth, the mean bound over the mean TRE."""
+    """Coverage and, per depth, the mean bound over the mean TRE, over the rows the bound
+    applies to (:func:`with_check`)."""
+    rows = with_check(rows, k, kt)
     b = bound(coef, k, rows, kt)
     by_depth = {}
     for depth in np.unique(rows[:, 1]):
@@ -172,6 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--result-name", default="error-bound")
     args = p.parse_args(argv)
     fit_rows, check_rows = rows_of(args.fit), rows_of(args.check)
+    for name, rows in (("fit", fit_rows), ("check", check_rows)):
+        if not np.isfinite(rows[:, 4]).all():
+            print(f"{name}: {int(np.isnan(rows[:, 4]).sum())} of {len(rows)} rows have no "
+                  "teacher gap: bounded as the tracker bounds them, without the check")
     kt = args.teacher_weight
     fits = {k: both_ways(fit_rows, check_rows, k, kt)
             for k in dict.fromkeys((args.weight, *WEIGHTS))}

@@ -73,7 +73,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from biopsynav.case import Case  # noqa: E402
 from biopsynav.errors import BiopsynavError  # noqa: E402
-from biopsynav.evaluate.p2 import chest_key, probe_key  # noqa: E402
+from biopsynav.evaluate.p2 import chest_key, factor_precision, probe_key  # noqa: E402
 from biopsynav.evaluate.placement import place_case_probe  # noqa: E402
 from biopsynav.evaluate.references import default_tissue_material, other_materials  # noqa: E402
 from biopsynav.evaluate.simulation import evaluation_solver_settings  # noqa: E402
@@ -196,6 +196,13 @@ def lesion_rows(case: Case, trackers: dict[str, Tracker], li: int, placement,
 
 
 def run(args) -> dict:
+    """Every figure of the run (module doc); the reference pushes factor Newton's tangents in
+    double precision, as the stored truths were solved (their keys hold no ``factors``)."""
+    with factor_precision(single=False):
+        return run_in_double(args)
+
+
+def run_in_double(args) -> dict:
     case = Case.load(args.case_dir)
     check_edge_radius(case, args)
     e_mpa, nu, labelled = reference_material(case)

@@ -10,6 +10,7 @@ from .anatomy.modelled import modelled_lines
 from .case import Case, as_case
 from .errors import InputError
 from .fileio import read_json
+from .inference.model_files import RETRAIN
 from .layout import META
 
 MODELLED_KEYS = ("breast_volume_ml", "extent_mm", "back_held_share", "lesion_crop_gap_mm",
@@ -110,7 +111,7 @@ def tracking_meta(case: Case) -> tuple[Path, dict | None, bool]:
         meta_path, current = case.tracking_model / META, True
     except InputError:
         meta_path, current = case.paths.model_meta, False
-    return meta_path, read_json(meta_path, "retrain with `biopsynav train CASE`",
+    return meta_path, read_json(meta_path, RETRAIN,
                                 missing_ok=True), current
 
 
@@ -148,7 +149,7 @@ def model_teacher(case: Case, tracking: tuple[Path, dict | None, bool] | None = 
         words += (f"; started from the model in {source.get('path')}, taught by "
                   f"{teacher_words(source.get('teacher') or {}, case.grid.spacing)}")
     case_meta = meta if meta_path == case.paths.model_meta else read_json(
-        case.paths.model_meta, "retrain with `biopsynav train CASE`", missing_ok=True)
+        case.paths.model_meta, RETRAIN, missing_ok=True)
     prior = ((case_meta or {}).get("training") or {}).get("prior")
     if prior:  # [network] prior: the case network started from another breast's
         words += f"; the case network started from the packaged network {prior.get('name')!r}"

@@ -999,3 +999,20 @@ def test_points_are_found_in_their_tetrahedron_or_said_to_lie_outside(cube):
     assert matrix[400:].nnz == 0
     with pytest.raises(ValueError, match="outside the tetrahedral mesh"):
         cube._interpolation(outside_pts[:1])
+
+
+def test_answer_keys_name_single_precision_factors():
+    """An answer cache's key says where Newton's tangents were factored in single precision
+    (the default), so that answers of the other precision (they differ by up to 0.025 mm)
+    are solved again, not reused; the truth's double-precision keys hold no ``factors``, as
+    the stored truths' keys do, and the precision before is restored after."""
+    from biopsynav.config import ProbeSection
+    from biopsynav.evaluate.p2 import factor_precision, factors_single, probe_key
+
+    single = factors_single()
+    with factor_precision(single=False):
+        assert "factors" not in probe_key(ProbeSection())
+        with factor_precision(single=True):
+            assert probe_key(ProbeSection())["factors"] == "single"
+        assert not factors_single()
+    assert factors_single() == single

@@ -73,7 +73,8 @@ def test_the_ground_truth_is_kept_and_served_to_the_next_evaluation(small_table2
     assert "2 lesions' answers kept from an earlier evaluation" in \
         served["reference"]["description"]
     stored = json.loads(kept_file.read_text())
-    stored["lesions"][next(iter(stored["lesions"]))]["pushes"] = {"x": {"status": "ok"}}
+    (lesions,) = stored["truths"].values()
+    lesions[next(iter(lesions))]["pushes"] = {"x": {"status": "ok"}}
     kept_file.write_text(json.dumps(stored))
     said: list[str] = []
     again = run_simulation(case, methods=("rigid",), log=said.append, workers=1)
@@ -90,8 +91,8 @@ def test_the_ground_truth_is_kept_and_served_to_the_next_evaluation(small_table2
 
 
 def test_the_kept_truth_is_keyed_by_what_it_depends_on(small_table2_case, tmp_path):
-    """Another setting outside [network], [igtl] and [case] is another truth; a damaged or
-    foreign file holds none."""
+    """Another setting outside [network], [igtl] and [case] is another truth; the file keeps
+    the four written last; a damaged or foreign file holds none."""
     from biopsynav.evaluate.kept import KeptTruth, truth_key
     from biopsynav.evaluate.simulation import evaluation_solver_settings
 
@@ -110,6 +111,13 @@ def test_the_kept_truth_is_keyed_by_what_it_depends_on(small_table2_case, tmp_pa
     KeptTruth(path, key).keep(rest, [], 7, [])
     assert KeptTruth(path, key).answers(rest, []) == (7, [])
     assert KeptTruth(path, "another").answers(rest, []) is None
+    for other in ("quick", "a", "b"):  # the file keeps the KEPT_TRUTHS written last
+        KeptTruth(path, other).keep(rest, [], 3, [])
+        assert KeptTruth(path, key).answers(rest, []) == (7, [])
+    KeptTruth(path, "c").keep(rest, [], 5, [])
+    assert KeptTruth(path, key).answers(rest, []) is None
+    assert KeptTruth(path, "quick").answers(rest, []) == (3, [])
+    assert KeptTruth(path, "c").answers(rest, []) == (5, [])
     path.write_text(path.read_text()[:20])
     assert KeptTruth(path, key).answers(rest, []) is None
 

@@ -154,3 +154,26 @@ def test_the_report_names_a_damaged_check(tmp_path, content):
     with pytest.raises(InputError) as err:
         lesion_check_blocks(path)
     assert LESION_CHECK in str(err.value) and "biopsynav evaluate" in str(err.value)
+
+
+def test_fit_leaves_rows_without_a_teacher_gap_to_the_unchecked_bound(tmp_path, monkeypatch):
+    """``benchmarks/error_bound.py``: a lesion whose self-check has no teacher gap (the finer
+    grid gave no answer) is bounded by the tracker without the check; the fit keeps its rows
+    for the coefficients without the check and leaves them out of those with it, instead of
+    stopping."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import error_bound
+
+    rows = [{"lesion": i, "status": {"net": "ok"}, "moved_mm": {"net": 10.0 + i},
+             "depth_mm": 10.0 * (1 + i % 3), "tre_mm": {"net": 0.1 * (1 + i % 5)},
+             "relative_miss": 0.01, "teacher_gap": None if i < 3 else 0.02} for i in range(20)]
+    path = tmp_path / "bound-rows-x.json"
+    path.write_text(json.dumps({"rows": rows}))
+    got = error_bound.rows_of([path])
+    assert got.shape == (20, 5) and np.isnan(got[:3, 4]).all() and np.isfinite(got[3:]).all()
+    assert error_bound.check(error_bound.fit(got, 0.5, 0.5), 0.5, got, 0.5)["n"] == 17
+    assert error_bound.check(error_bound.fit(got, 0.0), 0.0, got)["n"] == 20
+    del rows[0]["teacher_gap"]  # neither in the row nor in a gap file: named, not guessed
+    path.write_text(json.dumps({"rows": rows}))
+    with pytest.raises(SystemExit, match="lesion 0 has no teacher gap"):
+        error_bound.rows_of([path])

@@ -11,8 +11,9 @@ source files, so that a changed case, setting or FE code solves them again rathe
 serving another truth. A lesion is served from the file only when every one of its pushes is
 there, and kept only when every one was solved (a deeper push continues from the one before:
 a lesion's pushes are one solve). A damaged or foreign file is solved again, never trusted.
-The file holds one truth: another key (``evaluate --quick``'s coarser grid, a changed
-setting) replaces it.
+The file holds the :data:`KEPT_TRUTHS` truths written last, each under its key, so that
+``evaluate --quick``'s coarser grid and the full one (or a setting changed and changed back)
+do not solve each other's truth again.
 """
 
 from __future__ import annotations
@@ -27,8 +28,11 @@ import numpy as np
 
 #: The configuration's sections that a fine-grid answer does not depend on
 UNUSED_SECTIONS = ("network", "igtl", "case")
-#: The layout of the kept file
-FORMAT = "biopsynav-fine-grid-truth/1"
+#: The layout of the kept file: {"format", "truths": {key: {lesion key: answers}}}, the
+#: truth written last last
+FORMAT = "biopsynav-fine-grid-truth/2"
+#: How many truths (keys) the file keeps; writing another drops the one written longest ago
+KEPT_TRUTHS = 4
 
 
 def truth_key(case: Any, refinement: float, settings: Any) -> str:
@@ -56,7 +60,7 @@ class KeptTruth:
 
     def __init__(self, path: Path, key: str) -> None:
         self.path, self.key = Path(path), key
-        self.lesions: dict[str, dict] = kept_truth_lesions(self.path, key)
+        self.lesions: dict[str, dict] = kept_truths(self.path).get(key, {})
 
     def answers(self, rest: np.ndarray, poses: list[np.ndarray]) -> tuple[int, list[Any]] | None:
         """The kept (contact points at rest, one TrackingResult per pose) of a lesion; None
@@ -78,23 +82,27 @@ class KeptTruth:
         pushes = {pose_key(rest, p): result_to_json(r)
                   for p, r in zip(poses, results, strict=True)}
         self.lesions[pose_key(rest, rest)] = {"n_contact": int(n_contact), "pushes": pushes}
+        truths = {k: v for k, v in kept_truths(self.path).items() if k != self.key}
+        truths = dict(list(truths.items())[1 - KEPT_TRUTHS:] if KEPT_TRUTHS > 1 else [])
+        truths[self.key] = self.lesions
         try:
-            write_json_atomic(self.path, {"format": FORMAT, "key": self.key,
-                                          "lesions": self.lesions})
+            write_json_atomic(self.path, {"format": FORMAT, "truths": truths})
         except WriteError:
             return
 
 
-def kept_truth_lesions(path: Path, key: str) -> dict[str, dict]:
-    """The kept lesions of ``path`` when it is whole and of ``key``; else {}."""
+def kept_truths(path: Path) -> dict[str, dict]:
+    """{key: kept lesions} of ``path``, in the order written (the last written last); {} when
+    it is missing, damaged or of another layout. A truth whose entry is not a mapping is left
+    out."""
     try:
         stored = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
     if not isinstance(stored, dict) or stored.get("format") != FORMAT \
-            or stored.get("key") != key or not isinstance(stored.get("lesions"), dict):
+            or not isinstance(stored.get("truths"), dict):
         return {}
-    return stored["lesions"]
+    return {k: v for k, v in stored["truths"].items() if isinstance(v, dict)}
 
 
 def pose_key(rest: np.ndarray, pose: np.ndarray) -> str:

@@ -116,7 +116,10 @@ def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
     of its rounded edges (``edge_radius_mm``, :mod:`~biopsynav.evaluate.p2_contact`): the
     part of every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``)
     that names the probe, with the quadrature rule's degree (:data:`QUADRATURE_DEGREE` by
-    default). The probe's defaults add nothing to it."""
+    default) and, where Newton's tangents are factored in single precision now
+    (:func:`factors_single`), ``"factors": "single"``. The probe's defaults add nothing to it;
+    a key without ``factors`` names answers factored in double precision (as every answer
+    before single precision was the default)."""
     key = {"footprint": [probe.shape, *probe.footprint_mm],
            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE,
            "quadrature_degree": int(quadrature_degree)}
@@ -126,6 +129,8 @@ def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
         key["rim_mm"] = rim_mm
     if edge_radius_mm:
         key["edge_radius_mm"] = edge_radius_mm
+    if factors_single():
+        key["factors"] = "single"
     return key
 
 
@@ -835,7 +840,9 @@ class TetReference:
                    surface: Any) -> tuple[np.ndarray, Sliding]:
         """``u`` (n, 3) mm with the sliding nodes moved to their nearest points of
         ``surface`` at the probe pose ``face`` (4, 4), and those nodes held on the planes
-        tangent there. A flat face's plane is its surface: nothing moves."""
+        tangent there. A flat face's plane is its surface: nothing moves. An element the move
+        inverts fails the solve at the next force evaluation (FloatingPointError), which
+        halves the load step (:meth:`_step`)."""
         nodes = slide.nodes
         point, _, _ = surface.closest(self._face_local(nodes, u, face))
         u = u.copy()
@@ -1123,6 +1130,25 @@ def set_factor_precision(single: bool = SINGLE_PRECISION_FACTORS) -> _SymmetricS
         _SYMMETRIC_SOLVER._forget()
     _SYMMETRIC_SOLVER = _SymmetricSolver(single)
     return _SYMMETRIC_SOLVER
+
+
+def factors_single() -> bool:
+    """Whether the solves factor Newton's tangents in single precision now."""
+    if _SYMMETRIC_SOLVER is None:
+        return SINGLE_PRECISION_FACTORS
+    return _SYMMETRIC_SOLVER.single
+
+
+@contextmanager
+def factor_precision(single: bool) -> Iterator[None]:
+    """The solves inside factor in ``single`` precision (or double); the precision before is
+    restored after."""
+    before = factors_single()
+    set_factor_precision(single)
+    try:
+        yield
+    finally:
+        set_factor_precision(before)
 
 
 def resolve_symmetric(rhs: np.ndarray) -> np.ndarray:

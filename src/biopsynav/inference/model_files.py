@@ -106,10 +106,9 @@ def check_file(model_dir: Path, name: str, meta: dict) -> Path:
     """Path of an exported file after checking that it exists and matches its checksum."""
     path = Path(model_dir) / name
     if not path.is_file():
-        raise InputError(f"exported model {name} is missing; retrain with `biopsynav train`",
-                         str(path))
+        raise InputError(f"exported model {name} is missing; {RETRAIN}", str(path))
     expected = meta.get("inference", {}).get("files", {}).get(name)
     if expected is not None and sha256(path) != expected:
-        raise InputError(f"exported model {name} is corrupt (checksum mismatch); retrain with "
-                         "`biopsynav train`", str(path))
+        raise InputError(f"exported model {name} is corrupt (checksum mismatch); {RETRAIN}",
+                         str(path))
     return path

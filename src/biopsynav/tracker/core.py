@@ -127,9 +127,12 @@ class Tracker:
     """Lesion tracker of one case, backed by the U-Net (``engine="net"``) or the FE model."""
 
     def __init__(self, case: Case, engine: str, surrogate=None, fem_model=None,
-                 fem_settings=None, teacher=None, continuation: bool = False) -> None:
-        """``teacher``: a refined :class:`~biopsynav.fem.teacher.Teacher` whose grid the FE
-        engine solves on (``fem_model`` is its model), its answer fitted to the case grid;
+                 fem_settings=None, teacher=None, continuation: bool = False,
+                 lesion_check: LesionCheck | None = None) -> None:
+        """``lesion_check``: the network's lesion self-check that widens each bound (None:
+        none, or stale; :meth:`load` reads the model's). ``teacher``: a refined
+        :class:`~biopsynav.fem.teacher.Teacher` whose grid the FE engine solves on
+        (``fem_model`` is its model), its answer fitted to the case grid;
         None: the FE engine solves on the case grid. ``continuation`` (FE engine): a push
         further along the line of the last one over the same rest pose starts from that
         push's equilibrium instead of from rest (:meth:`_continuation_start`)."""
@@ -176,10 +179,7 @@ class Tracker:
         self.max_compression = float(env.get("max_chest_compression", 0.0))
         self._chest_mm = np.inf  # the rest contact's distance to the chest wall, mm
         self.envelope_margin = case.cfg.tracker.envelope_margin
-        # the network's lesion self-check that widens each bound (None: none, or stale)
-        self.lesion_check = (None if surrogate is None else
-                             LesionCheck.load(surrogate.model_dir, surrogate.meta,
-                                              self._lesion_ids))
+        self.lesion_check = lesion_check
 
     def _lesion_embedding(self) -> tuple[np.ndarray, Embedding]:
         """The points read off the displacement field: lesion centres first, then the vertices
@@ -200,7 +200,8 @@ class Tracker:
              threads: int | None = None) -> Tracker:
         """The tracker of ``case`` (loaded, or its folder) with its engine: ``"net"`` (the
         tracking model, fingerprint-checked, on the case's ``[network] runtime``:
-        :func:`~biopsynav.inference.surrogate.load_for_case`) or ``"fem"`` (finite elements
+        :func:`~biopsynav.inference.surrogate.load_for_case`, with its lesion self-check where
+        current) or ``"fem"`` (finite elements
         with prescribed contact displacements). ``threads``: CPU threads of the network
         (None: ``[network] threads``; 0: the idle cores)."""
         case = as_case(case)
@@ -208,7 +209,10 @@ class Tracker:
         if engine == "net":
             from ..inference.surrogate import load_for_case
 
-            return cls(case, engine, surrogate=load_for_case(case, threads=threads))
+            surrogate = load_for_case(case, threads=threads)
+            ids = [les.id for les in case.anatomy.lesions]
+            check = LesionCheck.load(surrogate.model_dir, surrogate.meta, ids)
+            return cls(case, engine, surrogate=surrogate, lesion_check=check)
         if engine == "fem":
             return fem_engine(case, fem_solver_settings(case))
         raise InputError(f"unknown engine {engine!r}; use net or fem", "tracker")
