@@ -104,12 +104,13 @@ def reference_material(case: Case) -> tuple[float, float, bool]:
 
 
 def reference_key(case: Case, e_mpa: float, nu: float, args) -> dict:
-    """What the reference figures depend on: reused only when all of it is the same."""
+    """What the reference figures depend on: reused only when all of it is the same (the
+    reference factors in double precision: :func:`run`)."""
     return {"anatomy": case.anatomy.fingerprint(), "E_mpa": e_mpa, "nu": nu,
             "depths_mm": list(args.depths), "tet_size_mm": args.tet_size,
             "tet_fine_mm": args.tet_fine,
             **probe_key(case.cfg.probe, args.friction, args.tet_rim, args.edge_radius,
-                        args.quadrature_degree), **chest_key(case.anatomy)}
+                        args.quadrature_degree, single_factors=False), **chest_key(case.anatomy)}
 
 
 def load_reference(path: Path, key: dict, replace: bool = False) -> dict:

@@ -110,16 +110,17 @@ LOCATE_CHUNK = 400_000  # point-candidate pairs a chunk of the search holds
 
 
 def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
-              edge_radius_mm: float = 0.0, quadrature_degree: int = QUADRATURE_DEGREE) -> dict:
+              edge_radius_mm: float = 0.0, quadrature_degree: int = QUADRATURE_DEGREE,
+              single_factors: bool | None = None) -> dict:
     """What a P2 answer depends on in ``[probe]`` (a ``ProbeSection``), the face's
     ``friction``, the tetrahedra along its edge (``rim_mm``, :func:`rim_at`) and the radius
     of its rounded edges (``edge_radius_mm``, :mod:`~biopsynav.evaluate.p2_contact`): the
     part of every answer cache's key (Table 2's ``p2`` reference, ``benchmarks/truth.py``)
     that names the probe, with the quadrature rule's degree (:data:`QUADRATURE_DEGREE` by
-    default) and, where Newton's tangents are factored in single precision now
-    (:func:`factors_single`), ``"factors": "single"``. The probe's defaults add nothing to it;
-    a key without ``factors`` names answers factored in double precision (as every answer
-    before single precision was the default)."""
+    default) and, where Newton's tangents are factored in single precision
+    (``single_factors``; None: as now, :func:`factors_single`), ``"factors": "single"``. The
+    probe's defaults add nothing to it; a key without ``factors`` names answers factored in
+    double precision (as every answer before single precision was the default)."""
     key = {"footprint": [probe.shape, *probe.footprint_mm],
            "contact_tolerance_mm": probe.contact_tolerance_mm, "probe": P2_PROBE,
            "quadrature_degree": int(quadrature_degree)}
@@ -129,7 +130,7 @@ def probe_key(probe: Any, friction: str = "stick", rim_mm: float = 0.0,
         key["rim_mm"] = rim_mm
     if edge_radius_mm:
         key["edge_radius_mm"] = edge_radius_mm
-    if factors_single():
+    if factors_single() if single_factors is None else single_factors:
         key["factors"] = "single"
     return key
 
