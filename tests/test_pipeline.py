@@ -67,6 +67,7 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     import dataclasses
 
     from biopsynav.case import Case
+    from biopsynav.reference_registry import chosen_reference
     from biopsynav.runtime import (
         FE_EXPONENT,
         LESION_CHECK,
@@ -82,8 +83,13 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
 
     case = Case.load(base_case)
     ref = REFERENCE["probe_s"]
+    # the phantom's default ("auto") truth is its stored one: no solves, whatever the pushes
+    assert chosen_reference(case)[0] == "stored"
+    stored = estimate_run(case, (ref, ref), workers=2).minutes["evaluate and report"]
+    case.cfg.evaluate = dataclasses.replace(case.cfg.evaluate, reference="fine_grid")
     same = estimate_run(case, (ref, ref), workers=2)
     assert same.slowness == pytest.approx(1.0)
+    assert same.minutes["evaluate and report"] > stored
     # a training: its iterations at the probe's step, times what an iteration costs beyond it
     assert same.minutes["train"] == pytest.approx(
         case.cfg.network.iterations * ref * TRAINING_STEP_FACTOR / 60.0)

@@ -381,8 +381,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(frame,lesion_id,x,y,z) for Table 2 from user data")
     p.add_argument("--reference", choices=reference_names(),
                    help="ground truth of Table 2 by simulation for this run (default: [evaluate] "
-                        "reference): fine_grid; p2, an independent tetrahedral FE; or stored, "
-                        "that FE's answers computed once and kept")
+                        "reference): auto, stored where a stored truth serves the case, else "
+                        "fine_grid; fine_grid, biopsynav's FE on a finer grid; p2, an "
+                        "independent tetrahedral FE; or stored, that FE's answers computed once "
+                        "and kept")
     p.add_argument("--workers", type=int, default=0, help="local processes that solve the "
                    "self-check's, the FE teacher's and a fine-grid ground truth's pushes "
                    "(default 0: one per core; 1: in this process)")

@@ -829,17 +829,20 @@ class EvaluateSection:
     max_lesions: int = opt(0, "Lesions evaluated in Table 2 by simulation (0: all; else this "
                               "many, spread over the lesion list) to bound the run time.",
                            lo=0, hi=10000)
-    reference: str = opt("fine_grid", "Ground truth of Table 2 by simulation "
-                                      "(biopsynav.evaluate.references registry): 'fine_grid' "
-                                      "(this FE on a grid reference_refinement times finer) or "
-                                      "'p2' (an independent FE: quadratic tetrahedra of a gmsh "
-                                      "mesh, one homogeneous material; minutes per push, kept "
-                                      "in eval/ and resumed; needs gmsh) or 'stored' (that "
-                                      "independent FE's answers computed once by "
-                                      "benchmarks/truth.py and kept: truth_file, or the one "
-                                      "shipped for the built-in phantom and the UC Davis "
-                                      "breast as one material; the lesions pushed to its "
-                                      "depths; seconds; docs/evaluation.md).",
+    reference: str = opt("auto", "Ground truth of Table 2 by simulation "
+                                 "(biopsynav.evaluate.references registry): 'auto' ('stored' "
+                                 "where a stored independent truth serves the case, the "
+                                 "built-in phantom's and UC Davis as one material's, else "
+                                 "'fine_grid'; Table 2 says which and why) or 'fine_grid' "
+                                 "(this FE on a grid reference_refinement times finer: the "
+                                 "teacher's own code, not independent) or 'p2' (an "
+                                 "independent FE: quadratic tetrahedra of a gmsh mesh, one "
+                                 "homogeneous material; minutes per push, kept in eval/ and "
+                                 "resumed; needs gmsh) or 'stored' (that independent FE's "
+                                 "answers computed once by benchmarks/truth.py and kept: "
+                                 "truth_file, or the one shipped for the built-in phantom and "
+                                 "the UC Davis breast as one material; the lesions pushed to "
+                                 "its depths; seconds; docs/evaluation.md).",
                          choices=reference_names)
     truth_file: str = opt("", "The stored truth of reference = 'stored', relative to the case "
                               "folder (a --reference file of benchmarks/truth.py); empty: the "

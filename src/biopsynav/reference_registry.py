@@ -45,19 +45,30 @@ def reference_builder(name: str) -> Callable[..., Any]:
     return builder
 
 
+def chosen_reference(case: Any) -> tuple[str, str]:
+    """The registered reference that ``case``'s ``[evaluate] reference`` stands for, and why
+    in words: a builder with a ``choose(case) -> (name, why)`` (``auto``) chooses one for
+    each case; any other is itself (no reason)."""
+    name = case.cfg.evaluate.reference
+    choose = getattr(reference_builder(name), "choose", None)
+    return choose(case) if choose is not None else (name, "")
+
+
 def build_reference(case: Any, setup: Any, settings: Any) -> Any:
-    """The ``[evaluate] reference`` of ``case`` for a Table 2 run of ``setup``."""
-    return reference_builder(case.cfg.evaluate.reference)(case, setup, settings)
+    """The ``[evaluate] reference`` of ``case`` (:func:`chosen_reference`) for a Table 2 run
+    of ``setup``."""
+    return reference_builder(chosen_reference(case)[0])(case, setup, settings)
 
 
 def check_reference(case: Any) -> None:
     """Raise InputError now when ``case``'s ``[evaluate] reference`` cannot serve it (the
     builder's ``check(case)``, where it has one): before an evaluation spends its time."""
-    check = getattr(reference_builder(case.cfg.evaluate.reference), "check", None)
+    check = getattr(reference_builder(chosen_reference(case)[0]), "check", None)
     if check is not None:
         check(case)
 
 
+register_reference("auto", "biopsynav.evaluate.stored:auto_reference")
 register_reference("fine_grid", "biopsynav.evaluate.references:GridReference")
 register_reference("p2", "biopsynav.evaluate.references:P2Reference")
 register_reference("stored", "biopsynav.evaluate.stored:StoredTruth")

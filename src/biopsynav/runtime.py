@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .reference_registry import chosen_reference
+
 FE_EXPONENT = 1.3
 #: The reference run: ``biopsynav run`` with every default on the right breast of exam 01 of
 #: the prone MRI collection of docs/anatomy.md (582 mL, 2,041 active cells, 14 x 21 x 20
@@ -238,7 +240,7 @@ def evaluation_minutes(case, cores: int | None = None) -> float:
     core busy; default this machine's cores), the pushes a lesion and the fine grid's
     cells^1.3; else the reference run's (:func:`table2_work`)."""
     ev, fine = case.cfg.evaluate, FINE_GRID_TABLE2
-    if ev.reference != "fine_grid":
+    if chosen_reference(case)[0] != "fine_grid":
         return REFERENCE["minutes"]["evaluate and report"] * table2_work(case)
     cells = (float(case.grid.active_cells.sum()) * ev.reference_refinement ** 3
              / (fine["active_cells"] * fine["reference_refinement"] ** 3)) ** FE_EXPONENT
@@ -312,7 +314,7 @@ def table2_work(case) -> float:
     in for it)."""
     ref, e = REFERENCE, case.cfg.evaluate
     lesions = evaluated_lesions(case)
-    stored = e.reference == "stored"  # no reference solve: the FE engine's on the case grid
+    stored = chosen_reference(case)[0] == "stored"  # no reference solve: the FE engine's
     refinement = 1.0 if stored else e.reference_refinement
     pushes = STORED_PUSHES if stored else e.deformations_per_lesion
     fine = (float(case.grid.active_cells.sum()) * refinement ** 3

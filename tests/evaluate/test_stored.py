@@ -94,3 +94,27 @@ def test_the_ucdavis_example_of_one_material_finds_its_shipped_truth(tmp_path, u
     path, data = find_truth(case)
     assert path.name == "ucdavis-homogeneous.json"
     assert sorted(map(int, data["lesions"])) == list(range(len(case.anatomy.lesions)))
+
+
+def test_the_default_reference_is_the_stored_truth_where_one_serves_the_case(tmp_path):
+    """``[evaluate] reference = "auto"`` (the default): the built-in phantom is judged against
+    its stored independent truth; the same phantom of another material, which no stored truth
+    serves, against the fine grid, and Table 2 says which it chose and why."""
+    from biopsynav.reference_registry import chosen_reference
+
+    case = make_phantom_case(tmp_path / "ph")
+    assert case.cfg.evaluate.reference == "auto"
+    name, why = chosen_reference(case)
+    assert name == "stored" and "stored independent truth serves" in why
+    said: list[str] = []
+    result = run_simulation(case, methods=("rigid",), log=said.append)
+    assert result["reference"]["kind"] == "stored" and result["reference"]["chosen"] == why
+    assert any("independent P2" in line and why in line for line in said), said
+    soft = make_phantom_case(tmp_path / "soft", overrides={
+        "material": {"tissues": {"phantom": {"E_mpa": 0.004, "nu": 0.45}}}})
+    name, why = chosen_reference(soft)
+    assert name == "fine_grid"
+    assert "no stored independent truth serves this case" in why and "material" in why
+    stated = make_phantom_case(tmp_path / "stated", overrides={
+        "evaluate": {"reference": "fine_grid"}})
+    assert chosen_reference(stated) == ("fine_grid", "")

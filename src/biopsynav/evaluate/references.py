@@ -16,6 +16,9 @@ A reference answers like a tracker (``set_rest_pose(pose) -> contact count``, ``
   the face at rest moved rigidly with the probe. Minutes per push on two cores; its answers
   are kept in ``eval/`` after every push, so a stopped evaluation resumes. Needs gmsh (the
   ``reference`` extra) and a case of one material.
+
+``stored`` (:mod:`biopsynav.evaluate.stored`) answers from the ``p2`` pushes computed once, and
+``auto``, the default, is ``stored`` where a stored truth serves the case, else ``fine_grid``.
 """
 
 from __future__ import annotations
@@ -93,8 +96,9 @@ class GridReference:
 
     def describe(self) -> str:
         f = self.facts()
-        return (f"FE model on a {f['cell_size_mm']:.2f} mm grid ({f['active_cells']} active "
-                f"cells, built in {self.build_s:.1f} s)")
+        return (f"biopsynav's own FE (the teacher's code: not independent) on a "
+                f"{f['cell_size_mm']:.2f} mm grid ({f['active_cells']} active cells, built in "
+                f"{self.build_s:.1f} s)")
 
 
 class P2Reference:

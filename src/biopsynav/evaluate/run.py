@@ -137,17 +137,18 @@ def _source_line(result: dict) -> str:
         return (f"Ground truth: lesion positions measured by the user "
                 f"({result['inputs']['measured']}; poses {result['inputs']['poses']}).")
     ref = result["reference"]
+    chosen = f" ({ref['chosen']})" if ref.get("chosen") else ""
     if ref.get("kind") == "stored":
-        return (f"Ground truth: {ref['description']}; the same rigid-probe pushes, each lesion "
-                "to the stored depths.")
+        return (f"Ground truth: {ref['description']}{chosen}; the same rigid-probe pushes, each "
+                "lesion to the stored depths.")
     if ref.get("kind") == "p2":
         return (f"Ground truth: {ref['description']}; the same rigid-probe contact (training "
                 f"grid {ref['training_cell_size_mm']:g} mm, {ref['training_active_cells']} "
                 "cells).")
-    return (f"Ground truth: FE model on a {ref['cell_size_mm']:.2f} mm grid "
-            f"({ref['active_cells']} active cells; training grid {ref['training_cell_size_mm']:g}"
-            f" mm, {ref['training_active_cells']} cells), same prescribed contact "
-            f"displacements.")
+    return (f"Ground truth: biopsynav's own FE (the teacher's code: not independent) on a "
+            f"{ref['cell_size_mm']:.2f} mm grid ({ref['active_cells']} active cells; training "
+            f"grid {ref['training_cell_size_mm']:g} mm, {ref['training_active_cells']} cells), "
+            f"same prescribed contact displacements{chosen}.")
 
 
 def table2_text(result: dict) -> str:

@@ -1,11 +1,13 @@
 """Table 2 by simulation: probe above each lesion, four pushes, against a ground truth.
 
-Ground truth (``[evaluate] reference``, :mod:`biopsynav.evaluate.references`): by default the
-FE model of the same anatomy on a grid ``[evaluate] reference_refinement`` times finer (half
-the cell size by default), driven by the same prescribed displacement of the same contact
-points (skin vertices, shared by both grids), so that the training-resolution FE model shows
-its discretisation error and the network shows that plus its learning error; or ``p2``, an
-independent P2 tetrahedral FE of the same surface, which shows the formulation's error too.
+Ground truth (``[evaluate] reference``, :mod:`biopsynav.evaluate.references`): by default
+(``auto``) the stored independent truth where one serves the case
+(:mod:`biopsynav.evaluate.stored`), else the FE model of the same anatomy on a grid
+``[evaluate] reference_refinement`` times finer (half the cell size by default), driven by
+the same prescribed displacement of the same contact points (skin vertices, shared by both
+grids), so that the training-resolution FE model shows its discretisation error and the
+network shows that plus its learning error; or ``p2``, an independent P2 tetrahedral FE of
+the same surface, which shows the formulation's error too.
 Methods: ``net`` (the U-Net tracker), ``fem`` (FE tracker at the training resolution) and
 ``rigid`` (lesions stay where they were at rest). TRE = |predicted - ground-truth centre|."""
 
@@ -23,7 +25,7 @@ import numpy as np
 from ..case import Case, as_case
 from ..fem import SolverSettings
 from ..grid.build import build_grid
-from ..reference_registry import build_reference
+from ..reference_registry import build_reference, chosen_reference
 from ..tracker.core import Tracker, fem_engine, fem_solver_settings
 from ..tracker.result import TrackingResult
 from .placement import Placement, place_case_probe, push_depths
@@ -114,7 +116,9 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
     lesions = _reference_lesions(reference, setup.lesions)
     pushes = (f"{setup.pushes} pushes up to {setup.max_push_mm:g} mm"
               if getattr(reference, "push_depths", None) is None else "its pushes")
-    log(f"Table 2: ground truth {reference.describe()}; {len(lesions)} lesions x {pushes}")
+    chosen = chosen_reference(case)[1]
+    log(f"Table 2: ground truth {reference.describe()}{f' ({chosen})' if chosen else ''}; "
+        f"{len(lesions)} lesions x {pushes}")
     plans = [(li, place_case_probe(case, li)) for li in lesions]
     plans = [(li, placement, _depths(reference, li, push_depths(k, setup.pushes,
                                                                 setup.max_push_mm)))
@@ -144,7 +148,8 @@ def run_simulation(case: Case | str | Path, methods: Sequence[str] = METHODS, qu
         | ({AGREEMENT: aggregate(records, AGREEMENT, lesion_ids).to_dict()}
            if {"net", "fem"} <= set(methods) else {}),
         "placements": placements,
-        "reference": reference.facts() | {"description": reference.describe()},
+        "reference": reference.facts() | {"description": reference.describe()}
+        | ({"chosen": chosen} if chosen else {}),
         "setup": dataclasses.asdict(setup) | {"quick": quick},
         "failures": [r.to_dict() for r in records if r.tre_mm is None],
         "timing": _timing(records, reference.build_s, time.perf_counter() - t_start),

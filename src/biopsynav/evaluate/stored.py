@@ -79,21 +79,41 @@ def find_truth(case: Any) -> tuple[Path, dict]:
         raise InputError("a stored truth is of one material, and this case's grid mixes "
                          f"tissues of other materials ({', '.join(others)}); use [evaluate] "
                          "reference = \"fine_grid\"", "[evaluate] reference")
-    wanted = case_key(case)
+    found, misses = matching_truth(case)
+    if found is not None:
+        return found
     name = case.cfg.evaluate.truth_file
-    candidates = [case.dir / name] if name else shipped_truths()
-    misses = []
-    for path in candidates:
-        data = read_truth(path)
-        differs = key_differences(data["key"], wanted)
-        if not differs:
-            return path, data
-        misses.append(f"{path.name} ({', '.join(differs)} differ)")
     where = "[evaluate] truth_file" if name else "the truths shipped with biopsynav"
     raise InputError(f"no stored truth of this case in {where}: {'; '.join(misses)}. Compute "
                      "one with `python benchmarks/truth.py CASE --lesions 0 --depths 10 20 30 "
                      "--reference FILE` and set [evaluate] truth_file, or use [evaluate] "
                      "reference = \"fine_grid\"", "[evaluate] reference")
+
+
+def matching_truth(case: Any) -> tuple[tuple[Path, dict] | None, list[str]]:
+    """The stored truth (file, contents) of ``case``'s anatomy, material and probe among
+    ``[evaluate] truth_file`` or the shipped ones (None: none), and each other file's name
+    with what differs."""
+    wanted = case_key(case)
+    name = case.cfg.evaluate.truth_file
+    misses = []
+    for path in [case.dir / name] if name else shipped_truths():
+        data = read_truth(path)
+        differs = key_differences(data["key"], wanted)
+        if not differs:
+            return (path, data), misses
+        misses.append(f"{path.name} ({', '.join(differs)} differ)")
+    return None, misses
+
+
+def why_no_truth(case: Any) -> str:
+    """Why no stored truth serves ``case``, in a few words; empty when one does."""
+    others = other_materials(case)
+    if others:
+        return f"its grid mixes tissues of other materials ({', '.join(others)})"
+    if matching_truth(case)[0] is None:
+        return "none is stored of its anatomy, material and probe"
+    return ""
 
 
 class StoredTruth:
@@ -176,3 +196,22 @@ class StoredTruth:
                 f" mm tetrahedra, {k.get('tet_fine_mm', '?')} mm under the probe, homogeneous "
                 f"{float(k['E_mpa']) * 1e3:g} kPa, nu {float(k['nu']):g}; {hours:.1f} h of "
                 "solves on 2 cores when computed)")
+
+
+def choose_reference(case: Any) -> tuple[str, str]:
+    """``[evaluate] reference = "auto"``: ``stored`` where a stored independent truth serves
+    ``case``, else ``fine_grid``; and why, in words."""
+    why = why_no_truth(case)
+    if why:
+        return "fine_grid", f"chosen: no stored independent truth serves this case ({why})"
+    return "stored", "chosen: a stored independent truth serves this case"
+
+
+def auto_reference(case: Any, setup: Any, settings: Any) -> Any:
+    """The reference :func:`choose_reference` chooses for ``case``, built."""
+    from ..reference_registry import reference_builder
+
+    return reference_builder(choose_reference(case)[0])(case, setup, settings)
+
+
+auto_reference.choose = choose_reference  # type: ignore[attr-defined]

@@ -68,7 +68,7 @@ def timing_rows(summary: dict | None, table1: dict | None,
     if "reference" in means:
         kind = (table2 or {}).get("reference", {}).get("kind", "fine_grid")
         label = ("P2 tetrahedral reference" if kind in ("p2", "stored")
-                 else "FE reference, fine grid")
+                 else "fine-grid reference (the teacher's FE: not independent)")
         rows.append((f"{label}, Table 2", float(means["reference"]), None))
     if table1 and "predict_mean_ms" in table1:
         rows.append(("U-Net prediction, Table 1 (this machine)", float(table1["predict_mean_ms"]),
