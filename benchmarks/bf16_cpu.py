@@ -1,6 +1,6 @@
 """What bf16 buys the training on this CPU: step time and stability, per memory layout.
 
-    python benchmarks/bf16_cpu.py [--steps 40] [--runs 4]
+    python benchmarks/bf16_cpu.py [--steps 40] [--runs 4] [--tag TAG]
 
 * step time: one training step (forward, backward, fused AdamW) of the default U-Net, batch 4,
   on the phantom's node grid (24 x 20 x 13), 2 threads, median of ``--steps`` after 5, in
@@ -11,8 +11,9 @@
   the ones whose loss turned NaN (``train`` trains channels-last, ``training_layout``; both
   are forced here for the measurement).
 
-Writes ``benchmarks/results/bf16-cpu-{amx,avx512,emulated}.json`` by the CPU's bf16
-arithmetic (``biopsynav.threads.cpu_bf16_unit``); the last line reads ``RESULT fp32_cl_ms=...
+Writes ``benchmarks/results/bf16-cpu-{amx,avx512,emulated}[-TAG].json`` by the CPU's bf16
+arithmetic (``biopsynav.threads.cpu_bf16_unit``; ``--tag`` tells CPUs of one kind apart); the
+last line reads ``RESULT fp32_cl_ms=...
 bf16_cl_ms=... bf16_contig_ms=... nan_cl=k/n nan_contig=k/n``.
 """
 
@@ -106,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--runs", type=int, default=4)
+    p.add_argument("--tag", default=None, help="appended to the result file's name")
     args = p.parse_args(argv)
     print(f"CPU flags: {' '.join(cpu_flags()) or 'no bf16'}")
     figures = {}
@@ -124,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"nan_{layout}"] = f"{bad}/{args.runs}"
             print(f"bf16 {layout}: {bad} of {args.runs} trainings ended in a NaN loss",
                   flush=True)
-    write_result(result_name(), figures)
+    write_result(result_name() + (f"-{args.tag}" if args.tag else ""), figures)
     print(f"RESULT fp32_cl_ms={figures['fp32_cl_ms']:.1f} bf16_cl_ms={figures['bf16_cl_ms']:.1f} "
           f"fp32_cl_b16_ms={figures['fp32_cl_b16_ms']:.1f} "
           f"bf16_cl_b16_ms={figures['bf16_cl_b16_ms']:.1f} "

@@ -531,9 +531,12 @@ class NetworkSection:
     precision: str = opt("auto", "Arithmetic of the training's forward pass: 'fp32', "
                                  "'bf16' (autocast to bfloat16; the loss, the contact "
                                  "projection and the weights stay fp32) or 'auto' (bf16 on "
-                                 "CUDA and on a CPU with AMX-BF16 or AVX-512 BF16, fp32 on "
-                                 "other CPUs; benchmarks/bf16_cpu.py, docs/network.md). "
-                                 "Inference has its own arithmetic: [network] runtime.",
+                                 "CUDA; on a CPU with AMX-BF16 or AVX-512 BF16 the faster of "
+                                 "the two by a timed training step of each, bf16 only when "
+                                 "10 % faster, a resumed training the checkpoint's; fp32 on "
+                                 "other CPUs; train's first line and meta.json say which and "
+                                 "the steps; docs/network.md). Inference has its own "
+                                 "arithmetic: [network] runtime.",
                          choices=("auto", "fp32", "bf16"))
     threads: int = opt(0, "CPU threads for training and inference (0: the idle cores, "
                           "measured when it starts).", lo=0, hi=1024)
@@ -579,10 +582,11 @@ class NetworkSection:
                                "forced), 'openvino-bf16' (bfloat16 on a CPU with AMX-BF16 "
                                "or AVX-512 BF16: a tracker update 30-45 % faster on the "
                                "larger MRI breasts, lesions within 0.02 mm of fp32's) or "
-                               "'auto' (the fastest installed: openvino-bf16 on a CPU with "
-                               "bf16 arithmetic, else openvino, else "
-                               "torchscript; docs/network.md 'Inference runtimes'). Table 1 "
-                               "is measured with the runtime and arithmetic chosen.",
+                               "'auto' (the fastest installed: OpenVINO, in bf16 on a CPU "
+                               "with bf16 arithmetic where timed predictions of both are "
+                               "10 % faster in bf16, else in fp32; else torchscript; "
+                               "docs/network.md 'Inference runtimes'). Table 1 is measured "
+                               "with the runtime and arithmetic chosen, and says why.",
                        choices=runtime_choices)
 
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,16 +114,17 @@ def _minutes(value: float) -> str:
 def probe_seconds(case, node_shape: tuple[int, int, int] | None = None, *,
                   as_reference: bool = False, batch: int | None = None) -> float:
     """Seconds per step of the case's U-Net training (forward, backward, Adam) at its batch
-    size, arithmetic and layout (``[network] precision`` on the CPU) on random inputs on a
-    grid of ``node_shape`` (the case's when None), the median of :data:`PROBE_STEPS` after
-    one warm-up. ``as_reference``: at the reference run's batch (``REFERENCE["batch"]``) in
-    fp32, the machine's speed probe; ``batch``: at that batch instead of the case's."""
+    size, arithmetic (``[network] precision``; ``auto`` timed as ``train`` times it:
+    :func:`~biopsynav.network.train.choose_precision`) and layout on random inputs on a grid
+    of ``node_shape`` (the case's when None), the median of :data:`PROBE_STEPS` after one
+    warm-up. ``as_reference``: at the reference run's batch (``REFERENCE["batch"]``) in fp32,
+    the machine's speed probe; ``batch``: at that batch instead of the case's."""
     import dataclasses
 
     import torch
 
-    from .network.train import training_layout, use_bf16
-    from .network.unet import UNet3d, section_spec
+    from .network.train import choose_precision, step_seconds
+    from .network.unet import section_spec
 
     s, cpu = case.cfg.network, torch.device("cpu")
     if as_reference:
@@ -132,24 +132,9 @@ def probe_seconds(case, node_shape: tuple[int, int, int] | None = None, *,
     elif batch is not None:
         s = dataclasses.replace(s, batch_size=batch)
     spec = section_spec(s)
-    amp = use_bf16(s.precision, cpu)
-    layout = training_layout(cpu)
-    net = UNet3d(spec).to(memory_format=layout)
-    opt = torch.optim.Adam(net.parameters(), lr=1e-4)
-    shape = node_shape or case.grid.node_shape
-    x = torch.randn(s.batch_size, spec.feature_channels(), *shape)
-    x = x.contiguous(memory_format=layout)
-    times = []
-    for _ in range(PROBE_STEPS + 1):
-        start = time.perf_counter()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
-            out = net(x)
-        loss = out.float().square().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times[1:]))
+    shape = tuple(node_shape or case.grid.node_shape)
+    amp = choose_precision(s.precision, cpu, spec, shape, s.batch_size).amp
+    return step_seconds(spec, shape, s.batch_size, amp, PROBE_STEPS)
 
 
 def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0) -> Estimate:

@@ -81,6 +81,27 @@ def test_auto_takes_bf16_only_where_the_cpu_has_bf16_arithmetic(monkeypatch, uni
     assert R.resolve_runtime("auto").name == ("openvino-bf16" if unit else "openvino")
 
 
+@pytest.mark.parametrize("bf16_ms, chosen", [(1.0, "openvino-bf16"), (2.8, "openvino"),
+                                             (1.95, "openvino")])
+def test_auto_keeps_bf16_only_where_its_predictions_are_faster(trained, monkeypatch, bf16_ms,
+                                                               chosen):
+    """Where OpenVINO may run in bf16, ``auto`` times both arithmetics on the model and keeps
+    bf16 only when clearly faster (a near tie keeps fp32); a runtime asked for by name is not
+    timed; the loaded model and Table 1 say which and why."""
+    import biopsynav.inference.runtimes as R
+
+    if not R.openvino_bf16_available():
+        pytest.skip("no AMX-BF16 or AVX-512 BF16 on this CPU, or openvino not installed")
+    case, _ = trained
+    timed = {"bf16": bf16_ms, "fp32": 2.0}
+    monkeypatch.setattr(R, "timed_prediction_ms", lambda runner, shape: timed[runner.precision])
+    sur = Surrogate.load(case / "model", FINGERPRINT, runtime="auto", warmup=1)
+    assert sur.runtime == chosen
+    assert f"{bf16_ms:.2f} ms in bf16 against 2.00 in fp32" in sur.runtime_chosen
+    named = Surrogate.load(case / "model", FINGERPRINT, runtime="openvino-bf16", warmup=1)
+    assert named.runtime == "openvino-bf16" and named.runtime_chosen == ""
+
+
 def test_bf16_asked_for_on_a_cpu_without_bf16_says_what_it_needs(monkeypatch):
     import biopsynav.inference.runtimes as R
 

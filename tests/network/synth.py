@@ -21,11 +21,13 @@ SHAPE = (16, 8, 8)  # the node grid of the shared synthetic data set (tests/conf
 
 def tiny_settings(**kw) -> NetworkSection:
     """The default architecture (width 8, SiLU, quadratic features) with a short schedule
-    (seconds on one CPU thread)."""
+    (seconds on one CPU thread), in fp32: ``auto`` would time both arithmetics, and on a
+    near tie two runs of one test could train in different ones."""
     base = dict(preset="custom", base_channels=8, levels=3, activation="silu",
                 features="quadratic", iterations=300, val_interval=100,
                 warmup_iterations=20, learning_rate=3e-3, batch_size=4, threads=1, seed=0,
-                baseline="none", prior="none")  # synthetic data have no case (FE model)
+                baseline="none", prior="none",  # synthetic data have no case (FE model)
+                precision="fp32")
     base.update(kw)
     return NetworkSection(**base)
 

@@ -332,9 +332,12 @@ def test_training_through_the_projection_resumes_exactly(reference, tmp_path):
 
 
 def test_precision_setting_picks_the_forward_arithmetic(monkeypatch):
-    """'auto' is bf16 on CUDA and on a CPU with AMX-BF16 or AVX-512 BF16, fp32 on other
-    CPUs; the CPU trains channels-last in either arithmetic; the first line names the unit."""
+    """'auto' is bf16 on CUDA, fp32 on a CPU without AMX-BF16 or AVX-512 BF16, and on one
+    with them the faster of the two by a timed step (bf16 only when clearly faster), or the
+    arithmetic of the checkpoint it resumes; the CPU trains channels-last in either; the
+    first line names the unit and why."""
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    spec = T.UNetSpec()
     for unit in ("AMX-BF16 tiles", "AVX-512 BF16", None):
         monkeypatch.setattr(T, "cpu_bf16_unit", lambda unit=unit: unit)
         assert use_bf16("bf16", cpu) and not use_bf16("fp32", cpu) and not use_bf16("fp32", cuda)
@@ -345,17 +348,45 @@ def test_precision_setting_picks_the_forward_arithmetic(monkeypatch):
         assert (f"bf16 autocast on {unit}," in line) if unit else "emulated" in line
         assert ("neither AMX-BF16 nor AVX-512 BF16" in T.precision_line(False, cpu)) == \
             (unit is None)
+        for fp32_ms, bf16_ms, amp in ((80.0, 110.0, False), (80.0, 60.0, True),
+                                      (80.0, 75.0, False)):  # a near tie keeps fp32
+            monkeypatch.setattr(T, "timed_steps_ms", lambda *a, t=(fp32_ms, bf16_ms): t)
+            choice = T.choose_precision("auto", cpu, spec, (8, 8, 8), 4)
+            assert choice.amp == (amp and unit is not None)
+            if unit is not None:
+                assert choice.record() == {"precision": "bf16" if amp else "fp32",
+                                           "precision_step_ms": {"fp32": fp32_ms,
+                                                                 "bf16": bf16_ms}}
+                assert f"{bf16_ms:.0f} ms in bf16 against {fp32_ms:.0f} in fp32" in \
+                    T.precision_line(choice, cpu)
+            for resumed in (True, False):
+                kept = T.choose_precision("auto", cpu, spec, (8, 8, 8), 4, resumed)
+                assert kept.amp == (resumed and unit is not None)
+        assert T.choose_precision("bf16", cpu, spec, (8, 8, 8), 4).amp
+        assert not T.choose_precision("fp32", cpu, spec, (8, 8, 8), 4).amp
+        assert T.choose_precision("auto", cuda, spec, (8, 8, 8), 4).amp
+
+
+def test_the_timed_step_is_finite_and_leaves_the_random_stream_alone():
+    """The step ``auto`` times runs in both arithmetics and does not move torch's random
+    generator (the training's seed decides its draws, timed or not)."""
+    state = torch.random.get_rng_state()
+    spec = T.UNetSpec()
+    for bf16 in (False, True):
+        assert 0.0 < T.step_seconds(spec, (8, 8, 8), 2, bf16, 1) < 30.0
+    assert torch.equal(torch.random.get_rng_state(), state)
 
 
 def test_train_says_its_arithmetic_in_its_first_line(synth_case, tmp_path, capsys):
-    s = tiny_settings(iterations=2, val_interval=1, warmup_iterations=1)
+    s = tiny_settings(iterations=2, val_interval=1, warmup_iterations=1, precision="auto")
     summary = train(synth_case, settings=s, model_dir=tmp_path, progress=True)
     first = capsys.readouterr().out.splitlines()[0]
-    amp = use_bf16(s.precision, torch.device("cpu"))
-    assert first == T.precision_line(amp, torch.device("cpu"))
-    assert first.startswith(f"[network] precision: {'bf16' if amp else 'fp32'}")
     meta = json.loads((tmp_path / "meta.json").read_text())
-    assert summary.finished and meta["training"]["precision"] == ("bf16" if amp else "fp32")
+    precision = meta["training"]["precision"]
+    assert first.startswith(f"[network] precision: {precision}")
+    assert summary.finished and precision == first.split()[2]
+    timed = meta["training"].get("precision_step_ms")
+    assert (timed is not None) == (s.precision == "auto" and T.cpu_bf16_unit() is not None)
 
 
 def test_the_bf16_unit_is_read_from_the_cpu_flags():

@@ -27,7 +27,12 @@ from ..errors import InputError
 from ..probe import ContactInputOperator
 from ..threads import auto_threads, set_torch_threads
 from .model_files import check_file, check_fingerprint, read_meta
-from .runtimes import Runner, openvino_available, resolve_runtime  # noqa: F401  (re-exported)
+from .runtimes import (  # noqa: F401  (re-exported)
+    Runner,
+    make_runner,
+    openvino_available,
+    resolve_runtime,
+)
 
 if TYPE_CHECKING:
     from ..case import Case
@@ -47,6 +52,8 @@ class Surrogate:
         self.node_shape: tuple[int, int, int] = tuple(meta["node_shape"])  # type: ignore
         self.runtime: str = runner.name  # type: ignore[attr-defined]
         self.precision: str = getattr(runner, "precision", "fp32")
+        #: why ``auto`` chose this runtime, in words (empty: named or ranked; make_runner)
+        self.runtime_chosen = ""
 
     @property
     def fingerprint(self) -> str:
@@ -79,10 +86,10 @@ class Surrogate:
         model_dir = Path(model_dir)
         meta = read_meta(model_dir)
         check_fingerprint(meta, expected_fingerprint, str(model_dir))
-        spec = resolve_runtime(runtime or meta.get("inference", {}).get("runtime", "auto"))
         n = threads if threads > 0 else auto_threads()
-        runner = spec.make(check_file(model_dir, spec.model_file, meta), n,
-                           tuple(meta["node_shape"]))
+        spec, runner, chosen = make_runner(
+            runtime or meta.get("inference", {}).get("runtime", "auto"),
+            lambda s: check_file(model_dir, s.model_file, meta), n, tuple(meta["node_shape"]))
         baseline = _load_baseline(meta, model_dir, case)
         if baseline is not None:
             # the baseline's small BLAS calls run in torch's pool; beside a runtime with its
@@ -90,6 +97,7 @@ class Surrogate:
             # measured 3.6 ms against 5.0 ms per prediction on 2 cores, docs/network.md)
             set_torch_threads(1 if spec.own_threads else n)
         sur = cls(runner, meta, model_dir, baseline)
+        sur.runtime_chosen = chosen
         sur.warm_up(warmup)
         return sur
 

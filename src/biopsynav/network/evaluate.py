@@ -131,6 +131,7 @@ def evaluate(model_dir: str | Path, dataset: str | Path, out_dir: str | Path,
         "largest_deformation_sample": int(data.test_idx[int(disp.argmax())]),
         "n_active_nodes": int(active.sum()),
         "runtime": sur.runtime, "precision": sur.precision,
+        **({"runtime_chosen": sur.runtime_chosen} if sur.runtime_chosen else {}),
         "architecture": meta["architecture"], "n_parameters": meta["n_parameters"],
         "e_per_sample_mm": e.tolist(),
     })

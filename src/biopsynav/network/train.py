@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import functools
 import io
 import math
 import sys
@@ -57,7 +58,7 @@ from .data import (
 from .export import SurrogateNet
 from .metrics import masked_loss, mean_norm_error
 from .model_io import write_model
-from .unet import UNetSpec, count_parameters, section_spec
+from .unet import UNet3d, UNetSpec, count_parameters, section_spec
 from .warmstart import SourceModel, load_source, merged_envelope, resolve_source
 
 if TYPE_CHECKING:
@@ -96,26 +97,110 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+#: training steps that ``precision = "auto"`` times in each arithmetic on a CPU with bf16
+#: arithmetic (after one warm-up each; their median)
+PRECISION_PROBE_STEPS = 4
+#: ... and bf16 is chosen where its step takes less than this share of fp32's (a near tie
+#: keeps fp32): AVX-512 BF16 trains 1.3x faster than fp32 on an AMD EPYC, 1.4x slower on an
+#: Intel Xeon whose VM hides AMX (docs/network.md, "Arithmetic")
+BF16_WIN = 0.9
+
+
+@dataclass(frozen=True)
+class Precision:
+    """The training's forward arithmetic: bf16 autocast (``amp``) or fp32, and why (a
+    measured step in each, ms, where ``auto`` timed them)."""
+
+    amp: bool
+    why: str = ""
+    fp32_ms: float | None = None
+    bf16_ms: float | None = None
+
+    def record(self) -> dict:
+        """What ``meta.json`` keeps of it."""
+        timed = {} if self.fp32_ms is None else {"precision_step_ms": {
+            "fp32": self.fp32_ms, "bf16": self.bf16_ms}}
+        return {"precision": "bf16" if self.amp else "fp32", **timed}
+
+
 def use_bf16(precision: str, dev: torch.device) -> bool:
-    """Whether training autocasts its forward pass to bfloat16 on ``dev``: always for
+    """Whether training may autocast its forward pass to bfloat16 on ``dev``: always for
     'bf16', never for 'fp32'; for 'auto' on CUDA and on a CPU with bf16 arithmetic, AMX-BF16
-    or AVX-512 BF16 (:func:`cpu_bf16_unit`), fp32 on other CPUs (docs/network.md,
-    "Arithmetic")."""
+    or AVX-512 BF16 (:func:`cpu_bf16_unit`), where :func:`choose_precision` then times
+    both; fp32 on other CPUs (docs/network.md, "Arithmetic")."""
     if precision != "auto":
         return precision == "bf16"
     return dev.type == "cuda" or (dev.type == "cpu" and cpu_bf16_unit() is not None)
 
 
-def precision_line(amp: bool, dev: torch.device) -> str:
+def choose_precision(precision: str, dev: torch.device, spec: UNetSpec,
+                     node_shape: tuple[int, int, int], batch: int,
+                     resumed: bool | None = None) -> Precision:
+    """The arithmetic of a training of the U-Net ``spec`` at ``batch`` on ``node_shape``
+    nodes: as set ('fp32', 'bf16'); for 'auto', bf16 on CUDA, fp32 on a CPU without bf16
+    arithmetic, the checkpoint's (``resumed``: its bf16, None: none), else the faster of the
+    two by a timed step of each (:func:`timed_steps_ms`; bf16 only below :data:`BF16_WIN`
+    of fp32's)."""
+    if precision != "auto" or not use_bf16(precision, dev) or dev.type != "cpu":
+        return Precision(use_bf16(precision, dev))
+    if resumed is not None:
+        return Precision(resumed, "as the checkpoint it resumes")
+    fp32_ms, bf16_ms = timed_steps_ms(spec, tuple(node_shape), batch, torch.get_num_threads())
+    return Precision(bf16_ms < BF16_WIN * fp32_ms,
+                     f"a step timed {bf16_ms:.0f} ms in bf16 against {fp32_ms:.0f} in fp32",
+                     fp32_ms, bf16_ms)
+
+
+@functools.lru_cache(maxsize=8)
+def timed_steps_ms(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int,
+                   threads: int) -> tuple[float, float]:
+    """The median training step (ms) of the U-Net ``spec`` at ``batch`` on random inputs of
+    ``node_shape`` nodes on the CPU, in fp32 and in bf16 autocast (:func:`step_seconds`,
+    :data:`PRECISION_PROBE_STEPS` each); kept for the process (``threads``: the torch threads
+    it was timed with)."""
+    return tuple(1e3 * step_seconds(spec, node_shape, batch, bf16, PRECISION_PROBE_STEPS)
+                 for bf16 in (False, True))
+
+
+def step_seconds(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int, bf16: bool,
+                 steps: int) -> float:
+    """Median seconds of one training step (forward, backward, Adam) of a fresh U-Net
+    ``spec`` on random inputs (``batch``, its feature channels, ``node_shape``) on the CPU in
+    the training layout, with bf16 autocast or not, over ``steps`` after one warm-up. Leaves
+    torch's random generator as it found it."""
+    cpu = torch.device("cpu")
+    layout = training_layout(cpu)
+    with torch.random.fork_rng():
+        net = UNet3d(spec).to(memory_format=layout)
+        opt = torch.optim.Adam(net.parameters(), lr=1e-4)
+        x = torch.randn(batch, spec.feature_channels(), *node_shape)
+    x = x.contiguous(memory_format=layout)
+    times = []
+    for _ in range(steps + 1):
+        start = time.perf_counter()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            out = net(x)
+        loss = out.float().square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times[1:]))
+
+
+def precision_line(choice: Precision | bool, dev: torch.device) -> str:
     """The one line ``train`` prints of its arithmetic and why."""
+    amp, why = (choice.amp, choice.why) if isinstance(choice, Precision) else (choice, "")
     unit = cpu_bf16_unit() if dev.type == "cpu" else dev.type
+    why = f" ({why})" if why else ""
     if not amp:
-        why = " (this CPU has neither AMX-BF16 nor AVX-512 BF16)" if unit is None else ""
+        if unit is None:
+            why = " (this CPU has neither AMX-BF16 nor AVX-512 BF16)"
         return f"[network] precision: fp32 on {dev.type}{why}"
     if unit is None:
         return ("[network] precision: bf16 autocast on a CPU without bf16 instructions "
                 "(emulated, slower than fp32), fp32 weights and loss")
-    return f"[network] precision: bf16 autocast on {unit}, fp32 weights and loss"
+    return f"[network] precision: bf16 autocast on {unit}, fp32 weights and loss{why}"
 
 
 def training_layout(dev: torch.device) -> torch.memory_format:
@@ -182,6 +267,18 @@ def _save_torch(obj: dict, path: Path) -> None:
     buf = io.BytesIO()
     torch.save(obj, buf)
     write_bytes_atomic(path, buf.getvalue())
+
+
+def _checkpoint_bf16(path: Path) -> bool | None:
+    """Whether the training checkpoint at ``path`` ran in bf16; None where there is none or
+    it cannot be read (:func:`_load_checkpoint` then says why)."""
+    if not path.is_file():
+        return None
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        return ckpt["signature"].get("precision") == "bf16"
+    except Exception:  # noqa: BLE001 - judged again, and reported, when loaded
+        return None
 
 
 def _load_checkpoint(path: Path, signature: dict) -> dict | None:
@@ -277,10 +374,12 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     spec = section_spec(s)
     dev = resolve_device(s.device)
     threads = set_threads(s.threads)
-    amp = use_bf16(s.precision, dev)
-    if progress:
-        print(precision_line(amp, dev), flush=True)
     full = training_samples(dataset if dataset is not None else case_dir, first_samples)
+    precision = choose_precision(s.precision, dev, spec, full.node_shape, s.batch_size,
+                                 _checkpoint_bf16(out / CHECKPOINT))
+    amp = precision.amp
+    if progress:
+        print(precision_line(precision, dev), flush=True)
     source = source_model(case_dir, s, spec, full)  # checked before the baselines' work
     prior, start_line = starting_point(case, s, spec, source)
     if progress:
@@ -305,7 +404,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
         ckpt = None
     resumed_from = state["iteration"]
 
-    runner = TrainingLoop(net, opt, data, s, dev, out, signature, state, projections)
+    runner = TrainingLoop(net, opt, data, s, dev, out, signature, state, projections, amp)
     if ckpt is None and starts_from_a_model:
         runner.keep_initial()  # the source model, prior or baseline alone: the one to beat
     with deterministic_algorithms():
@@ -315,7 +414,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
         if state["best_state"] is not None:
             net.unet.load_state_dict(state["best_state"])
         net.to(memory_format=torch.contiguous_format)
-        record = training_record(s, state, full, dev.type, threads, runner.amp, baseline_meta,
+        record = training_record(s, state, full, dev.type, threads, precision, baseline_meta,
                                  source, prior_summary)
         write_model(out, net.cpu(), spec, data, in_scale, out_scale,
                     merged_envelope(envelope(full), source), quad_scale=quad_scale,
@@ -389,14 +488,15 @@ def initial_weights(net: SurrogateNet, source: SourceModel | None, prior: Prior 
 
 
 def training_record(s: NetworkSection, state: dict, full: Dataset, device: str, threads: int,
-                    amp: bool, baseline_meta: dict, source: SourceModel | None,
+                    precision: Precision, baseline_meta: dict, source: SourceModel | None,
                     prior_summary: dict | None) -> dict:
-    """``meta.json``'s ``training``: the schedule, where and how it ran, its time (s), the
+    """``meta.json``'s ``training``: the schedule, where and how it ran (the arithmetic and,
+    where ``auto`` timed them, the steps it chose by: :meth:`Precision.record`), its time (s), the
     training samples, the best held-out e (mm) and when, the history, and what it started
     from."""
     return {"iterations": s.iterations, "batch_size": s.batch_size,
             "learning_rate": s.learning_rate, "loss": s.loss, "seed": s.seed,
-            "device": device, "threads": threads, "precision": "bf16" if amp else "fp32",
+            "device": device, "threads": threads, **precision.record(),
             "train_time_s": state["elapsed_s"], "n_train": int(full.train_idx.numel()),
             # the baseline and projections of every sample, before the loop
             "setup_s": float(baseline_meta.get("setup_s", 0.0)
@@ -563,7 +663,8 @@ class TrainingLoop:
     def __init__(self, net: SurrogateNet, opt: torch.optim.Optimizer, data: Dataset,
                  s: NetworkSection, dev: torch.device, out: Path, signature: dict,
                  state: dict,
-                 projections: tuple[BatchProjection, BatchProjection] | None = None) -> None:
+                 projections: tuple[BatchProjection, BatchProjection] | None = None,
+                 amp: bool | None = None) -> None:
         self.net, self.opt, self.s, self.dev, self.out = net, opt, s, dev, out
         self.train_proj, self.test_proj = projections or (None, None)
         self.signature, self.state = signature, state
@@ -575,7 +676,7 @@ class TrainingLoop:
         self.y_train = data.targets[data.train_idx].to(dev) / scale  # normalised targets
         self.x_test = data.inputs[data.test_idx].to(dev)
         self.y_test = data.targets[data.test_idx].to(dev)
-        self.amp = use_bf16(s.precision, dev)
+        self.amp = use_bf16(s.precision, dev) if amp is None else amp  # bf16 autocast
         self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
         self.drawn_at = time.perf_counter()  # when loss_curve.png was last drawn
         self.memory_format = training_layout(dev)
