@@ -76,7 +76,7 @@ def resolve_runtime(name: str) -> RuntimeSpec:
 
 
 #: predictions timed per arithmetic (after as many again to warm up) where ``auto`` chooses
-#: between OpenVINO in bf16 and in fp32 (:func:`make_runner`)
+#: between OpenVINO in bf16 and in fp32 (:func:`runtime_runner`)
 AUTO_TIMED = 40
 #: ... bf16 is kept where its median prediction takes less than this share of fp32's: on an
 #: Intel Xeon whose VM hides AMX, bf16 predicted the phantom 1.4x slower than fp32
@@ -84,7 +84,7 @@ AUTO_TIMED = 40
 BF16_WIN = 0.9
 
 
-def make_runner(name: str, model_path: Callable[[RuntimeSpec], Path], threads: int,
+def runtime_runner(name: str, model_path: Callable[[RuntimeSpec], Path], threads: int,
                 node_shape: tuple[int, int, int]) -> tuple[RuntimeSpec, Runner, str]:
     """The runtime called ``name`` (:func:`resolve_runtime`), its runner of the model file
     ``model_path(spec)`` on ``threads`` threads for a grid of ``node_shape`` nodes, and why it

@@ -29,9 +29,9 @@ from ..threads import auto_threads, set_torch_threads
 from .model_files import check_file, check_fingerprint, read_meta
 from .runtimes import (  # noqa: F401  (re-exported)
     Runner,
-    make_runner,
     openvino_available,
     resolve_runtime,
+    runtime_runner,
 )
 
 if TYPE_CHECKING:
@@ -52,7 +52,7 @@ class Surrogate:
         self.node_shape: tuple[int, int, int] = tuple(meta["node_shape"])  # type: ignore
         self.runtime: str = runner.name  # type: ignore[attr-defined]
         self.precision: str = getattr(runner, "precision", "fp32")
-        #: why ``auto`` chose this runtime, in words (empty: named or ranked; make_runner)
+        #: why ``auto`` chose this runtime, in words (empty: named or ranked; runtime_runner)
         self.runtime_chosen = ""
 
     @property
@@ -87,7 +87,7 @@ class Surrogate:
         meta = read_meta(model_dir)
         check_fingerprint(meta, expected_fingerprint, str(model_dir))
         n = threads if threads > 0 else auto_threads()
-        spec, runner, chosen = make_runner(
+        spec, runner, chosen = runtime_runner(
             runtime or meta.get("inference", {}).get("runtime", "auto"),
             lambda s: check_file(model_dir, s.model_file, meta), n, tuple(meta["node_shape"]))
         baseline = _load_baseline(meta, model_dir, case)
