@@ -47,7 +47,7 @@ REFERENCE = {"probe_s": 0.019, "node_shape": (14, 21, 20), "active_cells": 2041,
              "samples": 1000, "table2_pushes": 8, "reference_refinement": 2.0,
              "minutes": {"generate": 2.68, "evaluate and report": 3.47}}
 # its pushes: REFINE_PUSH_MINUTES; its trainings: TRAINING_STEP_FACTOR
-PROBE_STEPS = 10  # steps timed after one warm-up; their median
+PROBE_STEPS = 10  # steps timed after the warm-up (network.train.PROBE_WARMUP); their median
 #: What a rigid push costs since the FE engine evaluates a tangent only where it factors one,
 #: against before (the measurements below that predate it): 1.13 s against 1.30 on the
 #: phantom's rigid pushes, one thread, the two codes interleaved in one process, AMD EPYC,
@@ -116,7 +116,7 @@ def probe_seconds(case, node_shape: tuple[int, int, int] | None = None, *,
     """Seconds per step of the case's U-Net training (forward, backward, Adam) at its batch
     size, arithmetic (``[network] precision``; ``auto`` timed as ``train`` times it:
     :func:`~biopsynav.network.train.choose_precision`) and layout on random inputs on a grid
-    of ``node_shape`` (the case's when None), the median of :data:`PROBE_STEPS` after one
+    of ``node_shape`` (the case's when None), the median of :data:`PROBE_STEPS` after the
     warm-up. ``as_reference``: at the reference run's batch (``REFERENCE["batch"]``) in fp32,
     the machine's speed probe; ``batch``: at that batch instead of the case's."""
     import dataclasses

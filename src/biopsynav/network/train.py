@@ -98,8 +98,10 @@ def resolve_device(name: str) -> torch.device:
 
 
 #: training steps that ``precision = "auto"`` times in each arithmetic on a CPU with bf16
-#: arithmetic (after one warm-up each; their median)
-PRECISION_PROBE_STEPS = 4
+#: arithmetic, in turn (their median)
+PRECISION_PROBE_STEPS = 6
+#: rounds of steps a timing runs first, untimed (oneDNN makes its kernels on first use)
+PROBE_WARMUP = 2
 #: ... and bf16 is chosen where its step takes less than this share of fp32's (a near tie
 #: keeps fp32): AVX-512 BF16 trains 1.3x faster than fp32 on an AMD EPYC, 1.4x slower on an
 #: Intel Xeon whose VM hides AMX (docs/network.md, "Arithmetic")
@@ -155,19 +157,28 @@ def choose_precision(precision: str, dev: torch.device, spec: UNetSpec,
 def timed_steps_ms(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int,
                    threads: int) -> tuple[float, float]:
     """The median training step (ms) of the U-Net ``spec`` at ``batch`` on random inputs of
-    ``node_shape`` nodes on the CPU, in fp32 and in bf16 autocast (:func:`step_seconds`,
-    :data:`PRECISION_PROBE_STEPS` each); kept for the process (``threads``: the torch threads
-    it was timed with)."""
-    return tuple(1e3 * step_seconds(spec, node_shape, batch, bf16, PRECISION_PROBE_STEPS)
-                 for bf16 in (False, True))
+    ``node_shape`` nodes on the CPU, in fp32 and in bf16 autocast, timed in turn
+    (:func:`step_times`, :data:`PRECISION_PROBE_STEPS` each); kept for the process
+    (``threads``: the torch threads it was timed with)."""
+    fp32_s, bf16_s = step_times(spec, node_shape, batch, (False, True), PRECISION_PROBE_STEPS)
+    return 1e3 * fp32_s, 1e3 * bf16_s
 
 
 def step_seconds(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int, bf16: bool,
                  steps: int) -> float:
+    """Median seconds of one training step of the U-Net ``spec`` with bf16 autocast or not
+    (:func:`step_times`)."""
+    return step_times(spec, node_shape, batch, (bf16,), steps)[0]
+
+
+def step_times(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int,
+               arithmetics: tuple[bool, ...], steps: int) -> list[float]:
     """Median seconds of one training step (forward, backward, Adam) of a fresh U-Net
     ``spec`` on random inputs (``batch``, its feature channels, ``node_shape``) on the CPU in
-    the training layout, with bf16 autocast or not, over ``steps`` after one warm-up. Leaves
-    torch's random generator as it found it."""
+    the training layout, for each of ``arithmetics`` (bf16 autocast or not): ``steps``
+    rounds of one step in each, in turn (what slows the machine for a while slows both),
+    after :data:`PROBE_WARMUP` such rounds. Leaves torch's random generator as it found
+    it."""
     cpu = torch.device("cpu")
     layout = training_layout(cpu)
     with torch.random.fork_rng():
@@ -175,17 +186,19 @@ def step_seconds(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int, b
         opt = torch.optim.Adam(net.parameters(), lr=1e-4)
         x = torch.randn(batch, spec.feature_channels(), *node_shape)
     x = x.contiguous(memory_format=layout)
-    times = []
-    for _ in range(steps + 1):
-        start = time.perf_counter()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            out = net(x)
-        loss = out.float().square().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times[1:]))
+    times: list[list[float]] = [[] for _ in arithmetics]
+    for round_ in range(PROBE_WARMUP + steps):
+        for k, bf16 in enumerate(arithmetics):
+            start = time.perf_counter()
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                out = net(x)
+            loss = out.float().square().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if round_ >= PROBE_WARMUP:
+                times[k].append(time.perf_counter() - start)
+    return [float(np.median(t)) for t in times]
 
 
 def precision_line(choice: Precision | bool, dev: torch.device) -> str:
