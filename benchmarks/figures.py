@@ -368,6 +368,11 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      "against the fine-grid truth, 391 s of the evaluation): whole; each stage; Table 1",
      Cell("time-to-model-ucdavis-pushes-avx512-gap", ttm_summary,
           TTM.format("ucdavis") + " --recipe pushes --tag avx512-gap"), "<= 15 min", "-"),
+    ("the same on an Intel Xeon whose VM shows AVX-512 BF16 and hides AMX, the arithmetic "
+     "chosen by timing (fp32 there; Table 2 against the fine-grid truth, said so): whole; each "
+     "stage; Table 1",
+     Cell("time-to-model-ucdavis-pushes-xeon", ttm_summary,
+          TTM.format("ucdavis") + " --recipe pushes --tag xeon"), "<= 15 min", "-"),
     ("the same network: the paper's Table 1 on 200 force patches of its own teacher's law",
      Cell("table1-patches-ucdavis-pushes-amx", table1_cell,
           "python benchmarks/table1_patches.py CASE --result-name "

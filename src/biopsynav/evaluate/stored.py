@@ -203,7 +203,7 @@ def choose_reference(case: Any) -> tuple[str, str]:
     ``case``, else ``fine_grid``; and why, in words."""
     why = why_no_truth(case)
     if why:
-        return "fine_grid", f"chosen: no stored independent truth serves this case ({why})"
+        return "fine_grid", f"chosen: no stored independent truth serves this case: {why}"
     return "stored", "chosen: a stored independent truth serves this case"
 
 
