@@ -94,7 +94,8 @@ def test_auto_keeps_bf16_only_where_its_predictions_are_faster(trained, monkeypa
         pytest.skip("no AMX-BF16 or AVX-512 BF16 on this CPU, or openvino not installed")
     case, _ = trained
     timed = {"bf16": bf16_ms, "fp32": 2.0}
-    monkeypatch.setattr(R, "timed_prediction_ms", lambda runner, shape: timed[runner.precision])
+    monkeypatch.setattr(R, "timed_predictions_ms",
+                        lambda runners, shape: [timed[r.precision] for r in runners])
     sur = Surrogate.load(case / "model", FINGERPRINT, runtime="auto", warmup=1)
     assert sur.runtime == chosen
     assert f"{bf16_ms:.2f} ms in bf16 against 2.00 in fp32" in sur.runtime_chosen

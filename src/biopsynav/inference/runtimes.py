@@ -85,34 +85,37 @@ BF16_WIN = 0.9
 
 
 def runtime_runner(name: str, model_path: Callable[[RuntimeSpec], Path], threads: int,
-                node_shape: tuple[int, int, int]) -> tuple[RuntimeSpec, Runner, str]:
+                   node_shape: tuple[int, int, int]) -> tuple[RuntimeSpec, Runner, str]:
     """The runtime called ``name`` (:func:`resolve_runtime`), its runner of the model file
     ``model_path(spec)`` on ``threads`` threads for a grid of ``node_shape`` nodes, and why it
     was chosen, in words: for ``auto`` where OpenVINO runs in bf16, the faster of bf16 and fp32
-    by :data:`AUTO_TIMED` timed predictions each (bf16 only below :data:`BF16_WIN` of fp32's
-    median); otherwise as named or ranked (no words)."""
+    by :data:`AUTO_TIMED` predictions each, timed in turn (bf16 only below :data:`BF16_WIN` of
+    fp32's median); otherwise as named or ranked (no words)."""
     spec = resolve_runtime(name)
     runner = spec.make(model_path(spec), threads, node_shape)
     if name != "auto" or spec.name != "openvino-bf16":
         return spec, runner, ""
     fp32_spec = RUNTIMES["openvino"]
     fp32 = fp32_spec.make(model_path(fp32_spec), threads, node_shape)
-    bf16_ms, fp32_ms = (timed_prediction_ms(r, node_shape) for r in (runner, fp32))
+    bf16_ms, fp32_ms = timed_predictions_ms((runner, fp32), node_shape)
     why = f"a prediction timed {bf16_ms:.2f} ms in bf16 against {fp32_ms:.2f} in fp32"
     return (spec, runner, why) if bf16_ms < BF16_WIN * fp32_ms else (fp32_spec, fp32, why)
 
 
-def timed_prediction_ms(runner: Runner, node_shape: tuple[int, int, int]) -> float:
-    """The median (ms) of :data:`AUTO_TIMED` batch-1 predictions of ``runner`` on zeros, after
-    as many to warm up."""
+def timed_predictions_ms(runners: tuple[Runner, ...], node_shape: tuple[int, int, int]
+                         ) -> list[float]:
+    """The median (ms) of :data:`AUTO_TIMED` batch-1 predictions on zeros of each of
+    ``runners``, one prediction of each in turn (what slows the machine for a while slows
+    all), after as many rounds to warm up."""
     x = np.zeros((1, 4, *node_shape), np.float32)
-    times = []
-    for i in range(2 * AUTO_TIMED):
-        start = time.perf_counter()
-        runner(x)
-        if i >= AUTO_TIMED:
-            times.append(time.perf_counter() - start)
-    return float(np.median(times) * 1e3)
+    times: list[list[float]] = [[] for _ in runners]
+    for round_ in range(2 * AUTO_TIMED):
+        for k, runner in enumerate(runners):
+            start = time.perf_counter()
+            runner(x)
+            if round_ >= AUTO_TIMED:
+                times[k].append(time.perf_counter() - start)
+    return [float(np.median(t) * 1e3) for t in times]
 
 
 class TorchScriptRunner:
