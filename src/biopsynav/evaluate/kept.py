@@ -82,8 +82,8 @@ class KeptTruth:
         pushes = {pose_key(rest, p): result_to_json(r)
                   for p, r in zip(poses, results, strict=True)}
         self.lesions[pose_key(rest, rest)] = {"n_contact": int(n_contact), "pushes": pushes}
-        truths = {k: v for k, v in kept_truths(self.path).items() if k != self.key}
-        truths = dict(list(truths.items())[1 - KEPT_TRUTHS:] if KEPT_TRUTHS > 1 else [])
+        older = [(k, v) for k, v in kept_truths(self.path).items() if k != self.key]
+        truths = dict(older[max(0, len(older) - KEPT_TRUTHS + 1):])  # the latest, this last
         truths[self.key] = self.lesions
         try:
             write_json_atomic(self.path, {"format": FORMAT, "truths": truths})

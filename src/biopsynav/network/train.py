@@ -143,8 +143,9 @@ def choose_precision(precision: str, dev: torch.device, spec: UNetSpec,
     arithmetic, the checkpoint's (``resumed``: its bf16, None: none), else the faster of the
     two by a timed step of each (:func:`timed_steps_ms`; bf16 only below :data:`BF16_WIN`
     of fp32's)."""
-    if precision != "auto" or not use_bf16(precision, dev) or dev.type != "cpu":
-        return Precision(use_bf16(precision, dev))
+    amp = use_bf16(precision, dev)
+    if precision != "auto" or not amp or dev.type != "cpu":
+        return Precision(amp)
     if resumed is not None:
         return Precision(resumed, "as the checkpoint it resumes")
     fp32_ms, bf16_ms = timed_steps_ms(spec, tuple(node_shape), batch, torch.get_num_threads())
@@ -282,24 +283,13 @@ def _save_torch(obj: dict, path: Path) -> None:
     write_bytes_atomic(path, buf.getvalue())
 
 
-def _checkpoint_bf16(path: Path) -> bool | None:
-    """Whether the training checkpoint at ``path`` ran in bf16; None where there is none or
-    it cannot be read (:func:`_load_checkpoint` then says why)."""
-    if not path.is_file():
-        return None
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-        return ckpt["signature"].get("precision") == "bf16"
-    except Exception:  # noqa: BLE001 - judged again, and reported, when loaded
-        return None
+def _read_checkpoint(path: Path) -> dict | None:
+    """The training checkpoint at ``path`` if it exists and is readable (its signature not
+    judged: :func:`_matching_checkpoint`).
 
-
-def _load_checkpoint(path: Path, signature: dict) -> dict | None:
-    """The checkpoint at ``path`` if it exists, is readable and matches ``signature``.
-
-    A damaged or incompatible checkpoint is reported in one warning line (on stderr) naming
-    it and why, and renamed to ``checkpoint.pt.damaged-<time>`` (or ``.incompatible-<time>``)
-    so that the restart never overwrites it; None is returned (train from iteration 0)."""
+    A damaged one is reported in one warning line (on stderr) naming it and why, and renamed
+    to ``checkpoint.pt.damaged-<time>`` so that the restart never overwrites it; None is
+    returned (train from iteration 0)."""
     if not path.is_file():
         return None
     try:
@@ -310,7 +300,21 @@ def _load_checkpoint(path: Path, signature: dict) -> dict | None:
     except Exception as exc:  # noqa: BLE001 - any unreadable file: report, keep, start afresh
         _set_aside(path, "damaged", f"unreadable ({type(exc).__name__}: {str(exc)[:120]})")
         return None
-    if ckpt.get("signature") != signature:
+    return ckpt
+
+
+def _ran_in_bf16(ckpt: dict | None) -> bool | None:
+    """Whether the checkpoint ``ckpt`` (:func:`_read_checkpoint`) trained in bf16; None
+    without one."""
+    signature = None if ckpt is None else ckpt["signature"]
+    return signature.get("precision") == "bf16" if isinstance(signature, dict) else None
+
+
+def _matching_checkpoint(ckpt: dict | None, signature: dict, path: Path) -> dict | None:
+    """``ckpt``, read from ``path``, where it matches ``signature``; an incompatible one is
+    reported in one warning line, renamed to ``checkpoint.pt.incompatible-<time>`` and None
+    returned (train from iteration 0)."""
+    if ckpt is not None and ckpt.get("signature") != signature:
         _set_aside(path, "incompatible", "written with other settings or data")
         return None
     return ckpt
@@ -388,8 +392,9 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     dev = resolve_device(s.device)
     threads = set_threads(s.threads)
     full = training_samples(dataset if dataset is not None else case_dir, first_samples)
+    stored = _read_checkpoint(out / CHECKPOINT)
     precision = choose_precision(s.precision, dev, spec, full.node_shape, s.batch_size,
-                                 _checkpoint_bf16(out / CHECKPOINT))
+                                 _ran_in_bf16(stored))
     amp = precision.amp
     if progress:
         print(precision_line(precision, dev), flush=True)
@@ -412,7 +417,7 @@ def train(case: Case | str | Path, preset: str | None = None, iterations: int | 
     state = {"iteration": 0, "history": [], "best_val": math.inf, "best_iteration": 0,
              "best_state": None, "elapsed_s": 0.0, "loss_sum": 0.0, "loss_n": 0}
     remove_partial_writes(out, MODEL_FILES)  # debris of a run killed mid-write
-    ckpt = _load_checkpoint(out / CHECKPOINT, signature)
+    ckpt = _matching_checkpoint(stored, signature, out / CHECKPOINT)
     if ckpt is not None and not _resume(ckpt, net, opt, state, out / CHECKPOINT):
         ckpt = None
     resumed_from = state["iteration"]
