@@ -638,6 +638,13 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("pose to lesions in Slicer's connector at 100 Hz, median / p99; poses without an answer",
      Cell("tracking-latency", with_speed(round_trip), "python benchmarks/tracking_latency.py "
           "CASE"), "<= 5 / 10 ms", "-"),
+    ("the same two on the Intel Xeon without AMX (the phantom's default `pushes` network of "
+     "its `time_to_model.py --tag xeon` run, OpenVINO fp32)",
+     Cell("tracking-latency-xeon",
+          with_speed(lambda d: f"{pair('update_p50_ms', 'update_p99_ms')(d)}; "
+                               f"{round_trip(d)}"),
+          "python benchmarks/tracking_latency.py CASE --duration 30 --result-name "
+          "tracking-latency-xeon"), "<= 3 / 6 ms; <= 5 / 10 ms", "-"),
     ("the same two on a large clinical breast (MRI exam 31 left, 1,189 mL, 3,986 cells, a skin "
      "of 95,642 vertices; docs/igtl.md, 'Latency')",
      Cell("tracking-latency-mri31-left",
