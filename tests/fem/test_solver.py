@@ -345,6 +345,32 @@ def test_a_bad_mkl_path_is_named_when_pypardiso_is_imported():
     assert done.returncode == 0 and "where PYPARDISO_MKL_RT" in done.stdout, done.stderr
 
 
+@pytest.mark.parametrize("user_mode", [None, "COMPATIBLE"])
+def test_pardiso_s_mkl_is_made_reproducible_unless_the_user_chose(user_mode):
+    """Loading Pardiso puts its MKL in conditional numerical reproducibility (MKL_CBWR_AUTO,
+    2), so that two threads factor the same matrix to the same bits from run to run; a mode
+    the user set in ``MKL_CBWR`` (COMPATIBLE, 3) is left as it is. A fresh process: MKL takes
+    the mode only before it first computes."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("pypardiso")
+    code = ("import ctypes\n"
+            "from biopsynav.fem import linsolve\n"
+            "lib = linsolve._pypardiso().ps.libmkl\n"
+            "get = lib.MKL_CBWR_Get\n"
+            "get.argtypes, get.restype = [ctypes.c_int], ctypes.c_int\n"
+            "mode = get(1)  # MKL_CBWR_BRANCH: the mode loading left\n"
+            "print('status', linsolve.reproducible_mkl(lib), 'mode', mode)  # cached\n")
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    if user_mode:
+        env["MKL_CBWR"] = user_mode
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, timeout=120)
+    expected = "status -1 mode 3" if user_mode else "status 0 mode 2"
+    assert done.returncode == 0 and expected in done.stdout, done.stdout + done.stderr
+
+
 def test_smallest_det_f_finds_the_inverted_element():
     """A homogeneous stretch gives det F = its volume ratio in every element; moving one node
     through its element's opposite face inverts that element (det F < 0 there), and only the

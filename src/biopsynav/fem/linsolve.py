@@ -183,12 +183,36 @@ def _unloadable(exc: OSError) -> InputError:
 
 def _pypardiso():
     """The pypardiso module (importing it makes its one default solver, ``pypardiso.ps``,
-    which searches for MKL); InputError when the library cannot be loaded."""
+    which searches for MKL), its MKL in reproducible mode (:func:`reproducible_mkl`);
+    InputError when the library cannot be loaded."""
     try:
         import pypardiso
     except OSError as exc:
         raise _unloadable(exc) from None
+    reproducible_mkl(pypardiso.ps.libmkl)
     return pypardiso
+
+
+#: MKL's ``MKL_CBWR_AUTO`` (mkl_cbwr.h): conditional numerical reproducibility on the code
+#: branch MKL picks for this processor
+MKL_CBWR_AUTO = 2
+
+
+@functools.cache
+def reproducible_mkl(libmkl) -> int:
+    """Put the MKL library ``libmkl`` (a ``ctypes.CDLL``) in conditional numerical
+    reproducibility (``MKL_CBWR_Set(MKL_CBWR_AUTO)``, the C interface: the lower-case
+    symbol is the Fortran one, which takes a pointer) unless the user's ``MKL_CBWR`` chose a
+    mode: Pardiso's factors and solves are then the same to the bit from run to run on one
+    machine and thread count. Without it two threads sum in varying order, and a push near a
+    limit point can land on another branch of the answer from one run to the next (a phantom
+    lesion 2.4 mm elsewhere at 30 mm; docs/fem.md, "Limits"). Returns MKL's status (0: set;
+    MKL refuses a change once it has computed), or -1 where the user's mode stands."""
+    if "MKL_CBWR" in os.environ:
+        return -1
+    set_mode = libmkl.MKL_CBWR_Set
+    set_mode.argtypes, set_mode.restype = [ctypes.c_int], ctypes.c_int
+    return int(set_mode(MKL_CBWR_AUTO))
 
 
 @functools.cache
