@@ -94,11 +94,19 @@ def test_auto_keeps_bf16_only_where_its_predictions_are_faster(trained, monkeypa
         pytest.skip("no AMX-BF16 or AVX-512 BF16 on this CPU, or openvino not installed")
     case, _ = trained
     timed = {"bf16": bf16_ms, "fp32": 2.0}
-    monkeypatch.setattr(R, "timed_predictions_ms",
-                        lambda runners, shape: [timed[r.precision] for r in runners])
-    sur = Surrogate.load(case / "model", FINGERPRINT, runtime="auto", warmup=1)
+    calls = []
+    monkeypatch.setattr(R, "AUTO_CHOICES", {})
+    monkeypatch.setattr(R, "timed_predictions_ms", lambda runners, shape: calls.append(1) or [
+        timed[r.precision] for r in runners])
+    sur = Surrogate.load(case / "model", FINGERPRINT, runtime="auto", threads=2, warmup=1)
     assert sur.runtime == chosen
     assert f"{bf16_ms:.2f} ms in bf16 against 2.00 in fp32" in sur.runtime_chosen
+    timed["bf16"] = 3.0 - bf16_ms  # a second load keeps the first's choice, untimed
+    again = Surrogate.load(case / "model", FINGERPRINT, runtime="auto", threads=2, warmup=1)
+    assert (again.runtime, again.runtime_chosen, len(calls)) == (chosen, sur.runtime_chosen, 1)
+    one_thread = Surrogate.load(case / "model", FINGERPRINT, runtime="auto", threads=1,
+                                warmup=1)  # another thread count is timed again
+    assert len(calls) == 2 and one_thread.runtime_chosen != sur.runtime_chosen
     named = Surrogate.load(case / "model", FINGERPRINT, runtime="openvino-bf16", warmup=1)
     assert named.runtime == "openvino-bf16" and named.runtime_chosen == ""
 

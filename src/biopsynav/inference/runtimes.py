@@ -84,22 +84,42 @@ AUTO_TIMED = 40
 BF16_WIN = 0.9
 
 
+#: ``auto``'s timed choices in this process: (model files with their sizes and times, threads,
+#: nodes) -> (the runtime chosen, why); see :func:`runtime_runner`
+AUTO_CHOICES: dict[tuple, tuple[str, str]] = {}
+
+
 def runtime_runner(name: str, model_path: Callable[[RuntimeSpec], Path], threads: int,
                    node_shape: tuple[int, int, int]) -> tuple[RuntimeSpec, Runner, str]:
     """The runtime called ``name`` (:func:`resolve_runtime`), its runner of the model file
     ``model_path(spec)`` on ``threads`` threads for a grid of ``node_shape`` nodes, and why it
     was chosen, in words: for ``auto`` where OpenVINO runs in bf16, the faster of bf16 and fp32
     by :data:`AUTO_TIMED` predictions each, timed in turn (bf16 only below :data:`BF16_WIN` of
-    fp32's median); otherwise as named or ranked (no words)."""
+    fp32's median), the choice kept for the process (:data:`AUTO_CHOICES`: a later load of
+    the same model files on as many threads takes it untimed, so that an evaluation's tables
+    predict in one arithmetic); otherwise as named or ranked (no words)."""
     spec = resolve_runtime(name)
-    runner = spec.make(model_path(spec), threads, node_shape)
     if name != "auto" or spec.name != "openvino-bf16":
-        return spec, runner, ""
+        return spec, spec.make(model_path(spec), threads, node_shape), ""
     fp32_spec = RUNTIMES["openvino"]
-    fp32 = fp32_spec.make(model_path(fp32_spec), threads, node_shape)
+    key = (*(model_identity(model_path(s)) for s in (spec, fp32_spec)), threads, node_shape)
+    if key in AUTO_CHOICES:
+        chosen, why = AUTO_CHOICES[key]
+        kept = RUNTIMES[chosen]
+        return kept, kept.make(model_path(kept), threads, node_shape), why
+    runner, fp32 = (s.make(model_path(s), threads, node_shape) for s in (spec, fp32_spec))
     bf16_ms, fp32_ms = timed_predictions_ms((runner, fp32), node_shape)
     why = f"a prediction timed {bf16_ms:.2f} ms in bf16 against {fp32_ms:.2f} in fp32"
-    return (spec, runner, why) if bf16_ms < BF16_WIN * fp32_ms else (fp32_spec, fp32, why)
+    chosen = (spec, runner) if bf16_ms < BF16_WIN * fp32_ms else (fp32_spec, fp32)
+    AUTO_CHOICES[key] = chosen[0].name, why
+    return *chosen, why
+
+
+def model_identity(path: Path) -> tuple[str, int, int]:
+    """A model file as the process last saw it: (resolved path, size in bytes, modification
+    time in ns); a model trained again since is another."""
+    st = Path(path).stat()
+    return str(Path(path).resolve()), st.st_size, st.st_mtime_ns
 
 
 def timed_predictions_ms(runners: tuple[Runner, ...], node_shape: tuple[int, int, int]
