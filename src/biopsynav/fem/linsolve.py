@@ -205,9 +205,9 @@ def reproducible_mkl(libmkl) -> int:
     symbol is the Fortran one, which takes a pointer) unless the user's ``MKL_CBWR`` chose a
     mode: Pardiso's factors and solves are then the same to the bit from run to run on one
     machine and thread count. Without it two threads sum in varying order, and a push near a
-    limit point can land on another branch of the answer from one run to the next (a phantom
-    lesion 2.4 mm elsewhere at 30 mm; docs/fem.md, "Limits"). Returns MKL's status (0: set;
-    MKL refuses a change once it has computed), or -1 where the user's mode stands."""
+    limit point can land on another branch of the answer from one run to the next
+    (docs/fem.md, "Kernels, assembly, linear solver"). Returns MKL's status (0: set; MKL
+    refuses a change once it has computed), or -1 where the user's mode stands."""
     if "MKL_CBWR" in os.environ:
         return -1
     set_mode = libmkl.MKL_CBWR_Set
