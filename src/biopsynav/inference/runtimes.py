@@ -11,7 +11,6 @@ takes its choices from this registry. Nothing heavy is imported until a runner i
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..layout import ONNX, TORCHSCRIPT
 from ..threads import cpu_bf16_unit, set_torch_threads
+from ..timing import medians_in_turn
 
 if TYPE_CHECKING:
     import torch
@@ -102,12 +102,13 @@ def runtime_runner(name: str, model_path: Callable[[RuntimeSpec], Path], threads
     if name != "auto" or spec.name != "openvino-bf16":
         return spec, spec.make(model_path(spec), threads, node_shape), ""
     fp32_spec = RUNTIMES["openvino"]
-    key = (*(model_identity(model_path(s)) for s in (spec, fp32_spec)), threads, node_shape)
+    paths = {s.name: model_path(s) for s in (spec, fp32_spec)}  # each file checked once
+    key = (*(model_identity(path) for path in paths.values()), threads, node_shape)
     if key in AUTO_CHOICES:
         chosen, why = AUTO_CHOICES[key]
         kept = RUNTIMES[chosen]
-        return kept, kept.make(model_path(kept), threads, node_shape), why
-    runner, fp32 = (s.make(model_path(s), threads, node_shape) for s in (spec, fp32_spec))
+        return kept, kept.make(paths[chosen], threads, node_shape), why
+    runner, fp32 = (s.make(paths[s.name], threads, node_shape) for s in (spec, fp32_spec))
     bf16_ms, fp32_ms = timed_predictions_ms((runner, fp32), node_shape)
     why = f"a prediction timed {bf16_ms:.2f} ms in bf16 against {fp32_ms:.2f} in fp32"
     chosen = (spec, runner) if bf16_ms < BF16_WIN * fp32_ms else (fp32_spec, fp32)
@@ -125,17 +126,11 @@ def model_identity(path: Path) -> tuple[str, int, int]:
 def timed_predictions_ms(runners: tuple[Runner, ...], node_shape: tuple[int, int, int]
                          ) -> list[float]:
     """The median (ms) of :data:`AUTO_TIMED` batch-1 predictions on zeros of each of
-    ``runners``, one prediction of each in turn (what slows the machine for a while slows
-    all), after as many rounds to warm up."""
+    ``runners``, one prediction of each in turn, after as many rounds to warm up
+    (:func:`~biopsynav.timing.medians_in_turn`)."""
     x = np.zeros((1, 4, *node_shape), np.float32)
-    times: list[list[float]] = [[] for _ in runners]
-    for round_ in range(2 * AUTO_TIMED):
-        for k, runner in enumerate(runners):
-            start = time.perf_counter()
-            runner(x)
-            if round_ >= AUTO_TIMED:
-                times[k].append(time.perf_counter() - start)
-    return [float(np.median(t) * 1e3) for t in times]
+    calls = [lambda r=runner: r(x) for runner in runners]
+    return [1e3 * t for t in medians_in_turn(calls, AUTO_TIMED, AUTO_TIMED)]
 
 
 class TorchScriptRunner:

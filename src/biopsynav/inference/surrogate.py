@@ -44,7 +44,8 @@ class Surrogate:
     """The trained surrogate of one case: contact input -> displacement of every grid node."""
 
     def __init__(self, runner: Runner, meta: dict, model_dir: Path,
-                 baseline: LinearElasticBaseline | None = None) -> None:
+                 baseline: LinearElasticBaseline | None = None, runtime_chosen: str = ""
+                 ) -> None:
         self._run = runner
         self.baseline = baseline
         self.meta = meta
@@ -53,7 +54,7 @@ class Surrogate:
         self.runtime: str = runner.name  # type: ignore[attr-defined]
         self.precision: str = getattr(runner, "precision", "fp32")
         #: why ``auto`` chose this runtime, in words (empty: named or ranked; runtime_runner)
-        self.runtime_chosen = ""
+        self.runtime_chosen = runtime_chosen
 
     @property
     def fingerprint(self) -> str:
@@ -96,8 +97,7 @@ class Surrogate:
             # own pool one torch thread is faster (two spinning pools fight for the cores:
             # measured 3.6 ms against 5.0 ms per prediction on 2 cores, docs/network.md)
             set_torch_threads(1 if spec.own_threads else n)
-        sur = cls(runner, meta, model_dir, baseline)
-        sur.runtime_chosen = chosen
+        sur = cls(runner, meta, model_dir, baseline, chosen)
         sur.warm_up(warmup)
         return sur
 

@@ -45,6 +45,7 @@ from ..inference.runtimes import ONNX, TORCHSCRIPT
 from ..layout import BEST, CHECKPOINT, HISTORY, LOSS_CURVE, META, MODEL_DIR
 from ..prior_registry import Prior, choose_prior
 from ..threads import cpu_bf16_unit, set_threads
+from ..timing import medians_in_turn
 from .data import (
     Dataset,
     dataset_contact_input,
@@ -187,19 +188,17 @@ def step_times(spec: UNetSpec, node_shape: tuple[int, int, int], batch: int,
         opt = torch.optim.Adam(net.parameters(), lr=1e-4)
         x = torch.randn(batch, spec.feature_channels(), *node_shape)
     x = x.contiguous(memory_format=layout)
-    times: list[list[float]] = [[] for _ in arithmetics]
-    for round_ in range(PROBE_WARMUP + steps):
-        for k, bf16 in enumerate(arithmetics):
-            start = time.perf_counter()
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                out = net(x)
-            loss = out.float().square().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if round_ >= PROBE_WARMUP:
-                times[k].append(time.perf_counter() - start)
-    return [float(np.median(t)) for t in times]
+
+    def step(bf16: bool) -> None:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            out = net(x)
+        loss = out.float().square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    return medians_in_turn([lambda b=bf16: step(b) for bf16 in arithmetics], PROBE_WARMUP,
+                           steps)
 
 
 def precision_line(choice: Precision | bool, dev: torch.device) -> str:
@@ -681,8 +680,8 @@ class TrainingLoop:
     def __init__(self, net: SurrogateNet, opt: torch.optim.Optimizer, data: Dataset,
                  s: NetworkSection, dev: torch.device, out: Path, signature: dict,
                  state: dict,
-                 projections: tuple[BatchProjection, BatchProjection] | None = None,
-                 amp: bool | None = None) -> None:
+                 projections: tuple[BatchProjection, BatchProjection] | None,
+                 amp: bool) -> None:
         self.net, self.opt, self.s, self.dev, self.out = net, opt, s, dev, out
         self.train_proj, self.test_proj = projections or (None, None)
         self.signature, self.state = signature, state
@@ -694,7 +693,7 @@ class TrainingLoop:
         self.y_train = data.targets[data.train_idx].to(dev) / scale  # normalised targets
         self.x_test = data.inputs[data.test_idx].to(dev)
         self.y_test = data.targets[data.test_idx].to(dev)
-        self.amp = use_bf16(s.precision, dev) if amp is None else amp  # bf16 autocast
+        self.amp = amp  # bf16 autocast (choose_precision)
         self.saved_at = state["iteration"]  # the iteration the checkpoint on disk holds
         self.drawn_at = time.perf_counter()  # when loss_curve.png was last drawn
         self.memory_format = training_layout(dev)
