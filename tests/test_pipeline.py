@@ -132,6 +132,28 @@ def test_the_run_estimate_scales_with_the_work_and_the_machine(base_case):
     assert 0.0 < probe_seconds(case) < 60.0
 
 
+
+def test_deeper_training_pushes_are_expected_to_cost_more(base_case):
+    """``[probe] train_depth_exponent`` below 1 draws deeper training pushes: the estimate
+    prices each at :func:`depth_cost_factor` (more than 1, the more the smaller the
+    exponent), the held-out pushes at the uniform cost."""
+    import dataclasses
+
+    from biopsynav.case import Case
+    from biopsynav.runtime import REFERENCE, depth_cost_factor, estimate_run
+
+    assert depth_cost_factor(1.0, 35.0) == pytest.approx(1.0)
+    assert 1.0 < depth_cost_factor(0.7, 35.0) < depth_cost_factor(0.5, 35.0)
+    case = Case.load(base_case)
+    ref = REFERENCE["probe_s"]
+    case.cfg.probe = dataclasses.replace(case.cfg.probe, rigid_share=1.0, train_depth_exponent=1.0)
+    uniform = estimate_run(case, (ref, ref), workers=2).minutes["generate"]
+    case.cfg.probe = dataclasses.replace(case.cfg.probe, train_depth_exponent=0.7)
+    deep = estimate_run(case, (ref, ref), workers=2).minutes["generate"]
+    n_train, n_test = case.cfg.dataset.n_train, case.cfg.dataset.n_test
+    factor = depth_cost_factor(0.7, case.cfg.probe.max_push_mm)
+    assert deep == pytest.approx(uniform * (n_train * factor + n_test) / (n_train + n_test))
+
 def test_the_estimate_follows_the_fe_processes_and_prices_the_p2_teacher(base_case,
                                                                          monkeypatch):
     """``run --workers 1`` on 2 cores doubles the FE stages (not the trainings); the P2

@@ -27,14 +27,17 @@ def test_every_recipe_is_a_valid_case_toml_and_chain_is_the_defaults():
 
 
 def test_the_pushes_recipe_draws_the_chains_refine_pushes():
-    """Its data set has the protocol of the chain's [refine] pushes (law, depths, tilts,
-    seed), so a sample of either is the same push; and nothing else runs."""
+    """Its data set has the protocol of the chain's [refine] pushes (law, places, tilts,
+    seed) but for its training pushes' deeper depths (``train_depth_exponent`` 0.7), so a
+    held-out sample of either is the same push; and nothing else runs."""
     from biopsynav.dataset.store import protocol_dict
     from biopsynav.refine import refined_config
 
     pushes = config_from_dict(recipe_overrides("pushes"), "pushes")
     chain_refine = refined_config(CaseConfig())
-    assert protocol_dict(pushes, 1000, 20) == protocol_dict(chain_refine, 1000, 20)
+    recipe = protocol_dict(pushes, 1000, 20)
+    assert recipe["probe"].pop("train_depth_exponent") == 0.7
+    assert recipe == protocol_dict(chain_refine, 1000, 20)
     assert pushes.refine.samples == 0 and not pushes.probe.calibrate_force
     assert pushes.network.init_from == "" and pushes.network.prior == "none"
 

@@ -357,6 +357,16 @@ class ProbeSection:
                                             "MRI breasts nearly all pressed further "
                                             "(docs/dataset.md). 0: no such limit.",
                                        lo=0.0, hi=1.0)
+    train_depth_exponent: float = opt(1.0, "Training rigid pushes (samples below [dataset] "
+                                           "n_train) draw their depth as d_max * u^e, u "
+                                           "uniform in [0, 1] and d_max the push's deepest "
+                                           "(max_push_mm, less by max_chest_compression): e = "
+                                           "1 is uniform, e < 1 draws deep pushes more often "
+                                           "(depth density proportional to d^(1/e - 1)). "
+                                           "Held-out pushes keep the uniform depth, so Table 1 "
+                                           "measures on its protocol (docs/experiments.md, "
+                                           "'Deep rigid pushes drawn more often').",
+                                      lo=0.05, hi=1.0)
     rigid_max_tilt_deg: float = opt(15.0, "Largest angle between a rigid push and the inward "
                                           "normal. The skin sticks to the face, so a steeper "
                                           "push drags it across the face by the push's "

@@ -34,7 +34,8 @@ hold ``floor(n * rigid_share)`` of them), so that a data set's training and held
 hold known numbers of each kind. Contact points within ``contact_tolerance_mm`` of the face
 plane (the tracker's rest contact), avoiding skin in cells anchored to the chest wall; the
 direction tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
-``[0, max_push_mm]`` along it (prescribed, no force), shorter where that would press the
+``[0, max_push_mm]`` along it (a training push's ``max_push_mm u^e``, ``e`` =
+``train_depth_exponent``) (prescribed, no force), shorter where that would press the
 tissue in front of the chest wall by more than ``max_chest_compression``
 (:func:`deepest_rigid_push`).
 
@@ -206,10 +207,12 @@ def sample_rng(seed: int, index: int, attempt: int) -> np.random.Generator:
 def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
               centers: np.ndarray | None = None, attempt: int = 0,
               rigid: bool = False, pinned: np.ndarray | None = None,
-              force_exponent: float = 1.0, force_scale: float = 1.0) -> ProbePush:
+              force_exponent: float = 1.0, force_scale: float = 1.0,
+              depth_exponent: float = 1.0) -> ProbePush:
     """One random push following the protocol (module docstring); ``rigid``: a rigid-probe
     push instead (contact within ``contact_tolerance_mm`` of the face, tilt within
-    ``rigid_max_tilt_deg``, a depth uniform in ``[0, deepest_rigid_push]`` instead of the force; a
+    ``rigid_max_tilt_deg``, a depth ``deepest_rigid_push u^depth_exponent`` (``u`` uniform in
+    [0, 1]; 1: uniform) instead of the force; a
     patch holding a ``pinned`` skin vertex (:func:`pinned_skin`) is redrawn).
 
     ``centers``: the eligible centre vertices (:func:`eligible_centers`, precomputed by
@@ -242,8 +245,8 @@ def draw_push(anatomy: Anatomy, probe: ProbeSection, rng: np.random.Generator,
     max_tilt = probe.rigid_max_tilt_deg if rigid else probe.max_tilt_deg
     tilt = np.radians(rng.uniform(-max_tilt, max_tilt))
     direction = tilted_direction(normal, tilt, axis_angle)
-    amount = float(rng.uniform(0.0, deepest_rigid_push(anatomy, probe, contact, direction))
-                   if rigid else
+    amount = float(deepest_rigid_push(anatomy, probe, contact, direction)
+                   * rng.uniform(0.0, 1.0) ** depth_exponent if rigid else
                    force_scale * probe.f_max_n * rng.uniform(0.0, 1.0) ** force_exponent)
     return ProbePush(vertex, anatomy.vertices[vertex].copy(), normal, long_axis, short_axis,
                      contact, direction,
@@ -375,23 +378,25 @@ def push_for_draw(anatomy: Anatomy, probe: ProbeSection, seed: int, index: int, 
     """The push of draw index ``index`` (:func:`draw_index`), draw ``attempt``
     (deterministic); ``rigid``: a rigid push, else a force patch; ``pinned``: see
     :func:`draw_push`; ``training``: a training sample, whose force follows ``[probe]
-    train_force_exponent`` and ``train_force_scale``. A draw :func:`lesion_for_sample` puts
+    train_force_exponent`` and ``train_force_scale`` and whose rigid depth
+    ``train_depth_exponent``. A draw :func:`lesion_for_sample` puts
     near a lesion is centred among :func:`centres_near_lesion`, or anywhere when no patch
     there can be drawn."""
     if centers is None:
         centers = eligible_centers(anatomy, probe.min_chest_distance_mm)
-    exponent, scale = ((probe.train_force_exponent, probe.train_force_scale) if training
-                       else (1.0, 1.0))
+    exponent, scale, depth_exponent = (
+        (probe.train_force_exponent, probe.train_force_scale, probe.train_depth_exponent)
+        if training else (1.0, 1.0, 1.0))
     lesion = lesion_for_sample(anatomy, probe, seed, index)
     if lesion is not None:
         near = centres_near_lesion(anatomy, centers, lesion, probe.lesion_reach_mm)
         try:
             return draw_push(anatomy, probe, sample_rng(seed, index, attempt), near, attempt,
-                             rigid, pinned, exponent, scale)
+                             rigid, pinned, exponent, scale, depth_exponent)
         except InputError:  # every patch near it holds pinned skin or too few points
             pass
     return draw_push(anatomy, probe, sample_rng(seed, index, attempt), centers, attempt, rigid,
-                     pinned, exponent, scale)
+                     pinned, exponent, scale, depth_exponent)
 
 
 #: The stream of a training push's same-place redraws

@@ -7,11 +7,12 @@ there like any setting). Registered in :data:`RECIPES` (:func:`register_recipe`)
 
 * ``pushes`` (default): 450 rigid-probe pushes alone teach the tracking network from scratch
   (no force patches, no force calibration, no case network, ``[refine] samples = 0``), drawn
-  as the chain's ``[refine]`` pushes are (law, depths, tilts, seed); 400 trained on for 4,000
-  iterations at batch 16, 50 held out. Table 1 is then the tracking network against its
-  teacher on those held-out pushes, not the paper's force patches. Measured against the
-  independent P2 truth as near as the chain at 10 / 20 / 30 mm pushes, in about a third of
-  the time (docs/pipeline.md, "Recipes");
+  as the chain's ``[refine]`` pushes are (law, places, tilts, seed); 400 trained on for 4,000
+  iterations at batch 16, their depths drawn deep more often (``[probe]
+  train_depth_exponent`` 0.7), 50 held out at uniform depths. Table 1 is then the tracking
+  network against its teacher on those held-out pushes, not the paper's force patches.
+  Measured against the independent P2 truth nearer than the chain at 20 / 30 mm pushes, in
+  about a third of the time (docs/pipeline.md, "Recipes");
 * ``pushes-patches``: the ``pushes`` recipe's 450 rigid-probe pushes, the very same (same
   draws, 400 trained on, 50 held out), and 270 force patches among them (240 trained on, 30
   held out), solved by one law (the pushes'), teach one tracking network from scratch
@@ -71,7 +72,8 @@ def merged(*layers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 
 #: The ``pushes`` recipe's values; ``pushes-patches`` is them with force patches among the pushes
-PUSHES = {"probe": {"rigid_share": 1.0, "calibrate_force": False},
+PUSHES = {"probe": {"rigid_share": 1.0, "calibrate_force": False,
+                    "train_depth_exponent": 0.7},
           "material": {"model": "neo-hookean-split-sri-inner"},
           "dataset": {"n_train": 400, "n_test": 50},
           "network": {"iterations": 4000},

@@ -67,6 +67,10 @@ REFINE_PUSH_MINUTES = 6.7 * FE_SPEEDUP
 #: times :data:`FE_SPEEDUP`. Its steep flank makes deep pushes that need the 4x springs.
 PHANTOM_PUSH_MINUTES = 14.1 * FE_SPEEDUP
 PHANTOM_ACTIVE_CELLS = 2225
+#: How a rigid push's solve time grows with its depth (per mm): ``exp(rate depth)``, fitted on
+#: the kept solves of the phantom's 450 uniform-depth pushes (Intel Xeon, 2026-12-08; it
+#: forecasts 1.30x for ``[probe] train_depth_exponent`` 0.7, where the data stage took 1.28x).
+RIGID_PUSH_DEPTH_RATE = 0.150
 #: Seconds of a training iteration over :func:`probe_seconds`'s step at the same batch, grid
 #: and arithmetic, at the day's speed: the median of five trainings, AMD EPYC, bf16,
 #: 2026-12-04/05 (batch 16: the ``pushes`` runs of the phantom 1.12, UC Davis 1.23 and MRI
@@ -158,8 +162,10 @@ def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0
     samples = cfg.dataset.n_train + cfg.dataset.n_test
     per_1000 = push_minutes_per_1000(case)
     rigid = cfg.probe.rigid_share * samples  # rigid pushes cost what [refine]'s do
+    deeper = depth_cost_factor(cfg.probe.train_depth_exponent, cfg.probe.max_push_mm)
+    rigid_cost = cfg.probe.rigid_share * (cfg.dataset.n_train * deeper + cfg.dataset.n_test)
     minutes = {"generate": (m["generate"] * (samples - rigid) / ref["samples"] * cells * fe
-                            + rigid_push_minutes(rigid, cfg.dataset.teacher_refine, fe,
+                            + rigid_push_minutes(rigid_cost, cfg.dataset.teacher_refine, fe,
                                                  per_1000)),
                "train": training_minutes(cfg.network.iterations, step)}
     if cfg.refine.samples:
@@ -169,6 +175,16 @@ def estimate_run(case, probes: tuple[float, ...] | None = None, workers: int = 0
         evaluation_minutes(case, processes) * slowness
         + lesion_check_minutes(case) * fe)
     return Estimate(minutes, slowness)
+
+
+def depth_cost_factor(exponent: float, max_push_mm: float,
+                      rate: float = RIGID_PUSH_DEPTH_RATE) -> float:
+    """What a rigid push of depth ``max_push_mm u^exponent`` (mm, ``u`` uniform in [0, 1];
+    ``[probe] train_depth_exponent``) costs on average over one of uniform depth, its solve
+    time taken as ``exp(rate depth_mm)``; 1 for the uniform depth."""
+    u = np.linspace(0.0, 1.0, 2001)
+    cost = np.exp(rate * max_push_mm * u ** exponent)
+    return float(np.trapezoid(cost, u) / np.trapezoid(np.exp(rate * max_push_mm * u), u))
 
 
 def p2_push_seconds(max_push_mm: float, model: tuple[float, float] = P2_PUSH_S,

@@ -217,6 +217,34 @@ def test_training_force_exponent_and_scale_shape_only_training_forces(case, push
                            training=True).force_n == pushes[8].force_n
 
 
+
+def test_training_depth_exponent_shapes_only_training_rigid_depths(case):
+    """A training rigid push draws its depth as d_max u^e from the same random numbers as the
+    uniform depth: the patch and direction stay, the depth is d_max (depth / d_max)^e; a
+    held-out push keeps the uniform depth whatever the exponent, and e = 1 is the uniform
+    protocol to the bit."""
+    import dataclasses
+
+    from biopsynav.probe import deepest_rigid_push
+
+    anatomy = case.anatomy
+    uniform = dataclasses.replace(case.cfg.probe, rigid_share=1.0, train_depth_exponent=1.0)
+    deep = dataclasses.replace(uniform, train_depth_exponent=0.5)
+    centers = eligible_centers(anatomy, uniform.min_chest_distance_mm)
+    depths = []
+    for i in range(12):
+        ref = push_for_sample(anatomy, uniform, 7, i, 0, centers, training=True)
+        held_out = push_for_sample(anatomy, deep, 7, i, 0, centers)
+        trained = push_for_sample(anatomy, deep, 7, i, 0, centers, training=True)
+        assert held_out.push_mm == ref.push_mm > 0.0
+        assert trained.vertex == ref.vertex
+        assert np.array_equal(trained.direction, ref.direction)
+        d_max = deepest_rigid_push(anatomy, deep, trained.contact, trained.direction)
+        assert np.isclose(trained.push_mm, d_max * np.sqrt(ref.push_mm / d_max), rtol=1e-12)
+        depths.append((ref.push_mm, trained.push_mm))
+    ref_depths, deep_depths = np.array(depths).T
+    assert np.all(deep_depths >= ref_depths) and np.any(deep_depths > ref_depths)
+
 def test_lesion_centred_pushes_start_near_the_drawn_lesion(case, pushes):
     """``lesion_share`` 1: every push is centred within ``lesion_reach_mm`` of the skin vertex
     nearest its lesion, each lesion drawn; 0.5: about half are; 0: the pushes of before."""

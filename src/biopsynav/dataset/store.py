@@ -82,7 +82,7 @@ FORCE_PATCH_KEYS = ("f_max_n", "train_force_exponent", "train_force_scale", "too
 #: existed (:func:`protocol_dict`): a key missing from a stored protocol stands for them.
 FORMER_PROBE_VALUES = {"train_force_exponent": 1.0, "train_force_scale": 1.0, "shape": "rectangle",
                        "rigid_share": 0.0, "too_deep_redraw": "elsewhere", "lesion_share": 0.0,
-                       "max_chest_compression": 0.0}
+                       "max_chest_compression": 0.0, "train_depth_exponent": 1.0}
 
 
 #: [solver] keys added after data sets were made, with the behaviour those data sets had: a key
@@ -114,7 +114,8 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int, anatomy: Any = Non
     when elastic), [solver] without ``backend``
     and ``threads`` (speed and round-off only; workers always factor on one thread) and without
     keys at their :data:`FORMER_SOLVER_VALUES`, [probe]
-    (without ``contact_tolerance_mm``, ``max_chest_compression`` and ``rigid_share`` when there
+    (without ``contact_tolerance_mm``, ``max_chest_compression``, ``train_depth_exponent`` and
+    ``rigid_share`` when there
     are no rigid pushes: the
     protocol of force patches is what it was; without :data:`FORCE_PATCH_KEYS` when every
     push is rigid; without ``lesion_reach_mm`` when no push is centred near a lesion; never
@@ -135,6 +136,7 @@ def protocol_dict(cfg: CaseConfig, n_train: int, n_test: int, anatomy: Any = Non
     else:  # force patches only: the protocol of before rigid pushes (rigid_share 0: below)
         probe.pop("contact_tolerance_mm", None)
         probe.pop("max_chest_compression", None)
+        probe.pop("train_depth_exponent", None)
     probe.pop("calibration_pushes", None)  # its calibration is recorded in the data set
     if probe.get("lesion_share", 0.0) == 0.0:  # no push is centred near a lesion
         probe.pop("lesion_reach_mm", None)
