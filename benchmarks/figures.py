@@ -331,7 +331,8 @@ def sweep_cell(d: dict) -> str:
 #: BENCHMARKS.md: (what, cell, target, paper)
 BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
     ("`make demo` from nothing, phantom, the default recipe `pushes` (450 rigid pushes, one "
-     "network; Intel Xeon with AMX-BF16; the evaluation with each lesion's self-check): whole; "
+     "network; Intel Xeon with AMX-BF16; the evaluation with each lesion's self-check; uniform "
+     "depths, the recipe before 2026-12-08): whole; "
      "each stage; Table 1 on its 50 held-out rigid pushes; the TRE against the P2 truth, "
      "10 / 20 / 30 mm",
      Cell("time-to-model-phantom-pushes-amx", ttm_summary,
@@ -342,8 +343,9 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("time-to-model-phantom-pushes-avx512-gap", ttm_summary,
           TTM.format("phantom") + " --recipe pushes --tag avx512-gap"), "<= 15 min", "-"),
     ("the same on an Intel Xeon whose VM shows AVX-512 BF16 and hides AMX, the arithmetic of "
-     "training and inference chosen by timing both (fp32 there: bf16 trains 1.4 times slower): "
-     "whole; each stage; Table 1; the TRE",
+     "training and inference chosen by timing both (fp32 there: bf16 trains 1.4 times slower), "
+     "today's recipe (training pushes drawn deep more often, `train_depth_exponent` 0.7; the "
+     "rows above: uniform depths): whole; each stage; Table 1; the TRE",
      Cell("time-to-model-phantom-pushes-xeon", ttm_summary,
           TTM.format("phantom") + " --recipe pushes --tag xeon"), "<= 15 min", "-"),
     ("that AMD EPYC network: the paper's Table 1, mean / max e on 200 force patches solved by "
@@ -359,8 +361,9 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "python benchmarks/table1_patches.py CASE --result-name "
           "table1-patches-phantom-pushes-amx"),
      "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
-    ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (Intel Xeon): "
-     "whole; each stage; Table 1 on its held-out rigid pushes",
+    ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (Intel Xeon; "
+     "uniform depths, the recipe before 2026-12-08, as the two rows below): whole; each stage; "
+     "Table 1 on its held-out rigid pushes",
      Cell("time-to-model-ucdavis-pushes-amx", ttm_summary,
           TTM.format("ucdavis") + " --recipe pushes --tag amx"), "<= 15 min", "-"),
     ("the same on an AMD EPYC with AVX-512 BF16 and no AMX, with the teacher gap in each "
@@ -603,7 +606,8 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "python benchmarks/evaluate_again.py CASE --result-name evaluate-again-ucdavis"),
      "-", "-"),
     ("`run` from nothing, UC Davis as one material, the default recipe `pushes` (Intel Xeon; "
-     "Table 2 against the shipped P2 truth, `examples/ucdavis_breast3/homogeneous.toml`): "
+     "uniform depths, the recipe before 2026-12-08; Table 2 against the shipped P2 truth, "
+     "`examples/ucdavis_breast3/homogeneous.toml`): "
      "whole; each stage; Table 1 on its held-out rigid pushes; the tracking network's TRE "
      "against the P2 truth over every lesion, 10 / 20 / 30 mm",
      Cell("time-to-model-ucdavis-homogeneous-pushes-amx", ttm_summary,
@@ -717,7 +721,12 @@ def pushes_cells(render: Callable[[dict], str]) -> tuple[Cell, Cell]:
 #: README.md's headline: (what, phantom cell, UC Davis cell, paper)
 README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
     ("from nothing to a served model, 2 cores (`make demo`; `run`), the default recipe "
-     "`pushes` (Intel Xeon with AMX-BF16)", *pushes_cells(ttm_total), "278 min with a GPU"),
+     "`pushes` (Intel Xeon with AMX-BF16; uniform depths, the recipe before 2026-12-08)",
+     *pushes_cells(ttm_total), "278 min with a GPU"),
+    ("the same, today's `pushes` (training pushes drawn deep more often), phantom on an Intel "
+     "Xeon whose VM hides AMX (fp32)",
+     Cell("time-to-model-phantom-pushes-xeon", ttm_total,
+          TTM.format("phantom") + " --recipe pushes --tag xeon"), None, "-"),
     ("the same, `--recipe pushes-patches` (rigid pushes and force patches; Intel Xeon with "
      "AMX-BF16)",
      mixed_cell("phantom", ttm_total), mixed_cell("ucdavis", ttm_total), "-"),
@@ -726,7 +735,8 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
      Cell("time-to-model-phantom", ttm_total, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_total, TTM_CHAIN.format("ucdavis")), "-"),
     ("Table 1 of the default recipe: mean / max e of the tracking network against its FE "
-     "teacher, held-out rigid pushes up to 35 mm", *pushes_cells(ttm_table1), "-"),
+     "teacher, held-out rigid pushes up to 35 mm (uniform depths, Intel Xeon with AMX-BF16)",
+     *pushes_cells(ttm_table1), "-"),
     ("Table 1, `--recipe pushes-patches`: the tracking network on its held-out force patches (the "
      "paper's test) and rigid pushes", mixed_cell("phantom", ttm_kinds),
      mixed_cell("ucdavis", ttm_kinds), "0.052 / 0.266 mm (force patches)"),
@@ -734,9 +744,10 @@ README_ROWS: list[tuple[str, Cell | None, Cell | None, str]] = [
      Cell("time-to-model-phantom", ttm_table1, TTM_CHAIN.format("phantom")),
      Cell("time-to-model-ucdavis", ttm_table1, TTM_CHAIN.format("ucdavis")), "0.052 / 0.266 mm"),
     ("lesion TRE against an independent FE (P2 tetrahedra), every lesion, 10 / 20 / 30 mm "
-     "pushes: the tracking network of the default recipe (UC Davis as one material)",
-     Cell("time-to-model-phantom-pushes-amx", ttm_tre,
-          TTM.format("phantom") + " --recipe pushes --tag amx"),
+     "pushes: the tracking network of the default recipe (phantom: today's, Intel Xeon "
+     "without AMX; UC Davis as one material: uniform depths, before 2026-12-08)",
+     Cell("time-to-model-phantom-pushes-xeon", ttm_tre,
+          TTM.format("phantom") + " --recipe pushes --tag xeon"),
      Cell("time-to-model-ucdavis-homogeneous-pushes-amx", ttm_tre,
           TTM.format("ucdavis-homogeneous") + " --recipe pushes --tag amx"), "-"),
     ("the same: its FE teacher",
