@@ -258,7 +258,6 @@ def test_pushes_near_lesions_enter_the_protocol_only_when_drawn(base_case):
     assert (probe["lesion_share"], probe["lesion_reach_mm"]) == (0.5, 30.0)
 
 
-
 def test_the_training_depth_exponent_enters_the_protocol_only_when_it_shapes_rigid_pushes(
         base_case):
     """``train_depth_exponent`` 1 (uniform depths) leaves the protocol as it was; another
@@ -273,6 +272,7 @@ def test_the_training_depth_exponent_enters_the_protocol_only_when_it_shapes_rig
     assert protocol_fingerprint(deep) != protocol_fingerprint(uniform)
     cfg.probe.rigid_share = 0.0
     assert "train_depth_exponent" not in protocol_dict(cfg, N_TRAIN, N_TEST)["probe"]
+
 
 def test_pushes_near_lesions_of_a_case_without_lesions_are_refused_before_a_store(base_case,
                                                                                   tmp_path):

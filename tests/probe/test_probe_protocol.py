@@ -217,12 +217,11 @@ def test_training_force_exponent_and_scale_shape_only_training_forces(case, push
                            training=True).force_n == pushes[8].force_n
 
 
-
 def test_training_depth_exponent_shapes_only_training_rigid_depths(case):
     """A training rigid push draws its depth as d_max u^e from the same random numbers as the
     uniform depth: the patch and direction stay, the depth is d_max (depth / d_max)^e; a
-    held-out push keeps the uniform depth whatever the exponent, and e = 1 is the uniform
-    protocol to the bit."""
+    held-out push keeps the uniform depth whatever the exponent, and a training push of e = 1
+    draws the held-out push's depth to the bit."""
     import dataclasses
 
     from biopsynav.probe import deepest_rigid_push
@@ -244,6 +243,7 @@ def test_training_depth_exponent_shapes_only_training_rigid_depths(case):
         depths.append((ref.push_mm, trained.push_mm))
     ref_depths, deep_depths = np.array(depths).T
     assert np.all(deep_depths >= ref_depths) and np.any(deep_depths > ref_depths)
+
 
 def test_lesion_centred_pushes_start_near_the_drawn_lesion(case, pushes):
     """``lesion_share`` 1: every push is centred within ``lesion_reach_mm`` of the skin vertex
