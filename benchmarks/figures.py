@@ -676,6 +676,18 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "benchmarks/results/bound-rows-mri01r-homogeneous-pushes.json "
           "benchmarks/results/bound-rows-mri05r-homogeneous-pushes.json --result-name "
           "error-bound-mri"), "90-97 %; <= 3x", "-"),
+    ("the same bound on the networks of today's `pushes` recipe (training pushes drawn deep "
+     "more often; phantom and UC Davis as one material, seeds 0 and 1; fitted before on "
+     "networks of uniform depths): share within it; worst ratio; the same without the check",
+     Cell("error-bound-deep", lambda d: (f"{d['figures']['coverage']:.0%}; "
+                                         f"{d['figures']['worst_ratio']:.1f}x; without: "
+                                         f"{d['figures']['unchecked_coverage']:.0%}"),
+          "python benchmarks/error_bound.py --check "
+          "benchmarks/results/bound-rows-phantom-pushes-deep.json "
+          "benchmarks/results/bound-rows-phantom-pushes-deep-seed1.json "
+          "benchmarks/results/bound-rows-ucdavis-homogeneous-pushes-deep.json "
+          "benchmarks/results/bound-rows-ucdavis-homogeneous-pushes-deep-seed1.json "
+          "--result-name error-bound-deep"), "90-97 %; <= 3x", "-"),
     *[(f"one training step on the CPU ({unit}), batch 4: fp32 / bf16 channels-last / bf16 "
        "contiguous; batch 16 channels-last: fp32 / bf16; bf16 trainings whose loss turned NaN, "
        "channels-last / contiguous; the CPU's bf16 flags",
