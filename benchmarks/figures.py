@@ -362,7 +362,7 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
           "table1-patches-phantom-pushes-amx"),
      "<= 0.05 / 0.27 mm", "0.052 / 0.266 mm"),
     ("`run` from nothing, UC Davis of three tissues, the default recipe `pushes` (Intel Xeon; "
-     "uniform depths, the recipe before 2026-12-08, as the two rows below): whole; each stage; "
+     "uniform depths, the recipe before 2026-12-08, as the next row): whole; each stage; "
      "Table 1 on its held-out rigid pushes",
      Cell("time-to-model-ucdavis-pushes-amx", ttm_summary,
           TTM.format("ucdavis") + " --recipe pushes --tag amx"), "<= 15 min", "-"),
@@ -372,8 +372,8 @@ BENCH_ROWS: list[tuple[str, Cell, str, str]] = [
      Cell("time-to-model-ucdavis-pushes-avx512-gap", ttm_summary,
           TTM.format("ucdavis") + " --recipe pushes --tag avx512-gap"), "<= 15 min", "-"),
     ("the same on an Intel Xeon whose VM shows AVX-512 BF16 and hides AMX, the arithmetic "
-     "chosen by timing (fp32 there; Table 2 against the fine-grid truth, said so): whole; each "
-     "stage; Table 1",
+     "chosen by timing (fp32 there; Table 2 against the fine-grid truth, said so), today's "
+     "recipe (training pushes drawn deep more often): whole; each stage; Table 1",
      Cell("time-to-model-ucdavis-pushes-xeon", ttm_summary,
           TTM.format("ucdavis") + " --recipe pushes --tag xeon"), "<= 15 min", "-"),
     ("the same network: the paper's Table 1 on 200 force patches of its own teacher's law",
