@@ -33,9 +33,9 @@ With ``[probe] rigid_share`` > 0 that share of the samples is a rigid-probe push
 hold ``floor(n * rigid_share)`` of them), so that a data set's training and held-out parts
 hold known numbers of each kind. Contact points within ``contact_tolerance_mm`` of the face
 plane (the tracker's rest contact), avoiding skin in cells anchored to the chest wall; the
-direction tilted within ``rigid_max_tilt_deg``; every contact point moved by a depth uniform in
-``[0, max_push_mm]`` along it (a training push's ``max_push_mm u^e``, ``e`` =
-``train_depth_exponent``) (prescribed, no force), shorter where that would press the
+direction tilted within ``rigid_max_tilt_deg``; every contact point moved along it (prescribed,
+no force) by a depth uniform in ``[0, max_push_mm]`` (a training push's ``max_push_mm u^e``,
+``e`` = ``train_depth_exponent``), shorter where that would press the
 tissue in front of the chest wall by more than ``max_chest_compression``
 (:func:`deepest_rigid_push`).
 

@@ -270,6 +270,9 @@ def test_the_training_depth_exponent_enters_the_protocol_only_when_it_shapes_rig
     deep = protocol_dict(cfg, N_TRAIN, N_TEST)
     assert deep["probe"]["train_depth_exponent"] == 0.5
     assert protocol_fingerprint(deep) != protocol_fingerprint(uniform)
+    # a data set of uniform depths is another protocol for a case asking deeper pushes
+    attrs = {"protocol": uniform, "protocol_fingerprint": protocol_fingerprint(uniform)}
+    assert not same_protocol(attrs, deep)
     cfg.probe.rigid_share = 0.0
     assert "train_depth_exponent" not in protocol_dict(cfg, N_TRAIN, N_TEST)["probe"]
 
